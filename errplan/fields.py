@@ -1,0 +1,484 @@
+"""Worst-case metric fields over a tip grid and a bounded error set (P1 Sec. IV, P2 Sec. IV-B).
+
+For every tip position ``x`` of a grid and every error instance (true port = estimate + offset,
+tip load ``t = Ft/EI``), the *true* configuration is the one that puts the true tip at ``x``
+(:func:`errplan.kinematics.shaft.flexed_wrist`), the true Jacobian ``J`` is the flexed-shaft
+Jacobian there and the controller's ``Jhat`` comes from its model (rigid lever through the port
+estimate, or P2's flexion model fed by the measured end poses, worst case over the corners of the
+sensor-noise box). Because ``J Jhat^-1 = J_tw Jhat_tw^-1`` (the arm Jacobian cancels), metrics
+depend on the arm only through reachability.
+
+The worst case over the continuous error set is found by sampling it on a grid
+(``[uncertainty] samples`` per axis) and refining each tip's worst sample by a local pattern
+search (step halved ``REFINE_LEVELS`` times). A tip is in the workspace only if it is reachable
+under every instance evaluated (robust validity).
+"""
+from __future__ import annotations
+
+import itertools
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from .errors import ErrplanError
+from .kinematics.arm import Arm
+from .kinematics.shaft import (estimate_from_ends, flexed_end_angles, flexed_jacobian,
+                               flexed_tip, flexed_wrist, lever_parts)
+from .metrics import (compose_parts, conformal_parts, g_norm_from_parts, inverse_parts, phi_hat_max,
+                      phi_max_from_parts)
+
+REFINE_LEVELS = 3
+Progress = Callable[[float, str], None]
+
+
+# ----------------------------------------------------------------------------- error set
+@dataclass(frozen=True)
+class ErrorSet:
+    """A box of error parameters ``theta = (dy, dz, t)`` and the controller noise bounds.
+
+    ``port = base_port + [dy, dz]``; ``t`` is the lateral tip load over EI (1/m^2).
+    ``noise = (position, angle)`` bounds each measured coordinate of P2's flexion controller.
+    """
+
+    base_port: tuple[float, float]
+    lo: tuple[float, float, float]
+    hi: tuple[float, float, float]
+    noise: tuple[float, float] = (0.0, 0.0)
+    samples: int = 5
+
+    @classmethod
+    def from_scenario(cls, sc) -> "ErrorSet":
+        u = sc.uncertainty
+        if u.port_y is None and u.port_z is None:
+            base, py, pz = sc.port.position, (0.0, 0.0), (0.0, 0.0)
+        else:
+            base, py, pz = sc.port.estimate, u.port_y or (0.0, 0.0), u.port_z or (0.0, 0.0)
+        tl = u.tip_force_over_ei or (0.0, 0.0)
+        noise = (u.sensor_noise.position, u.sensor_noise.angle) if u.sensor_noise else (0.0, 0.0)
+        return cls(tuple(base), (py[0], pz[0], tl[0]), (py[1], pz[1], tl[1]), noise, u.samples)
+
+    @property
+    def lo_arr(self) -> np.ndarray:
+        return np.asarray(self.lo, float)
+
+    @property
+    def hi_arr(self) -> np.ndarray:
+        return np.asarray(self.hi, float)
+
+    @property
+    def active(self) -> np.ndarray:
+        """Mask of the uncertain axes (those with a non-degenerate range)."""
+        return self.hi_arr > self.lo_arr
+
+    def sample_grid(self, samples: int | None = None) -> np.ndarray:
+        """Parameters (n, 3) on a regular grid over the box, ``samples`` per uncertain axis."""
+        n = samples or self.samples
+        axes = [np.linspace(l, h, n) if h > l else np.array([l]) for l, h in zip(self.lo, self.hi)]
+        return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+
+    def corners(self) -> np.ndarray:
+        axes = [(l, h) if h > l else (l,) for l, h in zip(self.lo, self.hi)]
+        return np.array(list(itertools.product(*axes)), float)
+
+    def spacing(self, samples: int | None = None) -> np.ndarray:
+        n = samples or self.samples
+        return (self.hi_arr - self.lo_arr) / (n - 1)
+
+    def port(self, theta: np.ndarray) -> np.ndarray:
+        return np.asarray(self.base_port) + theta[..., :2]
+
+    def noise_corners(self) -> np.ndarray:
+        """Sensor-noise vectors (c, 6) at the corners of the noise box: [pw(2), pt(2), th_w, th_t]."""
+        pos, ang = self.noise
+        if pos == 0 and ang == 0:
+            return np.zeros((1, 6))
+        axes = [(-pos, pos) if pos > 0 else (0.0,)] * 4 + [(-ang, ang) if ang > 0 else (0.0,)] * 2
+        return np.array(list(itertools.product(*axes)), float)
+
+
+# ----------------------------------------------------------------------------- evaluator
+@dataclass
+class Evaluator:
+    """Metrics of one tip set under error instances: the physics of docs/physics.md, batched."""
+
+    arm: Arm
+    length: float
+    estimate: tuple[float, float]
+    jacobian: str  # "rigid" | "flexion"
+    errors: ErrorSet
+
+    @classmethod
+    def from_scenario(cls, sc) -> "Evaluator":
+        return cls(Arm.from_robot(sc.robot), sc.instrument.length, tuple(sc.port.estimate),
+                   sc.controller.jacobian, ErrorSet.from_scenario(sc))
+
+    def true_wrist(self, x: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Wrist putting the true tip at ``x`` and its validity (reachable, shaft through port)."""
+        port = self.errors.port(theta)
+        t = theta[..., 2]
+        r = np.linalg.norm(x - port, axis=-1)
+        ok_shaft = (r > 1e-9) & (r < self.length)
+        xs = np.where(ok_shaft[..., None], x, port + [0.0, 0.5 * self.length])
+        w = flexed_wrist(xs, port, self.length, np.where(ok_shaft, t, 0.0))
+        ok_arm = self.arm.reachable(np.where(ok_shaft[..., None], w, 0.0))
+        return w, ok_shaft & ok_arm
+
+    def controller_parts(self, w: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Conformal parts of the controller's ``Jhat_tw`` at the true wrist: (..., c), c noise
+        corners of P2's flexion controller (1 for the rigid lever)."""
+        if self.jacobian == "rigid":
+            mu, nu = lever_parts(w, np.asarray(self.estimate), self.length)
+            return mu[..., None], nu[..., None]
+        port = self.errors.port(theta)
+        t = theta[..., 2]
+        tip, thw, tht = flexed_end_angles(w, port, self.length, t)
+        nc = self.errors.noise_corners()  # (c, 6)
+        pw = w[..., None, :] + nc[:, 0:2]
+        pt = tip[..., None, :] + nc[:, 2:4]
+        est = estimate_from_ends(pw, pt, thw[..., None] + nc[:, 4], tht[..., None] + nc[:, 5], self.length)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return conformal_parts(flexed_jacobian(pw, est["port"], self.length, est["t"]))
+
+    def parts(self, x: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Conformal parts ``(mu, nu)`` of ``M = J Jhat^-1`` (..., c) and validity (...)."""
+        w, ok = self.true_wrist(x, theta)
+        wsafe = np.where(ok[..., None], w, np.asarray(self.arm.base))
+        port = self.errors.port(theta)
+        t = theta[..., 2]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            if np.any(t != 0):
+                mu_j, nu_j = conformal_parts(flexed_jacobian(wsafe, port, self.length, t))
+            else:
+                mu_j, nu_j = lever_parts(wsafe, port, self.length)
+            mu_h, nu_h = self.controller_parts(wsafe, theta)
+            imu, inu, singular = inverse_parts(mu_h, nu_h)
+            mu, nu = compose_parts(mu_j[..., None], nu_j[..., None], imu, inu)
+        bad = singular | ~np.isfinite(mu) | ~np.isfinite(nu)
+        # A singular or unidentifiable controller Jacobian is unbounded error: not a valid tip.
+        ok = ok & ~np.any(bad, axis=-1)
+        return mu, nu, ok
+
+
+# ----------------------------------------------------------------------------- field object
+@dataclass
+class MetricField:
+    """Worst-case metric arrays on a regular ``(y, z)`` grid; NaN outside the workspace."""
+
+    y: np.ndarray
+    z: np.ndarray
+    valid: np.ndarray
+    G_norm: np.ndarray
+    phi_hat_max: np.ndarray
+    phi_max: np.ndarray
+    rho_star: np.ndarray | None = None
+    k_star: np.ndarray | None = None
+    meta: dict = field(default_factory=dict)
+
+    @property
+    def resolution(self) -> float:
+        if "resolution" in self.meta:
+            return float(self.meta["resolution"])
+        return float(self.y[1] - self.y[0])
+
+    def array(self, name: str) -> np.ndarray:
+        a = getattr(self, name, None)
+        if a is None:
+            raise ErrplanError(f"field {name!r} was not computed (use --rho-star or compute_fields(rho_star=True))")
+        return a
+
+    def points(self) -> np.ndarray:
+        """Tip positions (ny, nz, 2) of the grid."""
+        return np.stack(np.meshgrid(self.y, self.z, indexing="ij"), axis=-1)
+
+    def sample(self, name: str, pts: np.ndarray) -> np.ndarray:
+        """Bilinear interpolation of a field at points (..., 2); NaN where a corner is invalid."""
+        a = self.array(name)
+        pts = np.asarray(pts, float)
+        fy = (pts[..., 0] - self.y[0]) / self.resolution
+        fz = (pts[..., 1] - self.z[0]) / self.resolution
+        i0 = np.floor(fy).astype(int)
+        j0 = np.floor(fz).astype(int)
+        inside = (i0 >= 0) & (j0 >= 0) & (i0 < len(self.y) - 1) & (j0 < len(self.z) - 1)
+        i0c = np.clip(i0, 0, len(self.y) - 2)
+        j0c = np.clip(j0, 0, len(self.z) - 2)
+        ty, tz = fy - i0c, fz - j0c
+        v = ((1 - ty) * (1 - tz) * a[i0c, j0c] + ty * (1 - tz) * a[i0c + 1, j0c]
+             + (1 - ty) * tz * a[i0c, j0c + 1] + ty * tz * a[i0c + 1, j0c + 1])
+        return np.where(inside, v, np.nan)
+
+    def summary(self) -> dict:
+        """Share of the workspace with ||G|| < 1 (and rho* < 1) and max/median of each field."""
+        n = int(self.valid.sum())
+        out: dict = {"grid": [len(self.y), len(self.z)], "resolution": self.resolution, "valid_points": n,
+                     "workspace_area_m2": n * self.resolution**2}
+        if n == 0:
+            return out
+        out["share_G_below_1"] = float(np.mean(self.G_norm[self.valid] < 1.0))
+        if self.rho_star is not None:
+            out["share_rho_star_below_1"] = float(np.mean(self.rho_star[self.valid] < 1.0))
+        for name in ("G_norm", "phi_hat_max", "phi_max", "rho_star", "k_star"):
+            a = getattr(self, name)
+            if a is not None:
+                v = a[self.valid]
+                out[name] = {"max": float(v.max()), "median": float(np.median(v)), "min": float(v.min())}
+        return out
+
+    # ---------------------------------------------------------------- io
+    def save(self, path: str | Path) -> None:
+        """Write the npz of docs/interfaces.md (atomically: nothing half-written)."""
+        path = Path(path)
+        arrays = {"y": self.y, "z": self.z, "valid": self.valid, "G_norm": self.G_norm,
+                  "phi_hat_max": self.phi_hat_max, "phi_max": self.phi_max,
+                  "meta": np.array(json.dumps(self.meta))}
+        if self.rho_star is not None:
+            arrays["rho_star"] = self.rho_star
+            arrays["k_star"] = self.k_star
+        tmp = path.with_name(path.name + ".part")
+        with open(tmp, "wb") as f:
+            np.savez_compressed(f, **arrays)
+        tmp.replace(path)
+
+    @classmethod
+    def load(cls, path: str | Path) -> "MetricField":
+        with np.load(path) as d:
+            meta = json.loads(str(d["meta"])) if "meta" in d else {}
+            return cls(d["y"], d["z"], d["valid"].astype(bool), d["G_norm"], d["phi_hat_max"], d["phi_max"],
+                       d["rho_star"] if "rho_star" in d else None, d["k_star"] if "k_star" in d else None, meta)
+
+
+# ----------------------------------------------------------------------------- computation
+def _aligned_axis(lo: float, hi: float, res: float) -> np.ndarray:
+    i0, i1 = math.floor(lo / res), math.ceil(hi / res)
+    return np.arange(i0, i1 + 1) * res
+
+
+def workspace_bounds(ev: Evaluator) -> tuple[float, float, float, float]:
+    """Bounding box (y0, y1, z0, z1) of tips reachable under any corner instance."""
+    w = ev.arm.sample_wrists(161)
+    tips = []
+    for th in ev.errors.corners():
+        port = ev.errors.port(th)
+        r = np.linalg.norm(port - w, axis=-1)
+        ww = w[(r < ev.length) & (r > 1e-6)]
+        if len(ww):
+            tips.append(flexed_tip(ww, port, ev.length, th[2]))
+    if not tips:
+        raise ErrplanError("the tip workspace is empty: no reachable wrist puts the shaft through the port")
+    t = np.concatenate(tips)
+    return float(t[:, 0].min()), float(t[:, 0].max()), float(t[:, 1].min()), float(t[:, 1].max())
+
+
+def _reduce(mu: np.ndarray, nu: np.ndarray, k: float) -> tuple[np.ndarray, np.ndarray]:
+    """Worst case over the noise axis (last): ``(||G||, |phi_max|)``."""
+    return g_norm_from_parts(mu, nu, k).max(axis=-1), phi_max_from_parts(mu, nu).max(axis=-1)
+
+
+def worst_case(ev: Evaluator, x: np.ndarray, k: float, *, samples: int | None = None,
+               refine: int = REFINE_LEVELS, keep_parts: bool = False,
+               progress: Progress | None = None) -> dict[str, np.ndarray]:
+    """Worst-case ``||G||`` (gain ``k``) and ``|phi_max|`` at tips ``x`` (n, 2).
+
+    Returns ``valid``, ``G_norm``, ``phi_max``, the worst parameters ``theta_G``/``theta_phi``
+    and, with ``keep_parts``, the sampled ``mu``/``nu`` (n, m, c) for gain optimisation.
+    """
+    es = ev.errors
+    grid = es.sample_grid(samples)
+    n = len(x)
+    valid = np.ones(n, bool)
+    best_g = np.full(n, -np.inf)
+    best_p = np.full(n, -np.inf)
+    th_g = np.zeros((n, 3))
+    th_p = np.zeros((n, 3))
+    mus, nus = [], []
+    idx = np.arange(n)
+    total = len(grid) + 2 * refine * 2 * int(es.active.sum())
+    done = 0
+    for th in grid:
+        sub = idx[valid]
+        if len(sub) == 0:
+            break
+        mu, nu, ok = ev.parts(x[sub], th)
+        valid[sub[~ok]] = False
+        g, p = _reduce(mu, nu, k)
+        upd = ok & (g > best_g[sub])
+        best_g[sub[upd]] = g[upd]
+        th_g[sub[upd]] = th
+        upd = ok & (p > best_p[sub])
+        best_p[sub[upd]] = p[upd]
+        th_p[sub[upd]] = th
+        if keep_parts:
+            full_mu = np.full((n,) + mu.shape[1:], np.nan, complex)
+            full_nu = np.full_like(full_mu, np.nan)
+            full_mu[sub], full_nu[sub] = mu, nu
+            mus.append(full_mu)
+            nus.append(full_nu)
+        done += 1
+        if progress:
+            progress(done / total, "sampling the error set")
+    # Local refinement of each tip's worst instance (pattern search, step halved each level).
+    step0 = es.spacing(samples)
+    lo, hi = es.lo_arr, es.hi_arr
+    dims = np.flatnonzero(es.active)
+    for level in range(1, refine + 1):
+        h = step0 / 2**level
+        for which in ("G", "phi"):
+            th_best = th_g if which == "G" else th_p
+            cands = []
+            for dmn in dims:
+                for sgn in (-1.0, 1.0):
+                    c = th_best.copy()
+                    c[:, dmn] = np.clip(c[:, dmn] + sgn * h[dmn], lo[dmn], hi[dmn])
+                    cands.append(c)
+            for c in cands:
+                sub = idx[valid]
+                if len(sub) == 0:
+                    break
+                mu, nu, ok = ev.parts(x[sub], c[sub])
+                valid[sub[~ok]] = False
+                g, p = _reduce(mu, nu, k)
+                if which == "G":
+                    upd = ok & (g > best_g[sub])
+                    best_g[sub[upd]] = g[upd]
+                    th_g[sub[upd]] = c[sub[upd]]
+                else:
+                    upd = ok & (p > best_p[sub])
+                    best_p[sub[upd]] = p[upd]
+                    th_p[sub[upd]] = c[sub[upd]]
+                done += 1
+                if progress:
+                    progress(done / total, "refining the worst case")
+    best_g[~valid] = np.nan
+    best_p[~valid] = np.nan
+    out = {"valid": valid, "G_norm": best_g, "phi_max": best_p, "theta_G": th_g, "theta_phi": th_p}
+    if keep_parts:
+        out["mu"] = np.stack(mus, axis=1) if mus else np.zeros((n, 0, 1), complex)
+        out["nu"] = np.stack(nus, axis=1) if nus else np.zeros((n, 0, 1), complex)
+    return out
+
+
+def minimize_gain(mu: np.ndarray, nu: np.ndarray, iters: int = 60) -> tuple[np.ndarray, np.ndarray]:
+    """``rho* = min_k max_i |1 - k mu_i| + k |nu_i|`` per row, by golden section (convex in k).
+
+    ``mu``, ``nu``: (n, m) complex, NaN entries ignored. Returns ``(rho_star, k_star)``; where no
+    gain contracts, ``rho* = 1`` at ``k* = 0``.
+    """
+    mu = np.asarray(mu).reshape(len(mu), -1)
+    nu = np.asarray(nu).reshape(len(nu), -1)
+    bad = ~np.isfinite(mu) | ~np.isfinite(nu)
+    mu = np.where(bad, 0.0, mu)
+    nu = np.where(bad, 0.0, nu)
+    amax = np.abs(mu).max(axis=1)
+    kmax = np.where(amax > 0, 2.0 / np.where(amax > 0, amax, 1.0), 1.0)
+
+    def f(k):
+        return (np.abs(1.0 - k[:, None] * mu) + k[:, None] * np.abs(nu)).max(axis=1)
+
+    a = np.zeros(len(mu))
+    b = kmax.copy()
+    gr = (math.sqrt(5) - 1) / 2
+    c = b - gr * (b - a)
+    d = a + gr * (b - a)
+    fc, fd = f(c), f(d)
+    for _ in range(iters):
+        left = fc < fd  # the minimum lies in [a, d]
+        a, b = np.where(left, a, c), np.where(left, d, b)
+        new_x = np.where(left, b - gr * (b - a), a + gr * (b - a))
+        f_new = f(new_x)
+        c, d, fc, fd = (np.where(left, new_x, d), np.where(left, c, new_x),
+                        np.where(left, f_new, fd), np.where(left, fc, f_new))
+    k = 0.5 * (a + b)
+    rho = f(k)
+    none = rho >= 1.0
+    return np.where(none, 1.0, rho), np.where(none, 0.0, k)
+
+
+def compute_fields(sc, resolution: float | None = None, rho_star: bool = False, *,
+                   samples: int | None = None, refine: int = REFINE_LEVELS,
+                   progress: Progress | None = None) -> MetricField:
+    """Worst-case fields of a scenario on its tip grid (docs/interfaces.md "fields npz")."""
+    ev = Evaluator.from_scenario(sc)
+    res = float(resolution or sc.fields.resolution)
+    if res <= 0 or not math.isfinite(res):
+        raise ErrplanError(f"resolution = {resolution!r}: expected a grid spacing > 0 m")
+    y0, y1, z0, z1 = workspace_bounds(ev)
+    y = _aligned_axis(y0 - 2 * res, y1 + 2 * res, res)
+    z = _aligned_axis(z0 - 2 * res, z1 + 2 * res, res)
+    if len(y) * len(z) > 4_000_000:
+        raise ErrplanError(f"resolution = {res}: the grid would have {len(y) * len(z)} points (max 4,000,000)")
+    Y, Z = np.meshgrid(y, z, indexing="ij")
+    pts = np.stack([Y.ravel(), Z.ravel()], axis=-1)
+    # Cheap prefilter: a tip must be within the shaft length of some port of the box.
+    es = ev.errors
+    near = np.zeros(len(pts), bool)
+    for th in es.corners():
+        near |= np.linalg.norm(pts - es.port(th), axis=-1) < ev.length
+    cand = np.flatnonzero(near)
+    k = float(sc.controller.gain)
+    wc = worst_case(ev, pts[cand], k, samples=samples, refine=refine, keep_parts=rho_star, progress=progress)
+    shape = Y.shape
+
+    def scatter(v, fill=np.nan, dtype=float):
+        a = np.full(len(pts), fill, dtype=dtype)
+        a[cand] = v
+        return a.reshape(shape)
+
+    valid = scatter(wc["valid"], False, bool)
+    gn = scatter(wc["G_norm"])
+    pm = scatter(wc["phi_max"])
+    ph = phi_hat_max(np.where(valid, gn, 1.0))
+    ph[~valid] = np.nan
+    meta = {"scenario": sc.name, "gain": k, "resolution": res, "jacobian": sc.controller.jacobian,
+            "error_set": {"base_port": list(es.base_port), "lo": list(es.lo), "hi": list(es.hi),
+                          "noise": list(es.noise), "samples": samples or es.samples, "refine_levels": refine},
+            "length": ev.length}
+    mf = MetricField(y, z, valid, gn, ph, pm, meta=meta)
+    if rho_star:
+        if progress:
+            progress(1.0, "minimising the worst case over the gain")
+        v = wc["valid"]
+        mu = wc["mu"][v].reshape(int(v.sum()), -1)
+        nu = wc["nu"][v].reshape(int(v.sum()), -1)
+        rs, ks = minimize_gain(mu, nu)
+        # Certify at k*: the refined worst case over the continuous error set at that gain.
+        xs = pts[cand][v]
+        rs_ref = _refined_at_gain(ev, xs, ks, samples=samples, refine=refine)
+        rs_ref = np.where(ks > 0, np.maximum(rs, rs_ref), 1.0)
+        rfull = np.full(len(cand), np.nan)
+        kfull = np.full(len(cand), np.nan)
+        rfull[v] = rs_ref
+        kfull[v] = ks
+        mf.rho_star = scatter(rfull)
+        mf.k_star = scatter(kfull)
+    return mf
+
+
+def _refined_at_gain(ev: Evaluator, x: np.ndarray, k: np.ndarray, *, samples=None, refine=REFINE_LEVELS) -> np.ndarray:
+    """Worst ``||G||`` at a per-point gain ``k`` over the error set, with local refinement."""
+    es = ev.errors
+    grid = es.sample_grid(samples)
+    best = np.full(len(x), -np.inf)
+    th_best = np.zeros((len(x), 3))
+    for th in grid:
+        mu, nu, ok = ev.parts(x, th)
+        g = g_norm_from_parts(mu, nu, k[:, None]).max(axis=-1)
+        g = np.where(ok, g, np.inf)
+        upd = g > best
+        best[upd] = g[upd]
+        th_best[upd] = th
+    step0 = es.spacing(samples)
+    for level in range(1, refine + 1):
+        h = step0 / 2**level
+        for dmn in np.flatnonzero(es.active):
+            for sgn in (-1.0, 1.0):
+                c = th_best.copy()
+                c[:, dmn] = np.clip(c[:, dmn] + sgn * h[dmn], es.lo[dmn], es.hi[dmn])
+                mu, nu, ok = ev.parts(x, c)
+                g = np.where(ok, g_norm_from_parts(mu, nu, k[:, None]).max(axis=-1), np.inf)
+                upd = g > best
+                best[upd] = g[upd]
+                th_best[upd] = c[upd]
+    return best

@@ -1,0 +1,174 @@
+"""Planar two-link arm (P1 Sec. III-A, docs/physics.md "Robot").
+
+All functions take joint angles ``q`` of shape ``(..., 2)`` (rad) and points of shape
+``(..., 2)`` as ``[y, z]`` (m); leading axes are batch axes. The direction of angle ``a`` is
+``dir(a) = [sin a, cos a]``; link 1 points along ``a1 = q1 + h1`` and link 2 along
+``a2 = a1 + q2 + h2``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+def direction(a: np.ndarray) -> np.ndarray:
+    """Unit vector ``[sin a, cos a]`` of angle ``a`` (any shape) -> shape ``(..., 2)``."""
+    a = np.asarray(a, dtype=float)
+    return np.stack([np.sin(a), np.cos(a)], axis=-1)
+
+
+def direction_derivative(a: np.ndarray) -> np.ndarray:
+    """``d dir(a) / da = [cos a, -sin a]``: the unit normal on the side of increasing angle."""
+    a = np.asarray(a, dtype=float)
+    return np.stack([np.cos(a), -np.sin(a)], axis=-1)
+
+
+def angle_of(v: np.ndarray) -> np.ndarray:
+    """Angle ``a`` of a vector ``[y, z]`` in the convention ``dir(a)``: ``atan2(y, z)``."""
+    v = np.asarray(v, dtype=float)
+    return np.arctan2(v[..., 0], v[..., 1])
+
+
+def _wrap(a: np.ndarray) -> np.ndarray:
+    return (a + np.pi) % (2 * np.pi) - np.pi
+
+
+@dataclass(frozen=True)
+class Arm:
+    """The planar arm: shoulder ``base`` [y, z], link lengths, home angles and joint limits."""
+
+    base: tuple[float, float]
+    l1: float
+    l2: float
+    home: tuple[float, float]
+    q1_limits: tuple[float, float]
+    q2_limits: tuple[float, float]
+    sum_limits: tuple[float, float]
+
+    @classmethod
+    def from_robot(cls, robot) -> "Arm":
+        """From a :class:`errplan.scenario.Robot`."""
+        (l1, l2), (lim1, lim2) = robot.link_lengths, robot.joint_limits
+        return cls(tuple(robot.base), l1, l2, tuple(robot.home_angles), tuple(lim1), tuple(lim2),
+                   tuple(robot.joint_sum_limits))
+
+    # ------------------------------------------------------------------ forward
+    def link_angles(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Absolute link angles ``(a1, a2)`` for joint angles ``q`` (..., 2)."""
+        q = np.asarray(q, dtype=float)
+        a1 = q[..., 0] + self.home[0]
+        return a1, a1 + q[..., 1] + self.home[1]
+
+    def elbow(self, q: np.ndarray) -> np.ndarray:
+        a1, _ = self.link_angles(q)
+        return np.asarray(self.base) + self.l1 * direction(a1)
+
+    def forward(self, q: np.ndarray) -> np.ndarray:
+        """Wrist position ``w`` (..., 2) for joint angles ``q`` (..., 2)."""
+        a1, a2 = self.link_angles(q)
+        return np.asarray(self.base) + self.l1 * direction(a1) + self.l2 * direction(a2)
+
+    def forward_from_link_angles(self, a1: np.ndarray, a2: np.ndarray) -> np.ndarray:
+        return np.asarray(self.base) + self.l1 * direction(a1) + self.l2 * direction(a2)
+
+    def jacobian(self, q: np.ndarray) -> np.ndarray:
+        """``dw/dq`` of shape (..., 2, 2): rows [y, z], columns [q1, q2]."""
+        a1, a2 = self.link_angles(q)
+        d1, d2 = direction_derivative(a1), direction_derivative(a2)
+        c1 = self.l1 * d1 + self.l2 * d2
+        c2 = self.l2 * d2
+        return np.stack([c1, c2], axis=-1)
+
+    # ------------------------------------------------------------------ limits
+    def within_limits(self, q: np.ndarray, tol: float = 1e-12) -> np.ndarray:
+        q = np.asarray(q, dtype=float)
+        q1, q2 = q[..., 0], q[..., 1]
+        s = q1 + q2
+        return ((q1 >= self.q1_limits[0] - tol) & (q1 <= self.q1_limits[1] + tol)
+                & (q2 >= self.q2_limits[0] - tol) & (q2 <= self.q2_limits[1] + tol)
+                & (s >= self.sum_limits[0] - tol) & (s <= self.sum_limits[1] + tol))
+
+    def limit_margin(self, q: np.ndarray) -> np.ndarray:
+        """Smallest distance (rad) of ``q`` to any joint limit; negative outside the limits."""
+        q = np.asarray(q, dtype=float)
+        q1, q2 = q[..., 0], q[..., 1]
+        s = q1 + q2
+        return np.minimum.reduce([
+            q1 - self.q1_limits[0], self.q1_limits[1] - q1,
+            q2 - self.q2_limits[0], self.q2_limits[1] - q2,
+            s - self.sum_limits[0], self.sum_limits[1] - s,
+        ])
+
+    # ------------------------------------------------------------------ inverse
+    def _preferred_sign(self) -> float:
+        # The elbow branch of the home pose (relative angle a2 - a1 = h2 at q = 0).
+        return -1.0 if np.sin(self.home[1]) < 0 else 1.0
+
+    def _branch(self, d: np.ndarray, c: np.ndarray, sgn: float) -> np.ndarray:
+        delta = sgn * np.arccos(np.clip(c, -1.0, 1.0))
+        a1 = angle_of(d) - np.arctan2(self.l2 * np.sin(delta), self.l1 + self.l2 * np.cos(delta))
+        return np.stack([_wrap(a1 - self.home[0]), _wrap(delta - self.home[1])], axis=-1)
+
+    def _annulus(self, w: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        d = np.asarray(w, dtype=float) - np.asarray(self.base)
+        c = (d[..., 0] ** 2 + d[..., 1] ** 2 - self.l1**2 - self.l2**2) / (2 * self.l1 * self.l2)
+        return d, c, (c >= -1.0) & (c <= 1.0)
+
+    def inverse_branches(self, w: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Both IK solutions for wrist ``w`` (..., 2).
+
+        Returns ``(q_pref, q_other, reachable)``: the home-pose elbow branch first, the other
+        second (each (..., 2), NaN where the wrist is out of the annulus), and the annulus mask.
+        """
+        d, c, reach = self._annulus(w)
+        out = []
+        for sgn in (self._preferred_sign(), -self._preferred_sign()):
+            q = self._branch(d, c, sgn)
+            q[~reach] = np.nan
+            out.append(q)
+        return out[0], out[1], reach
+
+    def inverse(self, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Joint angles putting the wrist at ``w`` inside the limits.
+
+        Returns ``(q, ok)``: ``q`` (..., 2) is the home-pose elbow branch where it is inside the
+        limits, else the other branch where that is, else NaN; ``ok`` marks reachable wrists.
+        The second branch is only computed where the first fails.
+        """
+        d, c, reach = self._annulus(w)
+        sgn = self._preferred_sign()
+        q = self._branch(d, c, sgn)
+        ok = reach & self.within_limits(q)
+        retry = reach & ~ok
+        if np.any(retry):
+            qb = self._branch(d[retry], c[retry], -sgn)
+            okb = self.within_limits(qb)
+            idx = np.flatnonzero(retry.ravel())
+            qf = q.reshape(-1, 2)
+            qf[idx[okb]] = qb[okb]
+            okf = ok.ravel()
+            okf[idx[okb]] = True
+            ok = okf.reshape(ok.shape)
+            q = qf.reshape(q.shape)
+        q[~ok] = np.nan
+        return q, ok
+
+    def reachable(self, w: np.ndarray) -> np.ndarray:
+        return self.inverse(w)[1]
+
+    # ------------------------------------------------------------------ sampling
+    def sample_wrists(self, n: int = 121) -> np.ndarray:
+        """Wrist positions (m, 2) over an ``n x n`` grid of the joint box, inside the limits."""
+        q1 = np.linspace(*self.q1_limits, n)
+        q2 = np.linspace(*self.q2_limits, n)
+        Q = np.stack(np.meshgrid(q1, q2, indexing="ij"), axis=-1).reshape(-1, 2)
+        Q = Q[self.within_limits(Q)]
+        return self.forward(Q)
+
+    def min_distance_to(self, p, n: int = 121) -> float:
+        """Distance from point ``p`` to the nearest reachable wrist (sampled joint grid)."""
+        w = self.sample_wrists(n)
+        if len(w) == 0:
+            return float("inf")
+        return float(np.min(np.linalg.norm(w - np.asarray(p, dtype=float), axis=-1)))

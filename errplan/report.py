@@ -1,0 +1,106 @@
+"""Output helpers shared by the commands: readable tables, atomic JSON, progress lines."""
+from __future__ import annotations
+
+import json
+import math
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Any, Iterable, Sequence
+
+from .errors import ErrplanError
+
+
+def format_table(headers: Sequence[str], rows: Iterable[Sequence[Any]], title: str | None = None) -> str:
+    """A plain-text table with right-aligned numbers."""
+
+    def cell(v: Any) -> str:
+        if isinstance(v, bool):
+            return "yes" if v else "no"
+        if isinstance(v, float):
+            if not math.isfinite(v):
+                return "-"
+            return f"{v:.4g}" if abs(v) < 1e4 else f"{v:.3e}"
+        return str(v)
+
+    body = [[cell(v) for v in r] for r in rows]
+    widths = [max([len(h)] + [len(r[i]) for r in body]) for i, h in enumerate(headers)]
+    lines = []
+    if title:
+        lines.append(title)
+    lines.append("  ".join(h.ljust(w) for h, w in zip(headers, widths)))
+    lines.append("  ".join("-" * w for w in widths))
+    for r in body:
+        lines.append("  ".join(c.rjust(w) if _numeric(c) else c.ljust(w) for c, w in zip(r, widths)))
+    return "\n".join(lines)
+
+
+def _numeric(s: str) -> bool:
+    try:
+        float(s)
+        return True
+    except ValueError:
+        return False
+
+
+def _clean(obj: Any, path: str = "") -> Any:
+    """Convert numpy values to JSON types; refuse NaN/inf (they would leak silently)."""
+    try:
+        import numpy as np
+    except ImportError:  # pragma: no cover
+        np = None
+    if isinstance(obj, dict):
+        return {str(k): _clean(v, f"{path}.{k}") for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_clean(v, f"{path}[{i}]") for i, v in enumerate(obj)]
+    if np is not None and isinstance(obj, np.ndarray):
+        return _clean(obj.tolist(), path)
+    if np is not None and isinstance(obj, np.generic):
+        obj = obj.item()
+    if isinstance(obj, float) and not math.isfinite(obj):
+        raise ErrplanError(f"internal: non-finite value {obj} at {path or 'top'} in the JSON output")
+    return obj
+
+
+def to_json(obj: Any) -> str:
+    return json.dumps(_clean(obj), indent=2)
+
+
+def write_atomic(path: str | Path, text: str) -> None:
+    """Write a text file atomically (temp file + rename): never half-written."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".part")
+    tmp.write_text(text, encoding="utf-8")
+    os.replace(tmp, path)
+
+
+def write_json(path: str | Path, obj: Any) -> None:
+    write_atomic(path, to_json(obj) + "\n")
+
+
+class Progress:
+    """Progress on stderr: an updating line on a terminal, a few lines otherwise."""
+
+    def __init__(self, label: str, stream=None, quiet: bool = False):
+        self.label = label
+        self.stream = stream or sys.stderr
+        self.quiet = quiet
+        self.tty = hasattr(self.stream, "isatty") and self.stream.isatty()
+        self.t0 = time.perf_counter()
+        self._last_pct = -100
+
+    def __call__(self, fraction: float, message: str = "") -> None:
+        if self.quiet:
+            return
+        pct = int(100 * min(max(fraction, 0.0), 1.0))
+        if self.tty:
+            self.stream.write(f"\r{self.label}: {pct:3d}% {message:<40s}")
+            self.stream.flush()
+        elif pct >= self._last_pct + 25 or pct == 100 and self._last_pct != 100:
+            self._last_pct = pct
+            self.stream.write(f"{self.label}: {pct:3d}% {message} ({time.perf_counter() - self.t0:.1f} s)\n")
+
+    def done(self) -> None:
+        if not self.quiet and self.tty:
+            self.stream.write(f"\r{self.label}: done in {time.perf_counter() - self.t0:.1f} s{' ' * 40}\n")

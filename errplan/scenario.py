@@ -1,0 +1,479 @@
+"""Scenario files: TOML -> validated, immutable :class:`Scenario`.
+
+Every table of ``docs/interfaces.md`` has a frozen dataclass here. :func:`load_scenario`
+reads a file once and validates every key; a malformed file raises one
+:class:`ScenarioError` that names the key, the value and what was expected.
+Nothing else lives in this module (no kinematics beyond the reachability check).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any, Mapping
+
+try:  # Python >= 3.11
+    import tomllib
+except ModuleNotFoundError:  # pragma: no cover
+    import tomli as tomllib  # type: ignore
+
+from .errors import ScenarioError
+
+METRICS = ("phi_hat_max", "G_norm", "phi_max", "rho_star")
+JACOBIANS = ("rigid", "flexion")
+TOLERANCE_KINDS = ("port", "insertion_band", "tip_load", "tracker_noise")
+EFFECT_PARAMS: dict[str, tuple[str, ...]] = {
+    "port_offset": ("dy", "dz"),
+    "joint_offset": ("dq1", "dq2"),
+    "tracker_offset": ("by", "bz"),
+    "gravity_sag": ("c1", "c2", "c3"),
+    "shaft_flexion": ("fy", "fz"),
+    "port_friction": ("fa", "fn"),
+}
+
+
+# ----------------------------------------------------------------------------- tables
+@dataclass(frozen=True)
+class Robot:
+    base: tuple[float, float] = (0.210, -0.210)
+    link_lengths: tuple[float, float] = (0.210, 0.210)
+    home_angles: tuple[float, float] = (0.0, -math.pi / 2)
+    joint_limits: tuple[tuple[float, float], tuple[float, float]] = ((-1.9, 1.2), (-0.7, 1.0))
+    joint_sum_limits: tuple[float, float] = (-0.3, 2.8)
+
+
+@dataclass(frozen=True)
+class Instrument:
+    length: float = 0.320
+    flexural_rigidity: float | None = None
+
+
+@dataclass(frozen=True)
+class Port:
+    position: tuple[float, float]
+    estimate: tuple[float, float]
+
+
+@dataclass(frozen=True)
+class Controller:
+    gain: float = 1.0
+    jacobian: str = "rigid"
+
+
+@dataclass(frozen=True)
+class SensorNoise:
+    position: float = 0.0
+    angle: float = 0.0
+
+
+@dataclass(frozen=True)
+class Uncertainty:
+    """Bounded error set. Ports are ``estimate + offset``; ``None`` means "not uncertain"."""
+
+    port_y: tuple[float, float] | None = None
+    port_z: tuple[float, float] | None = None
+    tip_force_over_ei: tuple[float, float] | None = None
+    sensor_noise: SensorNoise | None = None
+    samples: int = 5  # samples per uncertain axis before local refinement
+
+    @property
+    def declared(self) -> bool:
+        return any(v is not None for v in (self.port_y, self.port_z, self.tip_force_over_ei, self.sensor_noise))
+
+
+@dataclass(frozen=True)
+class Sensors:
+    tracker_sigma: float = 0.0002
+    encoder_sigma: float = 0.0
+
+
+@dataclass(frozen=True)
+class Fields:
+    resolution: float = 0.002
+
+
+@dataclass(frozen=True)
+class Planner:
+    metric: str = "phi_hat_max"
+    weight: float = 1.0
+    planner: str = "RRTstar"
+    time: float = 1.0
+    seed: int = 1
+    certifiable: bool = True
+    certify_margin: float = 0.02
+
+
+@dataclass(frozen=True)
+class Query:
+    name: str
+    start: tuple[float, float]
+    goal: tuple[float, float]
+
+
+@dataclass(frozen=True)
+class Tolerance:
+    name: str
+    kind: str
+    options: Mapping[str, Any] = field(default_factory=dict)
+
+    def get(self, key: str, default: Any = None) -> Any:
+        return self.options.get(key, default)
+
+
+@dataclass(frozen=True)
+class Scenario:
+    name: str
+    robot: Robot
+    instrument: Instrument
+    port: Port
+    controller: Controller
+    uncertainty: Uncertainty
+    sensors: Sensors
+    fields: Fields
+    planner: Planner
+    queries: tuple[Query, ...] = ()
+    tolerances: tuple[Tolerance, ...] = ()
+    effects: Mapping[str, Mapping[str, float]] = field(default_factory=dict)
+    description: str = ""
+    source: str = "<memory>"
+
+    def with_(self, **changes: Any) -> "Scenario":
+        """A copy with some top-level tables replaced (dataclasses.replace)."""
+        return replace(self, **changes)
+
+
+# ----------------------------------------------------------------------------- helpers
+class _Ctx:
+    def __init__(self, source: str):
+        self.source = source
+
+    def fail(self, key: str, value: Any, expected: str) -> ScenarioError:
+        return ScenarioError(f"{self.source}: {key} = {value!r}: expected {expected}")
+
+
+def _check_keys(ctx: _Ctx, table: Mapping[str, Any], allowed: tuple[str, ...], where: str) -> None:
+    for k in table:
+        if k not in allowed:
+            raise ctx.fail(f"{where}{k}", table[k], f"one of the keys {', '.join(allowed)} (unknown key)")
+
+
+def _table(ctx: _Ctx, doc: Mapping[str, Any], key: str, required: bool) -> Mapping[str, Any]:
+    if key not in doc:
+        if required:
+            raise ctx.fail(f"[{key}]", None, "a table (missing)")
+        return {}
+    v = doc[key]
+    if not isinstance(v, dict):
+        raise ctx.fail(f"[{key}]", v, "a table")
+    return v
+
+
+def _num(ctx: _Ctx, v: Any, key: str, *, positive: bool = False, nonneg: bool = False) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise ctx.fail(key, v, "a number")
+    x = float(v)
+    if not math.isfinite(x):
+        raise ctx.fail(key, v, "a finite number")
+    if positive and x <= 0:
+        raise ctx.fail(key, v, "a number > 0")
+    if nonneg and x < 0:
+        raise ctx.fail(key, v, "a number >= 0")
+    return x
+
+
+def _pair(ctx: _Ctx, v: Any, key: str, *, ordered: bool = False) -> tuple[float, float]:
+    if not isinstance(v, list) or len(v) != 2:
+        raise ctx.fail(key, v, "a list of two numbers")
+    a, b = (_num(ctx, x, key) for x in v)
+    if ordered and a > b:
+        raise ctx.fail(key, v, "[low, high] with low <= high (limits reversed)")
+    return (a, b)
+
+
+def _get(ctx: _Ctx, t: Mapping[str, Any], key: str, where: str, default: Any = ..., ) -> Any:
+    if key in t:
+        return t[key]
+    if default is ...:
+        raise ctx.fail(f"{where}{key}", None, "a value (missing key)")
+    return default
+
+
+# ----------------------------------------------------------------------------- parsing
+def _robot(ctx: _Ctx, t: Mapping[str, Any]) -> Robot:
+    w = "[robot] "
+    _check_keys(ctx, t, ("base", "link_lengths", "home_angles", "joint_limits", "joint_sum_limits"), w)
+    d = Robot()
+    base = _pair(ctx, _get(ctx, t, "base", w, list(d.base)), w + "base")
+    ll = _pair(ctx, _get(ctx, t, "link_lengths", w, list(d.link_lengths)), w + "link_lengths")
+    if min(ll) <= 0:
+        raise ctx.fail(w + "link_lengths", list(ll), "two lengths > 0")
+    home = _pair(ctx, _get(ctx, t, "home_angles", w, list(d.home_angles)), w + "home_angles")
+    jl = _get(ctx, t, "joint_limits", w, [list(x) for x in d.joint_limits])
+    if not isinstance(jl, list) or len(jl) != 2:
+        raise ctx.fail(w + "joint_limits", jl, "[[q1_lo, q1_hi], [q2_lo, q2_hi]]")
+    jl2 = tuple(_pair(ctx, x, w + f"joint_limits[{i}]", ordered=True) for i, x in enumerate(jl))
+    js = _pair(ctx, _get(ctx, t, "joint_sum_limits", w, list(d.joint_sum_limits)), w + "joint_sum_limits", ordered=True)
+    return Robot(base, ll, home, jl2, js)  # type: ignore[arg-type]
+
+
+def _instrument(ctx: _Ctx, t: Mapping[str, Any]) -> Instrument:
+    w = "[instrument] "
+    _check_keys(ctx, t, ("length", "flexural_rigidity"), w)
+    length = _num(ctx, _get(ctx, t, "length", w), w + "length", positive=True)
+    ei = t.get("flexural_rigidity")
+    return Instrument(length, None if ei is None else _num(ctx, ei, w + "flexural_rigidity", positive=True))
+
+
+def _port(ctx: _Ctx, t: Mapping[str, Any]) -> Port:
+    w = "[port] "
+    _check_keys(ctx, t, ("position", "estimate"), w)
+    pos = _pair(ctx, _get(ctx, t, "position", w), w + "position")
+    est = _pair(ctx, _get(ctx, t, "estimate", w, list(pos)), w + "estimate")
+    return Port(pos, est)
+
+
+def _controller(ctx: _Ctx, t: Mapping[str, Any]) -> Controller:
+    w = "[controller] "
+    _check_keys(ctx, t, ("gain", "jacobian"), w)
+    gain = _num(ctx, _get(ctx, t, "gain", w, 1.0), w + "gain", positive=True)
+    jac = _get(ctx, t, "jacobian", w, "rigid")
+    if jac not in JACOBIANS:
+        raise ctx.fail(w + "jacobian", jac, " or ".join(f'"{j}"' for j in JACOBIANS))
+    return Controller(gain, jac)
+
+
+def _noise(ctx: _Ctx, v: Any, key: str) -> SensorNoise:
+    if not isinstance(v, dict):
+        raise ctx.fail(key, v, "a table {position = m, angle = rad}")
+    _check_keys(ctx, v, ("position", "angle"), key + ".")
+    return SensorNoise(
+        _num(ctx, v.get("position", 0.0), key + ".position", nonneg=True),
+        _num(ctx, v.get("angle", 0.0), key + ".angle", nonneg=True),
+    )
+
+
+def _uncertainty(ctx: _Ctx, t: Mapping[str, Any]) -> Uncertainty:
+    w = "[uncertainty] "
+    _check_keys(ctx, t, ("port_y", "port_z", "tip_force_over_ei", "sensor_noise", "samples"), w)
+    py = _pair(ctx, t["port_y"], w + "port_y", ordered=True) if "port_y" in t else None
+    pz = _pair(ctx, t["port_z"], w + "port_z", ordered=True) if "port_z" in t else None
+    tl = _pair(ctx, t["tip_force_over_ei"], w + "tip_force_over_ei", ordered=True) if "tip_force_over_ei" in t else None
+    sn = _noise(ctx, t["sensor_noise"], w + "sensor_noise") if "sensor_noise" in t else None
+    samples = t.get("samples", 5)
+    if isinstance(samples, bool) or not isinstance(samples, int) or not 2 <= samples <= 41:
+        raise ctx.fail(w + "samples", samples, "an integer from 2 to 41")
+    return Uncertainty(py, pz, tl, sn, samples)
+
+
+def _sensors(ctx: _Ctx, t: Mapping[str, Any]) -> Sensors:
+    w = "[sensors] "
+    _check_keys(ctx, t, ("tracker_sigma", "encoder_sigma"), w)
+    return Sensors(
+        _num(ctx, t.get("tracker_sigma", 0.0002), w + "tracker_sigma", nonneg=True),
+        _num(ctx, t.get("encoder_sigma", 0.0), w + "encoder_sigma", nonneg=True),
+    )
+
+
+def _fields(ctx: _Ctx, t: Mapping[str, Any]) -> Fields:
+    w = "[fields] "
+    _check_keys(ctx, t, ("resolution",), w)
+    r = _num(ctx, t.get("resolution", 0.002), w + "resolution", positive=True)
+    if not 1e-4 <= r <= 0.05:
+        raise ctx.fail(w + "resolution", r, "a grid spacing between 0.0001 and 0.05 m")
+    return Fields(r)
+
+
+def _planner(ctx: _Ctx, t: Mapping[str, Any]) -> Planner:
+    w = "[planner] "
+    _check_keys(ctx, t, ("metric", "weight", "planner", "time", "seed", "certifiable", "certify_margin"), w)
+    d = Planner()
+    metric = t.get("metric", d.metric)
+    if metric not in METRICS:
+        raise ctx.fail(w + "metric", metric, " | ".join(f'"{m}"' for m in METRICS))
+    planner = t.get("planner", d.planner)
+    if not isinstance(planner, str) or not planner:
+        raise ctx.fail(w + "planner", planner, "a planner name such as \"RRTstar\"")
+    seed = t.get("seed", d.seed)
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise ctx.fail(w + "seed", seed, "an integer >= 0")
+    cert = t.get("certifiable", d.certifiable)
+    if not isinstance(cert, bool):
+        raise ctx.fail(w + "certifiable", cert, "true or false")
+    margin = _num(ctx, t.get("certify_margin", d.certify_margin), w + "certify_margin", nonneg=True)
+    if margin >= 1:
+        raise ctx.fail(w + "certify_margin", margin, "a number in [0, 1)")
+    return Planner(
+        metric=metric,
+        weight=_num(ctx, t.get("weight", d.weight), w + "weight", nonneg=True),
+        planner=planner,
+        time=_num(ctx, t.get("time", d.time), w + "time", positive=True),
+        seed=seed,
+        certifiable=cert,
+        certify_margin=margin,
+    )
+
+
+def _queries(ctx: _Ctx, v: Any) -> tuple[Query, ...]:
+    if not isinstance(v, list):
+        raise ctx.fail("[[query]]", v, "an array of tables")
+    out = []
+    names = set()
+    for i, q in enumerate(v):
+        w = f"[[query]][{i}] "
+        if not isinstance(q, dict):
+            raise ctx.fail(w.strip(), q, "a table")
+        _check_keys(ctx, q, ("name", "start", "goal"), w)
+        name = q.get("name", f"query{i}")
+        if not isinstance(name, str) or not name:
+            raise ctx.fail(w + "name", name, "a non-empty string")
+        if name in names:
+            raise ctx.fail(w + "name", name, "a name used by no other query")
+        names.add(name)
+        out.append(Query(name, _pair(ctx, _get(ctx, q, "start", w), w + "start"), _pair(ctx, _get(ctx, q, "goal", w), w + "goal")))
+    return tuple(out)
+
+
+_TOL_KEYS = {
+    "port": ("direction", "region", "gain", "tip_force_over_ei"),
+    "insertion_band": ("sensor_noise", "tip_force_over_ei", "gain", "samples", "length"),
+    "tip_load": ("region", "gain", "port_y", "port_z"),
+    "tracker_noise": ("band", "tip_force_over_ei", "gain", "angle_ratio", "length"),
+}
+
+
+def _tolerances(ctx: _Ctx, v: Any, controller_gain: float) -> tuple[Tolerance, ...]:
+    if not isinstance(v, list):
+        raise ctx.fail("[[tolerance]]", v, "an array of tables")
+    out = []
+    for i, t in enumerate(v):
+        w = f"[[tolerance]][{i}] "
+        if not isinstance(t, dict):
+            raise ctx.fail(w.strip(), t, "a table")
+        kind = _get(ctx, t, "kind", w)
+        if kind not in TOLERANCE_KINDS:
+            raise ctx.fail(w + "kind", kind, " | ".join(f'"{k}"' for k in TOLERANCE_KINDS))
+        _check_keys(ctx, t, ("name", "kind") + _TOL_KEYS[kind], w)
+        name = t.get("name", f"tolerance{i}")
+        if not isinstance(name, str):
+            raise ctx.fail(w + "name", name, "a string")
+        opts: dict[str, Any] = {}
+        opts["gain"] = _num(ctx, t.get("gain", controller_gain), w + "gain", positive=True)
+        if "region" in t:
+            r = t["region"]
+            if not isinstance(r, dict) or set(r) != {"y", "z"}:
+                raise ctx.fail(w + "region", r, "{ y = [lo, hi], z = [lo, hi] }")
+            opts["region"] = {
+                "y": _pair(ctx, r["y"], w + "region.y", ordered=True),
+                "z": _pair(ctx, r["z"], w + "region.z", ordered=True),
+            }
+        elif kind in ("port", "tip_load"):
+            raise ctx.fail(w + "region", None, "{ y = [lo, hi], z = [lo, hi] } (missing)")
+        if kind == "port":
+            d = t.get("direction", "radial")
+            if d not in ("y", "z", "radial"):
+                raise ctx.fail(w + "direction", d, '"y" | "z" | "radial"')
+            opts["direction"] = d
+        if "sensor_noise" in t:
+            opts["sensor_noise"] = _noise(ctx, t["sensor_noise"], w + "sensor_noise")
+        elif kind == "insertion_band":
+            raise ctx.fail(w + "sensor_noise", None, "{ position = m, angle = rad } (missing)")
+        if "tip_force_over_ei" in t:
+            opts["tip_force_over_ei"] = _num(ctx, t["tip_force_over_ei"], w + "tip_force_over_ei")
+        for key in ("port_y", "port_z", "band"):
+            if key in t:
+                opts[key] = _pair(ctx, t[key], w + key, ordered=True)
+        if "angle_ratio" in t:
+            opts["angle_ratio"] = _num(ctx, t["angle_ratio"], w + "angle_ratio", nonneg=True)
+        if "length" in t:
+            opts["length"] = _num(ctx, t["length"], w + "length", positive=True)
+        if "samples" in t:
+            s = t["samples"]
+            if isinstance(s, bool) or not isinstance(s, int) or s < 5:
+                raise ctx.fail(w + "samples", s, "an integer >= 5")
+            opts["samples"] = s
+        if kind == "tracker_noise" and "band" not in opts:
+            raise ctx.fail(w + "band", None, "[lo, hi] insertion band r/L that must stay monotonic (missing)")
+        out.append(Tolerance(name, kind, opts))
+    return tuple(out)
+
+
+def _effects(ctx: _Ctx, t: Mapping[str, Any]) -> dict[str, dict[str, float]]:
+    out: dict[str, dict[str, float]] = {}
+    for name, params in t.items():
+        if name not in EFFECT_PARAMS:
+            raise ctx.fail(f"[effects.{name}]", params, f"an effect of docs/physics.md: {', '.join(EFFECT_PARAMS)}")
+        if not isinstance(params, dict):
+            raise ctx.fail(f"[effects.{name}]", params, "a table of parameters")
+        _check_keys(ctx, params, EFFECT_PARAMS[name], f"[effects.{name}] ")
+        out[name] = {p: _num(ctx, params.get(p, 0.0), f"[effects.{name}] {p}") for p in EFFECT_PARAMS[name]}
+    return out
+
+
+_TOP = (
+    "name", "description", "robot", "instrument", "port", "controller", "uncertainty",
+    "sensors", "fields", "planner", "query", "tolerance", "effects",
+)
+
+
+def parse_scenario(doc: Mapping[str, Any], source: str = "<memory>") -> Scenario:
+    """Validate a parsed TOML document into a :class:`Scenario` (see interfaces.md)."""
+    ctx = _Ctx(source)
+    _check_keys(ctx, doc, _TOP, "")
+    name = doc.get("name", Path(source).stem)
+    if not isinstance(name, str) or not name:
+        raise ctx.fail("name", name, "a non-empty string")
+    desc = doc.get("description", "")
+    if not isinstance(desc, str):
+        raise ctx.fail("description", desc, "a string")
+    controller = _controller(ctx, _table(ctx, doc, "controller", False))
+    sc = Scenario(
+        name=name,
+        description=desc,
+        robot=_robot(ctx, _table(ctx, doc, "robot", False)),
+        instrument=_instrument(ctx, _table(ctx, doc, "instrument", True)),
+        port=_port(ctx, _table(ctx, doc, "port", True)),
+        controller=controller,
+        uncertainty=_uncertainty(ctx, _table(ctx, doc, "uncertainty", False)),
+        sensors=_sensors(ctx, _table(ctx, doc, "sensors", False)),
+        fields=_fields(ctx, _table(ctx, doc, "fields", False)),
+        planner=_planner(ctx, _table(ctx, doc, "planner", False)),
+        queries=_queries(ctx, doc.get("query", [])),
+        tolerances=_tolerances(ctx, doc.get("tolerance", []), controller.gain),
+        effects=_effects(ctx, _table(ctx, doc, "effects", False)),
+        source=source,
+    )
+    _check_reach(ctx, sc)
+    return sc
+
+
+def _check_reach(ctx: _Ctx, sc: Scenario) -> None:
+    """The shaft must be able to reach through the port (true and estimated) from some wrist pose."""
+    from .kinematics.arm import Arm  # local: kinematics does not import scenario
+
+    arm = Arm.from_robot(sc.robot)
+    dmin_true, dmin_est = arm.min_distance_to(sc.port.position), arm.min_distance_to(sc.port.estimate)
+    L = sc.instrument.length
+    if dmin_true >= L:
+        raise ctx.fail("[port] position", list(sc.port.position),
+                       f"a port the shaft can reach: the nearest reachable wrist is {dmin_true:.4f} m away, "
+                       f"more than the shaft length {L:.4f} m (port out of reach)")
+    if dmin_est >= L:
+        raise ctx.fail("[port] estimate", list(sc.port.estimate),
+                       f"a port the shaft can reach: the nearest reachable wrist is {dmin_est:.4f} m away, "
+                       f"more than the shaft length {L:.4f} m (port out of reach)")
+
+
+def load_scenario(path: str | Path) -> Scenario:
+    """Read and validate a scenario TOML file."""
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ScenarioError(f"{p}: scenario file not found") from None
+    except OSError as e:
+        raise ScenarioError(f"{p}: cannot read scenario file: {e.strerror}") from None
+    try:
+        doc = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        raise ScenarioError(f"{p}: not valid TOML: {e}") from None
+    return parse_scenario(doc, str(p))
