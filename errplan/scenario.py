@@ -334,17 +334,29 @@ def _queries(ctx: _Ctx, v: Any) -> tuple[Query, ...]:
 
 
 _TOL_KEYS = {
-    "port": ("direction", "region", "gain", "tip_force_over_ei"),
-    "insertion_band": ("sensor_noise", "tip_force_over_ei", "gain", "samples", "length"),
-    "tip_load": ("region", "gain", "port_y", "port_z"),
-    "tracker_noise": ("band", "tip_force_over_ei", "gain", "angle_ratio", "length"),
+    "port": ("direction", "region", "gain", "tip_force_over_ei", "spacing"),
+    "insertion_band": ("sensor_noise", "tip_force_over_ei", "gain", "samples", "length", "noise_sampling",
+                       "draws", "seed", "hold", "shaft_angle"),
+    "tip_load": ("region", "gain", "port_y", "port_z", "spacing"),
+    "tracker_noise": ("band", "tip_force_over_ei", "gain", "angle_ratio", "length", "samples", "hold",
+                      "shaft_angle"),
 }
+_TOL_HOLDS = ("tip_force", "port_force", "port_deflection")
+
+
+def _tol_int(ctx: _Ctx, t: Mapping[str, Any], key: str, w: str, lo: int, hi: int) -> int:
+    s = t[key]
+    if isinstance(s, bool) or not isinstance(s, int) or not lo <= s <= hi:
+        raise ctx.fail(w + key, s, f"an integer from {lo} to {hi}")
+    return s
 
 
 def _tolerances(ctx: _Ctx, v: Any, controller_gain: float) -> tuple[Tolerance, ...]:
+    """``[[tolerance]]`` tables (docs/interfaces.md; every key in notes/readme_tolerance.md)."""
     if not isinstance(v, list):
         raise ctx.fail("[[tolerance]]", v, "an array of tables")
     out = []
+    names: set[str] = set()
     for i, t in enumerate(v):
         w = f"[[tolerance]][{i}] "
         if not isinstance(t, dict):
@@ -354,8 +366,11 @@ def _tolerances(ctx: _Ctx, v: Any, controller_gain: float) -> tuple[Tolerance, .
             raise ctx.fail(w + "kind", kind, " | ".join(f'"{k}"' for k in TOLERANCE_KINDS))
         _check_keys(ctx, t, ("name", "kind") + _TOL_KEYS[kind], w)
         name = t.get("name", f"tolerance{i}")
-        if not isinstance(name, str):
-            raise ctx.fail(w + "name", name, "a string")
+        if not isinstance(name, str) or not name:
+            raise ctx.fail(w + "name", name, "a non-empty string")
+        if name in names:
+            raise ctx.fail(w + "name", name, "a name used by no other [[tolerance]]")
+        names.add(name)
         opts: dict[str, Any] = {}
         opts["gain"] = _num(ctx, t.get("gain", controller_gain), w + "gain", positive=True)
         if "region" in t:
@@ -378,19 +393,44 @@ def _tolerances(ctx: _Ctx, v: Any, controller_gain: float) -> tuple[Tolerance, .
         elif kind == "insertion_band":
             raise ctx.fail(w + "sensor_noise", None, "{ position = m, angle = rad } (missing)")
         if "tip_force_over_ei" in t:
-            opts["tip_force_over_ei"] = _num(ctx, t["tip_force_over_ei"], w + "tip_force_over_ei")
+            tl = t["tip_force_over_ei"]
+            if kind == "port" and isinstance(tl, list):
+                opts["tip_force_over_ei"] = _pair(ctx, tl, w + "tip_force_over_ei", ordered=True)
+            else:
+                opts["tip_force_over_ei"] = _num(ctx, tl, w + "tip_force_over_ei")
+        if kind in ("insertion_band", "tracker_noise"):
+            if opts.get("tip_force_over_ei", 0.0) == 0.0:
+                raise ctx.fail(w + "tip_force_over_ei", t.get("tip_force_over_ei"),
+                               "a non-zero tip load Ft/EI (1/m^2): P2's flexion controller needs flexion")
         for key in ("port_y", "port_z", "band"):
             if key in t:
                 opts[key] = _pair(ctx, t[key], w + key, ordered=True)
+        if "band" in opts and not 0.0 < opts["band"][0] <= opts["band"][1] < 1.0:
+            raise ctx.fail(w + "band", list(opts["band"]), "insertion depths [lo, hi] with 0 < lo <= hi < 1 (r/L)")
         if "angle_ratio" in t:
             opts["angle_ratio"] = _num(ctx, t["angle_ratio"], w + "angle_ratio", nonneg=True)
         if "length" in t:
             opts["length"] = _num(ctx, t["length"], w + "length", positive=True)
+        if "spacing" in t:
+            opts["spacing"] = _num(ctx, t["spacing"], w + "spacing", positive=True)
+            if opts["spacing"] < 1e-5:
+                raise ctx.fail(w + "spacing", t["spacing"], "a tip-grid spacing >= 0.00001 m")
+        if "shaft_angle" in t:
+            opts["shaft_angle"] = _num(ctx, t["shaft_angle"], w + "shaft_angle")
+        if "hold" in t:
+            if t["hold"] not in _TOL_HOLDS:
+                raise ctx.fail(w + "hold", t["hold"], " | ".join(f'"{h}"' for h in _TOL_HOLDS))
+            opts["hold"] = t["hold"]
+        if "noise_sampling" in t:
+            if t["noise_sampling"] not in ("worst", "random"):
+                raise ctx.fail(w + "noise_sampling", t["noise_sampling"], '"worst" | "random"')
+            opts["noise_sampling"] = t["noise_sampling"]
         if "samples" in t:
-            s = t["samples"]
-            if isinstance(s, bool) or not isinstance(s, int) or s < 5:
-                raise ctx.fail(w + "samples", s, "an integer >= 5")
-            opts["samples"] = s
+            opts["samples"] = _tol_int(ctx, t, "samples", w, 5 if kind == "insertion_band" else 2, 5001)
+        if "draws" in t:
+            opts["draws"] = _tol_int(ctx, t, "draws", w, 1, 1_000_000)
+        if "seed" in t:
+            opts["seed"] = _tol_int(ctx, t, "seed", w, 0, 2**32 - 1)
         if kind == "tracker_noise" and "band" not in opts:
             raise ctx.fail(w + "band", None, "[lo, hi] insertion band r/L that must stay monotonic (missing)")
         out.append(Tolerance(name, kind, opts))

@@ -283,11 +283,12 @@ def plant_at(plant: Plant, q_true: np.ndarray):
 
 def simulate(plant: Plant, controller: ControllerModel, q0: np.ndarray, waypoints, gains, *,
              tolerance: float = 1e-5, max_steps: int = 2000, rng: np.random.Generator | None = None,
-             path_start=None) -> SimResult:
+             path_start=None, switch_tolerance: float | None = None) -> SimResult:
     """Drive the tip through ``waypoints`` (m, 2) with per-segment ``gains`` (m,).
 
     The controller aims at waypoint ``i`` until the tracked tip is within ``tolerance`` of it, then
-    switches to the next. ``rng`` adds the plant's measurement noise (None: noise-free).
+    switches to the next (``switch_tolerance``, default ``tolerance``, for the intermediate
+    waypoints; ``tolerance`` for the last one). ``rng`` adds the plant's measurement noise (None: noise-free).
     Stops early (status ``left_workspace``) if a command leaves the joint limits or pulls the
     shaft out of the port; ``max_steps`` bounds the total number of commands.
     """
@@ -295,6 +296,9 @@ def simulate(plant: Plant, controller: ControllerModel, q0: np.ndarray, waypoint
     gains = np.broadcast_to(np.asarray(gains, float), (len(wp),))
     if np.any(~np.isfinite(gains)) or np.any(gains <= 0):
         raise ErrplanError(f"gains {gains.tolist()}: expected finite numbers > 0")
+    switch_tol = float(tolerance if switch_tolerance is None else switch_tolerance)
+    if not (tolerance > 0 and switch_tol > 0 and np.isfinite(tolerance) and np.isfinite(switch_tol)):
+        raise ErrplanError(f"tolerance {tolerance!r} / switch_tolerance {switch_tolerance!r}: expected lengths > 0 m")
     q = np.asarray(q0, float).copy()
     if not plant.arm.within_limits(plant.link_angles_q(q)):
         raise ErrplanError(f"start configuration {q.tolist()} is outside the joint limits")
@@ -309,7 +313,7 @@ def simulate(plant: Plant, controller: ControllerModel, q0: np.ndarray, waypoint
         if rng is not None and plant.tracker_sigma > 0:
             tracked = tracked + rng.normal(0.0, plant.tracker_sigma, 2)
         # switch targets on convergence
-        while seg < len(wp) - 1 and np.linalg.norm(wp[seg] - tracked) < tolerance:
+        while seg < len(wp) - 1 and np.linalg.norm(wp[seg] - tracked) < switch_tol:
             seg += 1
         Q.append(q.copy()); T.append(tip.copy()); X.append(tracked.copy())
         TG.append(wp[seg].copy()); SEG.append(seg); K.append(gains[seg])
@@ -342,3 +346,27 @@ def simulate(plant: Plant, controller: ControllerModel, q0: np.ndarray, waypoint
     start = np.asarray(path_start if path_start is not None else T[0], float)
     return SimResult(np.array(Q), np.array(T), np.array(X), np.array(TG), np.array(SEG), np.array(K),
                      np.vstack([start[None], wp]), status == "converged", status, tolerance)
+
+
+def g_norm_along(result: SimResult, plant: Plant, controller: ControllerModel) -> np.ndarray:
+    """Actual ``||G|| = ||I - k J Jhat^-1||`` (steps,) at each state a command was issued from.
+
+    ``J`` is the plant's true Jacobian at the encoder angles (no friction), ``Jhat`` the
+    controller's (flexion: noise-free end poses). Useful beside :attr:`SimResult.monotonic`:
+    to first order the error length can only grow at a step where this exceeds 1.
+    """
+    from .metrics import spectral_norm
+
+    n = result.steps
+    if n == 0:
+        return np.zeros(0)
+    q = result.q[:n]
+    J = plant.true_jacobian(q)
+    if controller.jacobian == "rigid":
+        Jh = controller.J_hat(q)
+    else:
+        Jh = np.stack([controller.J_hat(qi, plant_at(plant, qi)) for qi in q])
+    Jinv, singular = inv2(Jh)
+    G = np.eye(2) - result.gain[:n, None, None] * (J @ Jinv)
+    g = spectral_norm(G)
+    return np.where(singular | ~np.isfinite(g), np.inf, g)

@@ -1,0 +1,761 @@
+"""Close the loop with measured data: residual -> missing effect -> model -> error before and after.
+
+Pipeline (:func:`calibrate`):
+
+1. **Replay with the declared model.** The declared model is the scenario's truth as it stands
+   (arm, shaft, ``port.position``, any ``[effects]`` it already declares). *Pose residual*: tracked
+   tip minus the model's tracked tip at the encoder angles, every row at once. *Trajectory
+   residual*: the controller (:class:`errplan.simulation.ControllerModel`, at each run's gain)
+   re-simulated noise-free on the model from each run's first encoder reading, step for step
+   against the measured tracked tips (steps >= 1), all runs batched.
+2. **Noise floor** (:func:`noise_floor`): the pose residual is fitted by a flexible smooth model
+   — a total-degree Legendre polynomial in the (scaled) encoder angles times ``[1, u_y, u_z]``
+   (``u`` the commanded direction, so anything linear in the motion direction, like friction, is
+   smooth too) — with the degree chosen by BIC; the noise floor is the degrees-of-freedom
+   corrected RMS of what is left, ``sqrt(RSS / (2n - 2m))``. Every effect of the catalogue and
+   the usual unmodelled ones (link lengths, scale errors) are smooth in the configuration, so what
+   the polynomial cannot follow is the measurement noise (tracker, plus encoder noise seen
+   through the Jacobian).
+3. **Candidates** (:mod:`errplan.effects`): every effect alone, every pair, and the best pair
+   plus each other effect; each fitted by nonlinear least squares on the pose residual, with
+   ``s^2 (J^T J)^-1`` uncertainties and an identifiability check (unidentifiable combinations are
+   not selectable and say why).
+4. **Selection.** Among the selectable candidates (and "none") in order of BIC
+   (``N ln(RSS/N) + p ln N``, ``N = 2n``), the first whose held-out pose error (folds of whole runs,
+   seeded; each fold refitted) is below that of every candidate with one effect fewer. Clean data
+   select nothing; an effect that does not pay for its parameters on both counts is not added.
+5. **Explained?** The selected model's residual is tested for structure with the same flexible
+   model: an F test of the smooth part and its size ``s`` (its RMS after removing what the fit of
+   pure noise would absorb). ``explained`` is false when the structure is significant
+   (p < 1e-3) and ``s`` is at least the noise floor, i.e. the residual RMS is well above it.
+
+All RMS values (pose, trajectory, noise floor) are **per coordinate**: the square root of the
+mean over rows and over y, z of the squared residual. The noise floor therefore estimates the
+tracker's sigma directly.
+"""
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass, field
+from typing import Callable, Sequence
+
+import numpy as np
+
+from .effects import CATALOGUE, EffectModel, predict_tracked
+from .errors import DataError, ErrplanError
+from .experiment import MeasuredData
+
+def arrival_tolerance(noise_sigma: float) -> float:
+    """Distance (m) within which a measured run counts as arrived: max(0.5 mm, 4 noise floors)."""
+    return max(5e-4, 4.0 * noise_sigma)
+
+
+STRUCTURE_P = 1e-3          # F-test level for "the residual has structure"
+STRUCTURE_RATIO = 1.0       # structured RMS >= this x noise floor -> not explained
+DEFAULT_FOLDS = 5
+
+
+# ----------------------------------------------------------------------------- residuals
+def declared_plant(sc):
+    """The declared model: the scenario's truth with the effects it already declares, no noise."""
+    from .simulation import Plant
+
+    return Plant.from_scenario(sc, effects=True, noise=False)
+
+
+def check_against_model(data: MeasuredData, plant, what: str = "the declared model") -> None:
+    """Every row's encoder angles must give a wrist from which the shaft reaches through the port."""
+    w = plant.wrist(data.q)
+    ok = plant.shaft_reaches(w) & plant.arm.within_limits(plant.link_angles_q(data.q), tol=0.05)
+    if not np.all(ok):
+        i = int(np.flatnonzero(~ok)[0])
+        raise DataError(f"{data.source}: row {i + 1} (run {data.run_ids[data.run[i]]!r}, step {data.step[i]}): encoder "
+                        f"angles {np.round(data.q[i], 5).tolist()} put the wrist at {np.round(w[i], 4).tolist()}, "
+                        f"where {what} cannot hold the shaft through the port at "
+                        f"{np.round(plant.true_port, 4).tolist()} or is outside the joint limits "
+                        f"(is the data from this scenario?)")
+
+
+def rms(r: np.ndarray) -> float:
+    """Per-coordinate RMS of residual vectors (n, 2)."""
+    r = np.asarray(r, float)
+    return float(np.sqrt(np.mean(r * r))) if r.size else float("nan")
+
+
+def pose_residual(data: MeasuredData, plant, u: np.ndarray | None = None) -> np.ndarray:
+    """Tracked tip minus the model's tracked tip at the encoder angles (n, 2), m."""
+    u = data.commanded_directions() if u is None else u
+    return data.tip - predict_tracked(plant, data.q, u)
+
+
+def _controller_jacobian(ctrl, plant, q: np.ndarray) -> np.ndarray:
+    if ctrl.jacobian == "rigid":
+        return ctrl.J_hat(q)
+    try:
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return ctrl.J_hat(q, plant)
+    except ErrplanError:
+        # P2's flexion controller on an unbent model: its estimate degenerates to the straight
+        # shaft, i.e. the rigid lever through the model's port
+        from .kinematics.shaft import lever_jacobian
+
+        return lever_jacobian(plant.arm.forward(q), plant.true_port, plant.length) @ plant.arm.jacobian(q)
+
+
+def replay(data: MeasuredData, plant, ctrl) -> tuple[np.ndarray, np.ndarray]:
+    """Re-simulate every run on ``plant`` with controller ``ctrl`` from its first encoder reading.
+
+    Noise-free and quasi-static, exactly the loop of :func:`errplan.simulation.simulate`, batched
+    over runs. Returns the predicted tracked tip for every row (n, 2) and, per run, whether the
+    replay stayed in the workspace for the whole measured length (runs,). A replay that leaves the
+    workspace holds its last state.
+    """
+    from .metrics import inv2
+
+    first = data.first
+    R = data.runs
+    lengths = data.lengths
+    order = np.argsort(data.run, kind="stable")  # rows are run-major already; keep it general
+    row_of = np.full((R, int(lengths.max())), -1)
+    row_of[data.run[order], data.step[order]] = order
+    q = data.q[first].copy()
+    target = data.target[first]
+    gain = data.gain[first]
+    u = np.zeros((R, 2))
+    alive = np.ones(R, bool)
+    pred = np.zeros_like(data.tip)
+    off = np.asarray(plant.tracker_offset, float)
+    tracked = np.zeros((R, 2))
+    for t in range(int(lengths.max())):
+        with np.errstate(invalid="ignore", divide="ignore"):
+            tr = plant.tip(q, u) + off
+        tracked = np.where(alive[:, None], tr, tracked)
+        has = lengths > t
+        pred[row_of[has, t]] = tracked[has]
+        if t == lengths.max() - 1:
+            break
+        err = target - tracked
+        with np.errstate(invalid="ignore", divide="ignore"):
+            Jinv, singular = inv2(_controller_jacobian(ctrl, plant, q))
+            dq = gain[:, None] * np.einsum("rij,rj->ri", np.nan_to_num(Jinv), err)
+        q_new = q + dq
+        with np.errstate(invalid="ignore", divide="ignore"):
+            ok = (~singular & plant.arm.within_limits(plant.link_angles_q(q_new))
+                  & plant.shaft_reaches(plant.wrist(q_new)) & np.all(np.isfinite(q_new), axis=-1))
+        step_ok = alive & ok & has
+        n = np.linalg.norm(err, axis=-1)
+        u = np.where((step_ok & (n > 0))[:, None], err / np.where(n > 0, n, 1.0)[:, None], u)
+        q = np.where(step_ok[:, None], q_new, q)
+        alive &= ok | ~has
+    return pred, alive
+
+
+def approach_mask(data: MeasuredData, tolerance: float) -> np.ndarray:
+    """Rows (n,) of each run's approach: steps 1 .. the first step whose tracked tip is within
+    ``tolerance`` of the target (the whole run if it never arrives). After arrival the measured
+    tip only jitters with the noise the controller chases, which no noise-free replay predicts."""
+    near = np.linalg.norm(data.tip - data.target, axis=-1) < tolerance
+    arrive = np.full(data.runs, np.iinfo(np.int64).max)
+    idx = np.flatnonzero(near & (data.step >= 1))
+    np.minimum.at(arrive, data.run[idx], data.step[idx])
+    return (data.step >= 1) & (data.step <= arrive[data.run])
+
+
+def trajectory_errors(data: MeasuredData, plant, ctrl, tolerance: float) -> tuple[float, float]:
+    """Per-coordinate RMS of measured minus replayed tracked tips over the approach (see
+    :func:`approach_mask`) and over every step >= 1."""
+    pred, _ = replay(data, plant, ctrl)
+    r = data.tip - pred
+    return rms(r[approach_mask(data, tolerance)]), rms(r[data.step >= 1])
+
+
+# ----------------------------------------------------------------------------- noise floor
+def _legendre_total(x: np.ndarray, degree: int) -> np.ndarray:
+    """Total-degree Legendre features of 2-D points in [-1, 1]^2 (n, (d+1)(d+2)/2)."""
+    from numpy.polynomial import legendre
+
+    V0 = legendre.legvander(x[:, 0], degree)
+    V1 = legendre.legvander(x[:, 1], degree)
+    cols = [V0[:, i] * V1[:, j] for i in range(degree + 1) for j in range(degree + 1 - i)]
+    return np.stack(cols, axis=-1)
+
+
+def kmeans_labels(x: np.ndarray, clusters: int, iters: int = 30) -> np.ndarray:
+    """Deterministic k-means of points (n, 2): farthest-point initialisation from the point
+    nearest the centroid, then Lloyd iterations. Returns labels (n,) in 0..clusters-1."""
+    n = len(x)
+    clusters = max(1, min(clusters, n))
+    idx = [int(np.argmin(np.linalg.norm(x - x.mean(axis=0), axis=1)))]
+    d = np.linalg.norm(x - x[idx[0]], axis=1)
+    for _ in range(clusters - 1):
+        i = int(np.argmax(d))
+        idx.append(i)
+        d = np.minimum(d, np.linalg.norm(x - x[i], axis=1))
+    c = x[idx].copy()
+    lab = np.zeros(n, int)
+    for _ in range(iters):
+        new = np.argmin(np.linalg.norm(x[:, None] - c[None], axis=2), axis=1)
+        if np.array_equal(new, lab) and _ > 0:
+            break
+        lab = new
+        for k in range(len(c)):
+            m = lab == k
+            if np.any(m):
+                c[k] = x[m].mean(axis=0)
+    _, lab = np.unique(lab, return_inverse=True)
+    return lab
+
+
+@dataclass
+class LocalBasis:
+    """The flexible smooth model: on each of a few compact clusters of rows (k-means of the model
+    tip positions, about ``ROWS_PER_CLUSTER`` rows each) a quadratic Legendre polynomial in the
+    local tip coordinates times ``[1, u_y, u_z]`` (lower degree where a cluster has few rows)."""
+
+    labels: np.ndarray
+    degree: int = 2
+
+    def _cluster(self, k: int, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        idx = np.flatnonzero(self.labels == k)
+        nc = len(idx)
+        d = self.degree
+        while d > 0 and 3 * (d + 1) * (d + 2) // 2 > nc / 2.5:
+            d -= 1
+        xx = x[idx]
+        lo, hi = xx.min(axis=0), xx.max(axis=0)
+        hi = np.where(hi > lo, hi, lo + 1e-3)
+        P = _legendre_total(2 * (xx - lo) / (hi - lo) - 1, d)
+        return idx, np.concatenate([P, P * u[idx, :1], P * u[idx, 1:2]], axis=1)
+
+    def fit(self, r: np.ndarray, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, float, int]:
+        """Fit residuals (n, 2): fitted values (n, 2), RSS (m^2), total rank per coordinate."""
+        fit = np.zeros_like(r)
+        rank = 0
+        for k in range(int(self.labels.max()) + 1):
+            idx, F = self._cluster(k, x, u)
+            if len(idx) == 0:
+                continue
+            coef, _, rk, _ = np.linalg.lstsq(F, r[idx], rcond=1e-10)
+            fit[idx] = F @ coef
+            rank += int(rk)
+        res = r - fit
+        return fit, float(np.sum(res * res)), rank
+
+
+ROWS_PER_CLUSTER = 80
+
+
+@dataclass
+class NoiseFloor:
+    """Noise floor of a pose residual: ``sigma`` (m, per coordinate), the flexible model used
+    (clusters, parameters per coordinate) and the RMS of the smooth part it removed (m)."""
+
+    sigma: float
+    clusters: int
+    features: int
+    smooth_rms: float
+    basis: LocalBasis
+    x: np.ndarray = field(repr=False, default=None)
+
+    def to_json(self) -> dict:
+        return {"sigma": self.sigma, "clusters": self.clusters, "parameters_per_coordinate": self.features,
+                "smooth_rms": self.smooth_rms,
+                "estimator": f"dof-corrected RMS, sqrt(RSS / 2(n - m)), left by a local quadratic in the tip position "
+                             f"x [1, u_y, u_z] on k-means clusters of ~{ROWS_PER_CLUSTER} rows"}
+
+
+def noise_floor(r: np.ndarray, x: np.ndarray, u: np.ndarray, rows_per_cluster: int = ROWS_PER_CLUSTER) -> NoiseFloor:
+    """Estimate the measurement noise (per coordinate, m) from a pose residual ``r`` (n, 2).
+
+    ``x`` (n, 2) are the model tip positions (where the rows are), ``u`` (n, 2) the commanded
+    directions. Every catalogue effect and the usual unmodelled ones are smooth in the
+    configuration (friction linear in ``u``), so a flexible local model — a quadratic in ``x``
+    times ``[1, u_y, u_z]`` on compact clusters of rows — follows them, and what is left is the
+    noise: ``sigma = sqrt(RSS / (2 (n - m)))``, m the parameters per coordinate.
+    """
+    n = len(r)
+    labels = kmeans_labels(x, max(1, n // rows_per_cluster))
+    basis = LocalBasis(labels)
+    fit, rss, rank = basis.fit(r, x, u)
+    if n - rank < 2:
+        s = rms(r - r.mean(axis=0))
+        return NoiseFloor(s, int(labels.max()) + 1, rank, 0.0, basis, x)
+    return NoiseFloor(math.sqrt(rss / (2 * (n - rank))), int(labels.max()) + 1, rank, rms(fit), basis, x)
+
+
+@dataclass
+class Structure:
+    """Is a residual structured? F test of the flexible smooth model against "noise only"."""
+
+    rms: float            # per-coordinate RMS of the residual
+    structured_rms: float  # RMS of its smooth part beyond what a fit to pure noise absorbs
+    f_stat: float
+    p_value: float
+    ratio: float           # rms / noise floor
+    structured: bool
+
+    def to_json(self) -> dict:
+        return {"rms": self.rms, "structured_rms": self.structured_rms, "f_statistic": self.f_stat,
+                "p_value": self.p_value, "rms_over_noise_floor": self.ratio, "structured": self.structured}
+
+
+def structure_test(r: np.ndarray, u: np.ndarray, nf: NoiseFloor) -> Structure:
+    """F test of the noise floor's flexible model on residual ``r`` (same rows) and the RMS of the
+    smooth part beyond what fitting pure noise would absorb."""
+    from scipy.stats import f as fdist
+
+    n = len(r)
+    rss0 = float(np.sum(r * r))
+    ratio = rms(r) / max(nf.sigma, 1e-300)
+    _, rss1, rank = nf.basis.fit(r, nf.x, u)
+    df1, df2 = 2 * rank, 2 * (n - rank)
+    if df1 <= 0 or df2 <= 0:
+        return Structure(rms(r), 0.0, 0.0, 1.0, ratio, False)
+    fstat = ((rss0 - rss1) / df1) / max(rss1 / df2, 1e-300)
+    p = float(fdist.sf(fstat, df1, df2))
+    s = math.sqrt(max(0.0, (rss0 - rss1) - df1 * nf.sigma ** 2) / (2 * n))
+    return Structure(rms(r), s, float(fstat), p, ratio, bool(p < STRUCTURE_P and s >= STRUCTURE_RATIO * nf.sigma))
+
+
+# ----------------------------------------------------------------------------- candidates
+@dataclass
+class Candidate:
+    """One effect combination tried: its fit on all the data, its held-out error and BIC."""
+
+    model: EffectModel
+    rms: float
+    bic: float
+    heldout_rms: float | None
+    selectable: bool
+    note: str = ""
+    selected: bool = False
+
+    @property
+    def effects(self) -> list[str]:
+        return self.model.names
+
+    @property
+    def label(self) -> str:
+        return self.model.label
+
+    def to_json(self, bic_none: float) -> dict:
+        m = self.model
+        return {
+            "effects": self.effects, "name": self.label, "n_params": m.n_params,
+            "parameters": m.parameters(), "uncertainty": m.uncertainties(),
+            "pose_rms": self.rms, "heldout_rms": self.heldout_rms, "bic": self.bic,
+            "delta_bic": self.bic - bic_none, "score": self.bic - bic_none,
+            "identifiable": bool(m.identifiable_), "condition_number": m.condition_ if math.isfinite(m.condition_) else None,
+            "max_correlation": m.max_correlation_, "selectable": self.selectable, "selected": self.selected,
+            "note": self.note,
+        }
+
+
+def _bic(rss: float, n_obs: int, p: int) -> float:
+    return n_obs * math.log(max(rss, 1e-300) / n_obs) + p * math.log(n_obs)
+
+
+def _folds(runs: int, k: int, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    perm = rng.permutation(runs)
+    fold = np.empty(runs, int)
+    fold[perm] = np.arange(runs) % k
+    return fold
+
+
+def fit_candidate(effects: Sequence[str], data: MeasuredData, u: np.ndarray, base, fold_of_run: np.ndarray | None) -> Candidate:
+    from .effects import make_effect
+
+    m = EffectModel([make_effect(e) for e in effects]).fit(data.q, u, data.tip, base)
+    n = data.rows
+    bic = _bic(m.rss_, 2 * n, m.n_params)
+    ho = None
+    if fold_of_run is not None:
+        fold = fold_of_run[data.run]
+        sse = 0.0
+        for k in range(int(fold_of_run.max()) + 1):
+            te = fold == k
+            tr = ~te
+            if m.n_params:
+                mk = EffectModel(m.effects).fit(data.q[tr], u[tr], data.tip[tr], base, x0=m.values_)
+                vals = mk.values_
+            else:
+                vals = np.zeros(0)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                r = data.tip[te] - m.predict(base, data.q[te], u[te], vals)
+            r = np.where(np.isfinite(r), r, 1.0)
+            sse += float(np.sum(r * r))
+        ho = math.sqrt(sse / (2 * n))
+    note = "" if m.identifiable_ else f"not identifiable: {m.why_}"
+    return Candidate(m, math.sqrt(m.rss_ / (2 * n)), bic, ho, bool(m.identifiable_), note)
+
+
+def select(cands: dict[tuple[str, ...], Candidate]) -> Candidate:
+    """The first selectable candidate by BIC whose held-out error beats every sub-model with one
+    effect fewer (and whose BIC beats them too). "none" always qualifies."""
+    order = sorted(cands.values(), key=lambda c: c.bic)
+    for c in order:
+        if not c.selectable:
+            continue
+        key = tuple(c.effects)
+        ok = True
+        for e in key:
+            sub = cands.get(tuple(x for x in key if x != e))
+            if sub is None:
+                continue
+            if c.bic >= sub.bic:
+                ok = False
+                if not c.note:
+                    c.note = f"BIC not below {sub.label}"
+                break
+            if c.heldout_rms is not None and sub.heldout_rms is not None and c.heldout_rms >= sub.heldout_rms:
+                ok = False
+                if not c.note:
+                    c.note = f"held-out error not below {sub.label}"
+                break
+        if ok:
+            return c
+    return cands[()]  # pragma: no cover - "none" is always selectable
+
+
+# ----------------------------------------------------------------------------- report
+@dataclass
+class Errors:
+    """Before/after errors on one data set (m, per coordinate)."""
+
+    pose_before: float
+    pose_after: float
+    trajectory_before: float      # over each run's approach (see approach_mask)
+    trajectory_after: float
+    trajectory_all_before: float  # over every step >= 1
+    trajectory_all_after: float
+    rows: int
+    runs: int
+    source: str
+    arrival_tolerance: float
+
+    def to_json(self) -> dict:
+        return {"source": self.source, "rows": self.rows, "runs": self.runs,
+                "pose_rms_before": self.pose_before, "pose_rms_after": self.pose_after,
+                "trajectory_rms_before": self.trajectory_before, "trajectory_rms_after": self.trajectory_after,
+                "trajectory_rms_all_steps_before": self.trajectory_all_before,
+                "trajectory_rms_all_steps_after": self.trajectory_all_after,
+                "arrival_tolerance": self.arrival_tolerance}
+
+
+@dataclass
+class CalibrationReport:
+    """Everything ``errplan calibrate`` found; ``to_json`` is the calibrate JSON of interfaces.md."""
+
+    scenario: str
+    data_source: str
+    selected: list[str]
+    explained: bool
+    model: EffectModel
+    noise: NoiseFloor
+    structure: Structure
+    structure_before: Structure
+    candidates: list[Candidate]
+    fit_errors: Errors
+    validation_errors: Errors | None
+    declared_effects: dict
+    seed: int
+    folds: int
+    # arrays for the recording (fitting data)
+    points: np.ndarray = field(repr=False, default=None)        # model tips (n, 2)
+    residual_before: np.ndarray = field(repr=False, default=None)
+    residual_after: np.ndarray = field(repr=False, default=None)
+    tracked: np.ndarray = field(repr=False, default=None)
+    replay_before: np.ndarray = field(repr=False, default=None)
+    replay_after: np.ndarray = field(repr=False, default=None)
+    data: MeasuredData | None = field(repr=False, default=None)
+
+    @property
+    def errors(self) -> Errors:
+        """The errors the JSON reports: on the validation file when one was given."""
+        return self.validation_errors or self.fit_errors
+
+    @property
+    def parameters(self) -> dict[str, dict[str, float]]:
+        return self.model.parameters()
+
+    @property
+    def uncertainty(self) -> dict[str, dict[str, float]]:
+        return self.model.uncertainties()
+
+    def effects_table(self) -> dict[str, dict[str, float]]:
+        """Effects for the corrected scenario: declared ones plus the fitted corrections."""
+        out = {k: dict(v) for k, v in self.declared_effects.items()}
+        for e, ps in self.parameters.items():
+            d = out.setdefault(e, {})
+            for p, v in ps.items():
+                d[p] = d.get(p, 0.0) + v
+        return out
+
+    def to_json(self) -> dict:
+        bic_none = next(c.bic for c in self.candidates if not c.effects)
+        e = self.errors
+        return {
+            "scenario": self.scenario,
+            "data": self.data_source,
+            "selected": list(self.selected),
+            "explained": bool(self.explained),
+            "parameters": self.parameters,
+            "uncertainty": self.uncertainty,
+            "noise_floor": self.noise.sigma,
+            "pose_rms_before": e.pose_before,
+            "pose_rms_after": e.pose_after,
+            "trajectory_rms_before": e.trajectory_before,
+            "trajectory_rms_after": e.trajectory_after,
+            "errors_on": "validation" if self.validation_errors else "data",
+            "fit": self.fit_errors.to_json(),
+            "validation": self.validation_errors.to_json() if self.validation_errors else None,
+            "noise": self.noise.to_json(),
+            "residual_structure": {"before": self.structure_before.to_json(), "after": self.structure.to_json(),
+                                   "rule": f"not explained when the smooth part of the residual is significant "
+                                           f"(F test p < {STRUCTURE_P:g}) and its RMS >= {STRUCTURE_RATIO:g} x noise floor"},
+            "declared_effects": self.declared_effects,
+            "effects": self.effects_table(),
+            "rms_convention": "per coordinate: sqrt(mean over rows and over y, z of residual^2), m",
+            "selection": {"rule": "lowest BIC among identifiable candidates whose held-out pose error (folds of runs) "
+                                  "beats every sub-model with one effect fewer",
+                          "folds": self.folds, "seed": self.seed},
+            "candidates": [c.to_json(bic_none) for c in self.candidates],
+        }
+
+    def text(self) -> str:
+        from .report import format_table
+
+        mm = 1000.0
+        lines = [f"calibration of {self.scenario} on {self.data_source} ({self.fit_errors.rows} rows, "
+                 f"{self.fit_errors.runs} runs)"]
+        if self.declared_effects:
+            lines.append("declared effects: " + ", ".join(self.declared_effects))
+        lines.append(f"noise floor {self.noise.sigma * mm:.4f} mm per coordinate (local quadratic fit on "
+                     f"{self.noise.clusters} clusters)")
+        lines.append(f"pose residual of the declared model: RMS {self.structure_before.rms * mm:.4f} mm "
+                     f"({self.structure_before.ratio:.2f} x noise floor)")
+        lines.append("")
+        rows = []
+        order = sorted(self.candidates, key=lambda c: c.bic)
+        bic_none = next(c.bic for c in self.candidates if not c.effects)
+        for c in order:
+            rows.append([("* " if c.selected else "  ") + c.label, c.model.n_params, c.rms * mm,
+                         c.heldout_rms * mm if c.heldout_rms is not None else float("nan"), c.bic - bic_none,
+                         c.model.condition_, "yes" if c.selectable else "no", c.note])
+        lines.append(format_table(["candidate", "p", "pose rms mm", "held-out mm", "dBIC", "cond", "ok", "note"], rows,
+                                  "candidates (sorted by BIC; * selected)"))
+        lines.append("")
+        if self.selected:
+            prow = []
+            for e, ps in self.parameters.items():
+                from .effects import EFFECTS
+
+                units = dict(zip(EFFECTS[e].params, EFFECTS[e].units))
+                for p, v in ps.items():
+                    s = self.uncertainty[e][p]
+                    f, unit = (mm, "mm") if units[p] == "m" else ((mm, "mrad") if units[p] == "rad" else (1.0, units[p]))
+                    prow.append([e, p, f"{v * f:+.4f} ± {s * f:.4f}", unit])
+            lines.append(format_table(["effect", "param", "value ± 1 sigma", "unit"], prow, "selected effects"))
+        else:
+            lines.append("selected effects: none (the declared model explains the data down to the noise)")
+        e = self.errors
+        on = "validation data" if self.validation_errors else "the data"
+        lines.append("")
+        lines.append(format_table(["error (RMS per coordinate)", "before mm", "after mm"], [
+            ["pose (tracked vs model tip)", e.pose_before * mm, e.pose_after * mm],
+            ["trajectory (controller replayed)", e.trajectory_before * mm, e.trajectory_after * mm],
+        ], f"error before -> after on {on}"))
+        s = self.structure
+        verdict = "yes" if self.explained else "NO"
+        lines.append(f"explained: {verdict} — residual after {s.rms * mm:.4f} mm = {s.ratio:.2f} x noise floor; "
+                     f"structured part {s.structured_rms * mm:.4f} mm (F test p = {s.p_value:.2g})")
+        if not self.explained:
+            lines.append("  a structured residual remains well above the noise floor: an effect outside the catalogue "
+                         "(see the residual map in --record)")
+        return "\n".join(lines)
+
+
+# ----------------------------------------------------------------------------- driver
+def calibrate(sc, data: MeasuredData, *, validate: MeasuredData | None = None, seed: int = 0,
+              folds: int = DEFAULT_FOLDS, progress: Callable[[float, str], None] | None = None) -> CalibrationReport:
+    """Find which catalogue effects (if any) the data need on top of the scenario's declared model."""
+    from .simulation import ControllerModel
+
+    prog = progress or (lambda f, m="": None)
+    base = declared_plant(sc)
+    check_against_model(data, base)
+    if validate is not None:
+        check_against_model(validate, base)
+    ctrl = ControllerModel.from_scenario(sc)
+    u = data.commanded_directions()
+    r0 = pose_residual(data, base, u)
+    if not np.all(np.isfinite(r0)):
+        i = int(np.flatnonzero(~np.all(np.isfinite(r0), axis=1))[0])
+        raise DataError(f"{data.source}: row {i + 1}: the declared model has no tip at encoder angles {data.q[i].tolist()}")
+    x0 = predict_tracked(base, data.q, u)
+    nf = noise_floor(r0, x0, u)
+    st0 = structure_test(r0, u, nf)
+    prog(0.05, "noise floor")
+    k = min(folds, data.runs)
+    fold_of_run = _folds(data.runs, k, seed) if k >= 2 else None
+    names = [c.name for c in CATALOGUE]
+    combos: list[tuple[str, ...]] = [()] + [(a,) for a in names] + list(itertools.combinations(names, 2))
+    cands: dict[tuple[str, ...], Candidate] = {}
+    for i, combo in enumerate(combos):
+        cands[combo] = fit_candidate(combo, data, u, base, fold_of_run)
+        prog(0.05 + 0.75 * (i + 1) / len(combos), "+".join(combo) or "none")
+    # triples: the best pair plus each other effect, when that pair beats its singles
+    pairs = [c for key, c in cands.items() if len(key) == 2 and c.selectable]
+    if pairs:
+        bp = min(pairs, key=lambda c: c.bic)
+        if all(bp.bic < cands[(e,)].bic for e in bp.effects) and bp.bic < cands[()].bic:
+            for e in names:
+                if e in bp.effects:
+                    continue
+                key = tuple(x for x in names if x in bp.effects or x == e)
+                cands[key] = fit_candidate(key, data, u, base, fold_of_run)
+    prog(0.85, "selection")
+    chosen = select(cands)
+    chosen.selected = True
+    for c in cands.values():
+        if not c.selectable and not c.note:
+            c.note = "not identifiable"
+    model = chosen.model
+    after = model.plant(base)
+    r1 = data.tip - predict_tracked(after, data.q, u)
+    st1 = structure_test(r1, u, nf)
+    explained = not st1.structured
+
+    # before / after errors
+    tol = arrival_tolerance(nf.sigma)
+
+    def errors(d: MeasuredData, r_before: np.ndarray, r_after: np.ndarray) -> Errors:
+        tb, tb_all = trajectory_errors(d, base, ctrl, tol)
+        ta, ta_all = trajectory_errors(d, after, ctrl, tol)
+        return Errors(rms(r_before), rms(r_after), tb, ta, tb_all, ta_all, d.rows, d.runs, d.source, tol)
+
+    fit_err = errors(data, r0, r1)
+    val_err = None
+    if validate is not None:
+        uv = validate.commanded_directions()
+        val_err = errors(validate, pose_residual(validate, base, uv), pose_residual(validate, after, uv))
+    pred0, _ = replay(data, base, ctrl)
+    pred1, _ = replay(data, after, ctrl)
+    prog(1.0, "done")
+    cand_list = sorted(cands.values(), key=lambda c: (len(c.effects), c.bic))
+    return CalibrationReport(
+        scenario=sc.name, data_source=data.source, selected=model.names, explained=explained, model=model,
+        noise=nf, structure=st1, structure_before=st0, candidates=cand_list, fit_errors=fit_err,
+        validation_errors=val_err, declared_effects={k2: dict(v) for k2, v in sc.effects.items()}, seed=seed, folds=k,
+        points=x0, residual_before=r0, residual_after=r1, tracked=data.tip,
+        replay_before=pred0, replay_after=pred1, data=data)
+
+
+# ----------------------------------------------------------------------------- scenario export
+def _toml_key(k: str) -> str:
+    import re
+
+    return k if re.fullmatch(r"[A-Za-z0-9_-]+", k) else _toml_str(k)
+
+
+def _toml_str(s: str) -> str:
+    out = ['"']
+    for ch in s:
+        if ch == '"':
+            out.append('\\"')
+        elif ch == "\\":
+            out.append("\\\\")
+        elif ch == "\n":
+            out.append("\\n")
+        elif ch == "\t":
+            out.append("\\t")
+        elif ord(ch) < 0x20 or ord(ch) == 0x7F:
+            out.append(f"\\u{ord(ch):04x}")
+        else:
+            out.append(ch)
+    out.append('"')
+    return "".join(out)
+
+
+def _toml_value(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, int):
+        return str(v)
+    if isinstance(v, float):
+        if not math.isfinite(v):
+            raise ErrplanError(f"cannot write the non-finite number {v} to TOML")
+        return repr(v)
+    if isinstance(v, str):
+        return _toml_str(v)
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    if isinstance(v, dict):
+        return "{ " + ", ".join(f"{_toml_key(k)} = {_toml_value(x)}" for k, x in v.items()) + " }"
+    if hasattr(v, "item"):
+        return _toml_value(v.item())
+    raise ErrplanError(f"cannot write {type(v).__name__} {v!r} to TOML")
+
+
+def to_toml(doc: dict, header: str = "") -> str:
+    """A TOML document for a parsed-TOML-like dict (tables, arrays of tables, inline values)."""
+    lines: list[str] = [f"# {h}" if h else "#" for h in header.splitlines()] if header else []
+
+    def is_table(v) -> bool:
+        return isinstance(v, dict)
+
+    def is_aot(v) -> bool:
+        return isinstance(v, list) and len(v) > 0 and all(isinstance(x, dict) for x in v)
+
+    def emit(table: dict, path: list[str]) -> None:
+        for k, v in table.items():
+            if not is_table(v) and not is_aot(v):
+                lines.append(f"{_toml_key(k)} = {_toml_value(v)}")
+        for k, v in table.items():
+            if is_table(v):
+                sub = path + [_toml_key(k)]
+                scalars = any(not is_table(x) and not is_aot(x) for x in v.values())
+                if scalars or not v:
+                    lines.append("")
+                    lines.append(f"[{'.'.join(sub)}]")
+                emit(v, sub)
+        for k, v in table.items():
+            if is_aot(v):
+                sub = path + [_toml_key(k)]
+                for item in v:
+                    lines.append("")
+                    lines.append(f"[[{'.'.join(sub)}]]")
+                    emit(item, sub)
+
+    emit(doc, [])
+    return "\n".join(lines).lstrip("\n") + "\n"
+
+
+def corrected_scenario_toml(sc, report: CalibrationReport) -> str:
+    """The scenario's own TOML with the found effects under ``[effects]`` (declared + fitted)."""
+    import tomllib
+    from pathlib import Path
+
+    from .scenario import parse_scenario
+
+    try:
+        doc = tomllib.loads(Path(sc.source).read_text(encoding="utf-8"))
+    except (OSError, tomllib.TOMLDecodeError) as e:
+        raise ErrplanError(f"{sc.source}: cannot re-read the scenario to export it: {e}") from None
+    effects = report.effects_table()
+    if effects:
+        doc["effects"] = {e: {p: float(v) for p, v in ps.items()} for e, ps in effects.items()}
+    else:
+        doc.pop("effects", None)
+    doc["name"] = f"{sc.name}-calibrated" if report.selected else sc.name
+    found = ", ".join(report.selected) or "none"
+    doc["description"] = (sc.description + " | " if sc.description else "") + f"calibrated: {found}"
+    header = (f"{sc.name} corrected by `errplan calibrate` on {report.data_source}\n"
+              f"found effects: {found}; explained: {str(report.explained).lower()}\n"
+              f"noise floor {report.noise.sigma:.3e} m; pose RMS {report.fit_errors.pose_before:.3e} -> "
+              f"{report.fit_errors.pose_after:.3e} m")
+    text = to_toml(doc, header)
+    parse_scenario(tomllib.loads(text), "<exported scenario>")  # reads back, or raises before writing
+    return text

@@ -1,0 +1,37 @@
+"""``errplan tolerance SCENARIO [--json F]``: answer every ``[[tolerance]]`` query of a scenario.
+
+Prints one table row per query (the answer, where it binds) and writes
+``{"scenario", "tolerances": [{"name", "kind", ...}]}`` (docs/interfaces.md "tolerance JSON",
+notes/readme_tolerance.md for every key). Nothing is written when a query fails.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+from ..errors import ErrplanError
+from ..report import Progress, format_table, write_json
+
+
+def run(args) -> int:
+    from ..scenario import load_scenario
+    from ..tolerance import run_all
+
+    sc = load_scenario(args.scenario)
+    if args.json:
+        out = Path(args.json)
+        if not out.parent.exists():
+            raise ErrplanError(f"--json {args.json}: directory {out.parent} does not exist")
+    prog = Progress("tolerance", quiet=args.quiet)
+    results = run_all(sc, progress=prog)
+    prog.done()
+    rows = [r.summary_row() + [r.seconds] for r in results]
+    print(format_table(["query", "kind", "tolerable", "binding at / best", "note", "s"], rows,
+                       f"tolerance-design queries of {sc.name}"))
+    for r in results:
+        if r.kind in ("port", "tip_load") and not r.data.get("converged", True):
+            print(f"warning: {r.name}: halving the grid spacing still changed the answer by "
+                  f"{100 * r.data['refinement_change']:.2f}% (> 1%)")
+    if args.json:
+        write_json(args.json, {"scenario": sc.name, "source": sc.source,
+                               "tolerances": [r.to_dict() for r in results]})
+    return 0

@@ -1,0 +1,319 @@
+"""The candidate effects of docs/physics.md ("Effects a real bench shows"), one small class each.
+
+Every effect has the same interface (PySINDy's feature-library style):
+
+- class attributes ``name`` (the physics.md name), ``params`` (parameter names), ``units`` and
+  ``default_scales`` (a typical size of each parameter, SI: it sets the finite-difference step and
+  the units the fit works in, and the "size" used by the identifiability check);
+- ``apply(plant, values)``: the :class:`errplan.simulation.Plant` with the effect *added* to what
+  the plant already has (every effect is additive in its parameters, so a declared effect plus a
+  fitted correction is again that effect);
+- ``fit(data, base)``: fit this effect alone to measured data (nonlinear least squares on the pose
+  residual, see :class:`EffectModel`); settings live in ``__init__``, fitted values end with an
+  underscore (``values_``, ``sigma_``, ...), ``fit`` returns ``self``.
+
+:class:`EffectModel` is a combination of effects (the empty combination is the declared model)
+and does the fitting: ``tracked tip = plant(values).tip(q_enc, u) + tracker offset``, residual
+``tracked - model`` over all rows at once, ``scipy.optimize.least_squares`` in scaled units
+(value / default scale) with a central-difference Jacobian, covariance ``s^2 (J^T J)^-1`` with
+``s^2 = RSS / (2n - p)``, and an identifiability check on the column-normalised Jacobian
+(condition number and the largest correlation between parameter estimates).
+"""
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+
+from .errors import ErrplanError
+
+#: an effect combination whose normalised Jacobian is worse conditioned than this, or whose
+#: parameter estimates correlate more than MAX_CORRELATION, cannot be identified from the data.
+MAX_CONDITION = 1.0e3
+MAX_CORRELATION = 0.995
+
+
+class Effect:
+    """Base class: one effect of docs/physics.md with a fixed parametrisation."""
+
+    name: str = ""
+    params: tuple[str, ...] = ()
+    units: tuple[str, ...] = ()
+    default_scales: tuple[float, ...] = ()
+    plant_field: str = ""
+    description: str = ""
+
+    def __init__(self, scales: Sequence[float] | None = None):
+        self.scales = tuple(float(s) for s in (scales if scales is not None else self.default_scales))
+        if len(self.scales) != len(self.params) or not all(s > 0 for s in self.scales):
+            raise ErrplanError(f"{self.name}: scales {list(self.scales)}: expected {len(self.params)} numbers > 0")
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}()"
+
+    @property
+    def n_params(self) -> int:
+        return len(self.params)
+
+    def apply(self, plant, values: Sequence[float]):
+        """The plant with this effect added (``values`` in physics.md units, order ``params``)."""
+        cur = np.asarray(getattr(plant, self.plant_field), float)
+        return plant.with_(**{self.plant_field: tuple(float(v) for v in cur + np.asarray(values, float))})
+
+    def values_of(self, plant) -> np.ndarray:
+        """The values this effect has in a plant."""
+        return np.asarray(getattr(plant, self.plant_field), float)
+
+    def as_dict(self, values: Sequence[float]) -> dict[str, float]:
+        return {p: float(v) for p, v in zip(self.params, values)}
+
+    def fit(self, q: np.ndarray, u: np.ndarray, tracked: np.ndarray, base) -> "Effect":
+        """Fit this effect alone (see :meth:`EffectModel.fit`); sets ``values_``, ``sigma_``,
+        ``model_`` (the fitted :class:`EffectModel`). Returns self."""
+        m = EffectModel([self]).fit(q, u, tracked, base)
+        self.model_ = m
+        self.values_ = m.values_
+        self.sigma_ = m.sigma_
+        return self
+
+
+class PortOffset(Effect):
+    name = "port_offset"
+    params = ("dy", "dz")
+    units = ("m", "m")
+    default_scales = (1e-3, 1e-3)
+    plant_field = "port_offset"
+    description = "the true port is the declared port + [dy, dz]"
+
+
+class JointOffset(Effect):
+    name = "joint_offset"
+    params = ("dq1", "dq2")
+    units = ("rad", "rad")
+    default_scales = (1e-3, 1e-3)
+    plant_field = "joint_offset"
+    description = "link angles = encoder angles + [dq1, dq2]"
+
+
+class TrackerOffset(Effect):
+    name = "tracker_offset"
+    params = ("by", "bz")
+    units = ("m", "m")
+    default_scales = (1e-3, 1e-3)
+    plant_field = "tracker_offset"
+    description = "tracked tip = true tip + [by, bz]"
+
+
+class GravitySag(Effect):
+    name = "gravity_sag"
+    params = ("c1", "c2", "c3")
+    units = ("rad", "rad", "rad")
+    default_scales = (1e-3, 1e-3, 1e-3)
+    plant_field = "gravity_sag"
+    description = "link angles = encoder angles - [c1 cos a1 + c2 cos a2, c3 cos a2]"
+
+
+class ShaftFlexion(Effect):
+    name = "shaft_flexion"
+    params = ("fy", "fz")
+    units = ("1/m^2", "1/m^2")
+    default_scales = (1.0, 1.0)
+    plant_field = "world_load"
+    description = "a constant world-frame tip load over EI bends the shaft (P2 beam)"
+
+
+class PortFriction(Effect):
+    name = "port_friction"
+    params = ("fa", "fn")
+    units = ("m", "m")
+    default_scales = (1e-3, 1e-3)
+    plant_field = "friction"
+    description = "the port holds the tip back against the commanded motion (axial fa, normal fn)"
+
+
+#: the catalogue, in physics.md order
+CATALOGUE: tuple[type[Effect], ...] = (PortOffset, JointOffset, TrackerOffset, GravitySag, ShaftFlexion, PortFriction)
+EFFECTS: dict[str, type[Effect]] = {c.name: c for c in CATALOGUE}
+
+
+def make_effect(name: str) -> Effect:
+    try:
+        return EFFECTS[name]()
+    except KeyError:
+        raise ErrplanError(f"effect {name!r}: not an effect of docs/physics.md ({', '.join(EFFECTS)})") from None
+
+
+def predict_tracked(plant, q: np.ndarray, u: np.ndarray | None) -> np.ndarray:
+    """What the tracker reads (n, 2) for encoder angles ``q`` (n, 2) and commanded directions ``u``."""
+    return plant.tip(q, u) + np.asarray(plant.tracker_offset, float)
+
+
+class EffectModel:
+    """A combination of effects added to a base plant, fitted to the pose residual.
+
+    Parameters
+    ----------
+    effects : sequence of :class:`Effect` (empty: the base plant alone, nothing to fit).
+    fd_step : central-difference step in scaled units (value / default scale).
+    max_nfev : evaluation budget of ``least_squares``.
+
+    Fitted attributes: ``values_`` (p,) physics.md units, ``cov_`` (p, p), ``sigma_`` (p,),
+    ``rss_`` (m^2), ``n_obs_`` (scalar residuals, 2 per row), ``condition_`` (of the
+    column-normalised Jacobian), ``correlation_`` (p, p), ``max_correlation_``,
+    ``identifiable_`` (bool), ``why_`` (a sentence when not identifiable), ``success_``.
+    """
+
+    def __init__(self, effects: Sequence[Effect] = (), *, fd_step: float = 1e-3, max_nfev: int = 200):
+        self.effects = list(effects)
+        names = [e.name for e in self.effects]
+        if len(set(names)) != len(names):
+            raise ErrplanError(f"effect combination {names}: an effect appears twice")
+        self.fd_step = fd_step
+        self.max_nfev = max_nfev
+
+    # ------------------------------------------------------------------ structure
+    @property
+    def names(self) -> list[str]:
+        return [e.name for e in self.effects]
+
+    @property
+    def label(self) -> str:
+        return "+".join(self.names) if self.effects else "none"
+
+    @property
+    def n_params(self) -> int:
+        return sum(e.n_params for e in self.effects)
+
+    @property
+    def scales(self) -> np.ndarray:
+        return np.array([s for e in self.effects for s in e.scales], float)
+
+    @property
+    def param_labels(self) -> list[str]:
+        return [f"{e.name}.{p}" for e in self.effects for p in e.params]
+
+    def _split(self, values: np.ndarray) -> list[np.ndarray]:
+        out, i = [], 0
+        for e in self.effects:
+            out.append(np.asarray(values[i:i + e.n_params], float))
+            i += e.n_params
+        return out
+
+    def plant(self, base, values: Sequence[float] | None = None):
+        """The base plant with every effect of the combination added."""
+        values = self.values_ if values is None else np.asarray(values, float)
+        p = base
+        for e, v in zip(self.effects, self._split(np.asarray(values, float))):
+            p = e.apply(p, v)
+        return p
+
+    def parameters(self, values: Sequence[float] | None = None) -> dict[str, dict[str, float]]:
+        values = self.values_ if values is None else values
+        return {e.name: e.as_dict(v) for e, v in zip(self.effects, self._split(np.asarray(values, float)))}
+
+    def uncertainties(self) -> dict[str, dict[str, float]]:
+        return {e.name: e.as_dict(v) for e, v in zip(self.effects, self._split(self.sigma_))}
+
+    def predict(self, base, q: np.ndarray, u: np.ndarray | None, values: Sequence[float] | None = None) -> np.ndarray:
+        return predict_tracked(self.plant(base, values), q, u)
+
+    # ------------------------------------------------------------------ fitting
+    def _residual_fn(self, q, u, tracked, base):
+        scales = self.scales
+        tracked = np.asarray(tracked, float)
+
+        def f(z: np.ndarray) -> np.ndarray:
+            with np.errstate(invalid="ignore", divide="ignore"):
+                r = (tracked - predict_tracked(self.plant(base, z * scales), q, u)).ravel()
+            # a parameter value that breaks the geometry (shaft out of the port) is a huge misfit,
+            # never a NaN inside the optimiser
+            return np.where(np.isfinite(r), r, 1.0)
+
+        return f
+
+    def _jac(self, f, z: np.ndarray) -> np.ndarray:
+        h = self.fd_step
+        cols = []
+        for j in range(len(z)):
+            dz = np.zeros_like(z)
+            dz[j] = h
+            cols.append((f(z + dz) - f(z - dz)) / (2 * h))
+        return np.stack(cols, axis=-1)
+
+    def fit(self, q: np.ndarray, u: np.ndarray | None, tracked: np.ndarray, base,
+            x0: Sequence[float] | None = None) -> "EffectModel":
+        """Fit the combination to measured rows: encoder angles ``q`` (n, 2) rad, commanded
+        directions ``u`` (n, 2) (port friction), tracked tips ``tracked`` (n, 2) m; ``base`` the
+        declared :class:`Plant`. ``x0`` a start (physics.md units, default zero). Returns self."""
+        from scipy.optimize import least_squares
+
+        q = np.asarray(q, float)
+        n = len(q)
+        p = self.n_params
+        self.n_obs_ = 2 * n
+        f = self._residual_fn(q, u, tracked, base)
+        scales = self.scales
+        if p == 0:
+            r = f(np.zeros(0))
+            self.values_ = np.zeros(0)
+            self.cov_ = np.zeros((0, 0))
+            self.sigma_ = np.zeros(0)
+            self.rss_ = float(r @ r)
+            self.condition_ = 1.0
+            self.correlation_ = np.zeros((0, 0))
+            self.max_correlation_ = 0.0
+            self.identifiable_ = True
+            self.why_ = ""
+            self.success_ = True
+            self.nfev_ = 1
+            return self
+        if 2 * n <= p:
+            raise ErrplanError(f"{self.label}: {n} rows cannot fit {p} parameters")
+        z0 = np.zeros(p) if x0 is None else np.asarray(x0, float) / scales
+        sol = least_squares(f, z0, jac=lambda z: self._jac(f, z), method="lm", max_nfev=self.max_nfev,
+                            xtol=1e-10, ftol=1e-12, gtol=1e-12)
+        z = sol.x
+        r = f(z)
+        J = self._jac(f, z)
+        self.values_ = z * scales
+        self.rss_ = float(r @ r)
+        self.nfev_ = int(sol.nfev)
+        self.success_ = bool(sol.success) and bool(np.all(np.isfinite(z)))
+        # identifiability on the column-normalised Jacobian
+        norms = np.linalg.norm(J, axis=0)
+        why = []
+        dead = norms <= 1e-12 * max(1.0, float(np.max(norms)) if len(norms) else 1.0)
+        if np.any(dead):
+            why.append("no data depend on " + ", ".join(np.array(self.param_labels)[dead]))
+        Jn = J / np.where(dead, 1.0, norms)
+        sv = np.linalg.svd(Jn, compute_uv=False)
+        cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else float("inf")
+        s2 = self.rss_ / max(2 * n - p, 1)
+        if np.isfinite(cond) and not np.any(dead):
+            A = np.linalg.inv(Jn.T @ Jn)
+            d = np.sqrt(np.diag(A))
+            corr = A / np.outer(d, d)
+            cov_z = s2 * (A / np.outer(norms, norms))
+        else:
+            corr = np.full((p, p), np.nan)
+            np.fill_diagonal(corr, 1.0)
+            cov_z = np.full((p, p), np.inf)
+        off = np.abs(corr - np.eye(p))
+        self.max_correlation_ = float(np.nanmax(off)) if p > 1 else 0.0
+        if not np.all(np.isfinite(corr)):
+            self.max_correlation_ = 1.0
+        self.condition_ = cond
+        self.correlation_ = corr
+        self.cov_ = cov_z * np.outer(scales, scales)
+        self.sigma_ = np.sqrt(np.diag(self.cov_))
+        if cond > MAX_CONDITION:
+            why.append(f"condition number {cond:.3g} > {MAX_CONDITION:g}")
+        if self.max_correlation_ > MAX_CORRELATION:
+            i, j = np.unravel_index(int(np.nanargmax(np.where(np.isfinite(off), off, 2.0))), off.shape)
+            labels = self.param_labels
+            why.append(f"{labels[i]} and {labels[j]} correlate {corr[i, j]:+.4f}")
+        if not self.success_:
+            why.append(f"the fit did not converge ({sol.message})")
+        self.identifiable_ = not why
+        self.why_ = "; ".join(why)
+        return self

@@ -1,0 +1,386 @@
+"""P1-style bench runs (P1 Sec. III-B, Fig. 8) and the measured-data CSV of docs/interfaces.md.
+
+A bench run places the tip at a start, then drives it with the scenario's controller (the
+declared model: rigid lever through the port *estimate*, or P2's flexion model) at the scenario
+gain toward one of eight targets 20 mm away along y, z and the diagonals. The robot it drives is
+the scenario's *truth*: the declared arm, shaft and true port plus the scenario's ``[effects]``
+and its sensor noise (``[sensors] tracker_sigma``, ``encoder_sigma``).
+
+Starts: P1's L, M, N = (0, 0.320), (0, 0.375), (0, 0.415) wherever they and their eight targets
+are reachable, then further starts spread over the tip workspace (farthest-point sampling over
+tips whose 30 mm neighbourhood is reachable with margin), so that the data see the effects in
+many configurations. A run stops ``dwell`` steps after the tracked tip first came within
+``tolerance`` of the target (the converged segment measures the noise), or after ``max_steps``
+commands, or when a command leaves the joint limits / pulls the shaft out of the port.
+
+:class:`MeasuredData` holds one CSV (rows run-major, steps ascending) and reads it robustly:
+every malformed cell, missing column or short run raises one :class:`DataError` that names the
+column, the row and the value.
+"""
+from __future__ import annotations
+
+import csv
+import io
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .errors import DataError, ErrplanError
+from .kinematics.arm import Arm
+from .kinematics.shaft import flexed_wrist
+
+COLUMNS = ("run", "step", "target_y", "target_z", "gain", "q1", "q2", "tip_y", "tip_z")
+P1_STARTS = ((0.0, 0.320), (0.0, 0.375), (0.0, 0.415))
+TARGET_DISTANCE = 0.020
+DEFAULT_STARTS = 8
+DEFAULT_MAX_STEPS = 60
+DEFAULT_DWELL = 10
+
+
+# ----------------------------------------------------------------------------- data
+@dataclass
+class MeasuredData:
+    """Measured bench data, one row per controller step (docs/interfaces.md "Measured data").
+
+    Arrays (n rows, run-major, steps ascending): ``run`` (n,) run index into ``run_ids``,
+    ``step`` (n,), ``target`` (n, 2) m, ``gain`` (n,), ``q`` (n, 2) encoder angles rad,
+    ``tip`` (n, 2) tracked tip m.
+    """
+
+    run_ids: list[str]
+    run: np.ndarray
+    step: np.ndarray
+    target: np.ndarray
+    gain: np.ndarray
+    q: np.ndarray
+    tip: np.ndarray
+    source: str = "<memory>"
+    first: np.ndarray = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        self.run = np.asarray(self.run, int)
+        self.step = np.asarray(self.step, int)
+        self.target = np.asarray(self.target, float).reshape(-1, 2)
+        self.gain = np.asarray(self.gain, float)
+        self.q = np.asarray(self.q, float).reshape(-1, 2)
+        self.tip = np.asarray(self.tip, float).reshape(-1, 2)
+        self.first = np.flatnonzero(self.step == 0)
+
+    @property
+    def rows(self) -> int:
+        return len(self.step)
+
+    @property
+    def runs(self) -> int:
+        return len(self.run_ids)
+
+    @property
+    def lengths(self) -> np.ndarray:
+        return np.bincount(self.run, minlength=self.runs)
+
+    def commanded_directions(self) -> np.ndarray:
+        """Unit direction ``u`` (n, 2) of the tip motion commanded in the step that led to each row.
+
+        Under the declared model the command ``k Jhat^-1 (target - tip)`` moves the tip along
+        ``target - tip(t-1)`` (docs/physics.md ``port_friction``). Step 0 has no command: ``u = 0``.
+        A command of zero length keeps the previous direction.
+        """
+        err = self.target - self.tip
+        n = np.linalg.norm(err, axis=-1)
+        u_cmd = np.where(n[:, None] > 0, err / np.where(n > 0, n, 1.0)[:, None], np.nan)
+        u = np.zeros_like(self.tip)
+        prev = np.zeros_like(self.tip)
+        prev[1:] = u_cmd[:-1]
+        new_run = self.step == 0
+        prev[new_run] = 0.0
+        u[:] = prev
+        # zero-length commands keep the last direction (rare: exact hits of the target)
+        bad = np.flatnonzero(np.isnan(u[:, 0]))
+        for i in bad:
+            u[i] = u[i - 1] if self.step[i] > 1 else 0.0
+        return u
+
+    def subset(self, runs: np.ndarray) -> "MeasuredData":
+        """The rows of the given run indices (a new object with runs renumbered)."""
+        runs = np.asarray(sorted(set(int(r) for r in runs)), int)
+        mask = np.isin(self.run, runs)
+        remap = -np.ones(self.runs, int)
+        remap[runs] = np.arange(len(runs))
+        return MeasuredData([self.run_ids[r] for r in runs], remap[self.run[mask]], self.step[mask],
+                            self.target[mask], self.gain[mask], self.q[mask], self.tip[mask], self.source)
+
+    def to_csv_text(self) -> str:
+        out = io.StringIO()
+        out.write(",".join(COLUMNS) + "\n")
+        for i in range(self.rows):
+            vals = (self.target[i, 0], self.target[i, 1], self.gain[i], self.q[i, 0], self.q[i, 1],
+                    self.tip[i, 0], self.tip[i, 1])
+            out.write(f"{self.run_ids[self.run[i]]},{self.step[i]}," + ",".join(f"{v:.12g}" for v in vals) + "\n")
+        return out.getvalue()
+
+    def write_csv(self, path: str | Path) -> None:
+        from .report import write_atomic
+
+        write_atomic(path, self.to_csv_text())
+
+
+def _cell_float(text: str, column: str, row: int, where: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise DataError(f"{where}: row {row} column {column!r}: value {text!r} is not a number") from None
+    if not math.isfinite(v):
+        raise DataError(f"{where}: row {row} column {column!r}: value {text!r} is not finite")
+    return v
+
+
+def parse_measured_csv(text: str, source: str = "<memory>") -> MeasuredData:
+    """Parse measured-data CSV text (docs/interfaces.md); raise :class:`DataError` on any defect.
+
+    Rows are numbered from 1 (the first data row; the header is line 1 of the file, so data row
+    ``r`` is line ``r + 1``). Extra columns are ignored. Runs may appear in any order; their
+    steps must be 0, 1, ... without gaps or repeats, target and gain constant, at least 2 steps.
+    """
+    if not text.strip():
+        raise DataError(f"{source}: the file is empty (expected a header {','.join(COLUMNS)} and data rows)")
+    reader = csv.reader(io.StringIO(text))
+    try:
+        header = next(reader)
+    except (StopIteration, csv.Error) as e:  # pragma: no cover - guarded by the empty check
+        raise DataError(f"{source}: cannot read the CSV header: {e}") from None
+    header = [h.strip() for h in header]
+    missing = [c for c in COLUMNS if c not in header]
+    if missing:
+        raise DataError(f"{source}: missing column(s) {', '.join(missing)} (header has {', '.join(header) or 'nothing'}; "
+                        f"expected {','.join(COLUMNS)})")
+    dup = [c for c in COLUMNS if header.count(c) > 1]
+    if dup:
+        raise DataError(f"{source}: column(s) {', '.join(dup)} appear more than once in the header")
+    idx = {c: header.index(c) for c in COLUMNS}
+    runs: dict[str, list] = {}
+    nrow = 0
+    try:
+        for row in reader:
+            if not row or all(not c.strip() for c in row):
+                continue
+            nrow += 1
+            if len(row) < len(header):
+                raise DataError(f"{source}: row {nrow} has {len(row)} values, the header has {len(header)} columns")
+            rid = row[idx["run"]].strip()
+            if not rid:
+                raise DataError(f"{source}: row {nrow} column 'run': empty run id")
+            st = row[idx["step"]].strip()
+            sv = _cell_float(st, "step", nrow, source)
+            if sv != int(sv) or sv < 0:
+                raise DataError(f"{source}: row {nrow} column 'step': value {st!r} is not an integer >= 0")
+            vals = [_cell_float(row[idx[c]].strip(), c, nrow, source) for c in COLUMNS[2:]]
+            runs.setdefault(rid, []).append((int(sv), nrow, vals))
+    except csv.Error as e:
+        raise DataError(f"{source}: malformed CSV near row {nrow + 1}: {e}") from None
+    if nrow == 0:
+        raise DataError(f"{source}: no data rows after the header")
+    run_ids, R, S, TG, K, Q, X = [], [], [], [], [], [], []
+    for ri, (rid, rows) in enumerate(runs.items()):
+        rows.sort(key=lambda r: r[0])
+        steps = [r[0] for r in rows]
+        if len(rows) < 2:
+            raise DataError(f"{source}: run {rid!r} has {len(rows)} step (row {rows[0][1]}); a run needs at least 2 steps "
+                            f"(the state before the first command and after it)")
+        if steps != list(range(len(steps))):
+            seen = set()
+            for s, r, _ in rows:
+                if s in seen:
+                    raise DataError(f"{source}: run {rid!r}: step {s} appears twice (row {r})")
+                seen.add(s)
+            expect = next(i for i, s in enumerate(steps) if s != i)
+            raise DataError(f"{source}: run {rid!r}: steps must be 0, 1, 2, ... without gaps; step {expect} is missing "
+                            f"(found {steps[expect]} at row {rows[expect][1]})")
+        v = np.array([r[2] for r in rows])
+        for j, c in ((0, "target_y"), (1, "target_z"), (2, "gain")):
+            bad = np.flatnonzero(v[:, j] != v[0, j])
+            if len(bad):
+                r = rows[bad[0]][1]
+                raise DataError(f"{source}: run {rid!r}: column {c!r} changes within the run (row {r}: {v[bad[0], j]!r}, "
+                                f"first row: {v[0, j]!r}); a run has one target and one gain")
+        if not v[0, 2] > 0:
+            raise DataError(f"{source}: run {rid!r} column 'gain': value {v[0, 2]!r} (row {rows[0][1]}) is not > 0")
+        run_ids.append(rid)
+        R.append(np.full(len(rows), ri))
+        S.append(np.array(steps))
+        TG.append(v[:, 0:2]); K.append(v[:, 2]); Q.append(v[:, 3:5]); X.append(v[:, 5:7])
+    return MeasuredData(run_ids, np.concatenate(R), np.concatenate(S), np.concatenate(TG), np.concatenate(K),
+                        np.concatenate(Q), np.concatenate(X), source)
+
+
+def read_measured_csv(path: str | Path) -> MeasuredData:
+    """Read a measured-data CSV file (see :func:`parse_measured_csv`)."""
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8-sig")
+    except FileNotFoundError:
+        raise DataError(f"{p}: data file not found") from None
+    except UnicodeDecodeError:
+        raise DataError(f"{p}: not a text (UTF-8) CSV file") from None
+    except OSError as e:
+        raise DataError(f"{p}: cannot read data file: {e.strerror}") from None
+    return parse_measured_csv(text, str(p))
+
+
+# ----------------------------------------------------------------------------- starts
+def _tip_valid(arm: Arm, length: float, port: np.ndarray, estimate: np.ndarray, x: np.ndarray, *,
+               limit_margin: float, port_margin: float, wrist_margin: float) -> np.ndarray:
+    """Tips (..., 2) a straight shaft through ``port`` reaches with margins (joint limits, tip and
+    wrist away from the port, also for the controller's estimate)."""
+    d = np.linalg.norm(x - port, axis=-1)
+    ok = (d > port_margin) & (d < length - wrist_margin)
+    xs = np.where(ok[..., None], x, port + [0.0, 0.5 * length])
+    w = flexed_wrist(xs, port, length, np.zeros(x.shape[:-1]))
+    q, reach = arm.inverse(w)
+    ok &= reach
+    qs = np.where(reach[..., None], q, 0.0)
+    ok &= arm.limit_margin(qs) >= limit_margin
+    rho_e = np.linalg.norm(estimate - w, axis=-1)
+    ok &= (rho_e > wrist_margin) & (rho_e < length - port_margin)
+    return ok
+
+
+def target_offsets(distance: float = TARGET_DISTANCE) -> np.ndarray:
+    """The eight target offsets (8, 2): +z, then counter-clockwise in 45 degree steps (P1 Sec. III-B)."""
+    a = np.arange(8) * (np.pi / 4)
+    return distance * np.stack([np.sin(a), np.cos(a)], axis=-1)
+
+
+def choose_starts(sc, n_starts: int = DEFAULT_STARTS, *, spacing: float = 0.005, radius: float = 0.030) -> np.ndarray:
+    """Start tips (m, 2): P1's L, M, N where they and their targets are reachable, then starts
+    spread over the tip workspace (farthest-point sampling over robust tips).
+
+    A robust tip has every point of its ``radius`` neighbourhood (centre, two rings) reachable
+    through the true port with 0.05 rad joint-limit margin, the tip 30 mm and the wrist 40 mm away
+    from the port (and from the controller's port estimate).
+    """
+    if n_starts < 1:
+        raise ErrplanError(f"starts {n_starts}: expected at least 1")
+    arm = Arm.from_robot(sc.robot)
+    L = sc.instrument.length
+    port = np.asarray(sc.port.position, float)
+    est = np.asarray(sc.port.estimate, float)
+    kw = dict(limit_margin=0.05, port_margin=0.030, wrist_margin=0.040)
+    chosen: list[np.ndarray] = []
+    offs = target_offsets()
+    for s in P1_STARTS:
+        pts = np.vstack([np.asarray(s)[None], np.asarray(s) + offs])
+        if np.all(_tip_valid(arm, L, port, est, pts, limit_margin=0.02, port_margin=0.03, wrist_margin=0.04)):
+            chosen.append(np.asarray(s, float))
+        if len(chosen) >= n_starts:
+            return np.array(chosen)
+    # candidate tips: the tip workspace's bounding box on a grid
+    w = arm.sample_wrists(61)
+    rho = np.linalg.norm(port - w, axis=-1)
+    w = w[(rho > 1e-6) & (rho < L)]
+    if len(w) == 0:
+        raise ErrplanError(f"{sc.source}: the shaft cannot reach through the port from any wrist pose")
+    tips = w + L * (port - w) / np.linalg.norm(port - w, axis=-1)[:, None]
+    lo, hi = tips.min(axis=0), tips.max(axis=0)
+    gy = np.arange(lo[0], hi[0] + spacing / 2, spacing)
+    gz = np.arange(lo[1], hi[1] + spacing / 2, spacing)
+    cand = np.stack(np.meshgrid(gy, gz, indexing="ij"), axis=-1).reshape(-1, 2)
+    ang = np.arange(12) * (np.pi / 6)
+    ring = np.stack([np.sin(ang), np.cos(ang)], axis=-1)
+    probe = np.vstack([[0.0, 0.0], radius * ring, 0.5 * radius * ring])  # (25, 2)
+    ok = np.all(_tip_valid(arm, L, port, est, cand[:, None, :] + probe[None], **kw), axis=1)
+    cand = cand[ok]
+    if len(cand) == 0 and not chosen:
+        raise ErrplanError(f"{sc.source}: no start tip has its {radius * 1000:g} mm neighbourhood inside the tip "
+                           f"workspace; the scenario's workspace is too small for a bench run")
+    if len(cand):
+        dmin = (np.min(np.linalg.norm(cand[:, None] - np.array(chosen)[None], axis=-1), axis=1) if chosen
+                else np.linalg.norm(cand - cand.mean(axis=0), axis=-1) * -1.0)
+        if not chosen:  # the robust tip nearest the centroid first
+            i = int(np.argmax(dmin))
+            chosen.append(cand[i])
+            dmin = np.linalg.norm(cand - cand[i], axis=-1)
+        while len(chosen) < n_starts and np.max(dmin) > 2 * TARGET_DISTANCE:
+            i = int(np.argmax(dmin))
+            chosen.append(cand[i])
+            dmin = np.minimum(dmin, np.linalg.norm(cand - cand[i], axis=-1))
+    return np.array(chosen)
+
+
+# ----------------------------------------------------------------------------- the bench run
+@dataclass
+class ExperimentResult:
+    """A bench run: the data and, per run, its start, target and how it ended."""
+
+    data: MeasuredData
+    starts: np.ndarray            # (m, 2) start tips
+    status: list[str]             # per run: "converged" | "max_steps" | "left_workspace"
+    tolerance: float
+    dwell: int
+    max_steps: int
+
+    def summary_rows(self) -> list[list]:
+        d = self.data
+        rows = []
+        for r in range(d.runs):
+            m = d.run == r
+            tip = d.tip[m]
+            tg = d.target[m][0]
+            rows.append([d.run_ids[r], f"({tip[0, 0] * 1000:.1f}, {tip[0, 1] * 1000:.1f})",
+                         f"({tg[0] * 1000:.1f}, {tg[1] * 1000:.1f})", int(m.sum()) - 1,
+                         float(np.linalg.norm(tip[-1] - tg) * 1000), self.status[r]])
+        return rows
+
+
+def run_experiment(sc, seed: int = 0, *, plant=None, starts=None, n_starts: int = DEFAULT_STARTS,
+                   max_steps: int = DEFAULT_MAX_STEPS, dwell: int = DEFAULT_DWELL,
+                   tolerance: float | None = None) -> ExperimentResult:
+    """A P1-style bench run on the scenario's truth (see the module docstring).
+
+    ``plant`` overrides the truth (default: :meth:`Plant.from_scenario` with the scenario's
+    effects and sensor noise) — tests use it for effects outside the catalogue. ``tolerance``
+    (m) defaults to ``max(0.5 mm, 3 tracker_sigma)``. Deterministic from ``seed``.
+    """
+    from .simulation import ControllerModel, Plant, simulate
+
+    if max_steps < 1:
+        raise ErrplanError(f"max_steps {max_steps}: expected at least 1")
+    if dwell < 0:
+        raise ErrplanError(f"dwell {dwell}: expected >= 0")
+    truth = plant if plant is not None else Plant.from_scenario(sc, effects=True, noise=True)
+    ctrl = ControllerModel.from_scenario(sc)
+    tol = tolerance if tolerance is not None else max(5e-4, 3 * truth.tracker_sigma)
+    S = np.atleast_2d(np.asarray(starts, float)) if starts is not None else choose_starts(sc, n_starts)
+    rng = np.random.default_rng(seed)
+    offs = target_offsets()
+    gain = sc.controller.gain
+    ids, R, ST, TG, K, Q, X, status = [], [], [], [], [], [], [], []
+    for si, s in enumerate(S):
+        try:
+            q0 = truth.configuration_for_tip(s)
+        except ErrplanError as e:
+            raise ErrplanError(f"start {si} {np.round(s, 4).tolist()}: {e}") from None
+        for ti, off in enumerate(offs):
+            tg = s + off
+            res = simulate(truth, ctrl, q0, tg[None], gain, tolerance=1e-300, max_steps=max_steps, rng=rng)
+            e = np.linalg.norm(res.tracked - tg, axis=-1)
+            hit = np.flatnonzero(e < tol)
+            n = len(res.q)
+            st = res.status
+            if len(hit) and hit[0] + dwell + 1 < n:
+                n = hit[0] + dwell + 1
+                st = "converged"
+            elif len(hit):
+                st = "converged"
+            if n < 2:
+                continue  # the very first command left the workspace: nothing measured
+            rid = len(ids)
+            ids.append(f"{si}-{ti}")
+            R.append(np.full(n, rid)); ST.append(np.arange(n)); TG.append(np.repeat(tg[None], n, 0))
+            K.append(np.full(n, gain)); Q.append(res.q[:n]); X.append(res.tracked[:n]); status.append(st)
+    if not ids:
+        raise ErrplanError(f"{sc.source}: every bench run left the workspace on its first command")
+    data = MeasuredData(ids, np.concatenate(R), np.concatenate(ST), np.concatenate(TG), np.concatenate(K),
+                        np.concatenate(Q), np.concatenate(X), "<experiment>")
+    return ExperimentResult(data, S, status, tol, dwell, max_steps)

@@ -1,0 +1,259 @@
+"""plan -> gains -> simulate -> record: the tail of ``errplan plan`` and ``errplan demo``.
+
+For every planned query (the plan JSON's ``planned``/``direct`` path objects, docs/interfaces.md):
+
+1. **gains** (:mod:`errplan.gains`): the planned path cut into segments with certified gains, and
+   the direct path as ONE segment with its best gain (used only if it is certified; otherwise the
+   scenario's ``[controller] gain``, as a user commanding the goal directly would);
+2. **simulation** (:mod:`errplan.simulation`): both under the scenario's truth
+   (:func:`truth_plant`: true port, ``[effects]``, no sensor noise) and replayed under every
+   corner of the error box (true port = estimate + corner offset, corner tip load; no
+   ``[effects]``: the certificate covers the error set, not effects the model lacks). Each
+   result is the ``R`` object of interfaces.md plus ``max_G_norm`` (the actual ``||G||`` at the
+   visited tips under that truth) and ``status``/``converged``;
+3. **record** (:mod:`errplan.recording`, optional): one rerun recording of everything.
+
+The command calls :func:`run_pipeline` with the query JSONs and prints :func:`summary_table`.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import numpy as np
+
+from .errors import ErrplanError
+from .fields import ErrorSet
+from .gains import GainOptions, GainSchedule, options_from_scenario, schedule_gains, single_segment
+from .report import format_table
+from .simulation import ControllerModel, Plant, SimResult, g_norm_along, simulate
+
+Progress = Callable[[float, str], None]
+MAX_STEPS = 20000
+
+
+@dataclass
+class Replay:
+    """One simulated run of a path under one truth, with the ``||G||`` it met."""
+
+    sim: SimResult
+    G_norm: np.ndarray  # (steps,) actual ||G|| at the state each command was issued from
+
+    def to_json(self) -> dict:
+        out = self.sim.to_json()
+        out["max_G_norm"] = float(self.G_norm.max()) if len(self.G_norm) else 0.0
+        return out
+
+
+@dataclass
+class QueryRun:
+    """Everything the pipeline computed for one query (kept for the recording and the table)."""
+
+    name: str
+    start: np.ndarray
+    goal: np.ndarray
+    planned_path: np.ndarray
+    direct_path: np.ndarray
+    planned: dict                    # P objects from the planner (cost, length, ...)
+    direct: dict
+    schedule: GainSchedule
+    direct_schedule: GainSchedule
+    direct_gain: float
+    direct_gain_source: str          # "certified" | "scenario"
+    sim_planned: Replay
+    sim_direct: Replay
+    corners: np.ndarray              # (c, 3) error-set corners theta = (dy, dz, t)
+    corner_planned: list[Replay] = field(default_factory=list)
+    corner_direct: list[Replay] = field(default_factory=list)
+
+    def gains_json(self) -> list[dict]:
+        return self.schedule.to_json()
+
+    def simulation_json(self) -> dict:
+        out: dict[str, Any] = {"planned": self.sim_planned.to_json(), "direct": self.sim_direct.to_json(),
+                               "direct_gain": self.direct_gain, "direct_gain_source": self.direct_gain_source}
+        if len(self.corners):
+            cp = [r.to_json() for r in self.corner_planned]
+            cd = [r.to_json() for r in self.corner_direct]
+            out["corners"] = {
+                "instances": [{"port_offset": [float(t[0]), float(t[1])], "tip_force_over_ei": float(t[2])}
+                              for t in self.corners],
+                "planned": cp, "direct": cd,
+                "planned_all_monotonic": all(r["monotonic"] for r in cp),
+                "planned_all_converged": all(r["converged"] for r in cp),
+                "direct_all_monotonic": all(r["monotonic"] for r in cd),
+                "direct_all_converged": all(r["converged"] for r in cd),
+            }
+        return out
+
+    def extra_json(self) -> dict:
+        """The keys the pipeline adds to the query's plan JSON."""
+        return {"gains": self.gains_json(), "simulation": self.simulation_json(),
+                "gain_schedule": self.schedule.summary(),
+                "direct_gains": self.direct_schedule.to_json()}
+
+
+# ----------------------------------------------------------------------------- pieces
+def _path_of(p: Any, key: str) -> np.ndarray:
+    path = np.asarray(p.get("path") if isinstance(p, dict) else getattr(p, "path"), float)
+    if path.ndim != 2 or path.shape[1] != 2 or len(path) < 2 or not np.all(np.isfinite(path)):
+        raise ErrplanError(f"{key} path of shape {path.shape}: expected (m >= 2, 2) finite [y, z] points")
+    return path
+
+
+def truth_plant(sc) -> Plant:
+    """The scenario's truth: ``[port] position``, its ``[effects]``, and the tip load of the error
+    set closest to 0 (0 when the set allows it; P2's scenarios declare a fixed load there)."""
+    tl = sc.uncertainty.tip_force_over_ei
+    load = float(np.clip(0.0, tl[0], tl[1])) if tl is not None else 0.0
+    return Plant.from_scenario(sc, load=load)
+
+
+def corner_instances(sc) -> np.ndarray:
+    """Corners (c, 3) of the scenario's error box as ``(dy, dz, t)`` around its base port."""
+    return ErrorSet.from_scenario(sc).corners()
+
+
+def corner_plant(sc, theta) -> Plant:
+    """The truth at one error-set instance (no ``[effects]``)."""
+    es = ErrorSet.from_scenario(sc)
+    return Plant.from_scenario(sc, port=tuple(es.port(np.asarray(theta, float))), load=float(theta[2]), effects=False)
+
+
+def replay(plant: Plant, controller: ControllerModel, start, waypoints, gains, opts: GainOptions,
+           seed: int | None = None) -> Replay:
+    """Simulate from the configuration that puts the true tip at ``start``.
+
+    Noise-free, except for P2's flexion controller with bounded sensor noise: then its measured
+    end poses get uniform noise inside the bounds, from a generator seeded with ``seed``.
+    """
+    q0 = plant.configuration_for_tip(np.asarray(start, float))
+    rng = None
+    if controller.jacobian == "flexion" and any(controller.noise):
+        rng = np.random.default_rng(0 if seed is None else seed)
+    sim = simulate(plant, controller, q0, waypoints, gains, tolerance=opts.tolerance,
+                   switch_tolerance=opts.switch_tolerance, max_steps=MAX_STEPS, path_start=start, rng=rng)
+    return Replay(sim, g_norm_along(sim, plant, controller))
+
+
+def run_query(sc, qjson: dict, *, options: GainOptions | None = None, corners: bool = True,
+              progress: Progress | None = None) -> QueryRun:
+    """Gains and simulations for one query JSON (``name``, ``start``, ``goal``, ``planned``, ``direct``)."""
+    opts = options or options_from_scenario(sc)
+    name = str(qjson.get("name", "query"))
+    start = np.asarray(qjson["start"], float)
+    goal = np.asarray(qjson["goal"], float)
+    ppath = _path_of(qjson["planned"], f"query {name!r}: planned")
+    dpath = _path_of(qjson["direct"], f"query {name!r}: direct") if "direct" in qjson else np.array([start, goal])
+    if progress:
+        progress(0.05, f"{name}: certifying gains")
+    sched = schedule_gains(sc, ppath, opts)
+    dsched = single_segment(sc, dpath[0], dpath[-1], opts)
+    if dsched.certified:
+        kd, src = float(dsched.gains[0]), "certified"
+    else:
+        kd, src = float(sc.controller.gain), "scenario"
+    if progress:
+        progress(0.5, f"{name}: simulating")
+    ctrl = ControllerModel.from_scenario(sc)
+    truth = truth_plant(sc)
+    seed = int(sc.planner.seed)
+    sp = replay(truth, ctrl, ppath[0], sched.waypoints, sched.gains, opts, seed)
+    sd = replay(truth, ctrl, dpath[0], dpath[-1:], [kd], opts, seed)
+    cs = corner_instances(sc) if corners else np.zeros((0, 3))
+    run = QueryRun(name, start, goal, ppath, dpath, dict(qjson["planned"]) if isinstance(qjson["planned"], dict) else {},
+                   dict(qjson["direct"]) if isinstance(qjson.get("direct"), dict) else {}, sched, dsched, kd, src,
+                   sp, sd, cs)
+    for i, th in enumerate(cs):
+        pl = corner_plant(sc, th)
+        run.corner_planned.append(replay(pl, ctrl, ppath[0], sched.waypoints, sched.gains, opts, seed + 1 + i))
+        run.corner_direct.append(replay(pl, ctrl, dpath[0], dpath[-1:], [kd], opts, seed + 1 + i))
+        if progress:
+            progress(0.5 + 0.5 * (i + 1) / len(cs), f"{name}: corner replays")
+    return run
+
+
+def _as_query_json(q: Any) -> dict:
+    if isinstance(q, dict):
+        return q
+    if hasattr(q, "to_json"):
+        return q.to_json()
+    raise ErrplanError(f"query plan of type {type(q).__name__}: expected a dict or an object with to_json()")
+
+
+def run_pipeline(sc, query_plans, fields=None, *, record: str | None = None, progress: Progress | None = None,
+                 options: GainOptions | None = None, corners: bool = True) -> dict:
+    """Add ``gains`` and ``simulation`` to every query's plan JSON; optionally write a recording.
+
+    ``query_plans``: the planner's per-query results (objects with ``to_json()`` and an ``extra``
+    dict, or the query dicts of the plan JSON). Where an object has an ``extra`` dict the new
+    keys are put there too, so its own ``to_json()`` carries them. ``fields``: the
+    :class:`~errplan.fields.MetricField` the plan used (needed only for the recording).
+    Returns ``{"queries": [...], "runs": [QueryRun...]}``; ``runs`` is for
+    :func:`summary_table` and the recording (not JSON).
+    """
+    opts = options or options_from_scenario(sc)
+    plans = list(query_plans)
+    out, runs = [], []
+    for i, q in enumerate(plans):
+        qj = dict(_as_query_json(q))
+
+        def sub(f, msg, i=i):
+            if progress:
+                progress((i + f) / max(len(plans), 1), msg)
+
+        run = run_query(sc, qj, options=opts, corners=corners, progress=sub)
+        extra = run.extra_json()
+        qj.update(extra)
+        if hasattr(q, "extra") and isinstance(getattr(q, "extra"), dict):
+            q.extra.update(extra)
+        out.append(qj)
+        runs.append(run)
+    if record:
+        from .recording import record_plan
+
+        if fields is None:
+            raise ErrplanError("--record needs the fields the plan used")
+        record_plan(record, sc, fields, runs)
+    return {"queries": out, "runs": runs}
+
+
+# ----------------------------------------------------------------------------- table
+def _fmt_bool(v: bool) -> str:
+    return "yes" if v else "NO"
+
+
+def summary_rows(runs: list[QueryRun]) -> list[list]:
+    rows = []
+    for r in runs:
+        for kind in ("planned", "direct"):
+            P = r.planned if kind == "planned" else r.direct
+            sched = r.schedule if kind == "planned" else r.direct_schedule
+            sim = r.sim_planned if kind == "planned" else r.sim_direct
+            reps = r.corner_planned if kind == "planned" else r.corner_direct
+            gains = sched.gains if kind == "planned" else np.array([r.direct_gain])
+            cert_g = sched.max_certified_G_norm
+            rows.append([
+                r.name, kind, float(P.get("cost", float("nan"))), float(P.get("length", float("nan"))),
+                float(P.get("max_G_norm", float("nan"))), len(sched.segments),
+                f"{gains.min():.3g}" if gains.min() == gains.max() else f"{gains.min():.3g}-{gains.max():.3g}",
+                cert_g if math.isfinite(cert_g) else float("nan"),
+                _fmt_bool(sched.certified), sim.sim.steps, _fmt_bool(sim.sim.monotonic),
+                f"{sum(x.sim.monotonic for x in reps)}/{len(reps)}" if reps else "-",
+                max((x.sim.steps for x in reps), default=0),
+            ])
+    return rows
+
+
+SUMMARY_HEADERS = ["query", "path", "cost", "length m", "max ||G||", "segments", "gain", "certified ||G||",
+                   "certified", "steps", "monotonic", "corners monotonic", "corner steps max"]
+
+
+def summary_table(runs: list[QueryRun], title: str | None = None) -> str:
+    """Planned vs direct per query: cost, max ||G|| along the path (fields), certificate, simulation."""
+    lines = [format_table(SUMMARY_HEADERS, summary_rows(runs), title)]
+    lines.append("max ||G||: worst case along the path at the scenario gain (fields); certified ||G||: verified "
+                 "worst case over every segment's convergence ball at the chosen gain; steps/monotonic: simulated "
+                 "under the scenario's truth; corners: replays under every corner of the error box.")
+    return "\n".join(lines)

@@ -1,0 +1,860 @@
+"""Tip-path planning on the worst-case error fields, in OMPL's own terms (P1 Sec. IV).
+
+P1 Sec. IV: "a path planner could then trade off between indirect and direct paths". Here the
+precomputed worst-case fields (:mod:`errplan.fields`) become the cost of an OMPL planning problem:
+
+- **state space**: a 2-D ``RealVectorStateSpace`` over the field's grid bounds, points ``[y, z]`` (m);
+- **validity** (:class:`CostMap`): a grid node is *usable* when it is in the robust workspace
+  (``MetricField.valid``: reachable under every instance of the error set), its metric is finite and,
+  with ``[planner] certifiable = true``, ``rho_star <= 1 - certify_margin`` (some gain certifies
+  monotonic convergence there). A point is valid when it lies in a grid cell whose four corners are
+  usable (the *usable cells*; the region is their closed union). This is conservative: the bilinear
+  interpolation of the fields is only ever read inside cells whose corners were all evaluated and
+  found valid;
+- **motion validation** is exact, not sampled: a straight motion is valid when every cell it passes
+  through is usable (a grid traversal, Amanatides & Woo), so a path never leaves the usable region
+  between its vertices, whatever the resolution;
+- **objective** (:class:`FieldObjective`): ``cost = integral of (1 + weight * metric) ds`` with
+  ``metric`` the bilinear interpolation of the chosen field (``phi_hat_max`` | ``G_norm`` |
+  ``phi_max`` | ``rho_star``). Along a straight line the bilinear interpolant is a quadratic of the
+  arc length inside each cell, so :meth:`CostMap.segment` integrates it *exactly* cell by cell;
+  ``motionCostHeuristic`` is the admissible ``distance * (1 + weight * min metric)``;
+- **planner** by name (:data:`PLANNERS`), OMPL's RNG seeded from ``[planner] seed``; the solution is
+  then refined by :func:`refine_path` (shortcuts and a vertex relaxation on the same exact objective)
+  and kept only where that keeps validity and lowers the cost.
+
+Results are dataclasses (:class:`PathReport`, :class:`QueryPlan`, :class:`ScenarioPlan`) with a
+``to_json()`` giving the ``P`` objects of the plan JSON (docs/interfaces.md); the gain and
+simulation steps add their keys to :attr:`QueryPlan.extra`.
+
+Numbers: y, z and lengths in m; ``phi_*`` in rad; costs in m (a weighted length).
+"""
+from __future__ import annotations
+
+import math
+import time as _time
+from dataclasses import dataclass, field
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from .errors import ErrplanError, InfeasibleError
+
+METRIC_NAMES = ("phi_hat_max", "G_norm", "phi_max", "rho_star")
+# Planners that work with a Python objective in ompl 2.0.1 (PRM/PRMstar deadlock on the GIL with a
+# Python objective; AORRTC fails when the straight line is valid).
+PLANNERS = ("RRTstar", "InformedRRTstar", "SORRTstar", "BITstar", "FMT", "BFMT", "RRTConnect")
+_EPS = 1e-9
+
+
+# ============================================================================= cost map
+class CostMap:
+    """Usable region and integrand ``1 + weight * metric`` of a :class:`~errplan.fields.MetricField`.
+
+    Parameters
+    ----------
+    mf : MetricField
+        The worst-case fields (``rho_star`` needed when ``certifiable`` or ``metric = "rho_star"``).
+    metric : str
+        Field used as the state cost: ``phi_hat_max`` (rad), ``G_norm`` (1), ``phi_max`` (rad),
+        ``rho_star`` (1).
+    weight : float
+        ``cost = integral (1 + weight * metric) ds``; ``weight >= 0``.
+    certifiable : bool
+        Keep only nodes with ``rho_star <= 1 - certify_margin``.
+    certify_margin : float
+        Margin below 1 for ``rho_star``.
+
+    Attributes
+    ----------
+    y, z : ndarray
+        Grid axes (m); ``h`` the spacing.
+    node_ok : ndarray of bool, (ny, nz)
+        Usable nodes.
+    cell_ok : ndarray of bool, (ny-1, nz-1)
+        Usable cells (all four corners usable).
+    integrand : ndarray, (ny, nz)
+        ``1 + weight * metric`` at the nodes (the maximum over the usable nodes where unusable, so
+        that costs stay finite; never read inside a usable cell).
+    f_min : float
+        Smallest integrand over usable nodes (the heuristic's factor).
+    """
+
+    def __init__(self, mf, metric: str = "phi_hat_max", weight: float = 1.0, certifiable: bool = True,
+                 certify_margin: float = 0.02):
+        if metric not in METRIC_NAMES:
+            raise ErrplanError(f"metric = {metric!r}: expected one of {', '.join(METRIC_NAMES)}")
+        if not (weight >= 0 and math.isfinite(weight)):
+            raise ErrplanError(f"weight = {weight!r}: expected a finite number >= 0")
+        self.mf = mf
+        self.metric = metric
+        self.weight = float(weight)
+        self.certifiable = bool(certifiable)
+        self.certify_margin = float(certify_margin)
+        self.y = np.asarray(mf.y, float)
+        self.z = np.asarray(mf.z, float)
+        if len(self.y) < 2 or len(self.z) < 2:
+            raise ErrplanError("the field grid needs at least 2 x 2 points to plan on")
+        self.h = float(mf.resolution)
+        self.y0 = float(self.y[0])
+        self.z0 = float(self.z[0])
+        self.ny, self.nz = len(self.y), len(self.z)
+        m = np.asarray(mf.array(metric), float)
+        ok = np.asarray(mf.valid, bool) & np.isfinite(m)
+        if self.certifiable:
+            rs = np.asarray(mf.array("rho_star"), float)
+            self.rho_bound = 1.0 - self.certify_margin
+            with np.errstate(invalid="ignore"):
+                ok &= np.isfinite(rs) & (rs <= self.rho_bound)
+        else:
+            self.rho_bound = None
+        self.node_ok = ok
+        self.cell_ok = ok[:-1, :-1] & ok[1:, :-1] & ok[:-1, 1:] & ok[1:, 1:]
+        f = 1.0 + self.weight * np.where(ok, m, 0.0)
+        self.f_min = float(f[ok].min()) if ok.any() else 1.0
+        self.f_max = float(f[ok].max()) if ok.any() else 1.0
+        self.integrand = np.where(ok, f, self.f_max)
+        # Plain-Python copies for the per-motion loops (numpy calls there are ~5x slower).
+        self._build_lists()
+
+    # ------------------------------------------------------------------ internals
+    def _build_lists(self) -> None:
+        f = self.integrand
+        nzc = self.nz - 1
+        # Bilinear coefficients per cell in local coordinates (a, b) in [0, 1]^2:
+        # f = c0 + ca a + cb b + cab a b.
+        f00, f10, f01, f11 = f[:-1, :-1], f[1:, :-1], f[:-1, 1:], f[1:, 1:]
+        self._c0 = f00.ravel().tolist()
+        self._ca = (f10 - f00).ravel().tolist()
+        self._cb = (f01 - f00).ravel().tolist()
+        self._cab = (f11 - f10 - f01 + f00).ravel().tolist()
+        self._ok = self.cell_ok.ravel().tolist()
+        self._nzc = nzc
+        self._nyc = self.ny - 1
+
+    # ------------------------------------------------------------------ points
+    @property
+    def bounds(self) -> tuple[float, float, float, float]:
+        """``(y_lo, y_hi, z_lo, z_hi)`` of the grid, m."""
+        return self.y0, float(self.y[-1]), self.z0, float(self.z[-1])
+
+    @property
+    def any_usable(self) -> bool:
+        return bool(self.cell_ok.any())
+
+    def point_ok(self, y: float, z: float) -> bool:
+        """True if ``[y, z]`` lies in a usable cell (closed cells: a point on an edge or a corner
+        counts if any cell touching it is usable)."""
+        u = (y - self.y0) / self.h
+        v = (z - self.z0) / self.h
+        iu = math.floor(u)
+        iv = math.floor(v)
+        ok = self._ok
+        nzc, nyc = self._nzc, self._nyc
+        for i in (iu, iu - 1) if u - iu < 1e-7 else (iu,):
+            if 0 <= i < nyc:
+                for j in (iv, iv - 1) if v - iv < 1e-7 else (iv,):
+                    if 0 <= j < nzc and ok[i * nzc + j]:
+                        return True
+        return False
+
+    def integrand_at(self, y: float, z: float) -> float:
+        """Bilinear ``1 + weight * metric`` at a point (clamped to the grid)."""
+        u = min(max((y - self.y0) / self.h, 0.0), self._nyc - 1e-12)
+        v = min(max((z - self.z0) / self.h, 0.0), self._nzc - 1e-12)
+        i, j = int(u), int(v)
+        a, b = u - i, v - j
+        k = i * self._nzc + j
+        return self._c0[k] + self._ca[k] * a + self._cb[k] * b + self._cab[k] * a * b
+
+    # ------------------------------------------------------------------ segments
+    def segment(self, ya: float, za: float, yb: float, zb: float, check: bool = True,
+                cost: bool = True) -> tuple[bool, float]:
+        """Validity and exact cost of the straight motion ``[ya, za] -> [yb, zb]``.
+
+        Walks the grid cells the segment passes through (in order) and integrates the bilinear
+        integrand exactly in each (a quadratic of the arc length). Returns ``(ok, cost)``: ``ok``
+        is False as soon as a cell is unusable or the segment leaves the grid (then, with
+        ``check``, the walk stops early and the cost is ``inf``).
+        """
+        h = self.h
+        u = (ya - self.y0) / h
+        v = (za - self.z0) / h
+        du = (yb - ya) / h
+        dv = (zb - za) / h
+        length = math.hypot(yb - ya, zb - za)
+        nyc, nzc = self._nyc, self._nzc
+        okl = self._ok
+        c0l, cal, cbl, cabl = self._c0, self._ca, self._cb, self._cab
+        # Starting cell: the one the segment enters (ties on a grid line go in the motion direction).
+        if du > 0:
+            i = math.floor(u + 1e-12)
+            su, tdu = 1, 1.0 / du
+            tu = (i + 1 - u) * tdu
+        elif du < 0:
+            i = math.ceil(u - 1e-12) - 1
+            su, tdu = -1, -1.0 / du
+            tu = (u - i) * tdu
+        else:
+            i = math.floor(u)
+            su, tdu, tu = 0, math.inf, math.inf
+        if dv > 0:
+            j = math.floor(v + 1e-12)
+            sv, tdv = 1, 1.0 / dv
+            tv = (j + 1 - v) * tdv
+        elif dv < 0:
+            j = math.ceil(v - 1e-12) - 1
+            sv, tdv = -1, -1.0 / dv
+            tv = (v - j) * tdv
+        else:
+            j = math.floor(v)
+            sv, tdv, tv = 0, math.inf, math.inf
+        on_u_line = du == 0 and abs(u - round(u)) < 1e-9
+        on_v_line = dv == 0 and abs(v - round(v)) < 1e-9
+        if on_u_line:
+            i = int(round(u))
+        if on_v_line:
+            j = int(round(v))
+        t0 = 0.0
+        total = 0.0
+        ok = True
+        while True:
+            t1 = tu if tu < tv else tv
+            if t1 > 1.0 - 1e-9:  # the last piece (a crossing within 1e-9 of the end is the end)
+                t1 = 1.0
+            if t1 > t0:
+                ci, cj = i, j
+                if 0 <= ci < nyc and 0 <= cj < nzc and okl[ci * nzc + cj]:
+                    good = True
+                else:
+                    good = False
+                    # A motion along a grid line borders two cells: either one makes it valid.
+                    if on_u_line and 0 <= i - 1 < nyc and 0 <= cj < nzc and okl[(i - 1) * nzc + cj]:
+                        ci, good = i - 1, True
+                    elif on_v_line and 0 <= ci < nyc and 0 <= j - 1 < nzc and okl[ci * nzc + j - 1]:
+                        cj, good = j - 1, True
+                if not good:
+                    ok = False
+                    if check:
+                        return False, math.inf
+                if cost:
+                    if 0 <= ci < nyc and 0 <= cj < nzc:
+                        k = ci * nzc + cj
+                        # local coordinates at t: a = u + du t - ci, b = v + dv t - cj
+                        a0 = u - ci
+                        b0 = v - cj
+                        c0, ca, cb, cab = c0l[k], cal[k], cbl[k], cabl[k]
+                        # f(t) = A + B t + C t^2
+                        A = c0 + ca * a0 + cb * b0 + cab * a0 * b0
+                        B = ca * du + cb * dv + cab * (a0 * dv + b0 * du)
+                        C = cab * du * dv
+                        total += (A * (t1 - t0) + 0.5 * B * (t1 * t1 - t0 * t0)
+                                  + C * (t1 * t1 * t1 - t0 * t0 * t0) / 3.0)
+                    else:
+                        total += self.f_max * (t1 - t0)
+                t0 = t1
+            if t1 >= 1.0:
+                break
+            # Crossings closer than 1e-9 (in units of the motion) pass through a grid corner:
+            # step diagonally rather than through a sliver of the cell beside the corner.
+            if tu <= tv:
+                if tv - tu < 1e-9:
+                    j += sv
+                    tv += tdv
+                i += su
+                tu += tdu
+            else:
+                if tu - tv < 1e-9:
+                    i += su
+                    tu += tdu
+                j += sv
+                tv += tdv
+        return ok, total * length
+
+    def motion_ok(self, ya: float, za: float, yb: float, zb: float) -> bool:
+        return self.segment(ya, za, yb, zb, check=True, cost=False)[0]
+
+    def path_cost(self, pts: Sequence[Sequence[float]]) -> tuple[bool, float]:
+        """``(valid, cost)`` of a polyline (n, 2): the sum of exact segment costs."""
+        ok, total = True, 0.0
+        for (ya, za), (yb, zb) in zip(pts[:-1], pts[1:]):
+            o, c = self.segment(float(ya), float(za), float(yb), float(zb), check=False)
+            ok &= o
+            total += c
+        return ok, total
+
+
+    def path_ok(self, pts: Sequence[Sequence[float]]) -> bool:
+        """True if every segment of the polyline stays in the usable region."""
+        return all(self.motion_ok(float(a[0]), float(a[1]), float(b[0]), float(b[1]))
+                   for a, b in zip(pts[:-1], pts[1:]))
+
+    # ------------------------------------------------------------------ regions
+    def _cell_index(self, p: Sequence[float]) -> tuple[int, int] | None:
+        """A usable cell containing ``p`` (closed cells), or None."""
+        u = (p[0] - self.y0) / self.h
+        v = (p[1] - self.z0) / self.h
+        iu, iv = math.floor(u), math.floor(v)
+        for i in (iu, iu - 1) if u - iu < 1e-7 else (iu,):
+            for j in (iv, iv - 1) if v - iv < 1e-7 else (iv,):
+                if 0 <= i < self._nyc and 0 <= j < self._nzc and self.cell_ok[i, j]:
+                    return i, j
+        return None
+
+    @property
+    def components(self) -> np.ndarray:
+        """Labels (ny-1, nz-1) of the connected parts of the usable region (cells touching at an
+        edge or a corner are connected; 0 = unusable)."""
+        if not hasattr(self, "_labels"):
+            from scipy.ndimage import label
+            self._labels = label(self.cell_ok, structure=np.ones((3, 3), int))[0]
+        return self._labels
+
+    def connected(self, a: Sequence[float], b: Sequence[float]) -> bool:
+        ca, cb = self._cell_index(a), self._cell_index(b)
+        if ca is None or cb is None:
+            return False
+        lab = self.components
+        return bool(lab[ca] == lab[cb])
+
+    def nearest_usable(self, p: Sequence[float], mask: np.ndarray | None = None) -> tuple[np.ndarray, float] | None:
+        """Nearest point of the region made of the cells in ``mask`` (default: usable cells) to
+        ``p``, and its distance (m); None if the region is empty."""
+        cells = self.cell_ok if mask is None else mask
+        ii, jj = np.nonzero(cells)
+        if len(ii) == 0:
+            return None
+        y_lo, z_lo = self.y0 + ii * self.h, self.z0 + jj * self.h
+        qy = np.clip(p[0], y_lo, y_lo + self.h)
+        qz = np.clip(p[1], z_lo, z_lo + self.h)
+        d = np.hypot(qy - p[0], qz - p[1])
+        k = int(np.argmin(d))
+        return np.array([qy[k], qz[k]]), float(d[k])
+
+    def explain_point(self, p: Sequence[float], what: str = "point") -> str | None:
+        """None if ``p`` is usable, otherwise a one-line reason naming the point, the cause and
+        by how much (distance to the nearest usable tip, or ``rho_star`` against its bound)."""
+        p = [float(p[0]), float(p[1])]
+        if not all(math.isfinite(x) for x in p):
+            return f"{what} {p} is not a finite point"
+        if self.point_ok(*p):
+            return None
+        where = f"{what} [{p[0]:.4f}, {p[1]:.4f}] m"
+        near = self.nearest_usable(p)
+        tail = (f"; the nearest usable tip is [{near[0][0]:.4f}, {near[0][1]:.4f}] m, {near[1] * 1000:.1f} mm away"
+                if near else "; no tip of the field is usable")
+        y_lo, y_hi, z_lo, z_hi = self.bounds
+        if not (y_lo <= p[0] <= y_hi and z_lo <= p[1] <= z_hi):
+            return (f"{where} is outside the field grid (y in [{y_lo:.3f}, {y_hi:.3f}], z in "
+                    f"[{z_lo:.3f}, {z_hi:.3f}] m), so outside the workspace" + tail)
+        # Which corners of the surrounding cell fail, and why.
+        i = min(max(math.floor((p[0] - self.y0) / self.h), 0), self._nyc - 1)
+        j = min(max(math.floor((p[1] - self.z0) / self.h), 0), self._nzc - 1)
+        corners = [(i, j), (i + 1, j), (i, j + 1), (i + 1, j + 1)]
+        valid = np.asarray(self.mf.valid, bool)
+        if not all(valid[c] for c in corners):
+            ws = valid[:-1, :-1] & valid[1:, :-1] & valid[:-1, 1:] & valid[1:, 1:]
+            nw = self.nearest_usable(p, ws)
+            d = f"{nw[1] * 1000:.1f} mm" if nw else "?"
+            return (f"{where} is outside the robust workspace (not reachable under every instance of the "
+                    f"error set: joint limits or the shaft through the port; {d} from the nearest "
+                    f"reachable tip)" + tail)
+        if self.certifiable:
+            rs = np.asarray(self.mf.rho_star, float)
+            worst = max(float(rs[c]) for c in corners)
+            if worst > self.rho_bound:
+                return (f"{where}: no gain can certify monotonic convergence there: rho_star = {worst:.4f} > "
+                        f"1 - certify_margin = {self.rho_bound:.4f} (by {worst - self.rho_bound:.4f})" + tail)
+        return f"{where}: the {self.metric} field is undefined there" + tail
+
+
+# ============================================================================= OMPL pieces
+def _ompl():
+    from ompl import base as ob, geometric as og, util as ou
+    return ob, og, ou
+
+
+_CLASSES: dict[str, Any] = {}
+
+
+def _classes():
+    """The OMPL subclasses (defined on first use so that importing this module does not import ompl)."""
+    if _CLASSES:
+        return _CLASSES
+    ob, _, _ = _ompl()
+
+    class CellWalkMotionValidator(ob.MotionValidator):
+        """Exact motion validation: every grid cell the straight motion crosses is usable."""
+
+        def __init__(self, si, cm: CostMap):
+            super().__init__(si)
+            self._seg = cm.segment
+
+        def checkMotion(self, s1, s2):  # noqa: N802 (OMPL's name)
+            return self._seg(s1[0], s1[1], s2[0], s2[1], True, False)[0]
+
+    class FieldObjective(ob.OptimizationObjective):
+        """``integral (1 + weight * metric) ds`` of each motion, exact on the bilinear field, with the
+        admissible heuristic ``distance * min(1 + weight * metric)``.
+
+        (A Python ``StateCostIntegralObjective`` subclass is never called from C++ in ompl 2.0.1,
+        so the integral is done here, in ``motionCost``, with plain floats.)
+        """
+
+        def __init__(self, si, cm: CostMap):
+            super().__init__(si)
+            self._seg = cm.segment
+            self._fmin = cm.f_min
+            self._Cost = ob.Cost
+
+        def motionCost(self, s1, s2):  # noqa: N802
+            return self._Cost(self._seg(s1[0], s1[1], s2[0], s2[1], False, True)[1])
+
+        def motionCostHeuristic(self, s1, s2):  # noqa: N802
+            return self._Cost(math.hypot(s1[0] - s2[0], s1[1] - s2[1]) * self._fmin)
+
+    _CLASSES.update(mv=CellWalkMotionValidator, obj=FieldObjective)
+    return _CLASSES
+
+
+def make_space_information(cm: CostMap):
+    """``(space, si)``: a 2-D ``RealVectorStateSpace`` over the grid bounds (m) and its
+    ``SpaceInformation`` with the point validity and the exact motion validator of ``cm``."""
+    ob, _, _ = _ompl()
+    space = ob.RealVectorStateSpace(2)
+    b = ob.RealVectorBounds(2)
+    y_lo, y_hi, z_lo, z_hi = cm.bounds
+    b.setLow(0, y_lo)
+    b.setHigh(0, y_hi)
+    b.setLow(1, z_lo)
+    b.setHigh(1, z_hi)
+    space.setBounds(b)
+    si = ob.SpaceInformation(space)
+    point_ok = cm.point_ok
+    si.setStateValidityChecker(lambda s: point_ok(s[0], s[1]))
+    si.setMotionValidator(_classes()["mv"](si, cm))
+    # Used only by OMPL routines that interpolate states themselves: finer than the grid.
+    si.setStateValidityCheckingResolution(min(1.0, 0.25 * cm.h / max(space.getMaximumExtent(), 1e-12)))
+    si.setup()
+    return space, si
+
+
+def make_objective(si, cm: CostMap):
+    """The :class:`FieldObjective` of ``cm`` on ``si``."""
+    return _classes()["obj"](si, cm)
+
+
+# Iterations (planner termination checks) per second of budget: the planner stops after
+# ``time * ITERATION_RATE`` iterations or ``time`` seconds, whichever comes first. The iteration cap
+# makes a run a function of the seed (on this reference machine, 2 cores, it is reached in about
+# half the time budget; benchmarks/planning.py); the time cap bounds it on slower machines, and
+# PlanResult.stopped_by says which one ended the search.
+ITERATION_RATE = {"BITstar": 6000, "RRTstar": 150, "InformedRRTstar": 150, "SORRTstar": 150,
+                  "FMT": 1000, "BFMT": 1000, "RRTConnect": 1000}
+DEFAULT_PLANNER = "BITstar"
+
+
+def _make_planner(name: str, si, time_budget: float):
+    _, og, _ = _ompl()
+    if name in ("PRM", "PRMstar", "LazyPRM", "LazyPRMstar", "SPARS", "SPARStwo"):
+        raise ErrplanError(f"planner = {name!r}: roadmap planners deadlock with errplan's Python objective "
+                           f"in ompl 2.0.1 (they run threads that need the GIL); use one of {', '.join(PLANNERS)}")
+    if name not in PLANNERS:
+        raise ErrplanError(f"planner = {name!r}: expected one of {', '.join(PLANNERS)}")
+    pl = getattr(og, name)(si)
+    if name in ("FMT", "BFMT"):
+        # FMT* evaluates every neighbour pair of a fixed sample set: size it to the budget.
+        pl.setNumSamples(max(200, int(400 * time_budget)))
+    return pl
+
+
+# ============================================================================= path refinement
+@dataclass
+class RefineResult:
+    """Outcome of :func:`refine_path`: the path (n, 2) and its cost before and after."""
+
+    path: np.ndarray
+    cost: float
+    cost_before: float
+    sweeps: int
+    time: float
+
+
+def _reduce_vertices(cm: CostMap, pts: list[list[float]], seg_cost: list[float]) -> bool:
+    """Greedy shortcuts: from each vertex, jump to the farthest later vertex whose straight
+    connection is valid and not more expensive than the sub-path it replaces."""
+    changed = False
+    i = 0
+    while i < len(pts) - 2:
+        best = None
+        sub = seg_cost[i]
+        acc = [sub]
+        for j in range(i + 2, len(pts)):
+            acc.append(acc[-1] + seg_cost[j - 1])
+        for j in range(len(pts) - 1, i + 1, -1):
+            ok, c = cm.segment(pts[i][0], pts[i][1], pts[j][0], pts[j][1])
+            if ok and c <= acc[j - i - 1] * (1 + 1e-12):
+                best = (j, c)
+                break
+        if best is not None:
+            j, c = best
+            del pts[i + 1:j]
+            seg_cost[i:j] = [c]
+            changed = True
+        i += 1
+    return changed
+
+
+def _relax(cm: CostMap, pts: list[list[float]], seg_cost: list[float], step: float, stop: float,
+           max_sweeps: int, deadline: float | None, tangent: bool) -> int:
+    """Gauss-Seidel vertex relaxation (see :func:`refine_path`); returns the number of sweeps."""
+    seg = cm.segment
+    sweeps = 0
+    while step >= stop and sweeps < max_sweeps:
+        if deadline is not None and _time.perf_counter() > deadline:
+            break
+        sweeps += 1
+        moved = 0
+        for k in range(1, len(pts) - 1):
+            a, p, b = pts[k - 1], pts[k], pts[k + 1]
+            ty, tz = b[0] - a[0], b[1] - a[1]
+            tn = math.hypot(ty, tz)
+            if tn == 0:
+                continue
+            ty, tz = ty / tn, tz / tn
+            here = seg_cost[k - 1] + seg_cost[k]
+            best = None
+            dirs = ((-tz, ty), (tz, -ty), (ty, tz), (-ty, -tz)) if tangent else ((-tz, ty), (tz, -ty))
+            for dy, dz in dirs:
+                q0, q1 = p[0] + step * dy, p[1] + step * dz
+                ok1, c1 = seg(a[0], a[1], q0, q1, True)
+                if not ok1 or c1 >= here:
+                    continue
+                ok2, c2 = seg(q0, q1, b[0], b[1], True)
+                if ok2 and c1 + c2 < here - 1e-15:
+                    here = c1 + c2
+                    best = (q0, q1, c1, c2)
+            if best is not None:
+                pts[k] = [best[0], best[1]]
+                seg_cost[k - 1], seg_cost[k] = best[2], best[3]
+                moved += 1
+        if moved == 0:
+            step *= 0.5
+    return sweeps
+
+
+def _subdivide(pts: list[list[float]], spacing: float) -> list[list[float]]:
+    out = [pts[0]]
+    for a, b in zip(pts[:-1], pts[1:]):
+        n = max(1, math.ceil(math.dist(a, b) / spacing - 1e-9))
+        for k in range(1, n + 1):
+            t = k / n
+            out.append([a[0] + (b[0] - a[0]) * t, a[1] + (b[1] - a[1]) * t])
+    return out
+
+
+def refine_path(cm: CostMap, path, *, spacing: float | None = None, min_step: float | None = None,
+                max_sweeps: int = 60, deadline: float | None = None) -> RefineResult:
+    """Lower the cost of a valid polyline (n, 2) (m) by shortcuts and a coarse-to-fine relaxation.
+
+    1. greedy shortcuts (never raising the cost); 2. coarse-to-fine relaxation: the path is
+    subdivided into vertices about ``length / 8`` apart, relaxed, subdivided to half that spacing,
+    relaxed again, ... down to ``spacing`` (default ``max(2 h, length / 64)``). Relaxing = each
+    interior vertex in turn tries moves of ``+-step`` across (and, at the finest level, along) the
+    path and keeps the best that lowers the exact cost of its two segments while keeping both
+    valid; the step halves when a sweep moves nothing, down to a quarter of... ``min_step``
+    (default ``h / 32``) at the finest level. Coarse levels remove the long-wavelength error that
+    a fine vertex relaxation alone converges on very slowly; 3. shortcuts again. Every accepted
+    change keeps the path valid and lowers its cost, so the result is never worse than the input.
+    Deterministic; ``deadline`` (a ``time.perf_counter()`` value) stops it early.
+    """
+    t0 = _time.perf_counter()
+    orig = [[float(p[0]), float(p[1])] for p in np.asarray(path, float)]
+    pts = [p[:] for p in orig]
+    seg = cm.segment
+    ok0, cost0 = cm.path_cost(pts)
+    if not ok0:
+        raise ErrplanError("refine_path: the input path leaves the usable region")
+
+    def costs(p):
+        return [seg(a[0], a[1], b[0], b[1], False)[1] for a, b in zip(p[:-1], p[1:])]
+
+    seg_cost = costs(pts)
+    _reduce_vertices(cm, pts, seg_cost)
+    length = sum(math.dist(a, b) for a, b in zip(pts[:-1], pts[1:]))
+    finest = spacing or max(2 * cm.h, length / 64)
+    sp = max(length / 8, finest)
+    sweeps = 0
+    while True:
+        pts = _subdivide(pts, sp)
+        seg_cost = costs(pts)
+        last = sp <= finest * (1 + 1e-9)
+        stop = (min_step or cm.h / 32) if last else sp / 16
+        sweeps += _relax(cm, pts, seg_cost, 0.25 * sp, stop, max_sweeps, deadline, tangent=last)
+        if last or (deadline is not None and _time.perf_counter() > deadline):
+            break
+        sp = max(sp / 2, finest)
+    _reduce_vertices(cm, pts, seg_cost)
+    ok1, cost1 = cm.path_cost(pts)
+    if not ok1 or cost1 >= cost0:
+        pts, cost1 = orig, cost0
+    return RefineResult(np.array(pts), cost1, cost0, sweeps, _time.perf_counter() - t0)
+
+
+# ============================================================================= results
+def _jsonable(x: float | None) -> float | None:
+    return None if x is None or not math.isfinite(x) else float(x)
+
+
+@dataclass
+class PathReport:
+    """One path of a query (the ``P`` object of the plan JSON, docs/interfaces.md).
+
+    Attributes
+    ----------
+    path : ndarray (n, 2)
+        Vertices ``[y, z]`` (m) from start to goal; straight segments between them.
+    cost : float or None
+        ``integral (1 + weight * metric) ds`` (m), exact on the bilinear field; None when the path
+        leaves the robust workspace (the field is undefined there).
+    length : float
+        Length (m).
+    max_G_norm, max_phi_hat_max : float or None
+        Largest worst-case ``||G||`` (at the scenario gain) and ``phi_hat_max`` (rad) along the path
+        (bilinear fields sampled every ``h / 8`` and at the vertices); None outside the workspace.
+    valid : bool
+        The path stays in the usable region (workspace and, if asked, certifiable).
+    in_workspace : bool
+        The path stays in the robust workspace (reachable under every error instance).
+    """
+
+    path: np.ndarray
+    cost: float | None
+    length: float
+    max_G_norm: float | None
+    max_phi_hat_max: float | None
+    valid: bool
+    in_workspace: bool
+
+    def to_json(self) -> dict:
+        return {"path": [[float(a), float(b)] for a, b in self.path], "cost": _jsonable(self.cost),
+                "length": float(self.length), "max_G_norm": _jsonable(self.max_G_norm),
+                "max_phi_hat_max": _jsonable(self.max_phi_hat_max), "valid": bool(self.valid),
+                "in_workspace": bool(self.in_workspace)}
+
+
+def dense_points(path, step: float) -> np.ndarray:
+    """Points (m, 2) along a polyline, at most ``step`` apart, including every vertex."""
+    path = np.asarray(path, float)
+    out = [path[:1]]
+    for a, b in zip(path[:-1], path[1:]):
+        n = max(1, math.ceil(float(np.hypot(*(b - a))) / step))
+        t = np.arange(1, n + 1)[:, None] / n
+        out.append(a + (b - a) * t)
+    return np.concatenate(out)
+
+
+def path_report(cm: CostMap, path, workspace_map: CostMap | None = None) -> PathReport:
+    """The :class:`PathReport` of a polyline on ``cm`` (``workspace_map``: the same objective
+    without the certifiable restriction, used for paths that leave the usable region)."""
+    path = np.asarray(path, float)
+    length = float(np.sum(np.hypot(*np.diff(path, axis=0).T))) if len(path) > 1 else 0.0
+    valid, cost = cm.path_cost(path)
+    wm = workspace_map
+    if valid:
+        in_ws = True
+    else:
+        if wm is None:
+            wm = cm if not cm.certifiable else CostMap(cm.mf, cm.metric, cm.weight, certifiable=False)
+        in_ws, cost = wm.path_cost(path)
+    mx_g = mx_p = None
+    if in_ws:
+        pts = dense_points(path, cm.h / 8)
+        g = cm.mf.sample("G_norm", pts)
+        p = cm.mf.sample("phi_hat_max", pts)
+        if np.all(np.isfinite(g)) and np.all(np.isfinite(p)):
+            mx_g, mx_p = float(g.max()), float(p.max())
+    else:
+        cost = None
+    return PathReport(path, cost, length, mx_g, mx_p, bool(valid), bool(in_ws))
+
+
+@dataclass(frozen=True)
+class PlannerSettings:
+    """How to search: OMPL planner name, time budget per query (s), seed, iteration cap, refinement.
+
+    ``iterations`` (default ``time * ITERATION_RATE[planner]``) caps the planner's iterations so a run
+    depends only on the seed while the cap is reached within ``time``.
+    """
+
+    planner: str = DEFAULT_PLANNER
+    time: float = 1.0
+    seed: int = 1
+    iterations: int | None = None
+    refine: bool = True
+    refine_share: float = 0.25  # share of the time budget kept for refine_path
+
+    @classmethod
+    def from_scenario(cls, sc, planner: str | None = None, time: float | None = None,
+                      seed: int | None = None, **kw) -> "PlannerSettings":
+        p = sc.planner
+        return cls(planner=planner or p.planner, time=float(time if time is not None else p.time),
+                   seed=int(seed if seed is not None else p.seed), **kw)
+
+    def iteration_cap(self) -> int:
+        if self.iterations is not None:
+            return int(self.iterations)
+        return max(50, int(self.time * (1 - self.refine_share) * ITERATION_RATE.get(self.planner, 1000)))
+
+    def check(self) -> None:
+        if self.planner not in PLANNERS:
+            _make_planner(self.planner, None, 0.0)  # raises the explanatory error
+        if not (self.time > 0 and math.isfinite(self.time)):
+            raise ErrplanError(f"time = {self.time!r}: expected a planning time > 0 s")
+        if isinstance(self.seed, bool) or self.seed < 0:
+            raise ErrplanError(f"seed = {self.seed!r}: expected an integer >= 0")
+
+
+@dataclass
+class QueryPlan:
+    """The plan of one query: planned and direct paths, and how the search went.
+
+    ``extra`` holds keys added by later steps (``gains``, ``simulation``); :meth:`to_json` merges it.
+    """
+
+    name: str
+    start: tuple[float, float]
+    goal: tuple[float, float]
+    planned: PathReport
+    direct: PathReport
+    planner: str
+    seed: int
+    iterations: int
+    stopped_by: str  # "iterations" (the cap) | "time" (the budget) | "planner" (it finished by itself)
+    time_solve: float
+    time_refine: float
+    raw_cost: float  # cost of the planner's own path, before refine_path
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def time_total(self) -> float:
+        return self.time_solve + self.time_refine
+
+    def to_json(self) -> dict:
+        out = {"name": self.name, "start": [float(self.start[0]), float(self.start[1])],
+               "goal": [float(self.goal[0]), float(self.goal[1])],
+               "planned": self.planned.to_json(), "direct": self.direct.to_json(),
+               "search": {"planner": self.planner, "seed": self.seed, "iterations": self.iterations,
+                          "stopped_by": self.stopped_by, "time_solve": self.time_solve,
+                          "time_refine": self.time_refine, "raw_cost": _jsonable(self.raw_cost)}}
+        out.update(self.extra)
+        return out
+
+
+@dataclass
+class ScenarioPlan:
+    """Plans of a scenario's queries, the objective they share and the field they were made on."""
+
+    scenario: str
+    metric: str
+    weight: float
+    certifiable: bool
+    settings: PlannerSettings
+    queries: list[QueryPlan]
+    costmap: CostMap
+    field_time: float = 0.0
+
+    def to_json(self) -> dict:
+        return {"scenario": self.scenario,
+                "objective": {"metric": self.metric, "weight": self.weight, "certifiable": self.certifiable,
+                              "certify_margin": self.costmap.certify_margin,
+                              "resolution": self.costmap.h,
+                              "definition": "integral of (1 + weight * metric) ds, metric bilinear in the field"},
+                "queries": [q.to_json() for q in self.queries]}
+
+
+# ============================================================================= planning
+def check_endpoints(cm: CostMap, start, goal, name: str = "query") -> None:
+    """Raise :class:`InfeasibleError` naming the endpoint, the cause and by how much when the start
+    or goal is unusable, or when they lie in disconnected parts of the usable region."""
+    for what, p in (("start", start), ("goal", goal)):
+        msg = cm.explain_point(p, f"{name}: {what}")
+        if msg:
+            raise InfeasibleError(msg)
+    if not cm.connected(start, goal):
+        raise InfeasibleError(f"{name}: start {list(map(float, start))} and goal {list(map(float, goal))} lie in "
+                              f"disconnected parts of the usable region: no path exists")
+
+
+def plan_query(cm: CostMap, start, goal, settings: PlannerSettings | None = None, name: str = "query",
+               workspace_map: CostMap | None = None) -> QueryPlan:
+    """Plan one query on ``cm`` with OMPL, refine the solution, and report planned vs direct.
+
+    Raises :class:`InfeasibleError` for an unusable start or goal, disconnected endpoints, or no
+    exact solution within the budget (no partial result is returned).
+    """
+    ob, og, ou = _ompl()
+    st = settings or PlannerSettings()
+    st.check()
+    start = (float(start[0]), float(start[1]))
+    goal = (float(goal[0]), float(goal[1]))
+    check_endpoints(cm, start, goal, name)
+    ou.setLogLevel(ou.LOG_NONE)
+    t_begin = _time.perf_counter()
+    deadline_solve = st.time * (1 - st.refine_share) if st.refine else st.time
+    cap = st.iteration_cap()
+    # OMPL refuses seed 0: seed s maps to s + 1. Reseed before anything draws from the RNG so that
+    # each query is a function of the seed, whatever was planned before in this process.
+    ou.RNG.setSeed(st.seed + 1)
+    space, si = make_space_information(cm)
+    obj = make_objective(si, cm)
+    ss = og.SimpleSetup(si)
+    s = space.allocState()
+    s[0], s[1] = start
+    g = space.allocState()
+    g[0], g[1] = goal
+    ss.setStartAndGoalStates(s, g)
+    ss.setOptimizationObjective(obj)
+    planner = _make_planner(st.planner, si, deadline_solve)
+    ss.setPlanner(planner)
+    count = [0]
+    t0 = _time.perf_counter()
+    stop_reason = ["planner"]
+
+    def ptc() -> bool:
+        count[0] += 1
+        if count[0] > cap:
+            stop_reason[0] = "iterations"
+            return True
+        if _time.perf_counter() - t0 > deadline_solve:
+            stop_reason[0] = "time"
+            return True
+        return False
+
+    status = ss.solve(ob.PlannerTerminationCondition(ptc))
+    time_solve = _time.perf_counter() - t0
+    if not ss.haveExactSolutionPath():
+        raise InfeasibleError(
+            f"{name}: {st.planner} found no path from {list(start)} to {list(goal)} within the budget "
+            f"({time_solve:.2f} s, {min(count[0], cap)} iterations; status: {status}); try a longer --time")
+    p = ss.getSolutionPath()
+    raw = np.array([[p.getState(i)[0], p.getState(i)[1]] for i in range(p.getStateCount())])
+    raw[0], raw[-1] = start, goal
+    ok, raw_cost = cm.path_cost(raw)
+    if not ok:  # cannot happen with the exact motion validator; refuse rather than return it
+        raise InfeasibleError(f"{name}: internal: the planner's path leaves the usable region")
+    # The straight line, when valid and cheaper, is a candidate too (planners may stop early).
+    d_ok, d_cost = cm.path_cost([start, goal])
+    best = raw
+    if d_ok and d_cost < raw_cost:
+        best = np.array([start, goal])
+    t1 = _time.perf_counter()
+    if st.refine:
+        rr = refine_path(cm, best, deadline=t_begin + st.time)
+        best = rr.path
+    time_refine = _time.perf_counter() - t1
+    planned = path_report(cm, best, workspace_map)
+    wm = workspace_map
+    direct = path_report(cm, np.array([start, goal]), wm)
+    return QueryPlan(name, start, goal, planned, direct, st.planner, st.seed, min(count[0], cap),
+                     stop_reason[0], time_solve, time_refine, float(raw_cost))

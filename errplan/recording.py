@@ -1,0 +1,295 @@
+"""rerun recordings of errplan results (rerun-sdk 0.41). The only module that imports rerun.
+
+Coordinates: everything lives in one 2-D space ``plane`` in metres. The viewer's 2-D axes point
+right and down, so a tip ``[y, z]`` is drawn at ``(u, v) = (z, -y)``: z (toward the patient) to the
+right, y up. A field image is placed in metres by a ``Transform3D`` on its own entity
+(translation to the grid's corner, scale = the grid resolution), so pixel ``(col, row)`` covers
+the grid cell of ``(z, y)`` it samples.
+
+Plan recordings (:func:`record_plan`):
+
+- ``plane/fields/{G_norm,phi_hat_max,rho_star}``: colormapped ``DepthImage`` (0 = outside the
+  workspace, not drawn), static;
+- ``plane/workspace``: the robust workspace boundary (``LineStrips2D``, cell edges), static;
+- ``plane/port/true``, ``plane/port/estimate`` (``Points2D``), ``plane/port/error_box``, static;
+- ``plane/<query>/planned``, ``plane/<query>/direct``: the paths (``LineStrips2D``), static;
+  ``plane/<query>/segments``: segment ends labelled with their gain and certified ``||G||``;
+- ``plane/<query>/sim/{planned,direct}/trajectory`` (static, whole run) and ``.../tip`` (one row
+  per step on the ``step`` timeline); ``plane/<query>/corners/{planned,direct}``: the replays
+  under every corner of the error box (static);
+- ``series/<query>/{planned,direct}/error`` and ``.../phi``: error length (m) and the angle
+  between desired and actual motion (rad) per step (``Scalars`` on ``step``);
+- ``gains/<query>/{gain,certified_G_norm}``: per segment on the ``segment`` timeline;
+- ``summary``: a markdown table (``TextDocument``).
+
+A blueprint opens on the tip plane with the ``||G||`` field, the paths and the trajectories, the
+error and angle series beside it, and tabs with the other fields and the summary.
+"""
+from __future__ import annotations
+
+import math
+import os
+import re
+from pathlib import Path
+
+import numpy as np
+
+from .errors import ErrplanError
+
+FIELD_RANGES = {"G_norm": (0.0, 1.2), "phi_hat_max": (0.0, math.pi / 2), "rho_star": (0.0, 1.0)}
+FIELD_COLORMAPS = {"G_norm": "Turbo", "phi_hat_max": "Viridis", "rho_star": "Plasma"}
+PLANNED_COLOR = (40, 220, 90)
+DIRECT_COLOR = (240, 60, 60)
+PORT_TRUE_COLOR = (255, 255, 255)
+PORT_EST_COLOR = (255, 200, 0)
+
+
+def uv(pts) -> np.ndarray:
+    """Tip-plane points ``[y, z]`` (..., 2) -> viewer 2-D coordinates ``(z, -y)``."""
+    p = np.asarray(pts, float)
+    return np.stack([p[..., 1], -p[..., 0]], axis=-1)
+
+
+def entity_name(name: str) -> str:
+    """A query name as one entity-path part (letters, digits, ``-``, ``_``)."""
+    s = re.sub(r"[^A-Za-z0-9_-]+", "_", name).strip("_")
+    return s or "query"
+
+
+def field_image(mf, name: str) -> tuple[np.ndarray, list[float], list[float]]:
+    """Image (rows = y descending, cols = z ascending; 0 outside), translation and scale."""
+    a = getattr(mf, name, None)
+    if a is None:
+        raise ErrplanError(f"field {name!r} was not computed")
+    img = np.where(mf.valid & np.isfinite(a), a, 0.0)[::-1, :].astype(np.float32)
+    res = mf.resolution
+    # pixel (col j, row i) covers u in [u0 + j res, u0 + (j+1) res]: centred on z[j] and -y[ny-1-i]
+    translation = [float(mf.z[0] - res / 2), float(-mf.y[-1] - res / 2), 0.0]
+    return img, translation, [res, res, 1.0]
+
+
+def workspace_edges(mf) -> np.ndarray:
+    """Boundary of the valid grid cells as 2-point strips (n, 2, 2) in tip coordinates."""
+    v = np.asarray(mf.valid, bool)
+    res = mf.resolution
+    y, z = mf.y, mf.z
+    segs = []
+    pad = np.zeros((v.shape[0] + 2, v.shape[1] + 2), bool)
+    pad[1:-1, 1:-1] = v
+    # edges between (i, j) and (i+1, j) along y: a horizontal (constant-y) edge of the pixel squares
+    dy = pad[1:, 1:-1] != pad[:-1, 1:-1]          # (ny+1, nz)
+    ii, jj = np.nonzero(dy)
+    ye = y[0] + (ii - 0.5) * res
+    segs.append(np.stack([np.stack([ye, z[jj] - res / 2], -1), np.stack([ye, z[jj] + res / 2], -1)], 1))
+    dz = pad[1:-1, 1:] != pad[1:-1, :-1]          # (ny, nz+1)
+    ii, jj = np.nonzero(dz)
+    ze = z[0] + (jj - 0.5) * res
+    segs.append(np.stack([np.stack([y[ii] - res / 2, ze], -1), np.stack([y[ii] + res / 2, ze], -1)], 1))
+    return np.concatenate(segs) if segs else np.zeros((0, 2, 2))
+
+
+def _merge_edges(edges: np.ndarray) -> list[np.ndarray]:
+    """Chain unit cell edges into polylines (fewer, longer strips)."""
+    from collections import defaultdict
+
+    key = lambda p: (round(float(p[0]), 9), round(float(p[1]), 9))  # noqa: E731
+    adj: dict = defaultdict(list)
+    for i, (a, b) in enumerate(edges):
+        adj[key(a)].append((i, key(b)))
+        adj[key(b)].append((i, key(a)))
+    used = np.zeros(len(edges), bool)
+    strips = []
+    for i in range(len(edges)):
+        if used[i]:
+            continue
+        used[i] = True
+        a, b = key(edges[i][0]), key(edges[i][1])
+        line = [a, b]
+        for direction in (0, 1):
+            cur = line[-1] if direction == 0 else line[0]
+            while True:
+                nxt = next(((j, p) for j, p in adj[cur] if not used[j]), None)
+                if nxt is None:
+                    break
+                used[nxt[0]] = True
+                cur = nxt[1]
+                if direction == 0:
+                    line.append(cur)
+                else:
+                    line.insert(0, cur)
+        strips.append(np.array(line))
+    return strips
+
+
+def _markdown_summary(sc, runs) -> str:
+    lines = [f"# errplan plan: {sc.name}", "", sc.description or "", "",
+             "Tip plane: z (m) to the right, y (m) up. Field image: worst-case ||G|| at the scenario gain "
+             f"{sc.controller.gain:g} (colormap Turbo, 0 to 1.2: red where it reaches 1 or more).", ""]
+    for r in runs:
+        lines += [f"## {r.name}", "",
+                  "| path | segments | gain | certified ‖G‖ | certified | steps | monotonic | corners monotonic |",
+                  "|---|---|---|---|---|---|---|---|"]
+        for kind in ("planned", "direct"):
+            sched = r.schedule if kind == "planned" else r.direct_schedule
+            sim = r.sim_planned if kind == "planned" else r.sim_direct
+            reps = r.corner_planned if kind == "planned" else r.corner_direct
+            g = sched.gains if kind == "planned" else np.array([r.direct_gain])
+            cg = sched.max_certified_G_norm
+            lines.append(f"| {kind} | {len(sched.segments)} | {g.min():.3g}–{g.max():.3g} | "
+                         f"{cg:.3f} | {'yes' if sched.certified else 'no'} | {sim.sim.steps} | "
+                         f"{'yes' if sim.sim.monotonic else 'no'} | {sum(x.sim.monotonic for x in reps)}/{len(reps)} |")
+        lines += ["", "Segments (planned):", "", "| # | from | to | gain | certified ‖G‖ | step ratio |", "|---|---|---|---|---|---|"]
+        for i, s in enumerate(r.schedule.segments):
+            lines.append(f"| {i} | ({s.start[0]:.4f}, {s.start[1]:.4f}) | ({s.end[0]:.4f}, {s.end[1]:.4f}) | "
+                         f"{s.gain:.4f} | {s.certified_G_norm:.4f} | {s.step_ratio:.4f} |")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def blueprint(runs, fields_logged: list[str]):
+    """Tip plane (||G|| field, paths, trajectories) | series; tabs for other fields and the summary."""
+    import rerun.blueprint as rrb
+
+    # (entity-path filters only support a trailing "/**": list the corner entities one by one)
+    corners = [f"- plane/{entity_name(r.name)}/corners/**" for r in runs]
+    hidden = [f"- plane/fields/{n}" for n in fields_logged if n != "G_norm"]
+    main = rrb.Spatial2DView(origin="plane", contents=["+ plane/**"] + hidden + corners,
+                             name="tip plane: z → (m), y ↑ (m); worst-case ||G|| field")
+    others = [rrb.Spatial2DView(origin="plane", name=f"field {n}",
+                                contents=["+ plane/**"] + [f"- plane/fields/{m}" for m in fields_logged if m != n]
+                                + corners)
+              for n in fields_logged if n != "G_norm"]
+    others.append(rrb.Spatial2DView(origin="plane", name="replays under the error-box corners",
+                                    contents=["+ plane/**"] + hidden + [f"- plane/{entity_name(r.name)}/sim/**" for r in runs]))
+    series = []
+    for r in runs:
+        q = entity_name(r.name)
+        series.append(rrb.TimeSeriesView(origin=f"series/{q}",
+                                         contents=[f"+ series/{q}/planned/error", f"+ series/{q}/direct/error"],
+                                         name=f"{r.name}: error length (m) per step"))
+        series.append(rrb.TimeSeriesView(origin=f"series/{q}",
+                                         contents=[f"+ series/{q}/planned/phi", f"+ series/{q}/direct/phi"],
+                                         name=f"{r.name}: φ (rad) per step"))
+    gains = [rrb.TimeSeriesView(origin="gains", name="per-segment gain and certified ||G||")]
+    right = rrb.Tabs(rrb.Vertical(*series[:4]) if series else rrb.TextDocumentView(origin="summary"),
+                     *([rrb.Vertical(*series[4:])] if len(series) > 4 else []),
+                     *gains, rrb.TextDocumentView(origin="summary", name="summary"), *others)
+    return rrb.Blueprint(rrb.Horizontal(main, right, column_shares=[3, 2]), collapse_panels=True)
+
+
+def record_plan(path: str | os.PathLike, sc, mf, runs, *, app_id: str = "errplan") -> None:
+    """Write one ``.rrd`` with the fields, workspace, ports, paths, gains and simulations.
+
+    Written to a temporary file and renamed: nothing half-written on error.
+    """
+    import rerun as rr
+
+    path = Path(path)
+    if not path.parent.exists():
+        raise ErrplanError(f"--record {path}: directory {path.parent} does not exist")
+    tmp = path.with_name(path.name + ".part")
+    rec = rr.RecordingStream(app_id, recording_id=f"errplan-{sc.name}", send_properties=False)
+    fields_logged = [n for n in ("G_norm", "phi_hat_max", "rho_star") if getattr(mf, n, None) is not None]
+    rec.save(tmp, default_blueprint=blueprint(runs, fields_logged))
+    try:
+        _log_plan(rec, rr, sc, mf, runs, fields_logged)
+        rec.flush()
+    finally:
+        rec.disconnect()
+    os.replace(tmp, path)
+
+
+def _log_plan(rec, rr, sc, mf, runs, fields_logged) -> None:
+    ui = rr.Radius.ui_points
+    for n in fields_logged:
+        img, tr, sc_ = field_image(mf, n)
+        rec.log(f"plane/fields/{n}", rr.Transform3D(translation=tr, scale=sc_), static=True)
+        rec.log(f"plane/fields/{n}", rr.DepthImage(img, meter=1.0, colormap=FIELD_COLORMAPS[n],
+                                                   depth_range=FIELD_RANGES[n], draw_order=-10.0), static=True)
+    strips = [uv(s) for s in _merge_edges(workspace_edges(mf))]
+    rec.log("plane/workspace", rr.LineStrips2D(strips, colors=(200, 200, 200), radii=ui(1.0), draw_order=5.0),
+            static=True)
+    rec.log("plane/port/true", rr.Points2D(uv([sc.port.position]), colors=PORT_TRUE_COLOR, radii=ui(6.0),
+                                           labels=["true port"], draw_order=30.0), static=True)
+    rec.log("plane/port/estimate", rr.Points2D(uv([sc.port.estimate]), colors=PORT_EST_COLOR, radii=ui(6.0),
+                                               labels=["estimated port"], draw_order=30.0), static=True)
+    u = sc.uncertainty
+    if u.port_y is not None or u.port_z is not None:
+        (y0, y1), (z0, z1) = u.port_y or (0.0, 0.0), u.port_z or (0.0, 0.0)
+        e = np.asarray(sc.port.estimate)
+        box = e + np.array([[y0, z0], [y1, z0], [y1, z1], [y0, z1], [y0, z0]])
+        rec.log("plane/port/error_box", rr.LineStrips2D([uv(box)], colors=PORT_EST_COLOR, radii=ui(1.0),
+                                                         draw_order=30.0), static=True)
+    for r in runs:
+        q = entity_name(r.name)
+        base = f"plane/{q}"
+        rec.log(f"{base}/planned", rr.LineStrips2D([uv(r.planned_path)], colors=PLANNED_COLOR, radii=ui(2.5),
+                                                   draw_order=20.0), static=True)
+        rec.log(f"{base}/direct", rr.LineStrips2D([uv(r.direct_path)], colors=DIRECT_COLOR, radii=ui(2.0),
+                                                  draw_order=19.0), static=True)
+        segs = r.schedule.segments
+        rec.log(f"{base}/segments", rr.Points2D(
+            uv(np.array([s.end for s in segs])), radii=ui(3.0),
+            colors=[PLANNED_COLOR if s.certified else DIRECT_COLOR for s in segs],
+            labels=[f"k={s.gain:.3f} ‖G‖≤{s.certified_G_norm:.3f}" for s in segs], show_labels=False,
+            draw_order=21.0), static=True)
+        for kind, rep, col in (("planned", r.sim_planned, PLANNED_COLOR), ("direct", r.sim_direct, DIRECT_COLOR)):
+            rec.log(f"{base}/sim/{kind}/trajectory",
+                    rr.LineStrips2D([uv(rep.sim.tip)], colors=tuple(int(0.6 * c) for c in col), radii=ui(1.0),
+                                    draw_order=22.0), static=True)
+        for kind, reps, col in (("planned", r.corner_planned, PLANNED_COLOR), ("direct", r.corner_direct, DIRECT_COLOR)):
+            if reps:
+                rec.log(f"{base}/corners/{kind}",
+                        rr.LineStrips2D([uv(x.sim.tip) for x in reps], colors=tuple(int(0.4 * c) for c in col),
+                                        radii=ui(0.75), draw_order=15.0), static=True)
+        rec.log(f"gains/{q}/gain", rr.SeriesLines(colors=(90, 160, 255), names=f"{r.name}: gain k"), static=True)
+        rec.log(f"gains/{q}/certified_G_norm", rr.SeriesLines(colors=(255, 140, 0), names=f"{r.name}: certified ||G||"),
+                static=True)
+        for i, s in enumerate(segs):
+            rec.set_time("segment", sequence=i)
+            rec.log(f"gains/{q}/gain", rr.Scalars(s.gain))
+            if math.isfinite(s.certified_G_norm):  # an unbounded worst case is left out of the plot
+                rec.log(f"gains/{q}/certified_G_norm", rr.Scalars(s.certified_G_norm))
+        rec.reset_time()
+        for kind, rep, col in (("planned", r.sim_planned, PLANNED_COLOR), ("direct", r.sim_direct, DIRECT_COLOR)):
+            rec.log(f"series/{q}/{kind}/error", rr.SeriesLines(colors=col, names=f"{kind}: |x - target| (m)"), static=True)
+            rec.log(f"series/{q}/{kind}/phi", rr.SeriesLines(colors=col, names=f"{kind}: φ (rad)"), static=True)
+            sim = rep.sim
+            err = sim.errors
+            phi = np.concatenate([sim.phi, [0.0]]) if len(sim.phi) < len(sim.tip) else sim.phi
+            for i in range(len(sim.tip)):
+                rec.set_time("step", sequence=i)
+                rec.log(f"{base}/sim/{kind}/tip",
+                        rr.Points2D(uv(sim.tip[i:i + 1]), colors=col, radii=ui(5.0), draw_order=40.0))
+                rec.log(f"series/{q}/{kind}/error", rr.Scalars(float(err[i])))
+                rec.log(f"series/{q}/{kind}/phi", rr.Scalars(float(phi[i])))
+        rec.reset_time()
+    rec.log("summary", rr.TextDocument(_markdown_summary(sc, runs), media_type="text/markdown"), static=True)
+
+
+def expected_rows(runs) -> dict[str, int]:
+    """Entity path -> number of rows :func:`record_plan` writes (for the read-back test)."""
+    out = {}
+    for r in runs:
+        q = entity_name(r.name)
+        for kind, rep in (("planned", r.sim_planned), ("direct", r.sim_direct)):
+            n = len(rep.sim.tip)
+            out[f"/plane/{q}/sim/{kind}/tip"] = n
+            out[f"/series/{q}/{kind}/error"] = n + 1  # + the static SeriesLines style row
+            out[f"/series/{q}/{kind}/phi"] = n + 1
+            out[f"/plane/{q}/sim/{kind}/trajectory"] = 1
+        out[f"/gains/{q}/gain"] = len(r.schedule.segments) + 1
+        out[f"/gains/{q}/certified_G_norm"] = sum(math.isfinite(s.certified_G_norm) for s in r.schedule.segments) + 1
+        out[f"/plane/{q}/planned"] = 1
+        out[f"/plane/{q}/direct"] = 1
+        out[f"/plane/{q}/segments"] = 1
+    out["/plane/workspace"] = 1
+    out["/plane/port/true"] = 1
+    out["/plane/port/estimate"] = 1
+    out["/summary"] = 1
+    return out
+
+
+# ============================================================================= calibration
+# Calibration recordings (errplan calibrate --record) are appended below this line by the
+# calibration work; keep the plan section above self-contained.
