@@ -7,23 +7,29 @@ Pipeline (:func:`calibrate`):
    tip minus the model's tracked tip at the encoder angles, every row at once. *Trajectory
    residual*: the controller (:class:`errplan.simulation.ControllerModel`, at each run's gain)
    re-simulated noise-free on the model from each run's first encoder reading, step for step
-   against the measured tracked tips (steps >= 1), all runs batched.
+   against the measured tracked tips, all runs batched. ``trajectory_rms_*`` covers each run's
+   approach (steps 1 .. first arrival within ``max(0.5 mm, 4 noise floors)`` of the target: the
+   paths P1 Fig. 8 compares); the RMS over every step >= 1 is reported beside it. After arrival
+   the measured tip only jitters with the noise the controller chases, which a noise-free replay
+   cannot predict (and a friction model makes the replay chatter there).
 2. **Noise floor** (:func:`noise_floor`): the pose residual is fitted by a flexible smooth model
-   — a total-degree Legendre polynomial in the (scaled) encoder angles times ``[1, u_y, u_z]``
-   (``u`` the commanded direction, so anything linear in the motion direction, like friction, is
-   smooth too) — with the degree chosen by BIC; the noise floor is the degrees-of-freedom
-   corrected RMS of what is left, ``sqrt(RSS / (2n - 2m))``. Every effect of the catalogue and
-   the usual unmodelled ones (link lengths, scale errors) are smooth in the configuration, so what
-   the polynomial cannot follow is the measurement noise (tracker, plus encoder noise seen
-   through the Jacobian).
+   — on compact clusters of rows (k-means of the model tip positions, 60-240 rows each) a
+   quadratic or cubic Legendre polynomial (cluster size and degree by AIC) in the local tip
+   position times ``[1, u_y, u_z]`` (``u`` the commanded
+   direction, so anything linear in the motion direction, like port friction, is smooth too) —
+   and the noise floor is the degrees-of-freedom corrected RMS of what is left,
+   ``sqrt(RSS / (2n - 2m))``. Every effect of the catalogue and the usual unmodelled ones (link
+   lengths, scale errors) are smooth in the configuration, so what the local polynomials cannot
+   follow is the measurement noise (tracker, plus encoder noise seen through the Jacobian).
 3. **Candidates** (:mod:`errplan.effects`): every effect alone, every pair, and the best pair
    plus each other effect; each fitted by nonlinear least squares on the pose residual, with
    ``s^2 (J^T J)^-1`` uncertainties and an identifiability check (unidentifiable combinations are
    not selectable and say why).
 4. **Selection.** Among the selectable candidates (and "none") in order of BIC
-   (``N ln(RSS/N) + p ln N``, ``N = 2n``), the first whose held-out pose error (folds of whole runs,
-   seeded; each fold refitted) is below that of every candidate with one effect fewer. Clean data
-   select nothing; an effect that does not pay for its parameters on both counts is not added.
+   (``N ln(RSS/N) + p ln N``, ``N = 2n``), the first whose BIC and held-out pose error (folds of
+   whole runs, seeded; each fold refitted from the full fit) are below those of every candidate
+   with one effect fewer. Clean data select nothing; an effect that does not pay for its
+   parameters on both counts is not added.
 5. **Explained?** The selected model's residual is tested for structure with the same flexible
    model: an F test of the smooth part and its size ``s`` (its RMS after removing what the fit of
    pure noise would absorb). ``explained`` is false when the structure is significant
@@ -46,14 +52,14 @@ from .effects import CATALOGUE, EffectModel, predict_tracked
 from .errors import DataError, ErrplanError
 from .experiment import MeasuredData
 
-def arrival_tolerance(noise_sigma: float) -> float:
-    """Distance (m) within which a measured run counts as arrived: max(0.5 mm, 4 noise floors)."""
-    return max(5e-4, 4.0 * noise_sigma)
-
-
 STRUCTURE_P = 1e-3          # F-test level for "the residual has structure"
 STRUCTURE_RATIO = 1.0       # structured RMS >= this x noise floor -> not explained
 DEFAULT_FOLDS = 5
+
+
+def arrival_tolerance(noise_sigma: float) -> float:
+    """Distance (m) within which a measured run counts as arrived: max(0.5 mm, 4 noise floors)."""
+    return max(5e-4, 4.0 * noise_sigma)
 
 
 # ----------------------------------------------------------------------------- residuals
@@ -90,17 +96,12 @@ def pose_residual(data: MeasuredData, plant, u: np.ndarray | None = None) -> np.
 
 
 def _controller_jacobian(ctrl, plant, q: np.ndarray) -> np.ndarray:
+    """The controller's ``Jhat`` at encoder angles ``q`` (r, 2); the flexion controller reads the
+    model's end poses there (noise-free)."""
     if ctrl.jacobian == "rigid":
         return ctrl.J_hat(q)
-    try:
-        with np.errstate(invalid="ignore", divide="ignore"):
-            return ctrl.J_hat(q, plant)
-    except ErrplanError:
-        # P2's flexion controller on an unbent model: its estimate degenerates to the straight
-        # shaft, i.e. the rigid lever through the model's port
-        from .kinematics.shaft import lever_jacobian
-
-        return lever_jacobian(plant.arm.forward(q), plant.true_port, plant.length) @ plant.arm.jacobian(q)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return ctrl.J_hat(q, plant)
 
 
 def replay(data: MeasuredData, plant, ctrl) -> tuple[np.ndarray, np.ndarray]:
@@ -209,9 +210,9 @@ def kmeans_labels(x: np.ndarray, clusters: int, iters: int = 30) -> np.ndarray:
 
 @dataclass
 class LocalBasis:
-    """The flexible smooth model: on each of a few compact clusters of rows (k-means of the model
-    tip positions, about ``ROWS_PER_CLUSTER`` rows each) a quadratic Legendre polynomial in the
-    local tip coordinates times ``[1, u_y, u_z]`` (lower degree where a cluster has few rows)."""
+    """The flexible smooth model: on each cluster of rows (``labels``, k-means of the model tip
+    positions) a Legendre polynomial of ``degree`` in the local tip coordinates times
+    ``[1, u_y, u_z]`` (lower degree where a cluster has too few rows)."""
 
     labels: np.ndarray
     degree: int = 2
@@ -243,45 +244,57 @@ class LocalBasis:
         return fit, float(np.sum(res * res)), rank
 
 
-ROWS_PER_CLUSTER = 80
+#: flexible-model settings tried for the noise floor: (rows per cluster, polynomial degree)
+FLEX_CONFIGS = ((60, 2), (90, 2), (120, 2), (90, 3), (120, 3), (180, 3), (240, 3))
 
 
 @dataclass
 class NoiseFloor:
     """Noise floor of a pose residual: ``sigma`` (m, per coordinate), the flexible model used
-    (clusters, parameters per coordinate) and the RMS of the smooth part it removed (m)."""
+    (clusters, degree, parameters per coordinate) and the RMS of the smooth part it removed (m)."""
 
     sigma: float
     clusters: int
+    degree: int
     features: int
     smooth_rms: float
     basis: LocalBasis
     x: np.ndarray = field(repr=False, default=None)
 
     def to_json(self) -> dict:
-        return {"sigma": self.sigma, "clusters": self.clusters, "parameters_per_coordinate": self.features,
-                "smooth_rms": self.smooth_rms,
-                "estimator": f"dof-corrected RMS, sqrt(RSS / 2(n - m)), left by a local quadratic in the tip position "
-                             f"x [1, u_y, u_z] on k-means clusters of ~{ROWS_PER_CLUSTER} rows"}
+        return {"sigma": self.sigma, "clusters": self.clusters, "degree": self.degree,
+                "parameters_per_coordinate": self.features, "smooth_rms": self.smooth_rms,
+                "estimator": "dof-corrected RMS, sqrt(RSS / 2(n - m)), left by local polynomials in the tip position "
+                             "x [1, u_y, u_z] on k-means clusters of rows (cluster size and degree by AIC)"}
 
 
-def noise_floor(r: np.ndarray, x: np.ndarray, u: np.ndarray, rows_per_cluster: int = ROWS_PER_CLUSTER) -> NoiseFloor:
+def noise_floor(r: np.ndarray, x: np.ndarray, u: np.ndarray, configs=FLEX_CONFIGS) -> NoiseFloor:
     """Estimate the measurement noise (per coordinate, m) from a pose residual ``r`` (n, 2).
 
     ``x`` (n, 2) are the model tip positions (where the rows are), ``u`` (n, 2) the commanded
     directions. Every catalogue effect and the usual unmodelled ones are smooth in the
-    configuration (friction linear in ``u``), so a flexible local model — a quadratic in ``x``
+    configuration (friction linear in ``u``), so a flexible local model — polynomials in ``x``
     times ``[1, u_y, u_z]`` on compact clusters of rows — follows them, and what is left is the
-    noise: ``sigma = sqrt(RSS / (2 (n - m)))``, m the parameters per coordinate.
+    noise: ``sigma = sqrt(RSS / (2 (n - m)))``, m the parameters per coordinate. The cluster size
+    and degree come from ``configs`` by AIC (``N ln(RSS/N) + 2 (2m)``, ``N = 2n``).
     """
     n = len(r)
-    labels = kmeans_labels(x, max(1, n // rows_per_cluster))
-    basis = LocalBasis(labels)
-    fit, rss, rank = basis.fit(r, x, u)
-    if n - rank < 2:
+    N = 2 * n
+    best = None
+    for per, deg in configs:
+        labels = kmeans_labels(x, max(1, n // per))
+        basis = LocalBasis(labels, deg)
+        fit, rss, rank = basis.fit(r, x, u)
+        if n - rank < max(2, n // 4):
+            continue
+        aic = N * math.log(max(rss, 1e-300) / N) + 4 * rank
+        if best is None or aic < best[0]:
+            best = (aic, basis, fit, rss, rank, deg)
+    if best is None:
         s = rms(r - r.mean(axis=0))
-        return NoiseFloor(s, int(labels.max()) + 1, rank, 0.0, basis, x)
-    return NoiseFloor(math.sqrt(rss / (2 * (n - rank))), int(labels.max()) + 1, rank, rms(fit), basis, x)
+        return NoiseFloor(s, 1, 0, 1, 0.0, LocalBasis(np.zeros(n, int), 0), x)
+    _, basis, fit, rss, rank, deg = best
+    return NoiseFloor(math.sqrt(rss / (2 * (n - rank))), int(basis.labels.max()) + 1, deg, rank, rms(fit), basis, x)
 
 
 @dataclass
@@ -343,13 +356,17 @@ class Candidate:
         m = self.model
         return {
             "effects": self.effects, "name": self.label, "n_params": m.n_params,
-            "parameters": m.parameters(), "uncertainty": m.uncertainties(),
+            "parameters": m.parameters(), "uncertainty": _finite_or_none(m.uncertainties()),
             "pose_rms": self.rms, "heldout_rms": self.heldout_rms, "bic": self.bic,
             "delta_bic": self.bic - bic_none, "score": self.bic - bic_none,
             "identifiable": bool(m.identifiable_), "condition_number": m.condition_ if math.isfinite(m.condition_) else None,
             "max_correlation": m.max_correlation_, "selectable": self.selectable, "selected": self.selected,
             "note": self.note,
         }
+
+
+def _finite_or_none(d: dict) -> dict:
+    return {k: {p: (v if math.isfinite(v) else None) for p, v in ps.items()} for k, ps in d.items()}
 
 
 def _bic(rss: float, n_obs: int, p: int) -> float:
@@ -532,8 +549,8 @@ class CalibrationReport:
                  f"{self.fit_errors.runs} runs)"]
         if self.declared_effects:
             lines.append("declared effects: " + ", ".join(self.declared_effects))
-        lines.append(f"noise floor {self.noise.sigma * mm:.4f} mm per coordinate (local quadratic fit on "
-                     f"{self.noise.clusters} clusters)")
+        lines.append(f"noise floor {self.noise.sigma * mm:.4f} mm per coordinate (left by local degree-{self.noise.degree} "
+                     f"polynomials on {self.noise.clusters} clusters of rows)")
         lines.append(f"pose residual of the declared model: RMS {self.structure_before.rms * mm:.4f} mm "
                      f"({self.structure_before.ratio:.2f} x noise floor)")
         lines.append("")
@@ -581,14 +598,14 @@ class CalibrationReport:
 def calibrate(sc, data: MeasuredData, *, validate: MeasuredData | None = None, seed: int = 0,
               folds: int = DEFAULT_FOLDS, progress: Callable[[float, str], None] | None = None) -> CalibrationReport:
     """Find which catalogue effects (if any) the data need on top of the scenario's declared model."""
-    from .simulation import ControllerModel
+    from .experiment import bench_controller
 
     prog = progress or (lambda f, m="": None)
     base = declared_plant(sc)
     check_against_model(data, base)
     if validate is not None:
         check_against_model(validate, base)
-    ctrl = ControllerModel.from_scenario(sc)
+    ctrl = bench_controller(sc)
     u = data.commanded_directions()
     r0 = pose_residual(data, base, u)
     if not np.all(np.isfinite(r0)):
@@ -700,36 +717,35 @@ def _toml_value(v) -> str:
 
 
 def to_toml(doc: dict, header: str = "") -> str:
-    """A TOML document for a parsed-TOML-like dict (tables, arrays of tables, inline values)."""
+    """A TOML document for a parsed-TOML-like dict: tables as ``[a.b]`` sections, lists of
+    tables as ``[[a]]`` (their sub-tables inline), everything else inline."""
     lines: list[str] = [f"# {h}" if h else "#" for h in header.splitlines()] if header else []
-
-    def is_table(v) -> bool:
-        return isinstance(v, dict)
 
     def is_aot(v) -> bool:
         return isinstance(v, list) and len(v) > 0 and all(isinstance(x, dict) for x in v)
 
-    def emit(table: dict, path: list[str]) -> None:
+    def emit(table: dict, path: list[str], inline_tables: bool) -> None:
         for k, v in table.items():
-            if not is_table(v) and not is_aot(v):
-                lines.append(f"{_toml_key(k)} = {_toml_value(v)}")
-        for k, v in table.items():
-            if is_table(v):
-                sub = path + [_toml_key(k)]
-                scalars = any(not is_table(x) and not is_aot(x) for x in v.values())
-                if scalars or not v:
-                    lines.append("")
-                    lines.append(f"[{'.'.join(sub)}]")
-                emit(v, sub)
+            if (isinstance(v, dict) and not inline_tables) or is_aot(v):
+                continue
+            lines.append(f"{_toml_key(k)} = {_toml_value(v)}")
+        if not inline_tables:
+            for k, v in table.items():
+                if isinstance(v, dict):
+                    sub = path + [_toml_key(k)]
+                    if any(not isinstance(x, dict) for x in v.values()) or not v:
+                        lines.append("")
+                        lines.append(f"[{'.'.join(sub)}]")
+                    emit(v, sub, False)
         for k, v in table.items():
             if is_aot(v):
                 sub = path + [_toml_key(k)]
                 for item in v:
                     lines.append("")
                     lines.append(f"[[{'.'.join(sub)}]]")
-                    emit(item, sub)
+                    emit(item, sub, True)
 
-    emit(doc, [])
+    emit(doc, [], False)
     return "\n".join(lines).lstrip("\n") + "\n"
 
 

@@ -293,3 +293,115 @@ def expected_rows(runs) -> dict[str, int]:
 # ============================================================================= calibration
 # Calibration recordings (errplan calibrate --record) are appended below this line by the
 # calibration work; keep the plan section above self-contained.
+#
+# Calibration recordings (:func:`record_calibration`), all in the same ``plane`` space:
+#
+# - ``plane/port/true``, ``plane/port/estimate`` (``Points2D``), static;
+# - ``plane/data/tracked``: every tracked tip of the fitting data (``Points2D``), static;
+# - ``plane/residual/before``, ``plane/residual/after``: the pose residual (tracked minus model
+#   tip) of every row as an arrow from the model tip, magnified by ``CAL_ARROW_GAIN`` (the same for
+#   both, so their lengths compare), coloured by length relative to the noise floor;
+# - ``plane/residual_map/before``, ``plane/residual_map/after``: the residual map — the mean residual
+#   over 10 mm cells (noise averages out, structure stays), magnified by ``CAL_MAP_GAIN``, coloured
+#   by the cell's mean residual over the noise floor (green <= 1, red >= 4): where a structured
+#   residual is left after the selected model;
+# - ``plane/replay/measured``, ``plane/replay/before``, ``plane/replay/after``: each run's measured
+#   tracked path and the controller replayed on the declared and on the corrected model;
+# - ``summary``: the readable report (``TextDocument``).
+CAL_ARROW_GAIN = 10.0
+CAL_MAP_GAIN = 20.0
+CAL_CELL = 0.010
+
+
+def _cal_colors(length: np.ndarray, noise: float) -> np.ndarray:
+    """Green (<= 1 noise floor) to red (>= 4 noise floors), RGB uint8 (n, 3)."""
+    t = np.clip((np.asarray(length, float) / max(noise, 1e-12) - 1.0) / 3.0, 0.0, 1.0)
+    return np.stack([60 + 195 * t, 220 - 170 * t, 80 - 40 * t], axis=-1).astype(np.uint8)
+
+
+def residual_map(points: np.ndarray, residual: np.ndarray, cell: float = CAL_CELL) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Mean residual per ``cell`` x ``cell`` square of the tip plane: centres (m, 2), mean residual
+    (m, 2), rows per cell (m,)."""
+    p = np.asarray(points, float)
+    key = np.floor(p / cell).astype(np.int64)
+    uniq, inv, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    inv = inv.ravel()
+    mean = np.zeros((len(uniq), 2))
+    np.add.at(mean, inv, residual)
+    mean /= counts[:, None]
+    centre = np.zeros((len(uniq), 2))
+    np.add.at(centre, inv, p)
+    centre /= counts[:, None]
+    return centre, mean, counts
+
+
+def calibration_blueprint():
+    import rerun.blueprint as rrb
+
+    common = ["+ plane/port/**", "+ plane/data/**"]
+    before = rrb.Spatial2DView(origin="plane", name="residual before (declared model), x10 arrows",
+                               contents=common + ["+ plane/residual/before", "+ plane/residual_map/before"])
+    after = rrb.Spatial2DView(origin="plane", name="residual after (corrected model), x10 arrows",
+                              contents=common + ["+ plane/residual/after", "+ plane/residual_map/after"])
+    maps = rrb.Spatial2DView(origin="plane", name="residual map after (10 mm cells, x20)",
+                             contents=common + ["+ plane/residual_map/after"])
+    replay = rrb.Spatial2DView(origin="plane", name="paths: measured (white), replayed before (red) / after (green)",
+                               contents=["+ plane/port/**", "+ plane/replay/**"])
+    return rrb.Blueprint(rrb.Horizontal(rrb.Tabs(before, after, maps, replay),
+                                        rrb.TextDocumentView(origin="summary", name="report"),
+                                        column_shares=[3, 2]), collapse_panels=True)
+
+
+def record_calibration(report, path: str | os.PathLike, sc=None, *, app_id: str = "errplan") -> None:
+    """Write the ``.rrd`` of an :class:`errplan.calibration.CalibrationReport` (see the section
+    comment above). Written to a temporary file and renamed: nothing half-written on error."""
+    import rerun as rr
+
+    path = Path(path)
+    if not path.parent.exists():
+        raise ErrplanError(f"--record {path}: directory {path.parent} does not exist")
+    tmp = path.with_name(path.name + ".part")
+    rec = rr.RecordingStream(app_id, recording_id=f"errplan-calibrate-{report.scenario}", send_properties=False)
+    rec.save(tmp, default_blueprint=calibration_blueprint())
+    try:
+        _log_calibration(rec, rr, report, sc)
+        rec.flush()
+    finally:
+        rec.disconnect()
+    os.replace(tmp, path)
+
+
+def _log_calibration(rec, rr, report, sc) -> None:
+    ui = rr.Radius.ui_points
+    noise = float(report.noise.sigma)
+    pts = np.asarray(report.points, float)
+    if sc is not None:
+        rec.log("plane/port/true", rr.Points2D(uv([sc.port.position]), colors=PORT_TRUE_COLOR, radii=ui(6.0),
+                                               labels=["true port (declared)"], draw_order=30.0), static=True)
+        rec.log("plane/port/estimate", rr.Points2D(uv([sc.port.estimate]), colors=PORT_EST_COLOR, radii=ui(6.0),
+                                                   labels=["estimated port"], draw_order=30.0), static=True)
+    rec.log("plane/data/tracked", rr.Points2D(uv(report.tracked), colors=(150, 150, 150), radii=ui(1.0),
+                                              draw_order=5.0), static=True)
+    for kind, r in (("before", report.residual_before), ("after", report.residual_after)):
+        r = np.asarray(r, float)
+        length = np.linalg.norm(r, axis=-1) / math.sqrt(2.0)  # per-coordinate scale, like the noise floor
+        rec.log(f"plane/residual/{kind}",
+                rr.Arrows2D(origins=uv(pts), vectors=uv(CAL_ARROW_GAIN * r), colors=_cal_colors(length, noise),
+                            radii=ui(0.75), draw_order=10.0), static=True)
+        centre, mean, counts = residual_map(pts, r)
+        mlen = np.linalg.norm(mean, axis=-1) / math.sqrt(2.0)
+        labels = [f"{1000 * m:.3f} mm ({n} rows)" for m, n in zip(np.linalg.norm(mean, axis=-1), counts)]
+        rec.log(f"plane/residual_map/{kind}",
+                rr.Arrows2D(origins=uv(centre), vectors=uv(CAL_MAP_GAIN * mean), colors=_cal_colors(mlen, noise),
+                            radii=ui(2.0), labels=labels, show_labels=False, draw_order=12.0), static=True)
+    d = report.data
+    if d is not None:
+        for kind, tips, col in (("measured", d.tip, (255, 255, 255)), ("before", report.replay_before, DIRECT_COLOR),
+                                ("after", report.replay_after, PLANNED_COLOR)):
+            strips = [uv(np.asarray(tips)[d.run == r]) for r in range(d.runs)]
+            rec.log(f"plane/replay/{kind}", rr.LineStrips2D(strips, colors=col, radii=ui(1.0 if kind == "measured" else 0.75),
+                                                            draw_order=20.0), static=True)
+    text = ("# errplan calibrate\n\nArrows: residual (tracked minus model tip) x"
+            f"{CAL_ARROW_GAIN:g}; residual map: mean over {CAL_CELL * 1000:g} mm cells x{CAL_MAP_GAIN:g}; colour: "
+            "green at or below the noise floor, red at 4 noise floors or more.\n\n```\n" + report.text() + "\n```\n")
+    rec.log("summary", rr.TextDocument(text, media_type="text/markdown"), static=True)

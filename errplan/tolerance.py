@@ -31,8 +31,11 @@ per tip (or per depth) by bisection, and the answer is the minimum over the regi
 The worst case over each set is found by dense sampling plus a local pattern search; for the
 6-D noise box, by all 64 vertices plus a pattern search from the worst vertex (``||G||`` is close
 to a convex function of small noise, so its maximum sits at a vertex; the tests compare with
-scipy multi-start optimisation and 20,000 random draws). Region grids are refined until halving
-the spacing changes the answer by less than 1% (reported as ``refinement_change``).
+scipy multi-start optimisation and 20,000 random draws). Where the box also holds noise vectors
+that make P2's estimate degenerate (estimated ``a`` outside ``(0, L)``: a thin interior set the
+vertices can miss, with ``||G|| >= 1`` in its limit), the worst case is reported as at least 1.
+Region grids are refined (nested, spacing halved) until the answer changes by less than 1%
+(reported as ``refinement_change``).
 
 Geometry of the insertion queries (P2 Sec. V, rotational symmetry): the port at the origin, the
 tip at ``r * dir(shaft_angle)`` (``shaft_angle = 0``: the port->tip line along the tracker's z
@@ -688,6 +691,7 @@ def _region_tolerance(ev: Evaluator, region: dict, oset: _OffsetSet, k: float, *
     best = {"value": float(lo[j]), "upper": float(hi[j]), "point": x[j], "zero": bool(g0[j] >= 1.0),
             "capped": bool(capped[j])}
     per_tip = {"points": x, unit: lo}
+    x0 = x
     change, refinements = (0.0 if ext == 0 else None), 0
     while ext > 0 and refinements < 6 and best["value"] > 0 and not best["capped"]:
         fine = tuple(2 * n - 1 if n > 1 else 1 for n in counts)
@@ -722,12 +726,14 @@ def _region_tolerance(ev: Evaluator, region: dict, oset: _OffsetSet, k: float, *
     gb, okb, rb = _set_worst(ev, xb, oset, np.array([best["upper"]]), k)
     reason = ("G_norm" if best["zero"] else "capped" if best["capped"] else
               "reachability" if not rb[0] else "singular" if not okb[0] else "G_norm")
-    # plot-ready curve: size vs max over the region of the worst ||G|| (and whether every tip is valid)
+    # plot-ready curve: size vs max over the region of the worst ||G|| (and whether every tip is
+    # valid), on the initial grid plus the binding tip
     top = best["value"] if best["capped"] else max(2.0 * best["value"], start)
     sizes = np.linspace(0.0, top, 41)
     gmax, allok = [], []
+    xc = np.concatenate([x0, xb])
     for e in sizes:
-        g, ok, _ = _set_worst(ev, x, oset, np.full(len(x), e), k)
+        g, ok, _ = _set_worst(ev, xc, oset, np.full(len(xc), e), k)
         gmax.append(float(np.max(g[ok])) if ok.any() else float("nan"))
         allok.append(bool(ok.all()))
     return {"value": best["value"], "upper": best["upper"], "binding_point": best["point"], "binding": reason,

@@ -2,7 +2,6 @@
 of the worst cases and bisections against independent brute force, refinement stability, bad input."""
 from __future__ import annotations
 
-import itertools
 import json
 import math
 from pathlib import Path

@@ -56,12 +56,17 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("tolerance", help="tolerance-design queries of a scenario")
     s.add_argument("scenario")
-    s.add_argument("--json", default=None)
+    s.add_argument("--json", default=None, help="tolerance JSON to write (answers and plot-ready curves)")
 
     s = sub.add_parser("experiment", help="a P1-style bench run on the scenario's truth -> measured-data CSV")
     s.add_argument("scenario")
-    s.add_argument("--out", required=True)
-    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--out", required=True, help="measured-data CSV to write")
+    s.add_argument("--seed", type=int, default=0, help="seed of the sensor noise (default: %(default)s)")
+    s.add_argument("--starts", type=int, default=8,
+                   help="start tips: P1's L, M, N where reachable, then spread over the workspace (default: %(default)s)")
+    s.add_argument("--max-steps", type=int, default=60, help="commands per run at most (default: %(default)s)")
+    s.add_argument("--dwell", type=int, default=10,
+                   help="steps recorded after a run first arrives within tolerance (default: %(default)s)")
 
     s = sub.add_parser("calibrate", help="close the loop: residual, effect found, error before/after")
     s.add_argument("scenario")
@@ -71,6 +76,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--record", default=None)
     s.add_argument("--export-scenario", default=None, help="write the scenario with the found effects under [effects]")
     s.add_argument("--seed", type=int, default=0, help="seed for the held-out split")
+    s.add_argument("--folds", type=int, default=5, help="held-out folds of runs (default: %(default)s)")
 
     s = sub.add_parser("view", help="open a recording in the rerun viewer")
     s.add_argument("recording")

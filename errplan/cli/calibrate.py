@@ -1,0 +1,53 @@
+"""``errplan calibrate SCENARIO DATA.csv [--validate VAL.csv] [--json F] [--record F.rrd]
+[--export-scenario F.toml] [--seed N] [--folds K]``.
+
+Close the loop: residual of the declared model, noise floor, candidate effects fitted and
+selected, error before -> after (see :mod:`errplan.calibration`). Every input is checked before
+anything is written; outputs are written atomically at the end.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+from ..errors import ErrplanError
+from ..report import Progress, write_atomic, write_json
+
+
+def _check_dir(opt: str, value: str | None) -> None:
+    if value:
+        p = Path(value)
+        if not p.parent.exists():
+            raise ErrplanError(f"{opt} {value}: directory {p.parent} does not exist")
+
+
+def run(args) -> int:
+    from ..calibration import calibrate, corrected_scenario_toml
+    from ..experiment import read_measured_csv
+    from ..scenario import load_scenario
+
+    sc = load_scenario(args.scenario)
+    for opt, v in (("--json", args.json), ("--record", args.record), ("--export-scenario", args.export_scenario)):
+        _check_dir(opt, v)
+    folds = getattr(args, "folds", 5)
+    if folds < 2:
+        raise ErrplanError(f"--folds {folds}: expected an integer >= 2")
+    data = read_measured_csv(args.data)
+    val = read_measured_csv(args.validate) if args.validate else None
+    prog = Progress("calibrate", quiet=args.quiet)
+    report = calibrate(sc, data, validate=val, seed=args.seed, folds=folds, progress=prog)
+    prog.done()
+    toml_text = corrected_scenario_toml(sc, report) if args.export_scenario else None
+    js = report.to_json()
+    if args.record:
+        from ..recording import record_calibration
+
+        record_calibration(report, args.record, sc)
+    if args.json:
+        write_json(args.json, js)
+    if toml_text is not None:
+        write_atomic(args.export_scenario, toml_text)
+    print(report.text())
+    written = [x for x in (args.json, args.record, args.export_scenario) if x]
+    if written:
+        print("wrote " + ", ".join(written))
+    return 0
