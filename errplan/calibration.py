@@ -9,9 +9,10 @@ Pipeline (:func:`calibrate`):
    re-simulated noise-free on the model from each run's first encoder reading, step for step
    against the measured tracked tips, all runs batched. ``trajectory_rms_*`` covers each run's
    approach (steps 1 .. first arrival within ``max(0.5 mm, 4 noise floors)`` of the target: the
-   paths P1 Fig. 8 compares); the RMS over every step >= 1 is reported beside it. After arrival
-   the measured tip only jitters with the noise the controller chases, which a noise-free replay
-   cannot predict (and a friction model makes the replay chatter there).
+   paths P1 Fig. 8 compares), leaving out runs that diverge or cycle (see :func:`approach_mask`);
+   the RMS over every step >= 1 of every run is reported beside it. After arrival the measured tip
+   only jitters with the noise the controller chases, which a noise-free replay cannot predict
+   (and a friction model makes the replay chatter there).
 2. **Noise floor** (:func:`noise_floor`): the pose residual is fitted by a flexible smooth model
    — on compact clusters of rows (k-means of the model tip positions, 60-240 rows each) a
    quadratic or cubic Legendre polynomial (cluster size and degree by AIC) in the local tip
@@ -55,6 +56,7 @@ from .experiment import MeasuredData
 STRUCTURE_P = 1e-3          # F-test level for "the residual has structure"
 STRUCTURE_RATIO = 1.0       # structured RMS >= this x noise floor -> not explained
 DEFAULT_FOLDS = 5
+TEXT_CANDIDATES = 10        # candidates listed on stdout (all of them in the JSON)
 
 
 def arrival_tolerance(noise_sigma: float) -> float:
@@ -152,23 +154,36 @@ def replay(data: MeasuredData, plant, ctrl) -> tuple[np.ndarray, np.ndarray]:
     return pred, alive
 
 
-def approach_mask(data: MeasuredData, tolerance: float) -> np.ndarray:
-    """Rows (n,) of each run's approach: steps 1 .. the first step whose tracked tip is within
-    ``tolerance`` of the target (the whole run if it never arrives). After arrival the measured
-    tip only jitters with the noise the controller chases, which no noise-free replay predicts."""
-    near = np.linalg.norm(data.tip - data.target, axis=-1) < tolerance
-    arrive = np.full(data.runs, np.iinfo(np.int64).max)
-    idx = np.flatnonzero(near & (data.step >= 1))
+def approach_mask(data: MeasuredData, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
+    """Rows (n,) compared by the trajectory residual, and the runs (runs,) left out.
+
+    A run's approach is steps 1 .. the first step whose tracked tip is within ``tolerance`` of the
+    target: after arrival the measured tip only jitters with the noise the controller chases,
+    which no noise-free replay predicts. A run that never arrives counts whole if its distance to
+    the target never grew beyond its start distance (a slow gain), and is left out if it did
+    (it diverged or cycles: the controller is not contracting there, ||G|| >= 1, and the path
+    amplifies the measurement noise, so no replay can follow it step for step).
+    """
+    e = np.linalg.norm(data.tip - data.target, axis=-1)
+    big = np.iinfo(np.int64).max
+    arrive = np.full(data.runs, big)
+    idx = np.flatnonzero((e < tolerance) & (data.step >= 1))
     np.minimum.at(arrive, data.run[idx], data.step[idx])
-    return (data.step >= 1) & (data.step <= arrive[data.run])
+    e0 = e[data.first][np.argsort(data.run[data.first])]
+    emax = np.zeros(data.runs)
+    np.maximum.at(emax, data.run, e)
+    unsettled = (arrive == big) & (emax > e0 + tolerance)
+    mask = (data.step >= 1) & (data.step <= arrive[data.run]) & ~unsettled[data.run]
+    return mask, unsettled
 
 
 def trajectory_errors(data: MeasuredData, plant, ctrl, tolerance: float) -> tuple[float, float]:
-    """Per-coordinate RMS of measured minus replayed tracked tips over the approach (see
-    :func:`approach_mask`) and over every step >= 1."""
+    """Per-coordinate RMS of measured minus replayed tracked tips over the approach rows (see
+    :func:`approach_mask`; NaN if there are none) and over every step >= 1 of every run."""
     pred, _ = replay(data, plant, ctrl)
     r = data.tip - pred
-    return rms(r[approach_mask(data, tolerance)]), rms(r[data.step >= 1])
+    mask, _ = approach_mask(data, tolerance)
+    return (rms(r[mask]) if np.any(mask) else float("nan")), rms(r[data.step >= 1])
 
 
 # ----------------------------------------------------------------------------- noise floor
@@ -394,6 +409,9 @@ def fit_candidate(effects: Sequence[str], data: MeasuredData, u: np.ndarray, bas
         for k in range(int(fold_of_run.max()) + 1):
             te = fold == k
             tr = ~te
+            if 2 * int(tr.sum()) < m.n_params + 2:
+                sse = float("nan")  # too few training rows for this candidate: no held-out error
+                break
             if m.n_params:
                 mk = EffectModel(m.effects).fit(data.q[tr], u[tr], data.tip[tr], base, x0=m.values_)
                 vals = mk.values_
@@ -403,7 +421,7 @@ def fit_candidate(effects: Sequence[str], data: MeasuredData, u: np.ndarray, bas
                 r = data.tip[te] - m.predict(base, data.q[te], u[te], vals)
             r = np.where(np.isfinite(r), r, 1.0)
             sse += float(np.sum(r * r))
-        ho = math.sqrt(sse / (2 * n))
+        ho = math.sqrt(sse / (2 * n)) if math.isfinite(sse) else None
     note = "" if m.identifiable_ else f"not identifiable: {m.why_}"
     return Candidate(m, math.sqrt(m.rss_ / (2 * n)), bic, ho, bool(m.identifiable_), note)
 
@@ -451,6 +469,8 @@ class Errors:
     runs: int
     source: str
     arrival_tolerance: float
+    trajectory_rows: int = 0
+    unsettled_runs: int = 0
 
     def to_json(self) -> dict:
         return {"source": self.source, "rows": self.rows, "runs": self.runs,
@@ -458,7 +478,8 @@ class Errors:
                 "trajectory_rms_before": self.trajectory_before, "trajectory_rms_after": self.trajectory_after,
                 "trajectory_rms_all_steps_before": self.trajectory_all_before,
                 "trajectory_rms_all_steps_after": self.trajectory_all_after,
-                "arrival_tolerance": self.arrival_tolerance}
+                "arrival_tolerance": self.arrival_tolerance, "trajectory_rows": self.trajectory_rows,
+                "trajectory_unsettled_runs_left_out": self.unsettled_runs}
 
 
 @dataclass
@@ -494,20 +515,30 @@ class CalibrationReport:
         return self.validation_errors or self.fit_errors
 
     @property
-    def parameters(self) -> dict[str, dict[str, float]]:
+    def fitted(self) -> dict[str, dict[str, float]]:
+        """The fitted values of the selected effects: what the data add to the declared model."""
         return self.model.parameters()
 
     @property
+    def parameters(self) -> dict[str, dict[str, float]]:
+        """The selected effects as the bench has them: a declared value of the same effect plus
+        the fitted correction (just the fitted value when the scenario declares none)."""
+        out = {}
+        for e, ps in self.fitted.items():
+            dec = self.declared_effects.get(e, {})
+            out[e] = {p: dec.get(p, 0.0) + v for p, v in ps.items()}
+        return out
+
+    @property
     def uncertainty(self) -> dict[str, dict[str, float]]:
-        return self.model.uncertainties()
+        return _finite_or_none(self.model.uncertainties())
 
     def effects_table(self) -> dict[str, dict[str, float]]:
-        """Effects for the corrected scenario: declared ones plus the fitted corrections."""
+        """Effects for the corrected scenario: every declared effect, with the selected ones
+        replaced by their values on the bench (declared + fitted)."""
         out = {k: dict(v) for k, v in self.declared_effects.items()}
         for e, ps in self.parameters.items():
-            d = out.setdefault(e, {})
-            for p, v in ps.items():
-                d[p] = d.get(p, 0.0) + v
+            out[e] = dict(ps)
         return out
 
     def to_json(self) -> dict:
@@ -519,6 +550,7 @@ class CalibrationReport:
             "selected": list(self.selected),
             "explained": bool(self.explained),
             "parameters": self.parameters,
+            "fitted": self.fitted,
             "uncertainty": self.uncertainty,
             "noise_floor": self.noise.sigma,
             "pose_rms_before": e.pose_before,
@@ -557,12 +589,16 @@ class CalibrationReport:
         rows = []
         order = sorted(self.candidates, key=lambda c: c.bic)
         bic_none = next(c.bic for c in self.candidates if not c.effects)
-        for c in order:
+        shown = order[:TEXT_CANDIDATES]
+        shown += [c for c in order[TEXT_CANDIDATES:] if not c.effects or not c.selectable]
+        for c in shown:
             rows.append([("* " if c.selected else "  ") + c.label, c.model.n_params, c.rms * mm,
                          c.heldout_rms * mm if c.heldout_rms is not None else float("nan"), c.bic - bic_none,
                          c.model.condition_, "yes" if c.selectable else "no", c.note])
+        more = len(order) - len(shown)
         lines.append(format_table(["candidate", "p", "pose rms mm", "held-out mm", "dBIC", "cond", "ok", "note"], rows,
-                                  "candidates (sorted by BIC; * selected)"))
+                                  f"candidates (sorted by BIC; * selected; {len(order)} tried"
+                                  + (f", {more} more in the JSON)" if more else ")")))
         lines.append("")
         if self.selected:
             prow = []
@@ -573,8 +609,11 @@ class CalibrationReport:
                 for p, v in ps.items():
                     s = self.uncertainty[e][p]
                     f, unit = (mm, "mm") if units[p] == "m" else ((mm, "mrad") if units[p] == "rad" else (1.0, units[p]))
-                    prow.append([e, p, f"{v * f:+.4f} ± {s * f:.4f}", unit])
-            lines.append(format_table(["effect", "param", "value ± 1 sigma", "unit"], prow, "selected effects"))
+                    sig = f"{s * f:.4f}" if s is not None else "?"
+                    dec = self.declared_effects.get(e)
+                    note = f"declared {dec.get(p, 0.0) * f:+.4f} + fitted {self.fitted[e][p] * f:+.4f}" if dec else ""
+                    prow.append([e, p, f"{v * f:+.4f} ± {sig}", unit, note])
+            lines.append(format_table(["effect", "param", "value ± 1 sigma", "unit", ""], prow, "selected effects"))
         else:
             lines.append("selected effects: none (the declared model explains the data down to the noise)")
         e = self.errors
@@ -582,8 +621,12 @@ class CalibrationReport:
         lines.append("")
         lines.append(format_table(["error (RMS per coordinate)", "before mm", "after mm"], [
             ["pose (tracked vs model tip)", e.pose_before * mm, e.pose_after * mm],
-            ["trajectory (controller replayed)", e.trajectory_before * mm, e.trajectory_after * mm],
+            ["trajectory, approach (controller replayed)", e.trajectory_before * mm, e.trajectory_after * mm],
+            ["trajectory, every step", e.trajectory_all_before * mm, e.trajectory_all_after * mm],
         ], f"error before -> after on {on}"))
+        if e.unsettled_runs:
+            lines.append(f"({e.unsettled_runs} of {e.runs} runs diverged or cycled without arriving and are left out of "
+                         f"the approach RMS)")
         s = self.structure
         verdict = "yes" if self.explained else "NO"
         lines.append(f"explained: {verdict} — residual after {s.rms * mm:.4f} mm = {s.ratio:.2f} x noise floor; "
@@ -619,6 +662,9 @@ def calibrate(sc, data: MeasuredData, *, validate: MeasuredData | None = None, s
     fold_of_run = _folds(data.runs, k, seed) if k >= 2 else None
     names = [c.name for c in CATALOGUE]
     combos: list[tuple[str, ...]] = [()] + [(a,) for a in names] + list(itertools.combinations(names, 2))
+    n_params = {c.name: len(c.params) for c in CATALOGUE}
+    fits = lambda key: sum(n_params[e] for e in key) <= 2 * data.rows - 2  # noqa: E731 (some residual dof left)
+    combos = [c for c in combos if fits(c)]
     cands: dict[tuple[str, ...], Candidate] = {}
     for i, combo in enumerate(combos):
         cands[combo] = fit_candidate(combo, data, u, base, fold_of_run)
@@ -632,7 +678,8 @@ def calibrate(sc, data: MeasuredData, *, validate: MeasuredData | None = None, s
                 if e in bp.effects:
                     continue
                 key = tuple(x for x in names if x in bp.effects or x == e)
-                cands[key] = fit_candidate(key, data, u, base, fold_of_run)
+                if fits(key):
+                    cands[key] = fit_candidate(key, data, u, base, fold_of_run)
     prog(0.85, "selection")
     chosen = select(cands)
     chosen.selected = True
@@ -651,7 +698,9 @@ def calibrate(sc, data: MeasuredData, *, validate: MeasuredData | None = None, s
     def errors(d: MeasuredData, r_before: np.ndarray, r_after: np.ndarray) -> Errors:
         tb, tb_all = trajectory_errors(d, base, ctrl, tol)
         ta, ta_all = trajectory_errors(d, after, ctrl, tol)
-        return Errors(rms(r_before), rms(r_after), tb, ta, tb_all, ta_all, d.rows, d.runs, d.source, tol)
+        mask, unsettled = approach_mask(d, tol)
+        return Errors(rms(r_before), rms(r_after), tb, ta, tb_all, ta_all, d.rows, d.runs, d.source, tol,
+                      int(mask.sum()), int(unsettled.sum()))
 
     fit_err = errors(data, r0, r1)
     val_err = None

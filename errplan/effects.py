@@ -286,11 +286,11 @@ class EffectModel:
         if np.any(dead):
             why.append("no data depend on " + ", ".join(np.array(self.param_labels)[dead]))
         Jn = J / np.where(dead, 1.0, norms)
-        sv = np.linalg.svd(Jn, compute_uv=False)
-        cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else float("inf")
+        _, sv, Vt = np.linalg.svd(Jn, full_matrices=False)
+        cond = float(sv[0] / sv[-1]) if sv[-1] > 1e-14 * sv[0] else float("inf")
         s2 = self.rss_ / max(2 * n - p, 1)
         if np.isfinite(cond) and not np.any(dead):
-            A = np.linalg.inv(Jn.T @ Jn)
+            A = (Vt.T / sv ** 2) @ Vt          # (Jn^T Jn)^-1, positive definite
             d = np.sqrt(np.diag(A))
             corr = A / np.outer(d, d)
             cov_z = s2 * (A / np.outer(norms, norms))
@@ -299,9 +299,10 @@ class EffectModel:
             np.fill_diagonal(corr, 1.0)
             cov_z = np.full((p, p), np.inf)
         off = np.abs(corr - np.eye(p))
-        self.max_correlation_ = float(np.nanmax(off)) if p > 1 else 0.0
         if not np.all(np.isfinite(corr)):
             self.max_correlation_ = 1.0
+        else:
+            self.max_correlation_ = float(np.max(off)) if p > 1 else 0.0
         self.condition_ = cond
         self.correlation_ = corr
         self.cov_ = cov_z * np.outer(scales, scales)

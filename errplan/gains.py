@@ -42,7 +42,7 @@ import numpy as np
 from .errors import ErrplanError
 from .fields import Evaluator
 from .kinematics.shaft import flexed_tip
-from .metrics import g_norm_from_parts, inv2, inverse_parts
+from .metrics import inv2, inverse_parts
 
 GOLDEN_ANGLE = math.pi * (3.0 - math.sqrt(5.0))
 
@@ -624,8 +624,11 @@ def schedule_gains(src, path, options: GainOptions | None = None, *, progress=No
                     reason = "the controller's Jacobian is singular inside the ball"
                 elif not gn < 1.0:
                     reason = f"no gain found with worst-case ||G|| < 1 over the ball (best {gn:.3f})"
+                elif math.isinf(sr):
+                    reason = (f"||G|| = {gn:.3f} < 1, but from some tip of the ball a full step leaves the joint "
+                              f"limits or pulls the shaft out of the port (the ball reaches the workspace edge)")
                 else:
-                    reason = f"a nonlinear step grows the error (ratio {sr:.3f}) although ||G|| = {gn:.3f}"
+                    reason = f"||G|| = {gn:.3f} < 1, but a full nonlinear step grows the error (ratio {sr:.3f})"
                 if can_split(p):
                     redo.append(i)
             smpinfo = {"optimiser": {k_: s[k_] for k_ in ("tips", "instances", "noise_corners", "pairs")},

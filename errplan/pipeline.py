@@ -128,7 +128,10 @@ def replay(plant: Plant, controller: ControllerModel, start, waypoints, gains, o
     Noise-free, except for P2's flexion controller with bounded sensor noise: then its measured
     end poses get uniform noise inside the bounds, from a generator seeded with ``seed``.
     """
-    q0 = plant.configuration_for_tip(np.asarray(start, float))
+    try:
+        q0 = plant.configuration_for_tip(np.asarray(start, float))
+    except ErrplanError as e:
+        raise ErrplanError(f"cannot simulate from the path's start: {e}") from None
     rng = None
     if controller.jacobian == "flexion" and any(controller.noise):
         rng = np.random.default_rng(0 if seed is None else seed)
@@ -224,6 +227,11 @@ def _fmt_bool(v: bool) -> str:
     return "yes" if v else "NO"
 
 
+def _num(v) -> float:
+    """A table cell from a JSON number (None: not defined, e.g. a path leaving the workspace)."""
+    return float("nan") if v is None else float(v)
+
+
 def summary_rows(runs: list[QueryRun]) -> list[list]:
     rows = []
     for r in runs:
@@ -235,25 +243,31 @@ def summary_rows(runs: list[QueryRun]) -> list[list]:
             gains = sched.gains if kind == "planned" else np.array([r.direct_gain])
             cert_g = sched.max_certified_G_norm
             rows.append([
-                r.name, kind, float(P.get("cost", float("nan"))), float(P.get("length", float("nan"))),
-                float(P.get("max_G_norm", float("nan"))), len(sched.segments),
+                r.name, kind, _num(P.get("cost")), _num(P.get("length")), _num(P.get("max_G_norm")), len(sched.segments),
                 f"{gains.min():.3g}" if gains.min() == gains.max() else f"{gains.min():.3g}-{gains.max():.3g}",
                 cert_g if math.isfinite(cert_g) else float("nan"),
-                _fmt_bool(sched.certified), sim.sim.steps, _fmt_bool(sim.sim.monotonic),
+                _fmt_bool(sched.certified), sim.sim.steps, _fmt_bool(sim.sim.converged), _fmt_bool(sim.sim.monotonic),
                 f"{sum(x.sim.monotonic for x in reps)}/{len(reps)}" if reps else "-",
+                f"{sum(x.sim.converged for x in reps)}/{len(reps)}" if reps else "-",
                 max((x.sim.steps for x in reps), default=0),
             ])
     return rows
 
 
 SUMMARY_HEADERS = ["query", "path", "cost", "length m", "max ||G||", "segments", "gain", "certified ||G||",
-                   "certified", "steps", "monotonic", "corners monotonic", "corner steps max"]
+                   "certified", "steps", "converged", "monotonic", "corners monotonic", "corners converged", "corner steps max"]
 
 
 def summary_table(runs: list[QueryRun], title: str | None = None) -> str:
     """Planned vs direct per query: cost, max ||G|| along the path (fields), certificate, simulation."""
     lines = [format_table(SUMMARY_HEADERS, summary_rows(runs), title)]
+    for r in runs:
+        for kind, sched in (("planned", r.schedule), ("direct", r.direct_schedule)):
+            bad = [s for s in sched.segments if not s.certified]
+            if bad:
+                lines.append(f"{r.name} {kind}: {len(bad)} of {len(sched.segments)} segment(s) not certified: {bad[0].reason}"
+                             + (f"; simulated with the scenario gain {r.direct_gain:g}" if kind == "direct" else ""))
     lines.append("max ||G||: worst case along the path at the scenario gain (fields); certified ||G||: verified "
-                 "worst case over every segment's convergence ball at the chosen gain; steps/monotonic: simulated "
-                 "under the scenario's truth; corners: replays under every corner of the error box.")
+                 "worst case over every segment's convergence ball at the chosen gain; steps/converged/monotonic: "
+                 "simulated under the scenario's truth; corners: replays under every corner of the error box.")
     return "\n".join(lines)

@@ -56,6 +56,20 @@ def entity_name(name: str) -> str:
     return s or "query"
 
 
+def entity_names(runs) -> list[str]:
+    """One distinct entity-path part per query (``_2``, ``_3``... appended on collisions)."""
+    out, seen = [], set()
+    for r in runs:
+        base = entity_name(r.name)
+        q, i = base, 1
+        while q in seen:
+            i += 1
+            q = f"{base}_{i}"
+        seen.add(q)
+        out.append(q)
+    return out
+
+
 def field_image(mf, name: str) -> tuple[np.ndarray, list[float], list[float]]:
     """Image (rows = y descending, cols = z ascending; 0 outside), translation and scale."""
     a = getattr(mf, name, None)
@@ -151,7 +165,8 @@ def blueprint(runs, fields_logged: list[str]):
     import rerun.blueprint as rrb
 
     # (entity-path filters only support a trailing "/**": list the corner entities one by one)
-    corners = [f"- plane/{entity_name(r.name)}/corners/**" for r in runs]
+    names = entity_names(runs)
+    corners = [f"- plane/{q}/corners/**" for q in names]
     hidden = [f"- plane/fields/{n}" for n in fields_logged if n != "G_norm"]
     main = rrb.Spatial2DView(origin="plane", contents=["+ plane/**"] + hidden + corners,
                              name="tip plane: z → (m), y ↑ (m); worst-case ||G|| field")
@@ -160,10 +175,9 @@ def blueprint(runs, fields_logged: list[str]):
                                 + corners)
               for n in fields_logged if n != "G_norm"]
     others.append(rrb.Spatial2DView(origin="plane", name="replays under the error-box corners",
-                                    contents=["+ plane/**"] + hidden + [f"- plane/{entity_name(r.name)}/sim/**" for r in runs]))
+                                    contents=["+ plane/**"] + hidden + [f"- plane/{q}/sim/**" for q in names]))
     series = []
-    for r in runs:
-        q = entity_name(r.name)
+    for r, q in zip(runs, names):
         series.append(rrb.TimeSeriesView(origin=f"series/{q}",
                                          contents=[f"+ series/{q}/planned/error", f"+ series/{q}/direct/error"],
                                          name=f"{r.name}: error length (m) per step"))
@@ -171,9 +185,10 @@ def blueprint(runs, fields_logged: list[str]):
                                          contents=[f"+ series/{q}/planned/phi", f"+ series/{q}/direct/phi"],
                                          name=f"{r.name}: φ (rad) per step"))
     gains = [rrb.TimeSeriesView(origin="gains", name="per-segment gain and certified ||G||")]
-    right = rrb.Tabs(rrb.Vertical(*series[:4]) if series else rrb.TextDocumentView(origin="summary"),
-                     *([rrb.Vertical(*series[4:])] if len(series) > 4 else []),
-                     *gains, rrb.TextDocumentView(origin="summary", name="summary"), *others)
+    # two queries (four plots) per tab
+    groups = [rrb.Vertical(*series[i:i + 4], name="series: " + ", ".join(r.name for r in runs[i // 2:i // 2 + 2]))
+              for i in range(0, len(series), 4)]
+    right = rrb.Tabs(*groups, *gains, rrb.TextDocumentView(origin="summary", name="summary"), *others)
     return rrb.Blueprint(rrb.Horizontal(main, right, column_shares=[3, 2]), collapse_panels=True)
 
 
@@ -220,8 +235,7 @@ def _log_plan(rec, rr, sc, mf, runs, fields_logged) -> None:
         box = e + np.array([[y0, z0], [y1, z0], [y1, z1], [y0, z1], [y0, z0]])
         rec.log("plane/port/error_box", rr.LineStrips2D([uv(box)], colors=PORT_EST_COLOR, radii=ui(1.0),
                                                          draw_order=30.0), static=True)
-    for r in runs:
-        q = entity_name(r.name)
+    for r, q in zip(runs, entity_names(runs)):
         base = f"plane/{q}"
         rec.log(f"{base}/planned", rr.LineStrips2D([uv(r.planned_path)], colors=PLANNED_COLOR, radii=ui(2.5),
                                                    draw_order=20.0), static=True)
@@ -270,8 +284,7 @@ def _log_plan(rec, rr, sc, mf, runs, fields_logged) -> None:
 def expected_rows(runs) -> dict[str, int]:
     """Entity path -> number of rows :func:`record_plan` writes (for the read-back test)."""
     out = {}
-    for r in runs:
-        q = entity_name(r.name)
+    for r, q in zip(runs, entity_names(runs)):
         for kind, rep in (("planned", r.sim_planned), ("direct", r.sim_direct)):
             n = len(rep.sim.tip)
             out[f"/plane/{q}/sim/{kind}/tip"] = n

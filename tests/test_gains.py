@@ -3,7 +3,6 @@ certificates against independent brute force, every bundled plan certified and r
 corner of the error box with a controller loop written here (not errplan.simulation)."""
 from __future__ import annotations
 
-import itertools
 import math
 from pathlib import Path
 
@@ -13,7 +12,7 @@ import pytest
 from errplan.errors import ErrplanError
 from errplan.fields import ErrorSet, Evaluator, compute_fields
 from errplan.gains import (GainOptions, _sample_segment, ball_tips, cut_path, options_from_scenario, rho_of_k,
-                           schedule_gains, single_segment, solve_gains, step_ratio, verify_segment)
+                           schedule_gains, single_segment, solve_gains, step_ratio)
 from errplan.kinematics.arm import Arm
 from errplan.kinematics.shaft import flexed_jacobian, flexed_tip, flexed_wrist, lever_jacobian
 from errplan.scenario import load_scenario

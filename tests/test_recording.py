@@ -139,8 +139,23 @@ def test_view_spawns_rerun_with_ci_set(recorded, monkeypatch):
         return 0
 
     monkeypatch.setattr(view.subprocess, "call", fake_call)
+    monkeypatch.setenv("DISPLAY", ":0")
     assert main(["view", str(path)]) == 0
-    assert seen["cmd"][-1] == str(path) and seen["env"]["CI"] == "1"
+    assert seen["cmd"][-1] == str(path) and seen["env"]["CI"] == "1" and "--web-viewer" not in seen["cmd"]
+    assert main(["view", "--web", str(path)]) == 0
+    assert seen["cmd"][-2:] == ["--web-viewer", str(path)] and seen["env"]["CI"] == "1"
+
+
+def test_view_without_display_suggests_the_web_viewer(recorded, monkeypatch, capsys):
+    import sys as _sys
+
+    *_, path = recorded
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    if not _sys.platform.startswith("linux"):
+        pytest.skip("display detection is Linux-only")
+    assert main(["view", str(path)]) == 2
+    assert "--web" in capsys.readouterr().err
 
 
 def test_record_into_missing_directory_is_refused(recorded, tmp_path):

@@ -80,6 +80,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("view", help="open a recording in the rerun viewer")
     s.add_argument("recording")
+    s.add_argument("--web", action="store_true",
+                   help="serve the rerun web viewer (http://localhost:9090) instead of opening the native viewer")
     return p
 
 

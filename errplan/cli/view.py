@@ -1,4 +1,6 @@
-"""``errplan view F.rrd``: open a recording in the rerun viewer (native; ``rerun F.rrd``)."""
+"""``errplan view F.rrd [--web]``: open a recording in the rerun viewer (native ``rerun F.rrd``, or
+the web viewer ``rerun --web-viewer F.rrd``). Every rerun subprocess runs with ``CI=1``: the rerun
+CLI then sends no analytics."""
 from __future__ import annotations
 
 import os
@@ -10,12 +12,20 @@ from pathlib import Path
 from ..errors import ErrplanError
 
 
-def viewer_command(path: str | os.PathLike) -> list[str]:
-    """The command that opens ``path``: the ``rerun`` CLI on PATH, else the one bundled with rerun-sdk."""
+def viewer_command(path: str | os.PathLike, web: bool = False) -> list[str]:
+    """The command that opens ``path``: the ``rerun`` CLI on PATH, else the one bundled with rerun-sdk
+    (``--web-viewer``: serve the web viewer instead of opening the native one)."""
     exe = shutil.which("rerun")
-    if exe:
-        return [exe, str(path)]
-    return [sys.executable, "-m", "rerun_cli", str(path)]
+    cmd = [exe] if exe else [sys.executable, "-m", "rerun_cli"]
+    return cmd + (["--web-viewer"] if web else []) + [str(path)]
+
+
+def has_display(env=None) -> bool:
+    """False on Linux without an X11 or Wayland display (the native viewer cannot open a window)."""
+    env = os.environ if env is None else env
+    if not sys.platform.startswith("linux"):
+        return True
+    return bool(env.get("DISPLAY") or env.get("WAYLAND_DISPLAY"))
 
 
 def viewer_env() -> dict:
@@ -41,7 +51,13 @@ def check_recording(path: str | os.PathLike) -> Path:
 
 def run(args) -> int:
     p = check_recording(args.recording)
-    cmd = viewer_command(p)
+    web = bool(getattr(args, "web", False))
+    if not web and not has_display():
+        raise ErrplanError(f"no display (DISPLAY and WAYLAND_DISPLAY are unset): serve the web viewer instead with "
+                           f"`errplan view --web {p}` and open http://localhost:9090")
+    cmd = viewer_command(p, web)
+    if web:
+        print(f"serving {p} in the rerun web viewer at http://localhost:9090 (Ctrl-C to stop)")
     try:
         return subprocess.call(cmd, env=viewer_env())
     except FileNotFoundError:

@@ -1,0 +1,336 @@
+"""Closing the loop (errplan.calibration, `errplan calibrate`).
+
+Bench data carry one catalogue effect (undeclared in the scenario given to calibrate) at bench
+sizes (a few mm) with the tracker noise of the scenario: the right effect is selected, its
+parameters are recovered within 3 stated sigmas, the held-out trajectory error is cut. Also two
+effects at once, noise only (nothing selected), and an effect outside the catalogue (a 4 mm
+link-length error, a 1 % tracker scale error): ``explained: false``. The noise floor is checked
+against the known tracker sigma, the batched replay against ``simulate``, the CLI's CSV errors
+(exit 2, nothing written), the JSON keys of interfaces.md, the recording and the exported scenario
+(read back; calibrating against it selects nothing)."""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from errplan.calibration import (approach_mask, calibrate, check_against_model, declared_plant, noise_floor,
+                                 pose_residual, replay, structure_test, to_toml)
+from errplan.cli import main
+from errplan.effects import predict_tracked
+from errplan.errors import DataError
+from errplan.experiment import bench_controller, parse_measured_csv, read_measured_csv, run_experiment
+from errplan.scenario import Robot, load_scenario, parse_scenario
+from errplan.simulation import Plant, simulate
+
+try:
+    import tomllib
+except ModuleNotFoundError:  # pragma: no cover
+    import tomli as tomllib  # type: ignore
+
+ROOT = Path(__file__).resolve().parents[1]
+PORT = ROOT / "scenarios" / "beasley2004_port.toml"
+STARTS = 5
+
+TRUTHS = {
+    "port_offset": {"dy": 0.003, "dz": -0.002},
+    "joint_offset": {"dq1": 0.003, "dq2": -0.002},
+    "tracker_offset": {"by": 0.002, "bz": -0.0015},
+    "gravity_sag": {"c1": 0.004, "c2": 0.002, "c3": 0.003},
+    "shaft_flexion": {"fy": 2.0, "fz": 1.0},
+    "port_friction": {"fa": 0.0015, "fn": 0.001},
+}
+
+
+@pytest.fixture(scope="module")
+def port():
+    return load_scenario(PORT)
+
+
+def bench(sc, effects, seed, plant=None):
+    return run_experiment(sc.with_(effects=effects), seed=seed, n_starts=STARTS, plant=plant).data
+
+
+def check_recovery(rep, truth: dict) -> None:
+    for e, ps in truth.items():
+        for p, v in ps.items():
+            got, sig = rep.parameters[e][p], rep.uncertainty[e][p]
+            assert sig > 0 and math.isfinite(sig)
+            assert abs(got - v) < 3 * sig, f"{e}.{p}: {got:.6g} +- {sig:.3g}, true {v}"
+
+
+# ----------------------------------------------------------------------------- each effect
+@pytest.mark.parametrize("effect", list(TRUTHS))
+def test_each_catalogue_effect_is_found(port, effect):
+    truth = {effect: TRUTHS[effect]}
+    data, val = bench(port, truth, 11), bench(port, truth, 12)
+    rep = calibrate(port, data, validate=val, seed=0)
+    assert rep.selected == [effect]
+    assert rep.explained
+    check_recovery(rep, truth)
+    e = rep.errors  # on the held-out validation file
+    assert rep.validation_errors is e
+    assert e.pose_after < 1.1 * rep.noise.sigma < e.pose_before
+    assert e.trajectory_after < 0.8 * e.trajectory_before
+    # the candidates table: every effect alone, every pair, each with a held-out error and a score
+    singles = {c.label for c in rep.candidates if len(c.effects) == 1}
+    assert singles == set(TRUTHS)
+    assert sum(len(c.effects) == 2 for c in rep.candidates) == 15
+    assert all(c.heldout_rms is not None and math.isfinite(c.bic) for c in rep.candidates)
+
+
+def test_two_effects_at_once(port):
+    """P1's suspects together: gravity (no compensation) and friction at the port."""
+    truth = {"gravity_sag": TRUTHS["gravity_sag"], "port_friction": {"fa": 0.001, "fn": 0.0008}}
+    data, val = bench(port, truth, 21), bench(port, truth, 22)
+    rep = calibrate(port, data, validate=val, seed=1)
+    assert sorted(rep.selected) == ["gravity_sag", "port_friction"]
+    assert rep.explained
+    check_recovery(rep, truth)
+    assert rep.errors.trajectory_after < 0.8 * rep.errors.trajectory_before
+    # a single effect cannot explain it: both singles are far worse than the pair held out
+    by = {c.label: c for c in rep.candidates}
+    pair = by["gravity_sag+port_friction"]
+    assert by["gravity_sag"].heldout_rms > 1.5 * pair.heldout_rms
+    assert by["port_friction"].heldout_rms > 1.5 * pair.heldout_rms
+
+
+def test_noise_only_selects_nothing(port):
+    data = bench(port, {}, 31)
+    rep = calibrate(port, data, seed=2)
+    assert rep.selected == [] and rep.parameters == {}
+    assert rep.explained
+    assert rep.fit_errors.pose_after == rep.fit_errors.pose_before
+    assert rep.noise.sigma == pytest.approx(port.sensors.tracker_sigma, rel=0.06)
+    # the best single effect does not pay for its two parameters
+    best = min((c for c in rep.candidates if c.effects), key=lambda c: c.bic)
+    none = next(c for c in rep.candidates if not c.effects)
+    assert best.bic > none.bic
+
+
+def _with_link2(sc, dl):
+    r = sc.robot
+    return sc.with_(robot=Robot(r.base, (r.link_lengths[0], r.link_lengths[1] + dl), r.home_angles,
+                                r.joint_limits, r.joint_sum_limits))
+
+
+@dataclass(frozen=True)
+class ScaledTracker(Plant):
+    """A tracker whose scale is off by ``scale`` about ``centre``: a tip-position-dependent bias."""
+
+    scale: float = 0.0
+    centre: tuple = (0.0, 0.30)
+
+    def tip(self, q_enc, u=None):
+        t = super().tip(q_enc, u)
+        return t + self.scale * (t - np.asarray(self.centre))
+
+
+def test_link_length_error_is_not_explained(port):
+    """A 4 mm error of link 2 is in no catalogue: the best candidates leave a structured residual."""
+    truth = Plant.from_scenario(_with_link2(port, 0.004), noise=True)
+    data = bench(port, {}, 41, plant=truth)
+    rep = calibrate(port, data, seed=0)
+    assert not rep.explained
+    s = rep.structure
+    assert s.p_value < 1e-6 and s.structured_rms > rep.noise.sigma and s.ratio > 1.5
+    assert rep.noise.sigma == pytest.approx(port.sensors.tracker_sigma, rel=0.1)
+    assert rep.to_json()["explained"] is False
+
+
+def test_tracker_scale_error_is_not_explained(port):
+    base = Plant.from_scenario(port, noise=True)
+    truth = ScaledTracker(**{f: getattr(base, f) for f in base.__dataclass_fields__}, scale=0.015)
+    data = bench(port, {}, 42, plant=truth)
+    rep = calibrate(port, data, seed=0)
+    assert not rep.explained
+    assert rep.structure.structured_rms > rep.noise.sigma
+
+
+# ----------------------------------------------------------------------------- pieces
+@pytest.mark.parametrize("effect", [None, "gravity_sag", "port_friction"])
+def test_noise_floor_estimates_the_tracker_sigma(port, effect):
+    """Model-free: from the declared model's residual, even with a large effect in it."""
+    truth = {effect: TRUTHS[effect]} if effect else {}
+    for sigma in (1e-4, 4e-4):
+        sc = port.with_(sensors=replace(port.sensors, tracker_sigma=sigma))
+        d = bench(sc, truth, 51)
+        base = declared_plant(port)
+        u = d.commanded_directions()
+        nf = noise_floor(pose_residual(d, base, u), predict_tracked(base, d.q, u), u)
+        assert nf.sigma == pytest.approx(sigma, rel=0.08)
+
+
+def test_structure_test_sees_a_smooth_field_and_not_noise(port):
+    d = bench(port, {}, 52)
+    base = declared_plant(port)
+    u = d.commanded_directions()
+    x = predict_tracked(base, d.q, u)
+    rng = np.random.default_rng(0)
+    noise = rng.normal(0, 2e-4, x.shape)
+    nf = noise_floor(noise, x, u)
+    assert not structure_test(noise, u, nf).structured
+    smooth = 4e-4 * np.stack([np.sin(30 * x[:, 0]), np.cos(20 * x[:, 1])], -1)
+    st = structure_test(noise + smooth, u, nf)
+    assert st.structured and st.structured_rms == pytest.approx(np.sqrt(np.mean((smooth - smooth.mean(0)) ** 2)), rel=0.3)
+
+
+def test_batched_replay_equals_simulate(port):
+    """The calibration's replay of every run at once matches simulation.simulate run by run."""
+    sc = port.with_(effects={"port_friction": {"fa": 0.001, "fn": 0.0005}, "gravity_sag": {"c1": 0.002, "c2": 0.0, "c3": 0.0}})
+    d = bench(sc, sc.effects, 53)
+    plant = Plant.from_scenario(sc)
+    ctrl = bench_controller(sc)
+    pred, alive = replay(d, plant, ctrl)
+    for r in range(0, d.runs, 5):
+        m = d.run == r
+        q0 = d.q[m][0]
+        res = simulate(plant, ctrl, q0, d.target[m][:1], d.gain[m][0], tolerance=1e-300, max_steps=int(m.sum()) - 1)
+        n = min(len(res.tracked), m.sum())
+        assert np.allclose(pred[m][:n], res.tracked[:n], atol=1e-12)
+
+
+def test_approach_mask():
+    text = "run,step,target_y,target_z,gain,q1,q2,tip_y,tip_z\n" + "".join(
+        f"a,{i},0,0.34,1,0,0,0,{0.34 - e}\n" for i, e in enumerate([0.02, 0.01, 0.0004, 0.002, 0.0001]))
+    d = parse_measured_csv(text)
+    m, out = approach_mask(d, 5e-4)
+    assert m.tolist() == [False, True, True, False, False] and out.tolist() == [False]
+    m, out = approach_mask(d, 1e-6)  # never arrives, never moves away: a slow run, all of it counts
+    assert m.tolist() == [False, True, True, True, True] and out.tolist() == [False]
+    grows = text.replace("a,1,0,0.34,1,0,0,0,0.33", "a,1,0,0.34,1,0,0,0,0.30")  # 40 mm away after step 1
+    m, out = approach_mask(parse_measured_csv(grows), 1e-6)
+    assert not m.any() and out.tolist() == [True]
+
+
+def test_data_from_another_scenario_is_refused(port):
+    doc = tomllib.loads(PORT.read_text())
+    doc["port"] = {"position": [0.0, 0.45], "estimate": [0.0, 0.45]}
+    short = parse_scenario(doc, "far port")
+    d = bench(port, {}, 54)
+    with pytest.raises(DataError, match="row"):
+        check_against_model(d, declared_plant(short))
+
+
+def test_tiny_data_still_calibrates(port):
+    text = ("run,step,target_y,target_z,gain,q1,q2,tip_y,tip_z\n"
+            "a,0,0,0.34,1,0,0,0.0001,0.3201\n"
+            "a,1,0,0.34,1,0.02,0.05,-0.0065,0.3371\n"
+            "b,0,0.02,0.32,1,0,0,-0.0001,0.3199\n"
+            "b,1,0.02,0.32,1,0.05,0.02,0.0151,0.3221\n")
+    rep = calibrate(port, parse_measured_csv(text), seed=0)
+    json.dumps(rep.to_json(), allow_nan=False)
+
+
+def test_toml_writer_round_trips_every_bundled_scenario():
+    for f in sorted((ROOT / "scenarios").glob("*.toml")):
+        doc = tomllib.loads(f.read_text())
+        assert tomllib.loads(to_toml(doc, "header\nline")) == doc
+    odd = {"name": 'q"uote\\ \n', "a": {"b": {"c": [1, 2.5, True]}, "d": 1}, "t": [{"x": {"y": [1.0]}, "z": "w"}]}
+    assert tomllib.loads(to_toml(odd)) == odd
+
+
+# ----------------------------------------------------------------------------- CLI
+@pytest.fixture(scope="module")
+def cli_run(tmp_path_factory):
+    d = tmp_path_factory.mktemp("cal")
+    sc_text = PORT.read_text() + "\n[effects.gravity_sag]\nc1 = 0.004\nc2 = 0.002\nc3 = 0.003\n"
+    truth = d / "truth.toml"
+    truth.write_text(sc_text)
+    assert main(["-q", "experiment", str(truth), "--out", str(d / "data.csv"), "--seed", "1", "--starts", "4"]) == 0
+    assert main(["-q", "experiment", str(truth), "--out", str(d / "val.csv"), "--seed", "2", "--starts", "4"]) == 0
+    rc = main(["-q", "calibrate", str(PORT), str(d / "data.csv"), "--validate", str(d / "val.csv"),
+               "--json", str(d / "cal.json"), "--record", str(d / "cal.rrd"), "--export-scenario", str(d / "fixed.toml")])
+    return rc, d
+
+
+def test_cli_calibrate_outputs(cli_run, capsys):
+    rc, d = cli_run
+    assert rc == 0
+    js = json.loads((d / "cal.json").read_text())
+    for k in ("selected", "explained", "parameters", "noise_floor", "pose_rms_before", "pose_rms_after",
+              "trajectory_rms_before", "trajectory_rms_after", "candidates"):
+        assert k in js, k
+    assert js["selected"] == ["gravity_sag"] and js["explained"] is True
+    assert js["errors_on"] == "validation" and js["validation"]["rows"] > 0
+    for c in js["candidates"]:
+        assert {"effects", "parameters", "uncertainty", "heldout_rms", "bic", "score", "identifiable", "selectable"} <= set(c)
+    assert js["pose_rms_after"] < 0.1 * js["pose_rms_before"]
+    # the exported scenario reads back with the found effect, and otherwise equals the original
+    fixed = load_scenario(d / "fixed.toml")
+    orig = load_scenario(PORT)
+    assert set(fixed.effects) == {"gravity_sag"}
+    assert fixed.effects["gravity_sag"] == pytest.approx(js["parameters"]["gravity_sag"])
+    for t in ("robot", "instrument", "port", "controller", "sensors", "fields", "planner", "queries", "tolerances"):
+        assert getattr(fixed, t) == getattr(orig, t), t
+    # no temporary files left
+    assert not list(d.glob("*.part"))
+
+
+def test_cli_calibrate_against_the_corrected_model_selects_nothing(cli_run, tmp_path):
+    _, d = cli_run
+    assert main(["-q", "calibrate", str(d / "fixed.toml"), str(d / "data.csv"), "--json", str(tmp_path / "again.json")]) == 0
+    js = json.loads((tmp_path / "again.json").read_text())
+    assert js["selected"] == [] and js["explained"] is True
+
+
+def test_cli_recording_reads_back(cli_run):
+    import rerun.chunk as rrc
+
+    _, d = cli_run
+    path = d / "cal.rrd"
+    ents = {c.entity_path for c in rrc.RrdReader(path).stream().to_chunks()}
+    for e in ("/plane/residual/before", "/plane/residual/after", "/plane/residual_map/before",
+              "/plane/residual_map/after", "/plane/replay/measured", "/plane/replay/after", "/summary"):
+        assert e in ents, e
+
+
+BAD_CSV = {
+    "missing_column": ("run,step,target_y,target_z,gain,q1,q2,tip_y\na,0,0,0.34,1,0,0,0\n", "tip_z"),
+    "nan": ("run,step,target_y,target_z,gain,q1,q2,tip_y,tip_z\na,0,0,0.34,1,0,0,0,0.32\na,1,0,0.34,1,0,nan,0,0.33\n",
+            "row 2 column 'q2': value 'nan'"),
+    "text": ("run,step,target_y,target_z,gain,q1,q2,tip_y,tip_z\na,0,0,0.34,1,0,0,0,0.32\na,1,0,0.34,1,0,0,x1,0.33\n",
+             "row 2 column 'tip_y': value 'x1'"),
+    "empty": ("", "empty"),
+    "short_run": ("run,step,target_y,target_z,gain,q1,q2,tip_y,tip_z\na,0,0,0.34,1,0,0,0,0.32\n", "run 'a' has 1 step"),
+}
+
+
+@pytest.mark.parametrize("case", list(BAD_CSV))
+def test_cli_csv_errors_exit_2_and_write_nothing(tmp_path, capsys, case):
+    text, needle = BAD_CSV[case]
+    bad = tmp_path / "bad.csv"
+    bad.write_text(text)
+    outs = [tmp_path / "o.json", tmp_path / "o.rrd", tmp_path / "o.toml"]
+    rc = main(["calibrate", str(PORT), str(bad), "--json", str(outs[0]), "--record", str(outs[1]),
+               "--export-scenario", str(outs[2])])
+    err = capsys.readouterr().err
+    assert rc == 2 and needle in err and err.count("\n") == 1
+    assert not any(p.exists() for p in outs) and not list(tmp_path.glob("*.part"))
+
+
+def test_cli_bad_validation_file_and_output_dir(tmp_path, capsys, cli_run):
+    _, d = cli_run
+    assert main(["calibrate", str(PORT), str(d / "data.csv"), "--validate", str(tmp_path / "none.csv"),
+                 "--json", str(tmp_path / "o.json")]) == 2
+    assert "not found" in capsys.readouterr().err and not (tmp_path / "o.json").exists()
+    assert main(["calibrate", str(PORT), str(d / "data.csv"), "--json", str(tmp_path / "no" / "o.json")]) == 2
+    assert main(["calibrate", str(PORT), str(d / "data.csv"), "--folds", "1"]) == 2
+
+
+def test_a_declared_effect_is_corrected_not_replaced(port):
+    """The scenario declares part of the gravity sag: the report gives the bench's values (declared +
+    fitted) and the exported effects equal them."""
+    truth = {"gravity_sag": TRUTHS["gravity_sag"]}
+    data = bench(port, truth, 61)
+    declared = port.with_(effects={"gravity_sag": {"c1": 0.002, "c2": 0.002, "c3": 0.0}})
+    rep = calibrate(declared, data, seed=0)
+    assert rep.selected == ["gravity_sag"]
+    check_recovery(rep, truth)
+    assert rep.fitted["gravity_sag"]["c3"] == pytest.approx(rep.parameters["gravity_sag"]["c3"])
+    assert rep.fitted["gravity_sag"]["c1"] == pytest.approx(rep.parameters["gravity_sag"]["c1"] - 0.002)
+    assert rep.effects_table() == rep.parameters
