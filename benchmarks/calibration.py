@@ -44,7 +44,7 @@ CASES = [
 def timing(sc) -> None:
     truth = sc.with_(effects=GRAVITY)
     rows = []
-    for starts, dwell in ((8, 10), (16, 12), (24, 20)):
+    for starts, dwell in ((8, 10), (16, 10), (22, 16)):
         d = run_experiment(truth, seed=1, n_starts=starts, dwell=dwell).data
         t0 = time.perf_counter()
         rep = calibrate(sc, d, seed=0)

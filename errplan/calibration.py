@@ -3,7 +3,8 @@
 Pipeline (:func:`calibrate`):
 
 1. **Replay with the declared model.** The declared model is the scenario's truth as it stands
-   (arm, shaft, ``port.position``, any ``[effects]`` it already declares). *Pose residual*: tracked
+   (arm, shaft, ``port.position``, the tip load of its error set closest to 0 — P2's scenarios
+   fix one — and any ``[effects]`` it already declares). *Pose residual*: tracked
    tip minus the model's tracked tip at the encoder angles, every row at once. *Trajectory
    residual*: the controller (:class:`errplan.simulation.ControllerModel`, at each run's gain)
    re-simulated noise-free on the model from each run's first encoder reading, step for step
@@ -66,10 +67,11 @@ def arrival_tolerance(noise_sigma: float) -> float:
 
 # ----------------------------------------------------------------------------- residuals
 def declared_plant(sc):
-    """The declared model: the scenario's truth with the effects it already declares, no noise."""
-    from .simulation import Plant
+    """The declared model: the scenario's truth (``[port] position``, its tip load, the effects it
+    already declares), no noise (:func:`errplan.experiment.truth_plant`)."""
+    from .experiment import truth_plant
 
-    return Plant.from_scenario(sc, effects=True, noise=False)
+    return truth_plant(sc, effects=True, noise=False)
 
 
 def check_against_model(data: MeasuredData, plant, what: str = "the declared model") -> None:
@@ -380,6 +382,11 @@ class Candidate:
         }
 
 
+def _num(v: float) -> float | None:
+    """A finite number, or None (JSON has no NaN): e.g. a trajectory RMS with no approach rows."""
+    return float(v) if v is not None and math.isfinite(v) else None
+
+
 def _finite_or_none(d: dict) -> dict:
     return {k: {p: (v if math.isfinite(v) else None) for p, v in ps.items()} for k, ps in d.items()}
 
@@ -475,9 +482,9 @@ class Errors:
     def to_json(self) -> dict:
         return {"source": self.source, "rows": self.rows, "runs": self.runs,
                 "pose_rms_before": self.pose_before, "pose_rms_after": self.pose_after,
-                "trajectory_rms_before": self.trajectory_before, "trajectory_rms_after": self.trajectory_after,
-                "trajectory_rms_all_steps_before": self.trajectory_all_before,
-                "trajectory_rms_all_steps_after": self.trajectory_all_after,
+                "trajectory_rms_before": _num(self.trajectory_before), "trajectory_rms_after": _num(self.trajectory_after),
+                "trajectory_rms_all_steps_before": _num(self.trajectory_all_before),
+                "trajectory_rms_all_steps_after": _num(self.trajectory_all_after),
                 "arrival_tolerance": self.arrival_tolerance, "trajectory_rows": self.trajectory_rows,
                 "trajectory_unsettled_runs_left_out": self.unsettled_runs}
 
@@ -555,8 +562,8 @@ class CalibrationReport:
             "noise_floor": self.noise.sigma,
             "pose_rms_before": e.pose_before,
             "pose_rms_after": e.pose_after,
-            "trajectory_rms_before": e.trajectory_before,
-            "trajectory_rms_after": e.trajectory_after,
+            "trajectory_rms_before": _num(e.trajectory_before),
+            "trajectory_rms_after": _num(e.trajectory_after),
             "errors_on": "validation" if self.validation_errors else "data",
             "fit": self.fit_errors.to_json(),
             "validation": self.validation_errors.to_json() if self.validation_errors else None,
@@ -582,7 +589,7 @@ class CalibrationReport:
         if self.declared_effects:
             lines.append("declared effects: " + ", ".join(self.declared_effects))
         lines.append(f"noise floor {self.noise.sigma * mm:.4f} mm per coordinate (left by local degree-{self.noise.degree} "
-                     f"polynomials on {self.noise.clusters} clusters of rows)")
+                     f"polynomials on {self.noise.clusters} cluster(s) of rows)")
         lines.append(f"pose residual of the declared model: RMS {self.structure_before.rms * mm:.4f} mm "
                      f"({self.structure_before.ratio:.2f} x noise floor)")
         lines.append("")
@@ -633,7 +640,8 @@ class CalibrationReport:
                      f"structured part {s.structured_rms * mm:.4f} mm (F test p = {s.p_value:.2g})")
         if not self.explained:
             lines.append("  a structured residual remains well above the noise floor: an effect outside the catalogue "
-                         "(see the residual map in --record)")
+                         "(see the residual map in --record);\n  the selected combination is only the catalogue's best "
+                         "approximation, its parameters absorb the unmodelled effect")
         return "\n".join(lines)
 
 

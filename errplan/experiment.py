@@ -309,6 +309,22 @@ def choose_starts(sc, n_starts: int = DEFAULT_STARTS, *, spacing: float = 0.005,
 
 
 # ----------------------------------------------------------------------------- the bench run
+def scenario_load(sc) -> float:
+    """The true lateral tip load over EI (1/m^2): the value of the error set's
+    ``tip_force_over_ei`` closest to 0 (0 when the set allows it; P2's scenarios declare a fixed
+    load there) — the same rule as :func:`errplan.pipeline.truth_plant`."""
+    tl = sc.uncertainty.tip_force_over_ei
+    return float(np.clip(0.0, tl[0], tl[1])) if tl is not None else 0.0
+
+
+def truth_plant(sc, *, effects: bool = True, noise: bool = True):
+    """The scenario's truth as a bench has it: ``[port] position``, the tip load of
+    :func:`scenario_load`, its ``[effects]`` and (by default) its sensor noise."""
+    from .simulation import Plant
+
+    return Plant.from_scenario(sc, load=scenario_load(sc), effects=effects, noise=noise)
+
+
 def bench_controller(sc):
     """The scenario's controller (:class:`errplan.simulation.ControllerModel`) as the bench runs it.
 
@@ -369,17 +385,17 @@ def run_experiment(sc, seed: int = 0, *, plant=None, starts=None, n_starts: int 
                    tolerance: float | None = None) -> ExperimentResult:
     """A P1-style bench run on the scenario's truth (see the module docstring).
 
-    ``plant`` overrides the truth (default: :meth:`Plant.from_scenario` with the scenario's
+    ``plant`` overrides the truth (default: :func:`truth_plant`, the scenario's port, load,
     effects and sensor noise) — tests use it for effects outside the catalogue. ``tolerance``
     (m) defaults to ``max(0.5 mm, 3 tracker_sigma)``. Deterministic from ``seed``.
     """
-    from .simulation import Plant, simulate
+    from .simulation import simulate
 
     if max_steps < 1:
         raise ErrplanError(f"max_steps {max_steps}: expected at least 1")
     if dwell < 0:
         raise ErrplanError(f"dwell {dwell}: expected >= 0")
-    truth = plant if plant is not None else Plant.from_scenario(sc, effects=True, noise=True)
+    truth = plant if plant is not None else truth_plant(sc)
     ctrl = bench_controller(sc)
     tol = tolerance if tolerance is not None else max(5e-4, 3 * truth.tracker_sigma)
     S = np.atleast_2d(np.asarray(starts, float)) if starts is not None else choose_starts(sc, n_starts)

@@ -31,7 +31,7 @@ from .kinematics.shaft import (estimate_from_ends, flexed_end_angles, flexed_jac
 from .metrics import (compose_parts, conformal_parts, g_norm_from_parts, inverse_parts, phi_hat_max,
                       phi_max_from_parts)
 
-REFINE_LEVELS = 3
+REFINE_LEVELS = 6
 Progress = Callable[[float, str], None]
 
 
@@ -282,6 +282,13 @@ def worst_case(ev: Evaluator, x: np.ndarray, k: float, *, samples: int | None = 
                progress: Progress | None = None) -> dict[str, np.ndarray]:
     """Worst-case ``||G||`` (gain ``k``) and ``|phi_max|`` at tips ``x`` (n, 2).
 
+    The error box is sampled on a grid (``samples`` per uncertain axis), then each tip's worst
+    instance is refined by a coordinate pattern search: at level ``l = 1..refine`` every uncertain
+    axis is polled at ``+-spacing / 2**l`` around the current worst and the worst moves to any
+    better poll. Polls around the ||G|| worst also update |phi_max|; |phi_max| is polled on its
+    own only at the tips where its worst instance differs from the ||G|| one. A tip is invalid as
+    soon as any evaluated instance cannot reach it.
+
     Returns ``valid``, ``G_norm``, ``phi_max``, the worst parameters ``theta_G``/``theta_phi``
     and, with ``keep_parts``, the sampled ``mu``/``nu`` (n, m, c) for gain optimisation.
     """
@@ -295,21 +302,31 @@ def worst_case(ev: Evaluator, x: np.ndarray, k: float, *, samples: int | None = 
     th_p = np.zeros((n, 3))
     mus, nus = [], []
     idx = np.arange(n)
-    total = len(grid) + 2 * refine * 2 * int(es.active.sum())
+    dims = np.flatnonzero(es.active)
+    total = len(grid) + 2 * refine * 2 * len(dims)
     done = 0
+
+    def evaluate(sub: np.ndarray, theta: np.ndarray, track_g: bool, track_p: bool):
+        """Evaluate instances ``theta`` (len(sub), 3) or (3,) at tips ``sub``; update the worst."""
+        mu, nu, ok = ev.parts(x[sub], theta)
+        valid[sub[~ok]] = False
+        g, p = _reduce(mu, nu, k)
+        th = np.broadcast_to(theta, (len(sub), 3))
+        if track_g:
+            upd = ok & (g > best_g[sub])
+            best_g[sub[upd]] = g[upd]
+            th_g[sub[upd]] = th[upd]
+        if track_p:
+            upd = ok & (p > best_p[sub])
+            best_p[sub[upd]] = p[upd]
+            th_p[sub[upd]] = th[upd]
+        return mu, nu
+
     for th in grid:
         sub = idx[valid]
         if len(sub) == 0:
             break
-        mu, nu, ok = ev.parts(x[sub], th)
-        valid[sub[~ok]] = False
-        g, p = _reduce(mu, nu, k)
-        upd = ok & (g > best_g[sub])
-        best_g[sub[upd]] = g[upd]
-        th_g[sub[upd]] = th
-        upd = ok & (p > best_p[sub])
-        best_p[sub[upd]] = p[upd]
-        th_p[sub[upd]] = th
+        mu, nu = evaluate(sub, th, True, True)
         if keep_parts:
             full_mu = np.full((n,) + mu.shape[1:], np.nan, complex)
             full_nu = np.full_like(full_mu, np.nan)
@@ -322,33 +339,23 @@ def worst_case(ev: Evaluator, x: np.ndarray, k: float, *, samples: int | None = 
     # Local refinement of each tip's worst instance (pattern search, step halved each level).
     step0 = es.spacing(samples)
     lo, hi = es.lo_arr, es.hi_arr
-    dims = np.flatnonzero(es.active)
     for level in range(1, refine + 1):
         h = step0 / 2**level
-        for which in ("G", "phi"):
-            th_best = th_g if which == "G" else th_p
-            cands = []
-            for dmn in dims:
-                for sgn in (-1.0, 1.0):
-                    c = th_best.copy()
-                    c[:, dmn] = np.clip(c[:, dmn] + sgn * h[dmn], lo[dmn], hi[dmn])
-                    cands.append(c)
-            for c in cands:
+        for dmn in dims:
+            for sgn in (-1.0, 1.0):
                 sub = idx[valid]
                 if len(sub) == 0:
                     break
-                mu, nu, ok = ev.parts(x[sub], c[sub])
-                valid[sub[~ok]] = False
-                g, p = _reduce(mu, nu, k)
-                if which == "G":
-                    upd = ok & (g > best_g[sub])
-                    best_g[sub[upd]] = g[upd]
-                    th_g[sub[upd]] = c[sub[upd]]
-                else:
-                    upd = ok & (p > best_p[sub])
-                    best_p[sub[upd]] = p[upd]
-                    th_p[sub[upd]] = c[sub[upd]]
-                done += 1
+                apart = np.any(th_p[sub] != th_g[sub], axis=1)
+                c = th_g[sub].copy()
+                c[:, dmn] = np.clip(c[:, dmn] + sgn * h[dmn], lo[dmn], hi[dmn])
+                evaluate(sub, c, True, True)
+                sub = sub[apart & valid[sub]]
+                if len(sub):
+                    c = th_p[sub].copy()
+                    c[:, dmn] = np.clip(c[:, dmn] + sgn * h[dmn], lo[dmn], hi[dmn])
+                    evaluate(sub, c, False, True)
+                done += 2
                 if progress:
                     progress(done / total, "refining the worst case")
     best_g[~valid] = np.nan

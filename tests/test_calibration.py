@@ -23,7 +23,7 @@ from errplan.calibration import (approach_mask, calibrate, check_against_model, 
 from errplan.cli import main
 from errplan.effects import predict_tracked
 from errplan.errors import DataError
-from errplan.experiment import bench_controller, parse_measured_csv, read_measured_csv, run_experiment
+from errplan.experiment import bench_controller, parse_measured_csv, run_experiment
 from errplan.scenario import Robot, load_scenario, parse_scenario
 from errplan.simulation import Plant, simulate
 
@@ -279,10 +279,20 @@ def test_cli_calibrate_against_the_corrected_model_selects_nothing(cli_run, tmp_
 
 
 def test_cli_recording_reads_back(cli_run):
+    import os
+    import shutil
+    import subprocess
+    import sys
+
     import rerun.chunk as rrc
 
     _, d = cli_run
     path = d / "cal.rrd"
+    exe = shutil.which("rerun")
+    cmd = [exe] if exe else [sys.executable, "-m", "rerun_cli"]
+    p = subprocess.run(cmd + ["rrd", "verify", str(path)], env=dict(os.environ, CI="1"), capture_output=True,
+                       text=True, timeout=120)
+    assert p.returncode == 0, p.stdout + p.stderr
     ents = {c.entity_path for c in rrc.RrdReader(path).stream().to_chunks()}
     for e in ("/plane/residual/before", "/plane/residual/after", "/plane/residual_map/before",
               "/plane/residual_map/after", "/plane/replay/measured", "/plane/replay/after", "/summary"):
