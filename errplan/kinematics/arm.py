@@ -155,7 +155,33 @@ class Arm:
         return q, ok
 
     def reachable(self, w: np.ndarray) -> np.ndarray:
-        return self.inverse(w)[1]
+        """Mask of wrists ``w`` (..., 2) that some IK branch reaches inside the limits.
+
+        Same answer as ``inverse(w)[1]`` without building the angles: both branches' joint angles
+        come from complex products (one ``arctan2`` each, already wrapped), the fields' hot path.
+        """
+        w = np.asarray(w, dtype=float)
+        dy = w[..., 0] - self.base[0]
+        dz = w[..., 1] - self.base[1]
+        l1, l2 = self.l1, self.l2
+        c = (dy * dy + dz * dz - l1 * l1 - l2 * l2) / (2 * l1 * l2)
+        reach = (c >= -1.0) & (c <= 1.0)
+        cc = np.clip(c, -1.0, 1.0)
+        sn = np.sqrt(1.0 - cc * cc)
+        ch1, sh1 = np.cos(self.home[0]), np.sin(self.home[0])
+        ch2, sh2 = np.cos(self.home[1]), np.sin(self.home[1])
+        out = np.zeros(c.shape, bool)
+        for sgn in (1.0, -1.0):
+            s_d = sgn * sn
+            # q2 = wrap(delta - h2): angle of e^{i delta} e^{-i h2}
+            q2 = np.arctan2(s_d * ch2 - cc * sh2, cc * ch2 + s_d * sh2)
+            # q1 = wrap(angle(d) - angle(l1 + l2 e^{i delta}) - h1), with angle(v) = atan2(v_y, v_z)
+            vz, vy = l1 + l2 * cc, l2 * s_d
+            # d * conj(v) in the (z + i y) plane, then rotated by -h1
+            rz, ry = dz * vz + dy * vy, dy * vz - dz * vy
+            q1 = np.arctan2(ry * ch1 - rz * sh1, rz * ch1 + ry * sh1)
+            out |= self.within_limits(np.stack([q1, q2], axis=-1))
+        return reach & out
 
     # ------------------------------------------------------------------ sampling
     def sample_wrists(self, n: int = 121) -> np.ndarray:
