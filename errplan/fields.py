@@ -33,6 +33,7 @@ from .metrics import (compose_parts, conformal_parts, g_norm_from_parts, inverse
 
 REFINE_LEVELS = 6
 _STATS: dict = {}
+EXTRA_PASSES = 2  # further pattern-search passes for worst cases still climbing
 SECOND_START = 0.002  # relative margin within which a second local maximum is refined too
 Progress = Callable[[float, str], None]
 
@@ -449,36 +450,46 @@ def worst_case(ev: Evaluator, x: np.ndarray, k: float, *, samples: int | None = 
         best_p[sub[upd]] = p[upd]
         th_p[sub[upd]] = theta[upd]
 
-    # Local refinement (pattern search, step halved each level).
+    # Local refinement (pattern search, step halved each level). Entries that still gained in a
+    # pass (a worst on a ridge, which coordinate polls climb slowly) get up to EXTRA_PASSES more.
     step0 = es.spacing(samples)
     lo, hi = es.lo_arr, es.hi_arr
-    for level in range(1, refine + 1):
-        h = step0 / 2**level
-        for dmn in dims:
-            for sgn in (-1.0, 1.0):
-                sub = idx_e[ok_e]
-                if len(sub) == 0:
-                    break
-                apart = np.any(th_p[sub] != th_g[sub], axis=1)
-                # Polls clipped back onto the centre (a worst on the box face) are skipped.
-                c = th_g[sub]
-                moved = np.clip(c[:, dmn] + sgn * h[dmn], lo[dmn], hi[dmn])
-                keep = moved != c[:, dmn]
-                if np.any(keep):
-                    c = c[keep].copy()
-                    c[:, dmn] = moved[keep]
-                    evaluate(sub[keep], c, True)
-                sub = sub[apart & ok_e[sub]]
-                c = th_p[sub]
-                moved = np.clip(c[:, dmn] + sgn * h[dmn], lo[dmn], hi[dmn])
-                keep = moved != c[:, dmn]
-                if np.any(keep):
-                    c = c[keep].copy()
-                    c[:, dmn] = moved[keep]
-                    evaluate(sub[keep], c, False)
-                done += 2
-                if progress:
-                    progress(done / total, "refining the worst case")
+    active = ok_e.copy()
+    for pass_ in range(1 + EXTRA_PASSES):
+        before_g, before_p = best_g.copy(), best_p.copy()
+        for level in range(1, refine + 1):
+            h = step0 / 2**level
+            for dmn in dims:
+                for sgn in (-1.0, 1.0):
+                    sub = idx_e[ok_e & active]
+                    if len(sub) == 0:
+                        break
+                    apart = np.any(th_p[sub] != th_g[sub], axis=1)
+                    # Polls clipped back onto the centre (a worst on the box face) are skipped.
+                    c = th_g[sub]
+                    moved = np.clip(c[:, dmn] + sgn * h[dmn], lo[dmn], hi[dmn])
+                    keep = moved != c[:, dmn]
+                    if np.any(keep):
+                        c = c[keep].copy()
+                        c[:, dmn] = moved[keep]
+                        evaluate(sub[keep], c, True)
+                    sub = sub[apart & ok_e[sub]]
+                    c = th_p[sub]
+                    moved = np.clip(c[:, dmn] + sgn * h[dmn], lo[dmn], hi[dmn])
+                    keep = moved != c[:, dmn]
+                    if np.any(keep):
+                        c = c[keep].copy()
+                        c[:, dmn] = moved[keep]
+                        evaluate(sub[keep], c, False)
+                    if pass_ == 0:
+                        done += 2
+                        if progress:
+                            progress(done / total, "refining the worst case")
+        with np.errstate(invalid="ignore"):
+            gain = np.maximum(best_g - before_g, best_p - before_p)
+            active = ok_e & (gain > 1e-7 * np.maximum(1.0, np.abs(best_g)))
+        if not np.any(active):
+            break
     # Back from the extended entries to the tips: worst over the starts, valid under all.
     np.logical_and.at(valid, owner, ok_e)
     out_g, out_p = best_g[:n].copy(), best_p[:n].copy()

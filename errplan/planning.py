@@ -105,7 +105,9 @@ class CostMap:
             rs = np.asarray(mf.array("rho_star"), float)
             self.rho_bound = 1.0 - self.certify_margin
             with np.errstate(invalid="ignore"):
-                ok &= np.isfinite(rs) & (rs <= self.rho_bound)
+                # rho* = 1 marks "no gain contracts" (fields.minimize_gain): never certifiable,
+                # even with certify_margin = 0.
+                ok &= np.isfinite(rs) & (rs <= self.rho_bound) & (rs < 1.0)
         else:
             self.rho_bound = None
         self.node_ok = ok
@@ -343,6 +345,44 @@ class CostMap:
                 best = max(best, max(A + B * t + C * t * t for t in ts))
         return float(best)
 
+    def field_length_above(self, name: str, path, threshold: float = 1.0) -> float | None:
+        """Length (m) of a polyline where the bilinear field ``name`` is >= ``threshold`` (exact per
+        piece: the field is a quadratic of the motion parameter in each cell), or None if the path
+        meets a cell with an undefined corner."""
+        a = np.asarray(self.mf.array(name), float)
+        path = np.asarray(path, float)
+        total = 0.0
+        for (ya, za), (yb, zb) in zip(path[:-1], path[1:]):
+            seg_len = math.hypot(yb - ya, zb - za)
+            for t0, t1, ci, cj, _ in self.pieces(float(ya), float(za), float(yb), float(zb)):
+                if not (0 <= ci < self._nyc and 0 <= cj < self._nzc):
+                    return None
+                f00, f10, f01, f11 = a[ci, cj], a[ci + 1, cj], a[ci, cj + 1], a[ci + 1, cj + 1]
+                if not all(math.isfinite(x) for x in (f00, f10, f01, f11)):
+                    return None
+                a0 = (ya - self.y0) / self.h - ci
+                b0 = (za - self.z0) / self.h - cj
+                du, dv = (yb - ya) / self.h, (zb - za) / self.h
+                ca, cb, cab = f10 - f00, f01 - f00, f11 - f10 - f01 + f00
+                A = f00 + ca * a0 + cb * b0 + cab * a0 * b0 - threshold
+                B = ca * du + cb * dv + cab * (a0 * dv + b0 * du)
+                C = cab * du * dv
+                # split [t0, t1] at the roots of A + B t + C t^2 and add the parts where it is >= 0
+                cuts = [t0, t1]
+                if abs(C) > 1e-300:
+                    disc = B * B - 4 * A * C
+                    if disc >= 0:
+                        r = math.sqrt(disc)
+                        cuts += [(-B - r) / (2 * C), (-B + r) / (2 * C)]
+                elif abs(B) > 1e-300:
+                    cuts.append(-A / B)
+                cuts = sorted(t for t in cuts if t0 <= t <= t1)
+                for p0, p1 in zip(cuts[:-1], cuts[1:]):
+                    tm = 0.5 * (p0 + p1)
+                    if A + B * tm + C * tm * tm >= 0:
+                        total += (p1 - p0) * seg_len
+        return float(total)
+
     def motion_ok(self, ya: float, za: float, yb: float, zb: float) -> bool:
         return self.segment(ya, za, yb, zb, check=True, cost=False)[0]
 
@@ -521,8 +561,8 @@ def make_objective(si, cm: CostMap):
 # makes a run a function of the seed (on this reference machine, 2 cores, it is reached in about
 # half the time budget; benchmarks/planning.py); the time cap bounds it on slower machines, and
 # PlanResult.stopped_by says which one ended the search.
-ITERATION_RATE = {"BITstar": 6000, "RRTstar": 150, "InformedRRTstar": 150, "SORRTstar": 150,
-                  "FMT": 1000, "BFMT": 1000, "RRTConnect": 1000}
+ITERATION_RATE = {"BITstar": 10000, "RRTstar": 250, "InformedRRTstar": 250, "SORRTstar": 250,
+                  "FMT": 2000, "BFMT": 2000, "RRTConnect": 2000}
 DEFAULT_PLANNER = "BITstar"
 
 
@@ -535,8 +575,10 @@ def _make_planner(name: str, si, time_budget: float):
         raise ErrplanError(f"planner = {name!r}: expected one of {', '.join(PLANNERS)}")
     pl = getattr(og, name)(si)
     if name in ("FMT", "BFMT"):
-        # FMT* evaluates every neighbour pair of a fixed sample set: size it to the budget.
-        pl.setNumSamples(max(200, int(400 * time_budget)))
+        # FMT* evaluates the neighbour pairs of a fixed sample set: size it to the budget
+        # (about 0.3-0.5 s for 300 samples here), and let it use the cost-to-go heuristic.
+        pl.setNumSamples(max(100, int(400 * time_budget)))
+        pl.setHeuristics(True)
     return pl
 
 
@@ -699,6 +741,11 @@ class PathReport:
         The path stays in the usable region (workspace and, if asked, certifiable).
     in_workspace : bool
         The path stays in the robust workspace (reachable under every error instance).
+    length_G_above_1 : float or None
+        Length (m) of the path where the worst-case ``||G|| >= 1`` (no monotonic convergence
+        guaranteed at the scenario gain).
+    max_rho_star : float or None
+        Largest ``rho_star`` along the path (when the fields have it).
     """
 
     path: np.ndarray
@@ -708,12 +755,15 @@ class PathReport:
     max_phi_hat_max: float | None
     valid: bool
     in_workspace: bool
+    length_G_above_1: float | None = None
+    max_rho_star: float | None = None
 
     def to_json(self) -> dict:
         return {"path": [[float(a), float(b)] for a, b in self.path], "cost": _jsonable(self.cost),
                 "length": float(self.length), "max_G_norm": _jsonable(self.max_G_norm),
                 "max_phi_hat_max": _jsonable(self.max_phi_hat_max), "valid": bool(self.valid),
-                "in_workspace": bool(self.in_workspace)}
+                "in_workspace": bool(self.in_workspace), "length_G_above_1": _jsonable(self.length_G_above_1),
+                "max_rho_star": _jsonable(self.max_rho_star)}
 
 
 def dense_points(path, step: float) -> np.ndarray:
@@ -740,13 +790,16 @@ def path_report(cm: CostMap, path, workspace_map: CostMap | None = None) -> Path
         if wm is None:
             wm = cm if not cm.certifiable else CostMap(cm.mf, cm.metric, cm.weight, certifiable=False)
         in_ws, cost = wm.path_cost(path)
-    mx_g = mx_p = None
+    mx_g = mx_p = above = mx_r = None
     if in_ws:
         m = cm if valid else wm
         mx_g, mx_p = m.field_max("G_norm", path), m.field_max("phi_hat_max", path)
+        above = m.field_length_above("G_norm", path, 1.0)
+        if getattr(cm.mf, "rho_star", None) is not None:
+            mx_r = m.field_max("rho_star", path)
     else:
         cost = None
-    return PathReport(path, cost, length, mx_g, mx_p, bool(valid), bool(in_ws))
+    return PathReport(path, cost, length, mx_g, mx_p, bool(valid), bool(in_ws), above, mx_r)
 
 
 @dataclass(frozen=True)
@@ -928,3 +981,71 @@ def plan_query(cm: CostMap, start, goal, settings: PlannerSettings | None = None
     direct = path_report(cm, np.array([start, goal]), wm)
     return QueryPlan(name, start, goal, planned, direct, st.planner, st.seed, min(count[0], cap),
                      stop_reason[0], time_solve, time_refine, float(raw_cost))
+
+
+def fields_for_planning(sc, resolution: float | None = None, progress=None):
+    """The worst-case fields a scenario's planner needs (``rho_star`` too when certifiable or when
+    it is the metric), at ``resolution`` (default ``[fields] resolution``)."""
+    from .fields import compute_fields
+
+    need_rho = sc.planner.certifiable or sc.planner.metric == "rho_star"
+    return compute_fields(sc, resolution, rho_star=need_rho, progress=progress)
+
+
+def costmap_for(sc, mf) -> CostMap:
+    """The :class:`CostMap` of a scenario's ``[planner]`` table on the fields ``mf``."""
+    p = sc.planner
+    need_rho = p.certifiable or p.metric == "rho_star"
+    if need_rho and getattr(mf, "rho_star", None) is None:
+        raise ErrplanError("the fields have no rho_star (needed by [planner] certifiable = true or metric = "
+                           "\"rho_star\"): compute them with rho_star=True (errplan fields --rho-star)")
+    return CostMap(mf, p.metric, p.weight, p.certifiable, p.certify_margin)
+
+
+def select_queries(sc, name: str | None = None) -> list:
+    """The scenario's queries, or only the one called ``name`` (clear error listing the names)."""
+    qs = list(sc.queries)
+    if not qs:
+        raise ErrplanError(f"{sc.source}: the scenario has no [[query]] to plan (add [[query]] tables with "
+                           f"name, start = [y, z], goal = [y, z])")
+    if name is None:
+        return qs
+    for q in qs:
+        if q.name == name:
+            return [q]
+    raise ErrplanError(f"--query {name!r}: no such query in {sc.source}; its queries are: "
+                       + ", ".join(repr(q.name) for q in qs))
+
+
+def plan_scenario(sc, mf=None, *, query: str | None = None, planner: str | None = None,
+                  time: float | None = None, seed: int | None = None, settings: PlannerSettings | None = None,
+                  progress: Callable[[float, str], None] | None = None) -> ScenarioPlan:
+    """Plan every ``[[query]]`` of a scenario (or only ``query``) on its worst-case fields.
+
+    ``mf`` (a :class:`~errplan.fields.MetricField`) is computed when not given. ``planner``,
+    ``time`` and ``seed`` override ``[planner]``. Every endpoint is checked before any search,
+    so a bad query fails fast with :class:`InfeasibleError`. Returns a :class:`ScenarioPlan`.
+    """
+    qs = select_queries(sc, query)
+    st = settings or PlannerSettings.from_scenario(sc, planner=planner, time=time, seed=seed)
+    st.check()
+    t0 = _time.perf_counter()
+    if mf is None:
+        mf = fields_for_planning(sc, progress=progress)
+    field_time = _time.perf_counter() - t0
+    cm = costmap_for(sc, mf)
+    if not cm.any_usable:
+        raise InfeasibleError(f"{sc.source}: no grid cell is usable for planning (robust workspace"
+                              + (f" with rho_star <= {cm.rho_bound:g}" if cm.certifiable else "") + " is empty)")
+    for q in qs:
+        check_endpoints(cm, q.start, q.goal, f"query {q.name!r}")
+    wm = CostMap(mf, cm.metric, cm.weight, certifiable=False) if cm.certifiable else cm
+    plans = []
+    for n, q in enumerate(qs):
+        if progress:
+            progress(n / len(qs), f"planning {q.name}")
+        plans.append(plan_query(cm, q.start, q.goal, st, name=f"query {q.name!r}", workspace_map=wm))
+        plans[-1].name = q.name
+    if progress:
+        progress(1.0, "planned")
+    return ScenarioPlan(sc.name, cm.metric, cm.weight, cm.certifiable, st, plans, cm, field_time)

@@ -201,7 +201,9 @@ def estimate_from_ends(pw: np.ndarray, pt: np.ndarray, th_w: np.ndarray, th_t: n
     den = sL - s0
     with np.errstate(divide="ignore", invalid="ignore"):
         a = L * (2 * sL + s0) / den
+        a = np.where(np.isfinite(a) & (den != 0), a, np.nan)  # equal slopes: not identifiable
         fp = 2 * (s0 - sL) / (a * (a - L))
+        fp = np.where(np.isfinite(fp), fp, np.nan)
         ym = -fp * a * a * (a - L) ** 2 / (3 * L)
     port = pw + a[..., None] * direction(phi) + ym[..., None] * direction_derivative(phi)
     return {"a": a, "fp_over_ei": fp, "t": fp * a / L, "port": port, "phi": phi, "ym": ym}

@@ -1,0 +1,63 @@
+"""``errplan plan SCENARIO [--json F] [--query NAME] [--time T] [--planner NAME] [--seed N]``.
+
+Plans every ``[[query]]`` of the scenario on its worst-case fields (errplan.planning) and prints,
+per query, the planned and the direct (straight) path: cost, length, max ||G||, max phi_hat_max.
+The JSON is the "plan JSON" of docs/interfaces.md (``queries[].{name, start, goal, planned,
+direct}``); later steps add ``gains`` and ``simulation`` to each query (``QueryPlan.extra``).
+"""
+from __future__ import annotations
+
+import math
+
+from ..report import Progress, format_table, write_json
+
+
+def _num(x, scale: float = 1.0):
+    return float("nan") if x is None else x * scale
+
+
+def plan_table(plan) -> str:
+    """The per-query table of a :class:`~errplan.planning.ScenarioPlan`."""
+    rows = []
+    for q in plan.queries:
+        for label, p in (("planned", q.planned), ("direct", q.direct)):
+            status = "yes" if p.valid else ("not certifiable" if p.in_workspace else "leaves workspace")
+            rows.append([q.name if label == "planned" else "", label, _num(p.cost), p.length * 1000,
+                         _num(p.max_G_norm), _num(p.max_phi_hat_max, 180 / math.pi),
+                         _num(p.length_G_above_1, 1000), len(p.path), status])
+    st = plan.settings
+    cm = plan.costmap
+    cert = f"certifiable (rho* <= {cm.rho_bound:g})" if cm.certifiable else "not restricted to certifiable tips"
+    title = (f"plan of {plan.scenario}: cost = integral (1 + {plan.weight:g} * {plan.metric}) ds, {cert}; "
+             f"{st.planner}, {st.time:g} s per query, seed {st.seed}")
+    table = format_table(["query", "path", "cost (m)", "length (mm)", "max ||G||", "max phi_hat_max (deg)",
+                          "||G||>=1 (mm)", "vertices", "valid"], rows, title)
+    lines = [table]
+    for q in plan.queries:
+        d, p = q.direct, q.planned
+        if d.cost is not None and d.valid:
+            change = f"cost {100 * (p.cost / d.cost - 1):+.1f}% vs direct, length {100 * (p.length / d.length - 1):+.1f}%"
+        else:
+            change = "the direct path is not usable (" + ("not certifiable" if d.in_workspace else "leaves the workspace") + ")"
+        lines.append(f"{q.name}: {change}; search {q.time_solve:.2f} s ({q.iterations} iterations, stopped by "
+                     f"{q.stopped_by}) + refine {q.time_refine:.2f} s")
+    lines.append("max ||G||, max phi_hat_max: worst case along the path at the scenario gain; ||G||>=1: length of "
+                 "the path where the worst-case ||G|| >= 1 (monotonic convergence not guaranteed at that gain)")
+    lines.append(f"fields: {cm.ny} x {cm.nz} grid at {cm.h * 1000:g} mm, computed in {plan.field_time:.1f} s")
+    return "\n".join(lines)
+
+
+def run(args) -> int:
+    from ..planning import plan_scenario, select_queries
+    from ..scenario import load_scenario
+
+    sc = load_scenario(args.scenario)
+    select_queries(sc, args.query)  # a bad --query fails before the fields are computed
+    prog = Progress("plan", quiet=args.quiet)
+    plan = plan_scenario(sc, query=args.query, planner=args.planner, time=args.time, seed=args.seed,
+                         progress=prog)
+    prog.done()
+    if args.json:
+        write_json(args.json, plan.to_json())
+    print(plan_table(plan))
+    return 0

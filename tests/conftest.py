@@ -1,0 +1,122 @@
+"""Shared fixtures: a valid scenario as a dict (P1's setup), a TOML writer, scenario files.
+
+``make_scenario_dict(**tables)`` returns a fresh document; each keyword replaces or merges one
+top-level entry: ``port={"estimate": [0.0, 0.16]}`` merges into ``[port]``, a value ``None``
+deletes a key (``controller={"gain": None}``) or a whole table (``uncertainty=None``).
+``write_scenario(tmp_path, doc=None, name=..., **tables)`` writes it as TOML and returns the path.
+"""
+from __future__ import annotations
+
+import copy
+import math
+from pathlib import Path
+
+import pytest
+
+BASE_DOC = {
+    "name": "test-p1",
+    "description": "P1 planar Phantom, port estimate off by (+20, +10) mm",
+    "robot": {
+        "base": [0.210, -0.210],
+        "link_lengths": [0.210, 0.210],
+        "home_angles": [0.0, -math.pi / 2],
+        "joint_limits": [[-1.9, 1.2], [-0.7, 1.0]],
+        "joint_sum_limits": [-0.3, 2.8],
+    },
+    "instrument": {"length": 0.320, "flexural_rigidity": 0.60},
+    "port": {"position": [0.0, 0.160], "estimate": [0.020, 0.170]},
+    "controller": {"gain": 1.0, "jacobian": "rigid"},
+    "sensors": {"tracker_sigma": 0.0002},
+    "fields": {"resolution": 0.01},
+    "planner": {"metric": "phi_hat_max", "weight": 1.0, "planner": "RRTstar", "time": 1.0, "seed": 1},
+    "query": [{"name": "N-to-L", "start": [0.0, 0.415], "goal": [0.0, 0.320]}],
+}
+
+
+def make_scenario_dict(**tables) -> dict:
+    doc = copy.deepcopy(BASE_DOC)
+    for key, val in tables.items():
+        if val is None:
+            doc.pop(key, None)
+        elif isinstance(val, dict) and isinstance(doc.get(key), dict):
+            for k, v in val.items():
+                if v is None:
+                    doc[key].pop(k, None)
+                else:
+                    doc[key][k] = copy.deepcopy(v)
+        else:
+            doc[key] = copy.deepcopy(val)
+    return doc
+
+
+# ----------------------------------------------------------------------------- TOML writer
+def _value(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, int):
+        return str(v)
+    if isinstance(v, float):
+        return repr(float(v))
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_value(x) for x in v) + "]"
+    if isinstance(v, dict):
+        return "{ " + ", ".join(f"{k} = {_value(x)}" for k, x in v.items()) + " }"
+    if hasattr(v, "item"):  # numpy scalar
+        return _value(v.item())
+    raise TypeError(f"cannot write {v!r} as TOML")
+
+
+def to_toml(doc: dict) -> str:
+    """TOML text of a scenario document (scalars first, then tables, then arrays of tables)."""
+    lines = []
+    tables, arrays = [], []
+    for k, v in doc.items():
+        if isinstance(v, dict):
+            tables.append((k, v))
+        elif isinstance(v, list) and v and all(isinstance(x, dict) for x in v):
+            arrays.append((k, v))
+        else:
+            lines.append(f"{k} = {_value(v)}")
+
+    for k, t in tables:
+        if k == "effects":  # [effects.NAME] sub-tables
+            for name, params in t.items():
+                lines.append(f"\n[effects.{name}]")
+                lines.extend(f"{p} = {_value(x)}" for p, x in params.items())
+        else:  # nested dicts (sensor_noise, region) become inline tables
+            lines.append(f"\n[{k}]")
+            lines.extend(f"{kk} = {_value(x)}" for kk, x in t.items())
+    for k, arr in arrays:
+        for t in arr:
+            lines.append(f"\n[[{k}]]")
+            lines.extend(f"{kk} = {_value(x)}" for kk, x in t.items())
+    return "\n".join(lines) + "\n"
+
+
+def write_scenario(tmp_path: Path, doc: dict | None = None, name: str = "scenario.toml", **tables) -> Path:
+    """Write ``doc`` (default: :func:`make_scenario_dict` with ``tables``) to ``tmp_path/name``."""
+    if doc is None:
+        doc = make_scenario_dict(**tables)
+    elif tables:
+        raise TypeError("give either doc or table overrides")
+    path = Path(tmp_path) / name
+    path.write_text(to_toml(doc), encoding="utf-8")
+    return path
+
+
+@pytest.fixture
+def scenario_dict():
+    """The factory :func:`make_scenario_dict`."""
+    return make_scenario_dict
+
+
+@pytest.fixture
+def scenario_file(tmp_path):
+    """``scenario_file(doc=None, name="scenario.toml", **tables) -> Path`` in ``tmp_path``."""
+    return lambda doc=None, name="scenario.toml", **tables: write_scenario(tmp_path, doc, name, **tables)
+
+
+REPO = Path(__file__).resolve().parents[1]
+SCENARIOS = REPO / "scenarios"
