@@ -518,24 +518,36 @@ def _classes():
             self._seg = cm.segment
             self._fmin = cm.f_min
             self._Cost = ob.Cost
+            self._zero = ob.Cost(0.0)
+            self._clock = _time.perf_counter
+            self.deadline = math.inf
+            self.heuristic_calls = 0
+            self.max_heuristic_calls = math.inf
 
         def motionCost(self, s1, s2):  # noqa: N802
             return self._Cost(self._seg(s1[0], s1[1], s2[0], s2[1], False, True)[1])
 
         def motionCostHeuristic(self, s1, s2):  # noqa: N802
+            # After the deadline the heuristic drops to 0 (still admissible): OMPL's rejection
+            # sampler for informed sets loops without checking the termination condition, and a
+            # zero heuristic accepts the next sample so that the planner gets to check it.
+            self.heuristic_calls += 1
+            if self.heuristic_calls > self.max_heuristic_calls or self._clock() > self.deadline:
+                return self._zero
             return self._Cost(math.hypot(s1[0] - s2[0], s1[1] - s2[1]) * self._fmin)
 
     _CLASSES.update(mv=CellWalkMotionValidator, obj=FieldObjective)
     return _CLASSES
 
 
-def make_space_information(cm: CostMap):
-    """``(space, si)``: a 2-D ``RealVectorStateSpace`` over the grid bounds (m) and its
-    ``SpaceInformation`` with the point validity and the exact motion validator of ``cm``."""
+def make_space_information(cm: CostMap, bounds: tuple[float, float, float, float] | None = None):
+    """``(space, si)``: a 2-D ``RealVectorStateSpace`` over ``bounds`` ``(y_lo, y_hi, z_lo, z_hi)``
+    (m, default: the grid bounds) and its ``SpaceInformation`` with the point validity and the
+    exact motion validator of ``cm``."""
     ob, _, _ = _ompl()
     space = ob.RealVectorStateSpace(2)
     b = ob.RealVectorBounds(2)
-    y_lo, y_hi, z_lo, z_hi = cm.bounds
+    y_lo, y_hi, z_lo, z_hi = bounds or cm.bounds
     b.setLow(0, y_lo)
     b.setHigh(0, y_hi)
     b.setLow(1, z_lo)
@@ -673,7 +685,8 @@ def refine_path(cm: CostMap, path, *, spacing: float | None = None, min_step: fl
 
     1. greedy shortcuts (never raising the cost); 2. coarse-to-fine relaxation: the path is
     subdivided into vertices about ``length / 8`` apart, relaxed, subdivided to half that spacing,
-    relaxed again, ... down to ``spacing`` (default ``max(2 h, length / 64)``). Relaxing = each
+    relaxed again, ... down to ``spacing`` (default ``max(2 h, length / 64)``, at most
+    ``length / 16``). Relaxing = each
     interior vertex in turn tries moves of ``+-step`` across (and, at the finest level, along) the
     path and keeps the best that lowers the exact cost of its two segments while keeping both
     valid; the step halves when a sweep moves nothing, down to a quarter of... ``min_step``
@@ -696,7 +709,7 @@ def refine_path(cm: CostMap, path, *, spacing: float | None = None, min_step: fl
     seg_cost = costs(pts)
     _reduce_vertices(cm, pts, seg_cost)
     length = sum(math.dist(a, b) for a, b in zip(pts[:-1], pts[1:]))
-    finest = spacing or max(2 * cm.h, length / 64)
+    finest = spacing or min(max(2 * cm.h, length / 64), length / 16)
     sp = max(length / 8, finest)
     sweeps = 0
     while True:
@@ -854,6 +867,7 @@ class QueryPlan:
     seed: int
     iterations: int
     stopped_by: str  # "iterations" (the cap) | "time" (the budget) | "planner" (it finished by itself)
+    #                  of the last search phase (see plan_query)
     time_solve: float
     time_refine: float
     raw_cost: float  # cost of the planner's own path, before refine_path
@@ -909,27 +923,32 @@ def check_endpoints(cm: CostMap, start, goal, name: str = "query") -> None:
                               f"disconnected parts of the usable region: no path exists")
 
 
-def plan_query(cm: CostMap, start, goal, settings: PlannerSettings | None = None, name: str = "query",
-               workspace_map: CostMap | None = None) -> QueryPlan:
-    """Plan one query on ``cm`` with OMPL, refine the solution, and report planned vs direct.
+def search_box(cm: CostMap, start, goal, bound_cost: float) -> tuple[float, float, float, float]:
+    """Bounding box (y_lo, y_hi, z_lo, z_hi) of every path from ``start`` to ``goal`` cheaper than
+    ``bound_cost``: such a path through x is at least ``|x - start| + |x - goal|`` long and costs at
+    least ``f_min`` per metre, so x lies in the ellipse with foci start, goal and major axis
+    ``bound_cost / f_min``. Padded by two cells and clipped to the grid."""
+    s, g = np.asarray(start, float), np.asarray(goal, float)
+    d = float(np.hypot(*(g - s)))
+    a = max(0.5 * bound_cost / cm.f_min, 0.5 * d)
+    b = math.sqrt(max(a * a - 0.25 * d * d, 0.0))
+    th = math.atan2(g[1] - s[1], g[0] - s[0]) if d > 0 else 0.0
+    hy = math.sqrt((a * math.cos(th)) ** 2 + (b * math.sin(th)) ** 2) + 2 * cm.h
+    hz = math.sqrt((a * math.sin(th)) ** 2 + (b * math.cos(th)) ** 2) + 2 * cm.h
+    c = 0.5 * (s + g)
+    y_lo, y_hi, z_lo, z_hi = cm.bounds
+    return (max(y_lo, c[0] - hy), min(y_hi, c[0] + hy), max(z_lo, c[1] - hz), min(z_hi, c[1] + hz))
 
-    Raises :class:`InfeasibleError` for an unusable start or goal, disconnected endpoints, or no
-    exact solution within the budget (no partial result is returned).
+
+def _search(cm: CostMap, start, goal, planner_name: str, box, cap: int, t_end: float,
+            first_only: bool) -> tuple[np.ndarray | None, int, str, str]:
+    """One OMPL search in ``box``: ``(path or None, iterations, stopped_by, status)``.
+
+    Stops after ``cap`` iterations, at ``t_end`` (a ``time.perf_counter()`` value) or, with
+    ``first_only``, at the first exact solution.
     """
-    ob, og, ou = _ompl()
-    st = settings or PlannerSettings()
-    st.check()
-    start = (float(start[0]), float(start[1]))
-    goal = (float(goal[0]), float(goal[1]))
-    check_endpoints(cm, start, goal, name)
-    ou.setLogLevel(ou.LOG_NONE)
-    t_begin = _time.perf_counter()
-    deadline_solve = st.time * (1 - st.refine_share) if st.refine else st.time
-    cap = st.iteration_cap()
-    # OMPL refuses seed 0: seed s maps to s + 1. Reseed before anything draws from the RNG so that
-    # each query is a function of the seed, whatever was planned before in this process.
-    ou.RNG.setSeed(st.seed + 1)
-    space, si = make_space_information(cm)
+    ob, og, _ = _ompl()
+    space, si = make_space_information(cm, box)
     obj = make_objective(si, cm)
     ss = og.SimpleSetup(si)
     s = space.allocState()
@@ -938,49 +957,102 @@ def plan_query(cm: CostMap, start, goal, settings: PlannerSettings | None = None
     g[0], g[1] = goal
     ss.setStartAndGoalStates(s, g)
     ss.setOptimizationObjective(obj)
-    planner = _make_planner(st.planner, si, deadline_solve)
-    ss.setPlanner(planner)
+    ss.setPlanner(_make_planner(planner_name, si, max(t_end - _time.perf_counter(), 0.0)))
+    pdef = ss.getProblemDefinition()
+    obj.deadline = t_end
     count = [0]
-    t0 = _time.perf_counter()
-    stop_reason = ["planner"]
+    why = ["planner"]
+    clock = _time.perf_counter
 
     def ptc() -> bool:
         count[0] += 1
         if count[0] > cap:
-            stop_reason[0] = "iterations"
+            why[0] = "iterations"
             return True
-        if _time.perf_counter() - t0 > deadline_solve:
-            stop_reason[0] = "time"
+        if clock() > t_end:
+            why[0] = "time"
+            return True
+        if first_only and pdef.hasExactSolution():
+            why[0] = "first solution"
             return True
         return False
 
     status = ss.solve(ob.PlannerTerminationCondition(ptc))
-    time_solve = _time.perf_counter() - t0
+    n = min(count[0], cap)
     if not ss.haveExactSolutionPath():
+        return None, n, why[0], str(status)
+    p = ss.getSolutionPath()
+    path = np.array([[p.getState(i)[0], p.getState(i)[1]] for i in range(p.getStateCount())])
+    path[0], path[-1] = start, goal
+    return path, n, why[0], str(status)
+
+
+def plan_query(cm: CostMap, start, goal, settings: PlannerSettings | None = None, name: str = "query",
+               workspace_map: CostMap | None = None) -> QueryPlan:
+    """Plan one query on ``cm`` with OMPL, refine the solution, and report planned vs direct.
+
+    The search runs in the box where a path cheaper than a known one can be (:func:`search_box`):
+    the straight line's cost when it is usable; otherwise a first search over the whole grid stops
+    at its first solution, whose cost bounds the box of the second. This keeps informed samplers
+    (BIT*, Informed RRT*) from stalling on a small informed set in a large space. Every iteration
+    counts against one cap, and both phases share the time budget.
+
+    Raises :class:`InfeasibleError` for an unusable start or goal, disconnected endpoints, or no
+    exact solution within the budget (no partial result is returned).
+    """
+    _, _, ou = _ompl()
+    st = settings or PlannerSettings()
+    st.check()
+    start = (float(start[0]), float(start[1]))
+    goal = (float(goal[0]), float(goal[1]))
+    check_endpoints(cm, start, goal, name)
+    ou.setLogLevel(ou.LOG_NONE)
+    t_begin = _time.perf_counter()
+    direct = path_report(cm, np.array([start, goal]), workspace_map)
+    if math.dist(start, goal) < 1e-12:  # nothing to plan
+        return QueryPlan(name, start, goal, direct, direct, st.planner, st.seed, 0, "planner", 0.0, 0.0, 0.0)
+    t_end = t_begin + (st.time * (1 - st.refine_share) if st.refine else st.time)
+    cap = st.iteration_cap()
+    # OMPL refuses seed 0: seed s maps to s + 1. Reseed before anything draws from the RNG so that
+    # each query is a function of the seed, whatever was planned before in this process.
+    ou.RNG.setSeed(st.seed + 1)
+    used = 0
+    first = None
+    if direct.valid:
+        bound = direct.cost
+    else:
+        first, used, why, status = _search(cm, start, goal, st.planner, None, cap, t_end, first_only=True)
+        if first is None:
+            raise InfeasibleError(
+                f"{name}: {st.planner} found no path from {list(start)} to {list(goal)} within the budget "
+                f"({_time.perf_counter() - t_begin:.2f} s, {used} iterations; status: {status}); "
+                f"try a longer --time")
+        bound = cm.path_cost(first)[1]
+    box = search_box(cm, start, goal, bound)
+    raw, n, why, status = _search(cm, start, goal, st.planner, box, max(cap - used, 1), t_end, first_only=False)
+    used += n
+    if raw is None:
+        raw = first
+    if raw is None:
         raise InfeasibleError(
             f"{name}: {st.planner} found no path from {list(start)} to {list(goal)} within the budget "
-            f"({time_solve:.2f} s, {min(count[0], cap)} iterations; status: {status}); try a longer --time")
-    p = ss.getSolutionPath()
-    raw = np.array([[p.getState(i)[0], p.getState(i)[1]] for i in range(p.getStateCount())])
-    raw[0], raw[-1] = start, goal
+            f"({_time.perf_counter() - t_begin:.2f} s, {used} iterations; status: {status}); try a longer --time")
     ok, raw_cost = cm.path_cost(raw)
     if not ok:  # cannot happen with the exact motion validator; refuse rather than return it
         raise InfeasibleError(f"{name}: internal: the planner's path leaves the usable region")
-    # The straight line, when valid and cheaper, is a candidate too (planners may stop early).
-    d_ok, d_cost = cm.path_cost([start, goal])
-    best = raw
-    if d_ok and d_cost < raw_cost:
-        best = np.array([start, goal])
+    best, best_cost = raw, raw_cost
+    for cand in ([first] if first is not None else []) + ([np.array([start, goal])] if direct.valid else []):
+        c = cm.path_cost(cand)[1]
+        if c < best_cost:
+            best, best_cost = cand, c
+    time_solve = _time.perf_counter() - t_begin
     t1 = _time.perf_counter()
     if st.refine:
-        rr = refine_path(cm, best, deadline=t_begin + st.time)
-        best = rr.path
+        best = refine_path(cm, best, deadline=t_begin + st.time).path
     time_refine = _time.perf_counter() - t1
     planned = path_report(cm, best, workspace_map)
-    wm = workspace_map
-    direct = path_report(cm, np.array([start, goal]), wm)
-    return QueryPlan(name, start, goal, planned, direct, st.planner, st.seed, min(count[0], cap),
-                     stop_reason[0], time_solve, time_refine, float(raw_cost))
+    return QueryPlan(name, start, goal, planned, direct, st.planner, st.seed, used, why, time_solve,
+                     time_refine, float(raw_cost))
 
 
 def fields_for_planning(sc, resolution: float | None = None, progress=None):

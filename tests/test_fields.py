@@ -10,6 +10,7 @@ Scenario. Then: refinement stability, robust validity, the npz contract, rho* an
 """
 from __future__ import annotations
 
+import itertools
 import json
 import math
 
@@ -63,19 +64,24 @@ class Robot:
         q_out = np.full(w.shape, np.nan)
         ok = np.zeros(len(w), bool)
         for j in range(seeds):
-            q = self.Q[idx[:, j]].copy()
+            rows = np.flatnonzero(~ok)
+            if len(rows) == 0:
+                break
+            q, ww = self.Q[idx[rows, j]].copy(), w[rows]
             for _ in range(iters):
+                r = self.fk(q) - ww
+                if np.max(np.abs(r)) < 1e-13:
+                    break
                 J = self.jac(q)
                 det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
                 det = np.where(np.abs(det) < 1e-12, 1e-12, det)
-                r = self.fk(q) - w
                 step = np.stack([J[:, 1, 1] * r[:, 0] - J[:, 0, 1] * r[:, 1],
                                  -J[:, 1, 0] * r[:, 0] + J[:, 0, 0] * r[:, 1]], -1) / det[:, None]
                 nrm = np.linalg.norm(step, axis=-1, keepdims=True)
                 q = q - np.where(nrm > 0.3, step * 0.3 / np.maximum(nrm, 1e-300), step)
-            good = ~ok & (np.linalg.norm(self.fk(q) - w, axis=-1) < 1e-10) & self.inside(q)
-            q_out[good] = q[good]
-            ok |= good
+            good = (np.linalg.norm(self.fk(q) - ww, axis=-1) < 1e-10) & self.inside(q)
+            q_out[rows[good]] = q[good]
+            ok[rows[good]] = True
         return q_out, ok
 
 
@@ -112,33 +118,52 @@ def beam_wrist(x, p, L, t):
 
 
 def fd(f, w, h=1e-6):
-    return np.stack([(f(w + e) - f(w - e)) / (2 * h) for e in (np.array([h, 0.0]), np.array([0.0, h]))], -1)
+    """Central differences of f at wrists w (n, 2); h a scalar or per-row steps (n,)."""
+    h = np.broadcast_to(np.asarray(h, float), w.shape[:-1])[..., None]
+    cols = []
+    for e in (np.array([1.0, 0.0]), np.array([0.0, 1.0])):
+        cols.append((f(w + h * e) - f(w - h * e)) / (2 * h))
+    return np.stack(cols, -1)
 
 
-def direction_search(M, n=180, stages=7):
-    """max over unit v of |angle(v, M v)|: n directions, then refinement around the peaks."""
-    def phis(s):
-        c, sn = np.cos(s), np.sin(s)
-        u0 = M[..., 0, 0, None] * c + M[..., 0, 1, None] * sn
-        u1 = M[..., 1, 0, None] * c + M[..., 1, 1, None] * sn
-        return np.arctan2(c * u1 - sn * u0, c * u0 + sn * u1)
+def fd_near(f, w, p):
+    """fd with a step scaled to the distance of the wrist from the port p (the beam's curvature
+    grows like 1/|p - w|^3 there): 1e-4 |p - w|, at most 1e-6."""
+    return fd(f, w, 1e-4 * np.minimum(np.linalg.norm(p - w, axis=-1), 0.01))
+
+
+def direction_search(M, n=90, stages=8):
+    """max over unit v of |angle(v, M v)| by search: the cosine of the angle over n directions of
+    [0, pi) (v and -v turn alike), then 8 stages of local refinement around the two deepest local
+    minima (11 points over +-step, step / 5 each stage); the angle is arccos at the end."""
+    m00, m01, m10, m11 = (M[..., i, j][..., None] for i, j in ((0, 0), (0, 1), (1, 0), (1, 1)))
+
+    def cosang(c, sn):
+        u0 = m00 * c + m01 * sn
+        u1 = m10 * c + m11 * sn
+        return (c * u0 + sn * u1) / np.maximum(np.hypot(u0, u1), 1e-300)
 
     s = np.linspace(0, np.pi, n, endpoint=False)
-    ph = phis(np.broadcast_to(s, M.shape[:-2] + (n,)))
-    best = np.abs(ph).max(-1)
-    for i in (np.argmax(np.abs(ph), -1), np.argmax(ph, -1), np.argmin(ph, -1)):
-        c, h = s[i], np.pi / n
+    cs = cosang(np.cos(s), np.sin(s))
+    lmin = (cs <= np.roll(cs, 1, -1)) & (cs <= np.roll(cs, -1, -1))
+    order = np.argsort(np.where(lmin, cs, np.inf), axis=-1)[..., :2]
+    best = cs.min(-1)
+    d = np.linspace(-1.0, 1.0, 11)
+    for i in (order[..., 0], order[..., 1]):
+        c0, h = s[i][..., None], np.pi / n
         for _ in range(stages):
-            sf = c[..., None] + np.linspace(-h, h, 21)
-            pf = np.abs(phis(sf))
-            j = np.argmax(pf, -1)
-            best = np.maximum(best, np.take_along_axis(pf, j[..., None], -1)[..., 0])
-            c, h = np.take_along_axis(sf, j[..., None], -1)[..., 0], h / 10
-    return best
+            cd, sd = np.cos(h * d), np.sin(h * d)
+            cc, ss = np.cos(c0), np.sin(c0)
+            cf = cosang(cc * cd - ss * sd, ss * cd + cc * sd)   # directions c0 + h d
+            j = np.argmin(cf, -1)[..., None]
+            best = np.minimum(best, np.take_along_axis(cf, j, -1)[..., 0])
+            c0, h = c0 + h * d[j], h / 5
+    return np.arccos(np.clip(best, -1.0, 1.0))
 
 
 def instance_metrics(robot, doc, x, port, t):
-    """(ok, ||G||, |phi_max|) at tips x (n, 2) for one true port and tip load (rigid controller)."""
+    """(ok, ||G||, |phi_max|) at tips x (n, 2) with true ports port (n, 2) and one tip load t
+    (rigid controller: the lever through [port] estimate)."""
     L = doc["instrument"]["length"]
     est = np.asarray(doc["port"]["estimate"], float)
     k = doc.get("controller", {}).get("gain", 1.0)
@@ -150,21 +175,22 @@ def instance_metrics(robot, doc, x, port, t):
     sel = np.flatnonzero((r < L) & (r > 1e-9))
     if len(sel) == 0:
         return ok, G, P
-    w = beam_wrist(x[sel], port, L, t)
-    conv = np.linalg.norm(beam_tip(w, port, L, t) - x[sel], axis=-1) < 1e-9
+    p = port[sel]
+    w = beam_wrist(x[sel], p, L, t)
+    conv = np.linalg.norm(beam_tip(w, p, L, t) - x[sel], axis=-1) < 1e-9
     q, okq = robot.ik(w)
     okq &= conv
-    sel, w, q = sel[okq], w[okq], q[okq]
+    sel, w, q, p = sel[okq], w[okq], q[okq], p[okq]
     Ja = robot.jac(q)
-    J = fd(lambda ww: beam_tip(ww, port, L, t), w) @ Ja
-    Jh_tw = fd(lambda ww: beam_tip(ww, est, L, 0.0), w)
+    J = fd_near(lambda ww: beam_tip(ww, p, L, t), w, p) @ Ja
+    Jh_tw = fd_near(lambda ww: beam_tip(ww, est, L, 0.0), w, est)
     sing = np.abs(np.linalg.det(Jh_tw)) <= 1e-9 * np.einsum("...ij,...ij->...", Jh_tw, Jh_tw)
     Jh = Jh_tw @ Ja
     Jh[sing] = np.eye(2)
     M = J @ np.linalg.inv(Jh)
     ok[sel[~sing]] = True
     G[sel] = np.linalg.norm(np.eye(2) - k * M, 2, axis=(-2, -1))
-    P[sel] = np.concatenate([direction_search(M[i:i + 4000]) for i in range(0, len(M), 4000)])
+    P[sel] = np.concatenate([direction_search(M[i:i + 20000]) for i in range(0, len(M), 20000)])
     G[sel[sing]] = np.nan
     return ok, G, P
 
@@ -183,19 +209,29 @@ def error_instances(doc, n_port=21, n_load=7):
     return base, th
 
 
-def independent_field(doc, x, n_port=21, n_load=7):
-    """Worst case over the sampled error box at tips x: (valid, ||G||, |phi_max|)."""
+def independent_field(doc, x, n_port=21, n_load=7, rows=150_000):
+    """Worst case over the sampled error box at tips x: (valid, ||G||, |phi_max|). All port
+    instances of one tip load are evaluated together (tips x instances stacked)."""
     robot = Robot(doc)
     base, th = error_instances(doc, n_port, n_load)
-    valid = np.ones(len(x), bool)
-    G = np.full(len(x), -np.inf)
-    P = np.full(len(x), -np.inf)
-    for dy, dz, t in th:
-        idx = np.flatnonzero(valid)
-        ok, g, p = instance_metrics(robot, doc, x[idx], base + [dy, dz], t)
-        valid[idx[~ok]] = False
-        G[idx[ok]] = np.maximum(G[idx[ok]], g[ok])
-        P[idx[ok]] = np.maximum(P[idx[ok]], p[ok])
+    n = len(x)
+    valid = np.ones(n, bool)
+    G = np.full(n, -np.inf)
+    P = np.full(n, -np.inf)
+    for t in np.unique(th[:, 2]):
+        ports = base + th[th[:, 2] == t][:, :2]
+        step = max(1, rows // max(n, 1))
+        for i in range(0, len(ports), step):
+            pp = ports[i:i + step]
+            idx = np.flatnonzero(valid)
+            m = len(pp)
+            X = np.broadcast_to(x[idx], (m, len(idx), 2)).reshape(-1, 2)
+            PP = np.broadcast_to(pp[:, None, :], (m, len(idx), 2)).reshape(-1, 2)
+            ok, g, p = (a.reshape(m, len(idx)) for a in instance_metrics(robot, doc, X, PP, t))
+            allok = ok.all(axis=0)
+            valid[idx[~allok]] = False
+            G[idx] = np.maximum(G[idx], np.where(ok, g, -np.inf).max(axis=0))
+            P[idx] = np.maximum(P[idx], np.where(ok, p, -np.inf).max(axis=0))
     G[~valid] = np.nan
     P[~valid] = np.nan
     return valid, G, P
@@ -228,7 +264,7 @@ def random_doc(seed: int, tip_load: bool, port_box: bool = True) -> dict:
         robot={"base": base.tolist(), "link_lengths": [float(l1), float(l2)], "home_angles": [float(h1), float(h2)],
                "joint_limits": [lim1, lim2], "joint_sum_limits": [float(rng.uniform(-0.6, -0.1)), float(rng.uniform(2.2, 3.0))]},
         instrument={"length": float(L)}, port={"position": port.tolist(), "estimate": est.tolist()},
-        controller={"gain": float(rng.uniform(0.3, 1.5))}, uncertainty=unc, fields={"resolution": 0.012})
+        controller={"gain": float(rng.uniform(0.3, 1.5))}, uncertainty=unc, fields={"resolution": 0.016})
 
 
 def _compare(doc, mf, n_port=21, n_load=7):
@@ -254,17 +290,19 @@ def test_single_instance_p1_matches_independent_exactly():
     assert np.max(np.abs(c["dP"])) < 1e-5
 
 
-UNSEEN = [(101, False), (104, False), (115, True), (125, True)]
+# (seed, tip-load range?, port samples per axis, load samples) of the independent dense sample
+UNSEEN = [(101, False, 21, 1), (104, False, 21, 1), (115, True, 11, 5), (125, True, 11, 5)]
 
 
-@pytest.mark.parametrize("seed,tip_load", UNSEEN)
-def test_fields_agree_with_independent_implementation(seed, tip_load):
-    """Randomized scenarios: errplan's worst case never misses the dense-sample worst case and agrees
-    with it to 1e-3 in ||G|| (relative above 1) and 3e-3 rad in |phi_max| on the common valid tips;
-    every tip errplan calls valid is valid for the independent model too."""
+@pytest.mark.parametrize("seed,tip_load,n_port,n_load", UNSEEN)
+def test_fields_agree_with_independent_implementation(seed, tip_load, n_port, n_load):
+    """Randomized scenarios (arm, limits, shaft, port, estimate, port box, gain, tip loads):
+    errplan's worst case never misses the dense-sample worst case and agrees with it to 1e-3 in
+    ||G|| (relative above 1) and 3e-3 rad in |phi_max| on the common valid tips; every tip errplan
+    calls valid is valid for the independent model too."""
     doc = random_doc(seed, tip_load)
     mf = compute_fields(parse_scenario(doc))
-    c = _compare(doc, mf, n_load=7)
+    c = _compare(doc, mf, n_port, n_load)
     assert c["both"] > 100
     assert c["errplan_only"] == 0
     assert c["indep_only"] <= 0.02 * c["both"]
@@ -281,7 +319,7 @@ def test_fields_flexed_truth_without_port_box():
     """Only a tip-load range (true port = [port] position): the flexed truth against the rigid lever."""
     doc = random_doc(117, tip_load=True, port_box=False)
     mf = compute_fields(parse_scenario(doc))
-    c = _compare(doc, mf, n_load=21)
+    c = _compare(doc, mf, n_port=1, n_load=21)
     assert c["both"] > 100 and c["errplan_only"] == 0 and c["indep_only"] == 0
     assert np.max(np.abs(c["dG"])) < TOL_G and np.max(np.abs(c["dP"])) < TOL_PHI
 
@@ -292,21 +330,25 @@ def bounded():
     return load_scenario(SCENARIOS / "beasley2004_bounded.toml")
 
 
-def test_worst_case_stable_under_refinement(bounded):
+@pytest.mark.parametrize("which", ["bounded", "unseen-125"])
+def test_worst_case_stable_under_refinement(which, bounded):
     """The worst case does not move when the error set is sampled finer: 5 vs 9 vs 17 samples per
-    axis (125, 729, 4913 instances, each followed by the local refinement)."""
-    res = 0.016
-    f5 = compute_fields(bounded, res, samples=5)
-    f9 = compute_fields(bounded, res, samples=9)
-    f17 = compute_fields(bounded, res, samples=17)
+    axis (125, 729, 4913 instances, each followed by the local refinement). unseen-125 has worst
+    cases inside the box (tip loads), where the coarse sample alone is off by more than 1e-3."""
+    sc = bounded if which == "bounded" else parse_scenario(random_doc(125, True))
+    res = 0.016 if which == "bounded" else 0.024
+    f5 = compute_fields(sc, res, samples=5)
+    f9 = compute_fields(sc, res, samples=9)
+    f17 = compute_fields(sc, res, samples=17)
+    assert f5.valid.sum() > 100
     assert np.array_equal(f5.valid, f9.valid) and np.array_equal(f5.valid, f17.valid)
     v = f5.valid
     for f in (f9, f17):
         assert np.max(np.abs(f.G_norm[v] - f5.G_norm[v]) / np.maximum(1, f5.G_norm[v])) < 1e-3
         assert np.max(np.abs(f.phi_max[v] - f5.phi_max[v])) < 1e-3
-    # without the local refinement the coarse sample does move (the test can fail)
-    raw = compute_fields(bounded, res, samples=3, refine=0)
-    assert np.max(f17.G_norm[v] - raw.G_norm[v]) > 1e-3
+    if which != "bounded":  # without the local refinement the coarse sample does move
+        raw = compute_fields(sc, res, samples=5, refine=0)
+        assert np.max((f17.G_norm[v] - raw.G_norm[v]) / np.maximum(1, f17.G_norm[v])) > 1e-3
 
 
 def test_chunked_worst_case_is_the_same(bounded):
@@ -348,10 +390,12 @@ def test_workspace_shrinks_with_the_error_set(bounded):
     small = compute_fields(bounded.with_(uncertainty=Uncertainty()), 0.01)  # the single true port
     big = compute_fields(bounded, 0.01)
     assert big.valid.sum() < small.valid.sum()
-    # every robustly valid tip of the big set is valid for the single instance (same grid origin)
-    yi = np.searchsorted(np.round(small.y, 9), np.round(big.y, 9))
-    zi = np.searchsorted(np.round(small.z, 9), np.round(big.z, 9))
-    assert np.all(small.valid[np.ix_(yi, zi)][big.valid])
+    # every robustly valid tip of the big set is valid for the single instance (grids share 0 mod res)
+    pts = big.points()[big.valid]
+    iy = np.rint((pts[:, 0] - small.y[0]) / 0.01).astype(int)
+    iz = np.rint((pts[:, 1] - small.z[0]) / 0.01).astype(int)
+    inside = (iy >= 0) & (iy < len(small.y)) & (iz >= 0) & (iz < len(small.z))
+    assert inside.all() and np.all(small.valid[iy, iz])
 
 
 # ============================================================================ (d) npz contract
@@ -542,3 +586,61 @@ def test_error_set_from_scenario_semantics():
     grid = es.sample_grid(4)
     assert grid.shape == (4, 3) and np.allclose(grid[:, 2], np.linspace(-1, 2, 4))
     assert math.isclose(es.spacing(4)[2], 1.0)
+
+
+def test_flexion_controller_matches_independent_estimation():
+    """P2's flexion controller, independently: end angles from eq. (2), the estimate from eqs.
+    (8)-(14), Jhat by central differences of the bisection beam at the measured wrist with the
+    estimated port and load, the worst over the 64 corners of the noise box. errplan's field agrees
+    to 1e-6 (relative above 1) at the tips of a random 60 whose estimates stay on the shaft."""
+    L, t, pos, ang = 0.355, 3.0, 0.0005, 0.0015
+    doc = make_scenario_dict(instrument={"length": L}, port={"estimate": [0.0, 0.16]},
+                             controller={"jacobian": "flexion", "gain": 0.8},
+                             uncertainty={"tip_force_over_ei": [t, t], "sensor_noise": {"position": pos, "angle": ang}})
+    mf = compute_fields(parse_scenario(doc), 0.012)
+    rng = np.random.default_rng(4)
+    pts = mf.points()[mf.valid]
+    pick = rng.choice(len(pts), 60, replace=False)
+    x = pts[pick]
+    ours = mf.G_norm[mf.valid][pick]
+    p = np.array([0.0, 0.16])
+    w = beam_wrist(x, p, L, t)
+    J = fd_near(lambda ww: beam_tip(ww, p, L, t), w, p)
+    # true end poses: chord angle, port position a along it, slopes of eq. (2) at 0 and L
+    d = p - w
+    rho = np.hypot(d[:, 0], d[:, 1])
+    a = _bisect(lambda a: a * a + (t * a * (L - a) ** 2 / 3) ** 2 - rho * rho, 0 * rho, np.minimum(rho, L))
+    b = L - a
+    phi = np.arctan2(d[:, 0], d[:, 1]) + np.arctan(t * b * b / 3)
+    fp = t * L / a
+    slope0 = -fp / 6 * (L * b * (1 - b * b / L**2))
+    slopeL = -fp / 6 * (L * b * (1 - b * b / L**2 - 3) + 3 * b * b)
+    tip = w + L * np.stack([np.sin(phi), np.cos(phi)], -1)
+    assert np.allclose(tip, x, atol=1e-10)
+    th_w, th_t = phi + np.arctan(slope0), phi + np.arctan(slopeL)
+    worst = np.full(len(x), -np.inf)
+    degenerate = np.zeros(len(x), bool)
+    k = 0.8
+    for c in itertools.product((-pos, pos), (-pos, pos), (-pos, pos), (-pos, pos), (-ang, ang), (-ang, ang)):
+        pw, pt = w + c[0:2], tip + c[2:4]
+        dd = pt - pw
+        ph = np.arctan2(dd[:, 0], dd[:, 1])                       # eq. (9)
+        s0, sL = np.tan(th_w + c[4] - ph), np.tan(th_t + c[5] - ph)  # eqs. (13), (14)
+        a_e = L * (2 * sL + s0) / (sL - s0)                         # eq. (12)
+        fp_e = 2 * (s0 - sL) / (a_e * (a_e - L))                    # eq. (11), over EI
+        ym = -fp_e * a_e**2 * (a_e - L) ** 2 / (3 * L)              # eq. (10)
+        port_e = pw + a_e[:, None] * np.stack([np.sin(ph), np.cos(ph)], -1) \
+            + ym[:, None] * np.stack([np.cos(ph), -np.sin(ph)], -1)   # eq. (8)
+        t_e = fp_e * a_e / L
+        degenerate |= ~((a_e > 0) & (a_e < L))                      # the estimated port is off the shaft
+        Jh = fd_near(lambda ww: beam_tip(ww, port_e, L, t_e), pw, port_e)
+        G = np.eye(2) - k * J @ np.linalg.inv(Jh)
+        worst = np.maximum(worst, np.linalg.norm(G, 2, axis=(-2, -1)))
+    assert np.all(np.isfinite(ours))
+    ok = ~degenerate
+    assert ok.mean() > 0.85
+    assert np.max(np.abs(ours - worst)[ok] / np.maximum(1, worst[ok])) < 1e-6
+    # Where some noise corner puts the estimated port off the shaft (a outside (0, L): the wrist near
+    # the port) the controller's model is meaningless; errplan evaluates the beam through that port
+    # anyway (flexed_geometry re-solves a from |port - wrist|), so its value there is a convention,
+    # not checked here (notes/readme_foundation.md, "Left open").

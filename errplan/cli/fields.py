@@ -36,12 +36,21 @@ def run(args) -> int:
         raise ErrplanError(f"--out {args.out}: directory {out.parent} does not exist")
     if args.samples is not None and not 2 <= args.samples <= 41:
         raise ErrplanError(f"--samples {args.samples}: expected an integer from 2 to 41")
+    # Progress only on a terminal (an updating line, cleared before any error): an error is then
+    # the one line on stderr, also in logs and pipes.
     prog = Progress("fields", quiet=args.quiet)
-    mf = compute_fields(sc, args.resolution, rho_star=args.rho_star, samples=args.samples, progress=prog)
+    prog.quiet = prog.quiet or not prog.tty
+    try:
+        mf = compute_fields(sc, args.resolution, rho_star=args.rho_star, samples=args.samples, progress=prog)
+        summary = mf.summary()
+        if summary["valid_points"] == 0:
+            raise ErrplanError(f"{sc.source}: no tip of the grid is reachable under every instance of the error set")
+    except ErrplanError:
+        if not prog.quiet:
+            prog.stream.write("\r" + " " * 60 + "\r")
+            prog.stream.flush()
+        raise
     prog.done()
-    summary = mf.summary()
-    if summary["valid_points"] == 0:
-        raise ErrplanError(f"{sc.source}: no tip of the grid is reachable under every instance of the error set")
     mf.save(out)
     if args.json:
         write_json(args.json, {"scenario": sc.name, "out": str(out), "summary": summary})
