@@ -576,6 +576,12 @@ def make_objective(si, cm: CostMap):
 ITERATION_RATE = {"BITstar": 10000, "RRTstar": 250, "InformedRRTstar": 250, "SORRTstar": 250,
                   "FMT": 2000, "BFMT": 2000, "RRTConnect": 2000}
 DEFAULT_PLANNER = "BITstar"
+# OMPL's informed samplers for a general objective draw uniform samples and reject those whose
+# heuristic cost is outside a cost shell; when the shell is thin (short queries near the edge of the
+# region) they stall inside one iteration. A search normally makes 20-50 heuristic calls per
+# iteration (benchmarks/planning.py); past this many per allowed iteration the heuristic drops to 0
+# (still admissible) and the search stops ("sampling"): deterministic, unlike a time limit.
+HEURISTIC_CALLS_PER_ITERATION = 100
 
 
 def _make_planner(name: str, si, time_budget: float):
@@ -866,8 +872,8 @@ class QueryPlan:
     planner: str
     seed: int
     iterations: int
-    stopped_by: str  # "iterations" (the cap) | "time" (the budget) | "planner" (it finished by itself)
-    #                  of the last search phase (see plan_query)
+    stopped_by: str  # how the last search phase ended (see plan_query): "iterations" (the cap),
+    #                  "time" (the budget), "sampling" (stalled informed sampling), "planner" (by itself)
     time_solve: float
     time_refine: float
     raw_cost: float  # cost of the planner's own path, before refine_path
@@ -957,22 +963,33 @@ def _search(cm: CostMap, start, goal, planner_name: str, box, cap: int, t_end: f
     g[0], g[1] = goal
     ss.setStartAndGoalStates(s, g)
     ss.setOptimizationObjective(obj)
-    ss.setPlanner(_make_planner(planner_name, si, max(t_end - _time.perf_counter(), 0.0)))
+    planner = _make_planner(planner_name, si, max(t_end - _time.perf_counter(), 0.0))
+    ss.setPlanner(planner)
     pdef = ss.getProblemDefinition()
     obj.deadline = t_end
+    obj.max_heuristic_calls = HEURISTIC_CALLS_PER_ITERATION * cap
     count = [0]
     why = ["planner"]
     clock = _time.perf_counter
+    # Planners publish their solution to the problem definition only when solve() returns; the
+    # anytime ones report their best cost as they go.
+    best_cost = getattr(planner, "bestCost", None)
+
+    def found() -> bool:
+        return math.isfinite(best_cost().value()) if best_cost else pdef.hasExactSolution()
 
     def ptc() -> bool:
         count[0] += 1
         if count[0] > cap:
             why[0] = "iterations"
             return True
+        if obj.heuristic_calls > obj.max_heuristic_calls:
+            why[0] = "sampling"
+            return True
         if clock() > t_end:
             why[0] = "time"
             return True
-        if first_only and pdef.hasExactSolution():
+        if first_only and found():
             why[0] = "first solution"
             return True
         return False
