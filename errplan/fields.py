@@ -23,7 +23,7 @@ from __future__ import annotations
 import itertools
 import json
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable
 
@@ -32,8 +32,9 @@ import numpy as np
 from .errors import ErrplanError
 from .kinematics.arm import Arm
 from .kinematics.shaft import (estimate_from_ends, flexed_end_angles, flexed_jacobian,
-                               flexed_tip, flexed_wrist, lever_parts)
-from .metrics import (compose_parts, conformal_parts, g_norm_from_parts, inverse_parts, phi_hat_max,
+                               flexed_tip, flexed_wrist, lever_jacobian, lever_parts, lever_wrist)
+from .kinematics.truth import Plant, effect_kwargs
+from .metrics import (compose_parts, conformal_parts, g_norm_from_parts, inv2, inverse_parts, phi_hat_max,
                       phi_max_from_parts)
 
 REFINE_LEVELS = 6
@@ -118,11 +119,18 @@ class Evaluator:
     estimate: tuple[float, float]
     jacobian: str  # "rigid" | "flexion"
     errors: ErrorSet
+    effects: dict = field(default_factory=dict)  # Plant keyword arguments of the truth's [effects]
 
     @classmethod
     def from_scenario(cls, sc) -> "Evaluator":
+        kw = {k: v for k, v in effect_kwargs(sc.effects).items()
+              if k in JACOBIAN_EFFECTS and any(x != 0 for x in v)}
+        errors = ErrorSet.from_scenario(sc)
+        if "port_offset" in kw:  # the true port moves: fold it into the error set (fast path kept)
+            off = kw.pop("port_offset")
+            errors = replace(errors, base_port=(errors.base_port[0] + off[0], errors.base_port[1] + off[1]))
         return cls(Arm.from_robot(sc.robot), sc.instrument.length, tuple(sc.port.estimate),
-                   sc.controller.jacobian, ErrorSet.from_scenario(sc))
+                   sc.controller.jacobian, errors, kw)
 
     def true_wrist(self, x: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Wrist putting the true tip at ``x`` and its validity (reachable, shaft through port)."""
@@ -158,6 +166,8 @@ class Evaluator:
 
     def parts(self, x: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Conformal parts ``(mu, nu)`` of ``M = J Jhat^-1`` (..., c) and validity (...)."""
+        if self.effects:
+            return self._effect_parts(np.asarray(x, float), np.asarray(theta, float))
         w, ok = self.true_wrist(x, theta)
         wsafe = np.where(ok[..., None], w, np.asarray(self.arm.base))
         port = self.errors.port(theta)
@@ -174,6 +184,68 @@ class Evaluator:
         # A singular or unidentifiable controller Jacobian is unbounded error: not a valid tip.
         ok = ok & ~np.any(bad, axis=-1)
         return mu, nu, ok
+
+
+    def plant(self, theta: np.ndarray) -> Plant:
+        """The truth of instance(s) ``theta`` with the scenario's effects."""
+        return Plant(self.arm, self.length, self.errors.port(theta), theta[..., 2], **self.effects)
+
+    def _effect_parts(self, x: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """General path for a truth with [effects] (joint offsets, gravity sag, world tip load, port
+        offset): the arm Jacobian no longer cancels. Encoder angles putting the true tip at ``x``
+        by Newton's method on the full forward map, true ``J = d tip/d q_enc`` by central
+        differences, ``Jhat`` from the controller model at the encoder angles."""
+        theta = np.broadcast_to(theta, x.shape[:-1] + (3,))
+        plant = self.plant(theta)
+        port = plant.true_port
+        d = x - port
+        r = np.sqrt(d[..., 0] ** 2 + d[..., 1] ** 2)
+        ok = (r > 1e-9) & (r < self.length)
+        xs = np.where(ok[..., None], x, port + [0.0, 0.5 * self.length])
+        with np.errstate(invalid="ignore", divide="ignore"):
+            w0 = flexed_wrist(xs, port, self.length, plant.shaft_load(lever_wrist(xs, port, self.length)))
+            q_link, ok_ik = self.arm.inverse(w0)
+            ok &= ok_ik
+            q = np.where(ok[..., None], q_link - np.asarray(plant.joint_offset), 0.0)
+            for _ in range(EFFECT_NEWTON_ITERS):
+                f = plant.tip(q) - xs
+                J = _fd_jacobian(plant.tip, q)
+                Jinv, sing = inv2(J)
+                q = q - np.where(sing[..., None], 0.0, np.einsum("...ij,...j->...i", np.nan_to_num(Jinv), f))
+            resid = np.linalg.norm(plant.tip(q) - xs, axis=-1)
+            ok &= (resid < 1e-10) & self.arm.within_limits(plant.link_angles_q(q))
+            ok &= plant.shaft_reaches(plant.wrist(q))
+            q = np.where(ok[..., None], q, 0.0)
+            J = _fd_jacobian(plant.tip, q)
+            Jr = self.arm.jacobian(q)
+            if self.jacobian == "rigid":
+                Jh = (lever_jacobian(self.arm.forward(q), np.asarray(self.estimate), self.length) @ Jr)[..., None, :, :]
+            else:
+                w, tip, thw, tht = plant.end_poses(q)
+                nc = self.errors.noise_corners()
+                pw = w[..., None, :] + nc[:, 0:2]
+                est = estimate_from_ends(pw, tip[..., None, :] + nc[:, 2:4], thw[..., None] + nc[:, 4],
+                                         tht[..., None] + nc[:, 5], self.length)
+                Jh = flexed_jacobian(pw, est["port"], self.length, est["t"]) @ Jr[..., None, :, :]
+            Jh_inv, singular = inv2(Jh)
+            mu, nu = conformal_parts(J[..., None, :, :] @ Jh_inv)
+        bad = singular | ~np.isfinite(mu) | ~np.isfinite(nu)
+        ok = ok & ~np.any(bad, axis=-1)
+        return mu, nu, ok
+
+
+EFFECT_NEWTON_ITERS = 8
+JACOBIAN_EFFECTS = ("port_offset", "joint_offset", "gravity_sag", "world_load")
+
+
+def _fd_jacobian(f, q: np.ndarray, h: float = 1e-6) -> np.ndarray:
+    """Central-difference Jacobian (..., 2, 2) of ``f: (..., 2) -> (..., 2)``."""
+    cols = []
+    for i in range(2):
+        e = np.zeros(2)
+        e[i] = h
+        cols.append((f(q + e) - f(q - e)) / (2 * h))
+    return np.stack(cols, axis=-1)
 
 
 # ----------------------------------------------------------------------------- field object
@@ -591,7 +663,7 @@ def compute_fields(sc, resolution: float | None = None, rho_star: bool = False, 
     meta = {"scenario": sc.name, "gain": k, "resolution": res, "jacobian": sc.controller.jacobian,
             "error_set": {"base_port": list(es.base_port), "lo": list(es.lo), "hi": list(es.hi),
                           "noise": list(es.noise), "samples": samples or es.samples, "refine_levels": refine},
-            "length": ev.length}
+            "length": ev.length, "effects": {k: dict(v) for k, v in sc.effects.items()}}
     mf = MetricField(y, z, valid, gn, ph, pm, meta=meta)
     if rho_star:
         if progress:

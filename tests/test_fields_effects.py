@@ -1,0 +1,58 @@
+"""Fields on a truth with [effects]: the arm Jacobian no longer cancels (physics.md "Effects")."""
+import dataclasses
+
+import numpy as np
+import pytest
+from scipy.optimize import fsolve
+
+from errplan.fields import Evaluator, compute_fields
+from errplan.scenario import load_scenario
+from errplan.simulation import ControllerModel, Plant
+
+SC = load_scenario("scenarios/beasley2004_port.toml")
+
+
+def test_port_offset_effect_equals_moving_the_true_port():
+    a = compute_fields(SC.with_(effects={"port_offset": {"dy": 0.003, "dz": -0.002}}), 0.004)
+    b = compute_fields(SC.with_(port=dataclasses.replace(SC.port, position=(0.003, 0.158))), 0.004)
+    assert np.array_equal(a.valid, b.valid)
+    assert np.nanmax(np.abs(a.G_norm - b.G_norm)) < 1e-12
+
+
+def test_general_effect_path_reproduces_the_closed_form_without_effects():
+    f = compute_fields(SC, 0.006)
+    pts = f.points()[f.valid]
+    ev = Evaluator.from_scenario(SC)
+    mu, nu, ok = ev.parts(pts, np.zeros(3))
+    ev.effects = {"joint_offset": (0.0, 0.0)}  # forces the Newton + finite-difference path
+    mu2, nu2, ok2 = ev.parts(pts, np.zeros(3))
+    assert np.array_equal(ok, ok2)
+    assert np.max(np.abs(mu - mu2)) < 1e-5 and np.max(np.abs(nu - nu2)) < 1e-5
+
+
+@pytest.mark.parametrize("effects", [
+    {"gravity_sag": {"c1": 0.004, "c2": 0.002, "c3": 0.003}},
+    {"joint_offset": {"dq1": 0.01, "dq2": -0.02}},
+    {"shaft_flexion": {"fy": 2.0, "fz": 1.0}},
+])
+def test_effect_fields_match_an_independent_solve(effects):
+    sc = SC.with_(effects=effects)
+    f = compute_fields(sc, 0.01)
+    plant, ctl = Plant.from_scenario(sc), ControllerModel.from_scenario(sc)
+    plant0 = Plant.from_scenario(SC)
+    P = f.points()
+    idx = np.argwhere(f.valid)
+    rng = np.random.default_rng(3)
+    changed = 0
+    for i, j in idx[rng.choice(len(idx), 12, replace=False)]:
+        x = P[i, j]
+        q = fsolve(lambda q: plant.tip(q) - x, plant0.configuration_for_tip(x), xtol=1e-13)
+        assert np.linalg.norm(plant.tip(q) - x) < 1e-9
+        h = 1e-6
+        J = np.stack([(plant.tip(q + h * e) - plant.tip(q - h * e)) / (2 * h) for e in np.eye(2)], -1)
+        G = np.eye(2) - SC.controller.gain * J @ np.linalg.inv(ctl.J_hat(q))
+        assert abs(np.linalg.norm(G, 2) - f.G_norm[i, j]) < 1e-4 * max(1.0, f.G_norm[i, j])
+        base = np.eye(2) - plant0.true_jacobian(plant0.configuration_for_tip(x)) @ np.linalg.inv(
+            ctl.J_hat(plant0.configuration_for_tip(x)))
+        changed += abs(np.linalg.norm(base, 2) - f.G_norm[i, j]) > 1e-3
+    assert changed > 0  # the effect really enters the field
