@@ -663,7 +663,7 @@ def compute_fields(sc, resolution: float | None = None, rho_star: bool = False, 
     meta = {"scenario": sc.name, "gain": k, "resolution": res, "jacobian": sc.controller.jacobian,
             "error_set": {"base_port": list(es.base_port), "lo": list(es.lo), "hi": list(es.hi),
                           "noise": list(es.noise), "samples": samples or es.samples, "refine_levels": refine},
-            "length": ev.length, "effects": {k: dict(v) for k, v in sc.effects.items()}}
+            "length": ev.length, "effects": {name: dict(p) for name, p in sc.effects.items()}}
     mf = MetricField(y, z, valid, gn, ph, pm, meta=meta)
     if rho_star:
         if progress:
