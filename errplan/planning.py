@@ -19,9 +19,18 @@ precomputed worst-case fields (:mod:`errplan.fields`) become the cost of an OMPL
   ``phi_max`` | ``rho_star``). Along a straight line the bilinear interpolant is a quadratic of the
   arc length inside each cell, so :meth:`CostMap.segment` integrates it *exactly* cell by cell;
   ``motionCostHeuristic`` is the admissible ``distance * (1 + weight * min metric)``;
-- **planner** by name (:data:`PLANNERS`), OMPL's RNG seeded from ``[planner] seed``; the solution is
-  then refined by :func:`refine_path` (shortcuts and a vertex relaxation on the same exact objective)
-  and kept only where that keeps validity and lowers the cost.
+- **planner** by name (:data:`PLANNERS`, default BIT*: benchmarks/planning.py), OMPL's RNG seeded
+  from ``[planner] seed``, sampling restricted to the box where a path cheaper than a known one can
+  lie (:func:`search_box`), stopped by an iteration cap (so that a run is a function of the seed)
+  or the time budget, whichever comes first; the solution is then refined by :func:`refine_path`
+  (shortcuts and a coarse-to-fine vertex relaxation on the same exact objective), every change kept
+  only if it keeps validity and lowers the cost;
+- **errors** (:class:`~errplan.errors.InfeasibleError`): an unusable start or goal (which one, why:
+  outside the grid, outside the robust workspace, or ``rho_star`` above its bound, and by how much),
+  endpoints in disconnected parts of the region, or no exact solution within the budget.
+
+The independent optimum that every quality claim is measured against is
+:func:`errplan.reference.grid_optimum` (Dijkstra on the grid with long moves).
 
 Results are dataclasses (:class:`PathReport`, :class:`QueryPlan`, :class:`ScenarioPlan`) with a
 ``to_json()`` giving the ``P`` objects of the plan JSON (docs/interfaces.md); the gain and
@@ -44,7 +53,6 @@ METRIC_NAMES = ("phi_hat_max", "G_norm", "phi_max", "rho_star")
 # Planners that work with a Python objective in ompl 2.0.1 (PRM/PRMstar deadlock on the GIL with a
 # Python objective; AORRTC fails when the straight line is valid).
 PLANNERS = ("RRTstar", "InformedRRTstar", "SORRTstar", "BITstar", "FMT", "BFMT", "RRTConnect")
-_EPS = 1e-9
 
 
 # ============================================================================= cost map
@@ -689,17 +697,17 @@ def refine_path(cm: CostMap, path, *, spacing: float | None = None, min_step: fl
                 max_sweeps: int = 60, deadline: float | None = None) -> RefineResult:
     """Lower the cost of a valid polyline (n, 2) (m) by shortcuts and a coarse-to-fine relaxation.
 
-    1. greedy shortcuts (never raising the cost); 2. coarse-to-fine relaxation: the path is
-    subdivided into vertices about ``length / 8`` apart, relaxed, subdivided to half that spacing,
-    relaxed again, ... down to ``spacing`` (default ``max(2 h, length / 64)``, at most
-    ``length / 16``). Relaxing = each
-    interior vertex in turn tries moves of ``+-step`` across (and, at the finest level, along) the
-    path and keeps the best that lowers the exact cost of its two segments while keeping both
-    valid; the step halves when a sweep moves nothing, down to a quarter of... ``min_step``
-    (default ``h / 32``) at the finest level. Coarse levels remove the long-wavelength error that
-    a fine vertex relaxation alone converges on very slowly; 3. shortcuts again. Every accepted
-    change keeps the path valid and lowers its cost, so the result is never worse than the input.
-    Deterministic; ``deadline`` (a ``time.perf_counter()`` value) stops it early.
+    1. Greedy shortcuts (never raising the cost). 2. Coarse-to-fine relaxation: the path is
+    subdivided into vertices about ``length / 8`` apart and relaxed, then subdivided to half that
+    spacing and relaxed again, down to ``spacing`` (default ``max(2 h, length / 64)``, at most
+    ``length / 16``). Relaxing: each interior vertex in turn tries moves of ``+-step`` across (and,
+    at the finest level, along) the path and keeps the best one that lowers the exact cost of its
+    two segments while keeping both valid; the step starts at a quarter of the spacing and halves
+    when a sweep moves nothing, down to ``spacing / 16`` (``min_step``, default ``h / 32``, at the
+    finest level). The coarse levels remove the long-wavelength error that a fine vertex relaxation
+    alone removes very slowly. 3. Shortcuts again. Every accepted change keeps the path valid and
+    lowers its cost, so the result is never worse than the input. Deterministic; ``deadline`` (a
+    ``time.perf_counter()`` value) stops it early.
     """
     t0 = _time.perf_counter()
     orig = [[float(p[0]), float(p[1])] for p in np.asarray(path, float)]

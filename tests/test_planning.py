@@ -434,3 +434,21 @@ def test_same_seed_same_path(port):
     e = plan_query(port.cm, q.start, q.goal, replace(st, refine=True))
     if "time" not in (d.stopped_by, e.stopped_by):
         assert np.array_equal(d.planned.path, e.planned.path)
+
+
+def test_cost_recomputed_on_independent_finer_fields(port):
+    """What an outside check does: recompute the returned path's cost with its own fields (here the
+    scenario's fields computed again at 1 mm, integrated by dense sampling)."""
+    from errplan.fields import compute_fields
+
+    fine = compute_fields(port.sc, 0.001, rho_star=False)
+    for q in port.sc.queries:
+        qp = plan_query(port.cm, q.start, q.goal, port.settings, q.name)
+        pts = np.concatenate([a + (b - a) * np.linspace(0, 1, 2001)[:, None]
+                              for a, b in zip(qp.planned.path[:-1], qp.planned.path[1:])])
+        f = 1.0 + fine.sample("phi_hat_max", pts)
+        ds = np.hypot(*np.diff(pts, axis=0).T)
+        ok = np.isfinite(f[1:]) & np.isfinite(f[:-1])
+        assert ok.mean() > 0.999  # on the finer grid the path is inside the workspace too
+        cost = float(np.sum(0.5 * (f[1:] + f[:-1])[ok] * ds[ok]))
+        assert cost == pytest.approx(qp.planned.cost, rel=0.005), q.name
