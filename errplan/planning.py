@@ -56,6 +56,15 @@ PLANNERS = ("RRTstar", "InformedRRTstar", "SORRTstar", "BITstar", "FMT", "BFMT",
 
 
 # ============================================================================= cost map
+def _near_cells(u: float) -> tuple[int, ...]:
+    """Cell indices along one axis whose closed interval contains grid coordinate ``u`` (both
+    neighbours when ``u`` is within 1e-9 cell of a grid line)."""
+    r = round(u)
+    if abs(u - r) < 1e-9:
+        return (r, r - 1)
+    return (math.floor(u),)
+
+
 class CostMap:
     """Usable region and integrand ``1 + weight * metric`` of a :class:`~errplan.fields.MetricField`.
 
@@ -155,15 +164,11 @@ class CostMap:
     def point_ok(self, y: float, z: float) -> bool:
         """True if ``[y, z]`` lies in a usable cell (closed cells: a point on an edge or a corner
         counts if any cell touching it is usable)."""
-        u = (y - self.y0) / self.h
-        v = (z - self.z0) / self.h
-        iu = math.floor(u)
-        iv = math.floor(v)
         ok = self._ok
         nzc, nyc = self._nzc, self._nyc
-        for i in (iu, iu - 1) if u - iu < 1e-7 else (iu,):
+        for i in _near_cells((y - self.y0) / self.h):
             if 0 <= i < nyc:
-                for j in (iv, iv - 1) if v - iv < 1e-7 else (iv,):
+                for j in _near_cells((z - self.z0) / self.h):
                     if 0 <= j < nzc and ok[i * nzc + j]:
                         return True
         return False
@@ -243,6 +248,9 @@ class CostMap:
                         ci, good = i - 1, True
                     elif on_v_line and 0 <= ci < nyc and 0 <= j - 1 < nzc and okl[ci * nzc + j - 1]:
                         cj, good = j - 1, True
+                    elif (on_u_line and on_v_line and 0 <= i - 1 < nyc and 0 <= j - 1 < nzc
+                          and okl[(i - 1) * nzc + j - 1]):  # a zero-length motion on a grid node
+                        ci, cj, good = i - 1, j - 1, True
                 if not good:
                     ok = False
                     if check:
@@ -311,7 +319,8 @@ class CostMap:
             if t1 > 1.0 - 1e-9:
                 t1 = 1.0
             if t1 > t0 or not out:
-                cands = [(i, j)] + ([(i - 1, j)] if on_u else []) + ([(i, j - 1)] if on_v else [])
+                cands = ([(i, j)] + ([(i - 1, j)] if on_u else []) + ([(i, j - 1)] if on_v else [])
+                         + ([(i - 1, j - 1)] if on_u and on_v else []))
                 good = [c for c in cands if 0 <= c[0] < self._nyc and 0 <= c[1] < self._nzc and self.cell_ok[c]]
                 ci, cj = good[0] if good else (i, j)
                 out.append((t0, t1, ci, cj, bool(good)))
@@ -412,11 +421,8 @@ class CostMap:
     # ------------------------------------------------------------------ regions
     def _cell_index(self, p: Sequence[float]) -> tuple[int, int] | None:
         """A usable cell containing ``p`` (closed cells), or None."""
-        u = (p[0] - self.y0) / self.h
-        v = (p[1] - self.z0) / self.h
-        iu, iv = math.floor(u), math.floor(v)
-        for i in (iu, iu - 1) if u - iu < 1e-7 else (iu,):
-            for j in (iv, iv - 1) if v - iv < 1e-7 else (iv,):
+        for i in _near_cells((p[0] - self.y0) / self.h):
+            for j in _near_cells((p[1] - self.z0) / self.h):
                 if 0 <= i < self._nyc and 0 <= j < self._nzc and self.cell_ok[i, j]:
                     return i, j
         return None
@@ -791,17 +797,6 @@ class PathReport:
                 "max_phi_hat_max": _jsonable(self.max_phi_hat_max), "valid": bool(self.valid),
                 "in_workspace": bool(self.in_workspace), "length_G_above_1": _jsonable(self.length_G_above_1),
                 "max_rho_star": _jsonable(self.max_rho_star)}
-
-
-def dense_points(path, step: float) -> np.ndarray:
-    """Points (m, 2) along a polyline, at most ``step`` apart, including every vertex."""
-    path = np.asarray(path, float)
-    out = [path[:1]]
-    for a, b in zip(path[:-1], path[1:]):
-        n = max(1, math.ceil(float(np.hypot(*(b - a))) / step))
-        t = np.arange(1, n + 1)[:, None] / n
-        out.append(a + (b - a) * t)
-    return np.concatenate(out)
 
 
 def path_report(cm: CostMap, path, workspace_map: CostMap | None = None) -> PathReport:

@@ -21,8 +21,7 @@ import pytest
 from errplan.errors import ErrplanError, InfeasibleError
 from errplan.fields import MetricField
 from errplan.planning import (PLANNERS, CostMap, PlannerSettings, costmap_for, fields_for_planning,
-                              make_objective, make_space_information, path_report, plan_query, plan_scenario,
-                              refine_path)
+                              make_objective, make_space_information, plan_query, plan_scenario, refine_path)
 from errplan.reference import GridGraph, angular_bound, grid_optimum, moves, segment_cost
 from errplan.scenario import load_scenario
 
@@ -452,3 +451,16 @@ def test_cost_recomputed_on_independent_finer_fields(port):
         assert ok.mean() > 0.999  # on the finer grid the path is inside the workspace too
         cost = float(np.sum(0.5 * (f[1:] + f[:-1])[ok] * ds[ok]))
         assert cost == pytest.approx(qp.planned.cost, rel=0.005), q.name
+
+
+def test_degenerate_queries(port):
+    """start == goal, a 10 nm query, and endpoints exactly on grid nodes."""
+    qp = plan_query(port.cm, (0.0, 0.3), (0.0, 0.3), port.settings)
+    assert qp.planned.valid and qp.planned.cost == 0 and qp.planned.length == 0
+    assert qp.planned.max_G_norm == pytest.approx(float(port.mf.sample("G_norm", np.array([0.0, 0.3]))))
+    qp = plan_query(port.cm, (0.0, 0.3), (0.0, 0.3 + 1e-8), port.settings)
+    assert qp.planned.valid and 0 < qp.planned.cost < 1e-7
+    y, z = port.mf.y, port.mf.z
+    s, g = (float(y[120]), float(z[60])), (float(y[140]), float(z[100]))
+    qp = plan_query(port.cm, s, g, port.settings)
+    _check_plan(port, qp, port.ref(s, g))
