@@ -96,7 +96,7 @@ class Fields:
 class Planner:
     metric: str = "phi_hat_max"
     weight: float = 1.0
-    planner: str = "RRTstar"
+    planner: str = "BITstar"
     time: float = 1.0
     seed: int = 1
     certifiable: bool = True

@@ -21,20 +21,10 @@ def bundled_scenario() -> Path:
     return BUNDLED
 
 
-def plan_queries(sc, mf):
-    """Plan every query of ``sc`` on the fields ``mf`` with the scenario's planner settings."""
-    from .. import planning
-
-    cm = planning.CostMap(mf, sc.planner.metric, sc.planner.weight, sc.planner.certifiable,
-                          sc.planner.certify_margin)
-    settings = planning.PlannerSettings.from_scenario(sc)
-    wm = planning.CostMap(mf, sc.planner.metric, sc.planner.weight, certifiable=False) if sc.planner.certifiable else None
-    return [planning.plan_query(cm, q.start, q.goal, settings, q.name, workspace_map=wm) for q in sc.queries]
-
-
 def run(args) -> int:
     from ..fields import compute_fields
     from ..pipeline import run_pipeline, summary_table
+    from ..planning import plan_scenario
     from ..scenario import load_scenario
 
     t0 = time.perf_counter()
@@ -51,7 +41,7 @@ def run(args) -> int:
     prog.done()
     t_fields = time.perf_counter() - t0
     t1 = time.perf_counter()
-    plans = plan_queries(sc, mf)
+    plans = plan_scenario(sc, mf).queries
     t_plan = time.perf_counter() - t1
     t2 = time.perf_counter()
     prog = Progress("gains+simulation", quiet=quiet)

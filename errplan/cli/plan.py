@@ -1,9 +1,10 @@
-"""``errplan plan SCENARIO [--json F] [--query NAME] [--time T] [--planner NAME] [--seed N]``.
+"""``errplan plan SCENARIO [--json F] [--record F.rrd] [--query NAME] [--time T] [--planner NAME] [--seed N]``.
 
-Plans every ``[[query]]`` of the scenario on its worst-case fields (errplan.planning) and prints,
-per query, the planned and the direct (straight) path: cost, length, max ||G||, max phi_hat_max.
-The JSON is the "plan JSON" of docs/interfaces.md (``queries[].{name, start, goal, planned,
-direct}``); later steps add ``gains`` and ``simulation`` to each query (``QueryPlan.extra``).
+Plans every ``[[query]]`` of the scenario on its worst-case fields (errplan.planning), prints per
+query the planned and the direct (straight) path (cost, length, max ||G||, max phi_hat_max), then
+picks certified per-segment gains (errplan.gains), simulates both paths (errplan.pipeline) and
+optionally records everything to rerun. The JSON is the "plan JSON" of docs/interfaces.md
+(``queries[].{name, start, goal, planned, direct, gains, simulation}``).
 """
 from __future__ import annotations
 
@@ -48,16 +49,30 @@ def plan_table(plan) -> str:
 
 
 def run(args) -> int:
+    from pathlib import Path
+
+    from ..errors import ErrplanError
+    from ..pipeline import run_pipeline, summary_table
     from ..planning import plan_scenario, select_queries
     from ..scenario import load_scenario
 
     sc = load_scenario(args.scenario)
     select_queries(sc, args.query)  # a bad --query fails before the fields are computed
+    for opt, value in (("--json", args.json), ("--record", args.record)):
+        if value and not Path(value).resolve().parent.exists():
+            raise ErrplanError(f"{opt} {value}: directory {Path(value).parent} does not exist")
     prog = Progress("plan", quiet=args.quiet)
     plan = plan_scenario(sc, query=args.query, planner=args.planner, time=args.time, seed=args.seed,
                          progress=prog)
     prog.done()
+    print(plan_table(plan))
+    prog = Progress("gains+simulation", quiet=args.quiet)
+    res = run_pipeline(sc, plan.queries, plan.costmap.mf, record=args.record, progress=prog)
+    prog.done()
+    print()
+    print(summary_table(res["runs"], f"certified gains and simulation: {sc.name}"))
     if args.json:
         write_json(args.json, plan.to_json())
-    print(plan_table(plan))
+    if args.record:
+        print(f"recording: {args.record}  (open it with `errplan view {args.record}`)")
     return 0
