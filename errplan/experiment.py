@@ -326,34 +326,12 @@ def truth_plant(sc, *, effects: bool = True, noise: bool = True):
 
 
 def bench_controller(sc):
-    """The scenario's controller (:class:`errplan.simulation.ControllerModel`) as the bench runs it.
-
-    P2's flexion controller cannot estimate its model from the end poses of a shaft that does not
-    bend (equal end slopes: ``estimate_from_ends`` is degenerate); the bench then falls back to
-    the straight-shaft model, the rigid lever through the port estimate. The rigid controller is
-    unchanged.
-    """
-    from dataclasses import fields
-
-    from .kinematics.shaft import lever_jacobian
+    """The scenario's controller (:class:`errplan.simulation.ControllerModel`) as the bench runs it
+    (P2's flexion controller falls back to the rigid lever through the port estimate where the
+    shaft does not bend, as ``ControllerModel.J_hat`` documents)."""
     from .simulation import ControllerModel
 
-    class BenchController(ControllerModel):
-        def J_hat(self, q, plant=None, rng=None):
-            if self.jacobian == "flexion":
-                try:
-                    with np.errstate(invalid="ignore", divide="ignore"):
-                        J = super().J_hat(q, plant, rng)
-                    if np.all(np.isfinite(J)):
-                        return J
-                except ErrplanError:
-                    pass
-                q = np.asarray(q, float)
-                return lever_jacobian(self.arm.forward(q), np.asarray(self.port_estimate), self.length) @ self.arm.jacobian(q)
-            return super().J_hat(q, plant, rng)
-
-    ctrl = ControllerModel.from_scenario(sc)
-    return BenchController(**{f.name: getattr(ctrl, f.name) for f in fields(ctrl)})
+    return ControllerModel.from_scenario(sc)
 
 
 @dataclass

@@ -162,7 +162,15 @@ class Evaluator:
         pt = tip[..., None, :] + nc[:, 2:4]
         est = estimate_from_ends(pw, pt, thw[..., None] + nc[:, 4], tht[..., None] + nc[:, 5], self.length)
         with np.errstate(invalid="ignore", divide="ignore"):
-            return conformal_parts(flexed_jacobian(pw, est["port"], self.length, est["t"]))
+            mu, nu = conformal_parts(flexed_jacobian(pw, est["port"], self.length, est["t"]))
+        # An unbent shaft (noise-free, zero load) does not identify P2's model: the controller
+        # falls back to the lever through the port estimate (as ControllerModel.J_hat does).
+        rigid = ~(np.isfinite(mu) & np.isfinite(nu))
+        if np.any(rigid):
+            mu_l, nu_l = lever_parts(w, np.asarray(self.estimate), self.length)
+            mu = np.where(rigid, mu_l[..., None], mu)
+            nu = np.where(rigid, nu_l[..., None], nu)
+        return mu, nu
 
     def parts(self, x: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Conformal parts ``(mu, nu)`` of ``M = J Jhat^-1`` (..., c) and validity (...)."""
@@ -227,6 +235,8 @@ class Evaluator:
                 est = estimate_from_ends(pw, tip[..., None, :] + nc[:, 2:4], thw[..., None] + nc[:, 4],
                                          tht[..., None] + nc[:, 5], self.length)
                 Jh = flexed_jacobian(pw, est["port"], self.length, est["t"]) @ Jr[..., None, :, :]
+                lever = lever_jacobian(self.arm.forward(q), np.asarray(self.estimate), self.length) @ Jr
+                Jh = np.where(np.all(np.isfinite(Jh), axis=(-2, -1))[..., None, None], Jh, lever[..., None, :, :])
             Jh_inv, singular = inv2(Jh)
             mu, nu = conformal_parts(J[..., None, :, :] @ Jh_inv)
         bad = singular | ~np.isfinite(mu) | ~np.isfinite(nu)

@@ -63,10 +63,16 @@ class ControllerModel:
             tip = tip + rng.uniform(-pos, pos, np.shape(tip))
             thw = thw + rng.uniform(-ang, ang, np.shape(thw))
             tht = tht + rng.uniform(-ang, ang, np.shape(tht))
-        est = estimate_from_ends(w, tip, thw, tht, self.length)
-        if not np.all(np.isfinite(est["t"])):
-            raise ErrplanError("flexion controller: the end poses do not identify the flexion model (no bending)")
-        return flexed_jacobian(w, est["port"], self.length, est["t"]) @ Jr
+        with np.errstate(invalid="ignore", divide="ignore"):
+            est = estimate_from_ends(w, tip, thw, tht, self.length)
+            J_tw = flexed_jacobian(w, est["port"], self.length, est["t"])
+        # A shaft that does not bend (equal end slopes) does not identify P2's model: the
+        # controller falls back to the straight-shaft model, the lever through the port estimate.
+        rigid = ~np.all(np.isfinite(J_tw), axis=(-2, -1))
+        if np.any(rigid):
+            lever = lever_jacobian(self.arm.forward(q), np.asarray(self.port_estimate), self.length)
+            J_tw = np.where(rigid[..., None, None], lever, J_tw)
+        return J_tw @ Jr
 
 
 # ----------------------------------------------------------------------------- results

@@ -56,3 +56,16 @@ def test_effect_fields_match_an_independent_solve(effects):
             ctl.J_hat(plant0.configuration_for_tip(x)))
         changed += abs(np.linalg.norm(base, 2) - f.G_norm[i, j]) > 1e-3
     assert changed > 0  # the effect really enters the field
+
+
+def test_flexion_controller_on_an_unbent_shaft_falls_back_to_the_lever():
+    """P2's model is not identifiable without bending: fields and J_hat use the lever through the
+    port estimate there, so the flexion controller's fields equal the rigid controller's."""
+    flex = SC.with_(controller=dataclasses.replace(SC.controller, jacobian="flexion"))
+    a, b = compute_fields(flex, 0.008), compute_fields(SC, 0.008)
+    assert np.array_equal(a.valid, b.valid) and a.valid.any()
+    assert np.nanmax(np.abs(a.G_norm - b.G_norm)) < 1e-12
+    plant = Plant.from_scenario(SC)
+    q = plant.configuration_for_tip(np.array([0.0, 0.375]))
+    J_flex = ControllerModel.from_scenario(flex).J_hat(q, plant)
+    assert np.allclose(J_flex, ControllerModel.from_scenario(SC).J_hat(q), atol=1e-12)
