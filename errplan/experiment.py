@@ -168,6 +168,9 @@ def parse_measured_csv(text: str, source: str = "<memory>") -> MeasuredData:
             nrow += 1
             if len(row) < len(header):
                 raise DataError(f"{source}: row {nrow} has {len(row)} values, the header has {len(header)} columns")
+            if any(c.strip() for c in row[len(header):]):
+                raise DataError(f"{source}: row {nrow} has {len(row)} values, the header has {len(header)} columns "
+                                f"(a value without a column)")
             rid = row[idx["run"]].strip()
             if not rid:
                 raise DataError(f"{source}: row {nrow} column 'run': empty run id")

@@ -121,6 +121,12 @@ class Segment:
                "certified": bool(self.certified), "step_ratio": _finite(self.step_ratio),
                "radius": float(self.radius), "predicted_G_norm": _finite(self.predicted_G_norm),
                "edge": int(self.edge), "depth": int(self.depth), "samples": self.samples}
+        if not self.certified and out["certified_G_norm"] is not None and out["certified_G_norm"] < 1:
+            # ||G|| < 1 over the ball, but a full step leaves the ball (or the workspace): the worst case
+            # over every tip the controller can visit is not bounded by it, so it is no certificate
+            # (docs/interfaces.md: certified_G_norm < 1 means certified). The ball's value stays here:
+            out["ball_G_norm"] = out["certified_G_norm"]
+            out["certified_G_norm"] = None
         if self.reason:
             out["reason"] = self.reason
         return out

@@ -491,6 +491,9 @@ class CostMap:
             if worst > self.rho_bound:
                 return (f"{where}: no gain can certify monotonic convergence there: rho_star = {worst:.4f} > "
                         f"1 - certify_margin = {self.rho_bound:.4f} (by {worst - self.rho_bound:.4f})" + tail)
+            if not worst < 1.0:  # usable tips need rho_star < 1 even with certify_margin = 0
+                return (f"{where}: no gain can certify monotonic convergence there: rho_star = {worst:.4f} "
+                        f"(needs < 1)" + tail)
         return f"{where}: the {self.metric} field is undefined there" + tail
 
 

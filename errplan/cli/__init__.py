@@ -24,13 +24,20 @@ def _positive_float(s: str) -> float:
     return v
 
 
+class _OneLineParser(argparse.ArgumentParser):
+    """Usage errors are one line on stderr and exit code 2, like every other errplan error."""
+
+    def error(self, message: str):  # type: ignore[override]
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    p = _OneLineParser(
         prog="errplan",
         description="Plan instrument-tip paths with kinematic-error metrics as costs (Beasley et al.).",
     )
     p.add_argument("--quiet", "-q", action="store_true", help="no progress on stderr")
-    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND", parser_class=_OneLineParser)
 
     s = sub.add_parser("demo", help="the bundled default scenario end to end: fields, plan, gains, simulation")
     s.add_argument("--scenario", default=None, help="scenario file (default: the bundled beasley2004_bounded.toml)")
@@ -91,6 +98,8 @@ def main(argv: list[str] | None = None) -> int:
         mod = importlib.import_module(f"errplan.cli.{args.command}")
         return int(mod.run(args) or 0)
     except ErrplanError as e:
+        if sys.stderr.isatty():  # clear an updating progress line first
+            sys.stderr.write("\r" + " " * 60 + "\r")
         print(f"errplan {args.command}: error: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:  # pragma: no cover

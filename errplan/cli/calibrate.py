@@ -34,6 +34,7 @@ def run(args) -> int:
     data = read_measured_csv(args.data)
     val = read_measured_csv(args.validate) if args.validate else None
     prog = Progress("calibrate", quiet=args.quiet)
+    prog.quiet = prog.quiet or not prog.tty  # progress only on a terminal: an error stays the one line on stderr
     report = calibrate(sc, data, validate=val, seed=args.seed, folds=folds, progress=prog)
     prog.done()
     toml_text = corrected_scenario_toml(sc, report) if args.export_scenario else None

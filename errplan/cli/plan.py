@@ -62,11 +62,13 @@ def run(args) -> int:
         if value and not Path(value).resolve().parent.exists():
             raise ErrplanError(f"{opt} {value}: directory {Path(value).parent} does not exist")
     prog = Progress("plan", quiet=args.quiet)
+    prog.quiet = prog.quiet or not prog.tty  # progress only on a terminal: an error stays the one line on stderr
     plan = plan_scenario(sc, query=args.query, planner=args.planner, time=args.time, seed=args.seed,
                          progress=prog)
     prog.done()
     print(plan_table(plan))
     prog = Progress("gains+simulation", quiet=args.quiet)
+    prog.quiet = prog.quiet or not prog.tty  # progress only on a terminal: an error stays the one line on stderr
     res = run_pipeline(sc, plan.queries, plan.costmap.mf, record=args.record, progress=prog)
     prog.done()
     print()

@@ -22,6 +22,7 @@ def run(args) -> int:
         if not out.parent.exists():
             raise ErrplanError(f"--json {args.json}: directory {out.parent} does not exist")
     prog = Progress("tolerance", quiet=args.quiet)
+    prog.quiet = prog.quiet or not prog.tty  # progress only on a terminal: an error stays the one line on stderr
     results = run_all(sc, progress=prog)
     prog.done()
     rows = [r.summary_row() + [r.seconds] for r in results]
