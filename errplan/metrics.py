@@ -38,7 +38,8 @@ def inverse_parts(mu, nu, rcond: float = 1e-12):
     scale = (mu * np.conj(mu)).real + (nu * np.conj(nu)).real
     singular = ~(np.abs(det) > rcond * scale)
     safe = np.where(singular, np.nan, det)
-    return np.conj(mu) / safe, -nu / safe, singular
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.conj(mu) / safe, -nu / safe, singular
 
 
 def inv2(A: np.ndarray, rcond: float = 1e-12) -> tuple[np.ndarray, np.ndarray]:
