@@ -45,12 +45,8 @@ def main() -> int:
         sc = load_scenario(path)
         if not sc.queries:
             continue
-        mf = compute_fields(sc, rho_star=True)
-        cm = planning.CostMap(mf, sc.planner.metric, sc.planner.weight, sc.planner.certifiable, sc.planner.certify_margin)
-        st = planning.PlannerSettings.from_scenario(sc)
         ev = Evaluator.from_scenario(sc)
-        for q in sc.queries:
-            qp = planning.plan_query(cm, q.start, q.goal, st, q.name)
+        for qp in planning.plan_scenario(sc, compute_fields(sc, rho_star=True)).queries:
             t0 = time.perf_counter()
             gs = schedule_gains(sc, np.asarray(qp.planned.path, float))
             t_sched = time.perf_counter() - t0
@@ -67,7 +63,7 @@ def main() -> int:
             jump_alone = float(np.max(np.abs(np.diff([o[1] for o in own])))) if len(segs) > 1 else 0.0
             sim = replay(truth_plant(sc), ControllerModel.from_scenario(sc), qp.planned.path[0], gs.waypoints,
                          gs.gains, gs.options, sc.planner.seed)
-            rows.append([sc.name, q.name, len(segs), gs.solver.get("time_s", float("nan")), t_sched,
+            rows.append([sc.name, qp.name, len(segs), gs.solver.get("time_s", float("nan")), t_sched,
                          gs.max_certified_G_norm, joint, jump_joint, alone, jump_alone, sim.sim.steps])
     print(format_table(["scenario", "query", "segments", "casadi s", "schedule s", "max cert ||G||",
                         "pred. steps joint", "max |dk| joint", "pred. steps alone", "max |dk| alone",

@@ -195,12 +195,8 @@ def _bundled_plans():
         sc = load_scenario(path)
         if not sc.queries:
             continue
-        mf = compute_fields(sc, rho_star=True)
-        cm = planning.CostMap(mf, sc.planner.metric, sc.planner.weight, sc.planner.certifiable, sc.planner.certify_margin)
-        st = planning.PlannerSettings.from_scenario(sc)
-        for q in sc.queries:
-            qp = planning.plan_query(cm, q.start, q.goal, st, q.name)
-            out.append((sc, q.name, np.asarray(qp.planned.path, float)))
+        for qp in planning.plan_scenario(sc, compute_fields(sc, rho_star=True)).queries:
+            out.append((sc, qp.name, np.asarray(qp.planned.path, float)))
     return out
 
 
