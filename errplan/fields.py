@@ -553,22 +553,19 @@ def worst_case(ev: Evaluator, x: np.ndarray, k: float, *, samples: int | None = 
                     if len(sub) == 0:
                         break
                     apart = np.any(th_p[sub] != th_g[sub], axis=1)
-                    # Polls clipped back onto the centre (a worst on the box face) are skipped.
-                    c = th_g[sub]
-                    moved = np.clip(c[:, dmn] + sgn * h[dmn], lo[dmn], hi[dmn])
-                    keep = moved != c[:, dmn]
-                    if np.any(keep):
-                        c = c[keep].copy()
-                        c[:, dmn] = moved[keep]
-                        evaluate(sub[keep], c, True)
-                    sub = sub[apart & ok_e[sub]]
-                    c = th_p[sub]
-                    moved = np.clip(c[:, dmn] + sgn * h[dmn], lo[dmn], hi[dmn])
-                    keep = moved != c[:, dmn]
-                    if np.any(keep):
-                        c = c[keep].copy()
-                        c[:, dmn] = moved[keep]
-                        evaluate(sub[keep], c, False)
+
+                    def poll(rows, th_best, for_g):
+                        # Polls clipped back onto the centre (a worst on the box face) are skipped.
+                        c = th_best[rows]
+                        moved = np.clip(c[:, dmn] + sgn * h[dmn], lo[dmn], hi[dmn])
+                        keep = moved != c[:, dmn]
+                        if np.any(keep):
+                            c = c[keep].copy()
+                            c[:, dmn] = moved[keep]
+                            evaluate(rows[keep], c, for_g)
+
+                    poll(sub, th_g, True)
+                    poll(sub[apart & ok_e[sub]], th_p, False)
                     if pass_ == 0:
                         done += 2
                         if progress:

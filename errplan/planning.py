@@ -65,6 +65,19 @@ def _near_cells(u: float) -> tuple[int, ...]:
     return (math.floor(u),)
 
 
+def _dda_axis(u: float, du: float) -> tuple[int, int, float, float]:
+    """Amanatides-Woo set-up along one grid axis for a segment starting at cell coordinate ``u``
+    with total change ``du``: starting cell (ties on a grid line go in the motion direction),
+    step sign, parameter step per cell and parameter of the first cell boundary."""
+    if du > 0:
+        i = math.floor(u + 1e-12)
+        return i, 1, 1.0 / du, (i + 1 - u) / du
+    if du < 0:
+        i = math.ceil(u - 1e-12) - 1
+        return i, -1, -1.0 / du, (i - u) / du
+    return math.floor(u), 0, math.inf, math.inf
+
+
 class CostMap:
     """Usable region and integrand ``1 + weight * metric`` of a :class:`~errplan.fields.MetricField`.
 
@@ -202,28 +215,8 @@ class CostMap:
         okl = self._ok
         c0l, cal, cbl, cabl = self._c0, self._ca, self._cb, self._cab
         # Starting cell: the one the segment enters (ties on a grid line go in the motion direction).
-        if du > 0:
-            i = math.floor(u + 1e-12)
-            su, tdu = 1, 1.0 / du
-            tu = (i + 1 - u) * tdu
-        elif du < 0:
-            i = math.ceil(u - 1e-12) - 1
-            su, tdu = -1, -1.0 / du
-            tu = (u - i) * tdu
-        else:
-            i = math.floor(u)
-            su, tdu, tu = 0, math.inf, math.inf
-        if dv > 0:
-            j = math.floor(v + 1e-12)
-            sv, tdv = 1, 1.0 / dv
-            tv = (j + 1 - v) * tdv
-        elif dv < 0:
-            j = math.ceil(v - 1e-12) - 1
-            sv, tdv = -1, -1.0 / dv
-            tv = (v - j) * tdv
-        else:
-            j = math.floor(v)
-            sv, tdv, tv = 0, math.inf, math.inf
+        i, su, tdu, tu = _dda_axis(u, du)
+        j, sv, tdv, tv = _dda_axis(v, dv)
         on_u_line = du == 0 and abs(u - round(u)) < 1e-9
         on_v_line = dv == 0 and abs(v - round(v)) < 1e-9
         if on_u_line:

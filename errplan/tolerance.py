@@ -862,9 +862,8 @@ def run_all(sc, progress: Progress | None = None) -> list[ToleranceResult]:
         raise ErrplanError(f"{sc.source}: the scenario has no [[tolerance]] queries")
     out = []
     for i, tol in enumerate(sc.tolerances):
-        sub = None
-        if progress:
-            def sub(f, msg, i=i):  # noqa: E306
-                progress((i + min(max(f, 0.0), 1.0)) / len(sc.tolerances), f"{tol.name}: {msg}")
-        out.append(run_query(sc, tol, sub))
+        def sub(f, msg, i=i, tol=tol):
+            progress((i + min(max(f, 0.0), 1.0)) / len(sc.tolerances), f"{tol.name}: {msg}")
+
+        out.append(run_query(sc, tol, sub if progress else None))
     return out

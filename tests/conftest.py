@@ -50,6 +50,8 @@ def make_scenario_dict(**tables) -> dict:
 
 
 # ----------------------------------------------------------------------------- TOML writer
+# Deliberately not errplan.calibration.to_toml: tests must also write *malformed* scenarios
+# (nan, inf, wrong types) that errplan's own writer refuses.
 def _value(v) -> str:
     if isinstance(v, bool):
         return "true" if v else "false"
