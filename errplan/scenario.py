@@ -32,6 +32,23 @@ EFFECT_PARAMS: dict[str, tuple[str, ...]] = {
 }
 
 
+def effect_params(name: str, dim: int = 2, n_joints: int = 2) -> tuple[str, ...]:
+    """Parameter names of effect ``name`` (docs/physics.md): the planar table, or its 3-D version."""
+    if dim == 2:
+        return EFFECT_PARAMS[name]
+    return {
+        "port_offset": ("dx", "dy", "dz"),
+        "joint_offset": tuple(f"dq{i + 1}" for i in range(n_joints)),
+        "tracker_offset": ("bx", "by", "bz"),
+        "gravity_sag": tuple(f"c{i + 1}" for i in range(n_joints)),
+        "shaft_flexion": ("fx", "fy", "fz"),
+        "port_friction": ("fa", "fn"),
+    }[name]
+
+
+AXES = {2: ("y", "z"), 3: ("x", "y", "z")}
+
+
 # ----------------------------------------------------------------------------- tables
 @dataclass(frozen=True)
 class Robot:
@@ -43,6 +60,33 @@ class Robot:
 
 
 @dataclass(frozen=True)
+class CoupledLimit:
+    """``lo <= sum(coeffs[i] * q[joints[i]]) <= hi``: a linear joint limit (P1's limit on q1 + q2)."""
+
+    joints: tuple[str, ...]
+    coeffs: tuple[float, ...]
+    lo: float
+    hi: float
+
+
+@dataclass(frozen=True)
+class UrdfRobot:
+    """A spatial arm from a URDF (docs/physics.md "Spatial robots"): the actuated ``joints`` place the
+    origin of link ``wrist``; other joints on the chain are held at ``fixed_joints`` (default 0).
+    Paths are absolute (resolved against the scenario file)."""
+
+    urdf: str
+    joints: tuple[str, ...]
+    wrist: str
+    base_position: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    base_rpy: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    joint_limits: tuple[tuple[float, float], ...] | None = None
+    fixed_joints: tuple[tuple[str, float], ...] = ()
+    coupled_limits: tuple[CoupledLimit, ...] = ()
+    package_path: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
 class Instrument:
     length: float = 0.320
     flexural_rigidity: float | None = None
@@ -50,8 +94,8 @@ class Instrument:
 
 @dataclass(frozen=True)
 class Port:
-    position: tuple[float, float]
-    estimate: tuple[float, float]
+    position: tuple[float, ...]  # [y, z] or [x, y, z], m
+    estimate: tuple[float, ...]
 
 
 @dataclass(frozen=True)
@@ -75,10 +119,12 @@ class Uncertainty:
     tip_force_over_ei: tuple[float, float] | None = None
     sensor_noise: SensorNoise | None = None
     samples: int = 5  # samples per uncertain axis before local refinement
+    port_x: tuple[float, float] | None = None  # spatial scenarios only
 
     @property
     def declared(self) -> bool:
-        return any(v is not None for v in (self.port_y, self.port_z, self.tip_force_over_ei, self.sensor_noise))
+        return any(v is not None for v in (self.port_x, self.port_y, self.port_z, self.tip_force_over_ei,
+                                           self.sensor_noise))
 
 
 @dataclass(frozen=True)
@@ -90,6 +136,7 @@ class Sensors:
 @dataclass(frozen=True)
 class Fields:
     resolution: float = 0.002
+    region: Mapping[str, tuple[float, float]] | None = None  # {axis: (lo, hi)}: the task region
 
 
 @dataclass(frozen=True)
@@ -106,8 +153,8 @@ class Planner:
 @dataclass(frozen=True)
 class Query:
     name: str
-    start: tuple[float, float]
-    goal: tuple[float, float]
+    start: tuple[float, ...]
+    goal: tuple[float, ...]
 
 
 @dataclass(frozen=True)
@@ -123,7 +170,7 @@ class Tolerance:
 @dataclass(frozen=True)
 class Scenario:
     name: str
-    robot: Robot
+    robot: Robot | UrdfRobot
     instrument: Instrument
     port: Port
     controller: Controller
@@ -136,6 +183,15 @@ class Scenario:
     effects: Mapping[str, Mapping[str, float]] = field(default_factory=dict)
     description: str = ""
     source: str = "<memory>"
+
+    @property
+    def dim(self) -> int:
+        """2 for P1's planar arm ([y, z]), 3 for a URDF arm ([x, y, z])."""
+        return 3 if isinstance(self.robot, UrdfRobot) else 2
+
+    @property
+    def axes(self) -> tuple[str, ...]:
+        return AXES[self.dim]
 
     def with_(self, **changes: Any) -> "Scenario":
         """A copy with some top-level tables replaced (dataclasses.replace)."""
@@ -190,6 +246,26 @@ def _pair(ctx: _Ctx, v: Any, key: str, *, ordered: bool = False) -> tuple[float,
     return (a, b)
 
 
+def _vec(ctx: _Ctx, v: Any, key: str, d: int) -> tuple[float, ...]:
+    """A point of the scenario's dimension: ``[y, z]`` (d = 2) or ``[x, y, z]`` (d = 3)."""
+    if not isinstance(v, list) or len(v) != d:
+        raise ctx.fail(key, v, f"a list of {d} numbers [{', '.join(AXES[d])}] (m)")
+    return tuple(_num(ctx, x, key) for x in v)
+
+
+def _region(ctx: _Ctx, r: Any, key: str, d: int) -> dict[str, tuple[float, float]]:
+    """``{ x = [lo, hi], y = [lo, hi], z = [lo, hi] }`` (x only in 3-D), non-empty intervals."""
+    axes = AXES[d]
+    form = "{ " + ", ".join(f"{a} = [lo, hi]" for a in axes) + " }"
+    if not isinstance(r, dict) or set(r) != set(axes):
+        raise ctx.fail(key, r, form)
+    out = {a: _pair(ctx, r[a], f"{key}.{a}", ordered=True) for a in axes}
+    for a, (lo, hi) in out.items():
+        if not hi > lo:
+            raise ctx.fail(f"{key}.{a}", list((lo, hi)), "[lo, hi] with lo < hi (an empty region)")
+    return out
+
+
 def _get(ctx: _Ctx, t: Mapping[str, Any], key: str, where: str, default: Any = ..., ) -> Any:
     if key in t:
         return t[key]
@@ -224,12 +300,76 @@ def _instrument(ctx: _Ctx, t: Mapping[str, Any]) -> Instrument:
     return Instrument(length, None if ei is None else _num(ctx, ei, w + "flexural_rigidity", positive=True))
 
 
-def _port(ctx: _Ctx, t: Mapping[str, Any]) -> Port:
+def _port(ctx: _Ctx, t: Mapping[str, Any], d: int = 2) -> Port:
     w = "[port] "
     _check_keys(ctx, t, ("position", "estimate"), w)
-    pos = _pair(ctx, _get(ctx, t, "position", w), w + "position")
-    est = _pair(ctx, _get(ctx, t, "estimate", w, list(pos)), w + "estimate")
+    pos = _vec(ctx, _get(ctx, t, "position", w), w + "position", d)
+    est = _vec(ctx, _get(ctx, t, "estimate", w, list(pos)), w + "estimate", d)
     return Port(pos, est)
+
+
+def _urdf_robot(ctx: _Ctx, t: Mapping[str, Any], base_dir: Path) -> UrdfRobot:
+    """``[robot]`` of a spatial scenario (interfaces.md "Spatial scenarios")."""
+    w = "[robot] "
+    _check_keys(ctx, t, ("urdf", "package_path", "joints", "wrist", "base_position", "base_rpy", "joint_limits",
+                         "fixed_joints", "coupled_limits"), w)
+    urdf = _get(ctx, t, "urdf", w)
+    if not isinstance(urdf, str) or not urdf:
+        raise ctx.fail(w + "urdf", urdf, "the path of a URDF file (relative to the scenario file)")
+    urdf_path = (base_dir / urdf).resolve()
+    pkg = t.get("package_path", [])
+    if isinstance(pkg, str):
+        pkg = [pkg]
+    if not isinstance(pkg, list) or not all(isinstance(x, str) and x for x in pkg):
+        raise ctx.fail(w + "package_path", pkg, "a list of directories (relative to the scenario file)")
+    joints = _get(ctx, t, "joints", w)
+    if (not isinstance(joints, list) or not joints or not all(isinstance(j, str) and j for j in joints)
+            or len(set(joints)) != len(joints)):
+        raise ctx.fail(w + "joints", joints, "a list of distinct joint names of the URDF (the actuated joints)")
+    if len(joints) != 3:
+        raise ctx.fail(w + "joints", joints, "three actuated joints that place the wrist in 3-D")
+    wrist = _get(ctx, t, "wrist", w)
+    if not isinstance(wrist, str) or not wrist:
+        raise ctx.fail(w + "wrist", wrist, "the name of the URDF link whose origin is the instrument's pivot")
+    bp = _vec(ctx, t.get("base_position", [0.0, 0.0, 0.0]), w + "base_position", 3)
+    rpy = t.get("base_rpy", [0.0, 0.0, 0.0])
+    if not isinstance(rpy, list) or len(rpy) != 3:
+        raise ctx.fail(w + "base_rpy", rpy, "a list of 3 angles [roll, pitch, yaw] (rad)")
+    rpy = tuple(_num(ctx, x, w + "base_rpy") for x in rpy)
+    jl = None
+    if "joint_limits" in t:
+        v = t["joint_limits"]
+        if not isinstance(v, list) or len(v) != len(joints):
+            raise ctx.fail(w + "joint_limits", v, f"{len(joints)} pairs [lo, hi], one per actuated joint (rad or m)")
+        jl = tuple(_pair(ctx, x, w + f"joint_limits[{i}]", ordered=True) for i, x in enumerate(v))
+    fj = t.get("fixed_joints", {})
+    if not isinstance(fj, dict):
+        raise ctx.fail(w + "fixed_joints", fj, "a table { joint = value }")
+    fixed = tuple((str(k), _num(ctx, v, w + f"fixed_joints.{k}")) for k, v in fj.items())
+    for k, _ in fixed:
+        if k in joints:
+            raise ctx.fail(w + f"fixed_joints.{k}", dict(fj)[k], "a joint that is not actuated (it is in joints)")
+    cl = t.get("coupled_limits", [])
+    if not isinstance(cl, list):
+        raise ctx.fail(w + "coupled_limits", cl, "a list of { joints = [...], coeffs = [...], range = [lo, hi] }")
+    coupled = []
+    for i, c in enumerate(cl):
+        key = w + f"coupled_limits[{i}]"
+        if not isinstance(c, dict):
+            raise ctx.fail(key, c, "a table { joints = [...], coeffs = [...], range = [lo, hi] }")
+        _check_keys(ctx, c, ("joints", "coeffs", "range"), key + ".")
+        cj = _get(ctx, c, "joints", key + ".")
+        if not isinstance(cj, list) or not cj or not all(j in joints for j in cj):
+            raise ctx.fail(key + ".joints", cj, f"a list of actuated joints ({', '.join(joints)})")
+        co = c.get("coeffs", [1.0] * len(cj))
+        if not isinstance(co, list) or len(co) != len(cj):
+            raise ctx.fail(key + ".coeffs", co, f"{len(cj)} numbers, one per joint")
+        co = tuple(_num(ctx, x, key + ".coeffs") for x in co)
+        lo, hi = _pair(ctx, _get(ctx, c, "range", key + "."), key + ".range", ordered=True)
+        coupled.append(CoupledLimit(tuple(cj), co, lo, hi))
+    return UrdfRobot(urdf=str(urdf_path), joints=tuple(joints), wrist=wrist, base_position=bp, base_rpy=rpy,
+                     joint_limits=jl, fixed_joints=fixed, coupled_limits=tuple(coupled),
+                     package_path=tuple(str((base_dir / x).resolve()) for x in pkg))
 
 
 def _controller(ctx: _Ctx, t: Mapping[str, Any]) -> Controller:
@@ -252,9 +392,14 @@ def _noise(ctx: _Ctx, v: Any, key: str) -> SensorNoise:
     )
 
 
-def _uncertainty(ctx: _Ctx, t: Mapping[str, Any]) -> Uncertainty:
+def _uncertainty(ctx: _Ctx, t: Mapping[str, Any], d: int = 2) -> Uncertainty:
     w = "[uncertainty] "
-    _check_keys(ctx, t, ("port_y", "port_z", "tip_force_over_ei", "sensor_noise", "samples"), w)
+    allowed = ("port_y", "port_z", "tip_force_over_ei", "sensor_noise", "samples")
+    _check_keys(ctx, t, allowed + (("port_x",) if d == 3 else ()), w)
+    if d == 3 and "sensor_noise" in t:
+        raise ctx.fail(w + "sensor_noise", t["sensor_noise"],
+                       "no sensor noise in a spatial scenario (P2's flexion controller is planar only)")
+    px = _pair(ctx, t["port_x"], w + "port_x", ordered=True) if "port_x" in t else None
     py = _pair(ctx, t["port_y"], w + "port_y", ordered=True) if "port_y" in t else None
     pz = _pair(ctx, t["port_z"], w + "port_z", ordered=True) if "port_z" in t else None
     tl = _pair(ctx, t["tip_force_over_ei"], w + "tip_force_over_ei", ordered=True) if "tip_force_over_ei" in t else None
@@ -262,7 +407,10 @@ def _uncertainty(ctx: _Ctx, t: Mapping[str, Any]) -> Uncertainty:
     samples = t.get("samples", 5)
     if isinstance(samples, bool) or not isinstance(samples, int) or not 2 <= samples <= 41:
         raise ctx.fail(w + "samples", samples, "an integer from 2 to 41")
-    return Uncertainty(py, pz, tl, sn, samples)
+    if d == 3 and tl is not None and tl[0] < 0:
+        raise ctx.fail(w + "tip_force_over_ei", list(tl),
+                       "[lo, hi] with 0 <= lo <= hi: a lateral load magnitude (1/m^2), any direction normal to the shaft")
+    return Uncertainty(py, pz, tl, sn, samples, px)
 
 
 def _sensors(ctx: _Ctx, t: Mapping[str, Any]) -> Sensors:
@@ -274,13 +422,14 @@ def _sensors(ctx: _Ctx, t: Mapping[str, Any]) -> Sensors:
     )
 
 
-def _fields(ctx: _Ctx, t: Mapping[str, Any]) -> Fields:
+def _fields(ctx: _Ctx, t: Mapping[str, Any], d: int = 2) -> Fields:
     w = "[fields] "
-    _check_keys(ctx, t, ("resolution",), w)
-    r = _num(ctx, t.get("resolution", 0.002), w + "resolution", positive=True)
+    _check_keys(ctx, t, ("resolution", "region"), w)
+    r = _num(ctx, t.get("resolution", 0.002 if d == 2 else 0.004), w + "resolution", positive=True)
     if not 1e-4 <= r <= 0.05:
         raise ctx.fail(w + "resolution", r, "a grid spacing between 0.0001 and 0.05 m")
-    return Fields(r)
+    region = _region(ctx, t["region"], w + "region", d) if "region" in t else None
+    return Fields(r, region)
 
 
 def _planner(ctx: _Ctx, t: Mapping[str, Any]) -> Planner:
@@ -313,7 +462,7 @@ def _planner(ctx: _Ctx, t: Mapping[str, Any]) -> Planner:
     )
 
 
-def _queries(ctx: _Ctx, v: Any) -> tuple[Query, ...]:
+def _queries(ctx: _Ctx, v: Any, d: int = 2) -> tuple[Query, ...]:
     if not isinstance(v, list):
         raise ctx.fail("[[query]]", v, "an array of tables")
     out = []
@@ -329,7 +478,8 @@ def _queries(ctx: _Ctx, v: Any) -> tuple[Query, ...]:
         if name in names:
             raise ctx.fail(w + "name", name, "a name used by no other query")
         names.add(name)
-        out.append(Query(name, _pair(ctx, _get(ctx, q, "start", w), w + "start"), _pair(ctx, _get(ctx, q, "goal", w), w + "goal")))
+        out.append(Query(name, _vec(ctx, _get(ctx, q, "start", w), w + "start", d),
+                         _vec(ctx, _get(ctx, q, "goal", w), w + "goal", d)))
     return tuple(out)
 
 
@@ -437,15 +587,16 @@ def _tolerances(ctx: _Ctx, v: Any, controller_gain: float) -> tuple[Tolerance, .
     return tuple(out)
 
 
-def _effects(ctx: _Ctx, t: Mapping[str, Any]) -> dict[str, dict[str, float]]:
+def _effects(ctx: _Ctx, t: Mapping[str, Any], d: int = 2, n_joints: int = 2) -> dict[str, dict[str, float]]:
     out: dict[str, dict[str, float]] = {}
     for name, params in t.items():
         if name not in EFFECT_PARAMS:
             raise ctx.fail(f"[effects.{name}]", params, f"an effect of docs/physics.md: {', '.join(EFFECT_PARAMS)}")
         if not isinstance(params, dict):
             raise ctx.fail(f"[effects.{name}]", params, "a table of parameters")
-        _check_keys(ctx, params, EFFECT_PARAMS[name], f"[effects.{name}] ")
-        out[name] = {p: _num(ctx, params.get(p, 0.0), f"[effects.{name}] {p}") for p in EFFECT_PARAMS[name]}
+        names = effect_params(name, d, n_joints)
+        _check_keys(ctx, params, names, f"[effects.{name}] ")
+        out[name] = {p: _num(ctx, params.get(p, 0.0), f"[effects.{name}] {p}") for p in names}
     return out
 
 
@@ -456,7 +607,11 @@ _TOP = (
 
 
 def parse_scenario(doc: Mapping[str, Any], source: str = "<memory>") -> Scenario:
-    """Validate a parsed TOML document into a :class:`Scenario` (see interfaces.md)."""
+    """Validate a parsed TOML document into a :class:`Scenario` (see interfaces.md).
+
+    A scenario is spatial (``dim == 3``) when its ``[robot]`` names a ``urdf``; every point then has
+    three coordinates ``[x, y, z]``. Relative paths resolve against the scenario file's folder.
+    """
     ctx = _Ctx(source)
     _check_keys(ctx, doc, _TOP, "")
     name = doc.get("name", Path(source).stem)
@@ -466,20 +621,32 @@ def parse_scenario(doc: Mapping[str, Any], source: str = "<memory>") -> Scenario
     if not isinstance(desc, str):
         raise ctx.fail("description", desc, "a string")
     controller = _controller(ctx, _table(ctx, doc, "controller", False))
+    robot_t = _table(ctx, doc, "robot", False)
+    base_dir = Path(source).resolve().parent if source != "<memory>" else Path.cwd()
+    if "urdf" in robot_t:
+        d = 3
+        robot: Robot | UrdfRobot = _urdf_robot(ctx, robot_t, base_dir)
+        if controller.jacobian != "rigid":
+            raise ctx.fail("[controller] jacobian", controller.jacobian,
+                           '"rigid" in a spatial scenario (P2\'s flexion controller is planar only)')
+    else:
+        d = 2
+        robot = _robot(ctx, robot_t)
+    n_joints = len(robot.joints) if d == 3 else 2
     sc = Scenario(
         name=name,
         description=desc,
-        robot=_robot(ctx, _table(ctx, doc, "robot", False)),
+        robot=robot,
         instrument=_instrument(ctx, _table(ctx, doc, "instrument", True)),
-        port=_port(ctx, _table(ctx, doc, "port", True)),
+        port=_port(ctx, _table(ctx, doc, "port", True), d),
         controller=controller,
-        uncertainty=_uncertainty(ctx, _table(ctx, doc, "uncertainty", False)),
+        uncertainty=_uncertainty(ctx, _table(ctx, doc, "uncertainty", False), d),
         sensors=_sensors(ctx, _table(ctx, doc, "sensors", False)),
-        fields=_fields(ctx, _table(ctx, doc, "fields", False)),
+        fields=_fields(ctx, _table(ctx, doc, "fields", False), d),
         planner=_planner(ctx, _table(ctx, doc, "planner", False)),
-        queries=_queries(ctx, doc.get("query", [])),
+        queries=_queries(ctx, doc.get("query", []), d),
         tolerances=_tolerances(ctx, doc.get("tolerance", []), controller.gain),
-        effects=_effects(ctx, _table(ctx, doc, "effects", False)),
+        effects=_effects(ctx, _table(ctx, doc, "effects", False), d, n_joints),
         source=source,
     )
     _check_reach(ctx, sc)
@@ -487,10 +654,14 @@ def parse_scenario(doc: Mapping[str, Any], source: str = "<memory>") -> Scenario
 
 
 def _check_reach(ctx: _Ctx, sc: Scenario) -> None:
-    """The shaft must be able to reach through the port (true and estimated) from some wrist pose."""
-    from .kinematics.arm import Arm  # local: kinematics does not import scenario
+    """The shaft must be able to reach through the port (true and estimated) from some wrist pose.
 
-    arm = Arm.from_robot(sc.robot)
+    For a URDF arm this also loads the URDF (once, cached), so a missing file, a joint or link not in
+    it or an arm that cannot place the wrist in 3-D is reported here, before any work starts.
+    """
+    from .kinematics import arm_for  # local: kinematics does not import scenario
+
+    arm = arm_for(sc.robot)
     dmin_true, dmin_est = arm.min_distance_to(sc.port.position), arm.min_distance_to(sc.port.estimate)
     L = sc.instrument.length
     if dmin_true >= L:

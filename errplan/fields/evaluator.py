@@ -1,0 +1,166 @@
+"""The physics of one error instance, batched in numpy: true wrist, true and controller Jacobians,
+conformal parts of ``M = J Jhat^-1`` (planar), including P2's flexion controller and a truth with
+``[effects]``. The reference the compiled kernels (:mod:`.kernels`) are tested against."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from ..kinematics.arm import Arm
+from ..kinematics.shaft import (estimate_from_ends, flexed_end_angles, flexed_jacobian, flexed_wrist,
+                                lever_jacobian, lever_parts, lever_wrist)
+from ..kinematics.truth import Plant, effect_kwargs
+from ..metrics import conformal_parts, compose_parts, inv2, inverse_parts
+from .errorset import ErrorSet
+
+
+# ----------------------------------------------------------------------------- evaluator
+@dataclass
+class Evaluator:
+    """Metrics of one tip set under error instances: the physics of docs/physics.md, batched."""
+
+    arm: Arm
+    length: float
+    estimate: tuple[float, float]
+    jacobian: str  # "rigid" | "flexion"
+    errors: ErrorSet
+    effects: dict = field(default_factory=dict)  # Plant keyword arguments of the truth's [effects]
+
+    @classmethod
+    def from_scenario(cls, sc) -> "Evaluator":
+        kw = {k: v for k, v in effect_kwargs(sc.effects).items()
+              if k in JACOBIAN_EFFECTS and any(x != 0 for x in v)}
+        errors = ErrorSet.from_scenario(sc)
+        if "port_offset" in kw:  # the true port moves: fold it into the error set (fast path kept)
+            off = kw.pop("port_offset")
+            errors = replace(errors, base_port=(errors.base_port[0] + off[0], errors.base_port[1] + off[1]))
+        return cls(Arm.from_robot(sc.robot), sc.instrument.length, tuple(sc.port.estimate),
+                   sc.controller.jacobian, errors, kw)
+
+    def true_wrist(self, x: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Wrist putting the true tip at ``x`` and its validity (reachable, shaft through port)."""
+        port = self.errors.port(theta)
+        t = theta[..., 2]
+        d = x - port
+        r = np.sqrt(d[..., 0] ** 2 + d[..., 1] ** 2)
+        ok_shaft = (r > 1e-9) & (r < self.length)
+        if not np.any(t != 0):  # straight shaft: the lever's unique wrist (fast path)
+            scale = self.length / np.where(ok_shaft, r, 1.0)
+            w = x - scale[..., None] * d
+        else:
+            xs = np.where(ok_shaft[..., None], x, port + [0.0, 0.5 * self.length])
+            w = flexed_wrist(xs, port, self.length, np.where(ok_shaft, t, 0.0))
+        ok_arm = self.arm.reachable(np.where(ok_shaft[..., None], w, 0.0))
+        return w, ok_shaft & ok_arm
+
+    def controller_parts(self, w: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Conformal parts of the controller's ``Jhat_tw`` at the true wrist: (..., c), c noise
+        corners of P2's flexion controller (1 for the rigid lever)."""
+        if self.jacobian == "rigid":
+            mu, nu = lever_parts(w, np.asarray(self.estimate), self.length)
+            return mu[..., None], nu[..., None]
+        port = self.errors.port(theta)
+        t = theta[..., 2]
+        tip, thw, tht = flexed_end_angles(w, port, self.length, t)
+        nc = self.errors.noise_corners()  # (c, 6)
+        pw = w[..., None, :] + nc[:, 0:2]
+        pt = tip[..., None, :] + nc[:, 2:4]
+        est = estimate_from_ends(pw, pt, thw[..., None] + nc[:, 4], tht[..., None] + nc[:, 5], self.length)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mu, nu = conformal_parts(flexed_jacobian(pw, est["port"], self.length, est["t"]))
+        # An unbent shaft (noise-free, zero load) does not identify P2's model: the controller
+        # falls back to the lever through the port estimate (as ControllerModel.J_hat does).
+        rigid = ~(np.isfinite(mu) & np.isfinite(nu))
+        if np.any(rigid):
+            mu_l, nu_l = lever_parts(w, np.asarray(self.estimate), self.length)
+            mu = np.where(rigid, mu_l[..., None], mu)
+            nu = np.where(rigid, nu_l[..., None], nu)
+        return mu, nu
+
+    def parts(self, x: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Conformal parts ``(mu, nu)`` of ``M = J Jhat^-1`` (..., c) and validity (...)."""
+        if self.effects:
+            return self._effect_parts(np.asarray(x, float), np.asarray(theta, float))
+        w, ok = self.true_wrist(x, theta)
+        wsafe = np.where(ok[..., None], w, np.asarray(self.arm.base))
+        port = self.errors.port(theta)
+        t = theta[..., 2]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            if np.any(t != 0):
+                mu_j, nu_j = conformal_parts(flexed_jacobian(wsafe, port, self.length, t))
+            else:
+                mu_j, nu_j = lever_parts(wsafe, port, self.length)
+            mu_h, nu_h = self.controller_parts(wsafe, theta)
+            imu, inu, singular = inverse_parts(mu_h, nu_h)
+            mu, nu = compose_parts(mu_j[..., None], nu_j[..., None], imu, inu)
+        bad = singular | ~np.isfinite(mu) | ~np.isfinite(nu)
+        # A singular or unidentifiable controller Jacobian is unbounded error: not a valid tip.
+        ok = ok & ~np.any(bad, axis=-1)
+        return mu, nu, ok
+
+
+    def plant(self, theta: np.ndarray) -> Plant:
+        """The truth of instance(s) ``theta`` with the scenario's effects."""
+        return Plant(self.arm, self.length, self.errors.port(theta), theta[..., 2], **self.effects)
+
+    def _effect_parts(self, x: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """General path for a truth with [effects] (joint offsets, gravity sag, world tip load, port
+        offset): the arm Jacobian no longer cancels. Encoder angles putting the true tip at ``x``
+        by Newton's method on the full forward map, true ``J = d tip/d q_enc`` by central
+        differences, ``Jhat`` from the controller model at the encoder angles."""
+        theta = np.broadcast_to(theta, x.shape[:-1] + (3,))
+        plant = self.plant(theta)
+        port = plant.true_port
+        d = x - port
+        r = np.sqrt(d[..., 0] ** 2 + d[..., 1] ** 2)
+        ok = (r > 1e-9) & (r < self.length)
+        xs = np.where(ok[..., None], x, port + [0.0, 0.5 * self.length])
+        with np.errstate(invalid="ignore", divide="ignore"):
+            w0 = flexed_wrist(xs, port, self.length, plant.shaft_load(lever_wrist(xs, port, self.length)))
+            q_link, ok_ik = self.arm.inverse(w0)
+            ok &= ok_ik
+            q = np.where(ok[..., None], q_link - np.asarray(plant.joint_offset), 0.0)
+            for _ in range(EFFECT_NEWTON_ITERS):
+                f = plant.tip(q) - xs
+                J = _fd_jacobian(plant.tip, q)
+                Jinv, sing = inv2(J)
+                q = q - np.where(sing[..., None], 0.0, np.einsum("...ij,...j->...i", np.nan_to_num(Jinv), f))
+            resid = np.linalg.norm(plant.tip(q) - xs, axis=-1)
+            ok &= (resid < 1e-10) & self.arm.within_limits(plant.link_angles_q(q))
+            ok &= plant.shaft_reaches(plant.wrist(q))
+            q = np.where(ok[..., None], q, 0.0)
+            J = _fd_jacobian(plant.tip, q)
+            Jr = self.arm.jacobian(q)
+            if self.jacobian == "rigid":
+                Jh = (lever_jacobian(self.arm.forward(q), np.asarray(self.estimate), self.length) @ Jr)[..., None, :, :]
+            else:
+                w, tip, thw, tht = plant.end_poses(q)
+                nc = self.errors.noise_corners()
+                pw = w[..., None, :] + nc[:, 0:2]
+                est = estimate_from_ends(pw, tip[..., None, :] + nc[:, 2:4], thw[..., None] + nc[:, 4],
+                                         tht[..., None] + nc[:, 5], self.length)
+                Jh = flexed_jacobian(pw, est["port"], self.length, est["t"]) @ Jr[..., None, :, :]
+                lever = lever_jacobian(self.arm.forward(q), np.asarray(self.estimate), self.length) @ Jr
+                Jh = np.where(np.all(np.isfinite(Jh), axis=(-2, -1))[..., None, None], Jh, lever[..., None, :, :])
+            Jh_inv, singular = inv2(Jh)
+            mu, nu = conformal_parts(J[..., None, :, :] @ Jh_inv)
+        bad = singular | ~np.isfinite(mu) | ~np.isfinite(nu)
+        ok = ok & ~np.any(bad, axis=-1)
+        return mu, nu, ok
+
+
+EFFECT_NEWTON_ITERS = 8
+JACOBIAN_EFFECTS = ("port_offset", "joint_offset", "gravity_sag", "world_load")
+
+
+def _fd_jacobian(f, q: np.ndarray, h: float = 1e-6) -> np.ndarray:
+    """Central-difference Jacobian (..., 2, 2) of ``f: (..., 2) -> (..., 2)``."""
+    cols = []
+    for i in range(2):
+        e = np.zeros(2)
+        e[i] = h
+        cols.append((f(q + e) - f(q - e)) / (2 * h))
+    return np.stack(cols, axis=-1)
+
+
