@@ -1,4 +1,5 @@
-"""``errplan fields SCENARIO --out F.npz [--resolution R] [--rho-star]``."""
+"""``errplan fields SCENARIO --out F.npz [--resolution R] [--rho-star] [--metrics LIST] [--workers N]
+[--scheduler ADDRESS]``: planar and spatial scenarios."""
 from __future__ import annotations
 
 import math
@@ -17,8 +18,11 @@ def field_table(summary: dict, title: str) -> str:
         f = (180 / math.pi) if unit == "deg" else 1.0
         rows.append([name, unit, s["min"] * f, s["median"] * f, s["max"] * f])
     lines = [format_table(["field", "unit", "min", "median", "max"], rows, title)]
-    lines.append(f"workspace: {summary['valid_points']} tips on a {summary['grid'][0]} x {summary['grid'][1]} grid "
-                 f"at {summary['resolution'] * 1000:g} mm ({summary['workspace_area_m2'] * 1e4:.1f} cm^2)")
+    grid = " x ".join(str(n) for n in summary["grid"])
+    size = (f"{summary['workspace_area_m2'] * 1e4:.1f} cm^2" if "workspace_area_m2" in summary
+            else f"{summary['workspace_volume_m3'] * 1e6:.1f} cm^3")
+    lines.append(f"workspace: {summary['valid_points']} tips on a {grid} grid at {summary['resolution'] * 1000:g} mm "
+                 f"({size})")
     if "share_G_below_1" in summary:
         lines.append(f"share with worst-case ||G|| < 1 (monotonic at the scenario gain): {100 * summary['share_G_below_1']:.1f}%")
     if "share_rho_star_below_1" in summary:
@@ -27,9 +31,12 @@ def field_table(summary: dict, title: str) -> str:
 
 
 def run(args) -> int:
-    from ..fields import compute_fields
+    from ..fields import compute_fields, parse_metrics
     from ..scenario import load_scenario
 
+    metrics = parse_metrics(args.metrics, args.rho_star)
+    if args.workers is not None and args.workers < 1:
+        raise ErrplanError(f"--workers {args.workers}: expected a number of worker processes >= 1")
     sc = load_scenario(args.scenario)
     out = Path(args.out)
     if not out.parent.exists():
@@ -41,7 +48,8 @@ def run(args) -> int:
     prog = Progress("fields", quiet=args.quiet)
     prog.quiet = prog.quiet or not prog.tty
     try:
-        mf = compute_fields(sc, args.resolution, rho_star=args.rho_star, samples=args.samples, progress=prog)
+        mf = compute_fields(sc, args.resolution, samples=args.samples, progress=prog, metrics=metrics,
+                            workers=args.workers, scheduler=args.scheduler)
         summary = mf.summary()
         if summary["valid_points"] == 0:
             raise ErrplanError(f"{sc.source}: no tip of the grid is reachable under every instance of the error set")

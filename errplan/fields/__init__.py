@@ -20,12 +20,13 @@ only if it is reachable under every instance evaluated (robust validity).
 """
 from __future__ import annotations
 
-from .compute import compute_fields
+from .compute import ALL_METRICS, DEFAULT_METRICS, compute_fields, error_set, parse_metrics, tip_grid, workspace_bounds
 from .errorset import ErrorSet
 from .evaluator import EFFECT_NEWTON_ITERS, JACOBIAN_EFFECTS, Evaluator
-from .grid import MetricField, workspace_bounds
+from .grid import METRIC_NAMES, MetricField
 from .search import EXTRA_PASSES, REFINE_LEVELS, SECOND_START, Progress, minimize_gain, worst_case
 
 __all__ = ["ErrorSet", "Evaluator", "MetricField", "compute_fields", "minimize_gain", "worst_case",
            "workspace_bounds", "REFINE_LEVELS", "EXTRA_PASSES", "SECOND_START", "EFFECT_NEWTON_ITERS",
-           "JACOBIAN_EFFECTS", "Progress"]
+           "JACOBIAN_EFFECTS", "Progress", "ALL_METRICS", "DEFAULT_METRICS", "METRIC_NAMES", "error_set",
+           "parse_metrics", "tip_grid"]

@@ -1,82 +1,300 @@
-"""``compute_fields``: a scenario's worst-case fields on its tip grid."""
+"""``compute_fields``: a scenario's worst-case fields on its tip grid, tile by tile.
+
+The grid covers the scenario's ``[fields] region`` or, without one, the bounding box of every tip
+some corner instance of the error set reaches. Tips farther than the shaft length from some
+corner port cannot be robustly valid and are skipped. The rest is split into tiles, each an
+independent task (:func:`errplan.cluster.map_tasks`: in process, local worker processes or a
+dask cluster, identical arrays either way). A tile runs the compiled kernel
+(:mod:`.kernels`) for the rigid controller without Jacobian-changing effects, in the plane and in
+3-D, and the numpy search (:mod:`.search`) for P2's flexion controller or a planar truth with
+``[effects]`` that move the arm.
+"""
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
 from ..errors import ErrplanError
 from ..metrics import phi_hat_max
-from .evaluator import Evaluator
-from .grid import MetricField, _aligned_axis, workspace_bounds
-from .search import REFINE_LEVELS, Progress, _refined_at_gain, minimize_gain, worst_case
+from .errorset import ErrorSet
+from .grid import MetricField
+from .search import EXTRA_PASSES, REFINE_LEVELS, SECOND_START, Progress, _refined_at_gain, minimize_gain, worst_case
+
+DEFAULT_METRICS = ("G_norm", "phi_hat_max", "phi_max")
+ALL_METRICS = ("G_norm", "phi_hat_max", "phi_max", "rho_star")
+TILE_POINTS = 4096  # tips per tile (a few hundred ms of compiled work), more tiles than workers
+BYTES_PER_POINT = 96  # grid coordinates, flags and the output arrays, per grid point
+MAX_GRID_POINTS = 4_000_000  # a larger grid is a mistake more often than a wish: one clear error
 
 
-def compute_fields(sc, resolution: float | None = None, rho_star: bool = False, *,
-                   samples: int | None = None, refine: int = REFINE_LEVELS,
-                   progress: Progress | None = None) -> MetricField:
-    """Worst-case fields of a scenario on its tip grid (docs/interfaces.md "fields npz")."""
-    ev = Evaluator.from_scenario(sc)
-    res = float(resolution or sc.fields.resolution)
-    if res <= 0 or not math.isfinite(res):
-        raise ErrplanError(f"resolution = {resolution!r}: expected a grid spacing > 0 m")
-    y0, y1, z0, z1 = workspace_bounds(ev)
-    y = _aligned_axis(y0 - 2 * res, y1 + 2 * res, res)
-    z = _aligned_axis(z0 - 2 * res, z1 + 2 * res, res)
-    if len(y) * len(z) > 4_000_000:
-        raise ErrplanError(f"resolution = {res}: the grid would have {len(y) * len(z)} points (max 4,000,000)")
-    Y, Z = np.meshgrid(y, z, indexing="ij")
-    pts = np.stack([Y.ravel(), Z.ravel()], axis=-1)
-    # Cheap prefilter: a robustly valid tip is within the shaft length of every port of the box,
-    # in particular of its corners (the same strict test true_wrist applies to each instance).
-    es = ev.errors
-    near = np.ones(len(pts), bool)
-    for th in es.corners():
-        d = pts - es.port(th)
-        near &= np.sqrt(d[:, 0] ** 2 + d[:, 1] ** 2) < ev.length
-    cand = np.flatnonzero(near)
-    k = float(sc.controller.gain)
-    wc = worst_case(ev, pts[cand], k, samples=samples, refine=refine, keep_parts=rho_star, progress=progress)
-    shape = Y.shape
+def parse_metrics(text: str | None, rho_star: bool = False) -> tuple[str, ...]:
+    """``--metrics`` (comma-separated subset of ALL_METRICS; default the first three) plus ``--rho-star``."""
+    if text is None:
+        names = list(DEFAULT_METRICS)
+    else:
+        names = [t.strip() for t in text.split(",") if t.strip()]
+        bad = [t for t in names if t not in ALL_METRICS]
+        if bad or not names:
+            raise ErrplanError(f"--metrics = {text!r}: expected a comma-separated subset of {','.join(ALL_METRICS)}")
+    if rho_star and "rho_star" not in names:
+        names.append("rho_star")
+    return tuple(n for n in ALL_METRICS if n in names)
 
-    def scatter(v, fill=np.nan, dtype=float):
-        a = np.full(len(pts), fill, dtype=dtype)
-        a[cand] = v
-        return a.reshape(shape)
 
-    valid = scatter(wc["valid"], False, bool)
-    gn = scatter(wc["G_norm"])
-    pm = scatter(wc["phi_max"])
-    ph = phi_hat_max(np.where(valid, gn, 1.0))
-    ph[~valid] = np.nan
-    meta = {"scenario": sc.name, "gain": k, "resolution": res, "jacobian": sc.controller.jacobian,
-            "error_set": {"base_port": list(es.base_port), "lo": list(es.lo), "hi": list(es.hi),
-                          "noise": list(es.noise), "samples": samples or es.samples, "refine_levels": refine},
-            "length": ev.length, "effects": {name: dict(p) for name, p in sc.effects.items()}}
-    mf = MetricField(y, z, valid, gn, ph, pm, meta=meta)
-    if rho_star:
-        if progress:
-            progress(1.0, "minimising the worst case over the gain")
+# ----------------------------------------------------------------------------- the grid
+def _axis_range(lo: float, hi: float, res: float, inside: bool) -> tuple[int, int]:
+    """Index range ``(i0, i1)`` of the multiples of ``res`` covering [lo, hi] (``inside``: only those
+    within it). Plain integers: nothing is allocated before the size is checked."""
+    if inside:
+        return math.ceil(lo / res - 1e-9), math.floor(hi / res + 1e-9)
+    return math.floor(lo / res), math.ceil(hi / res)
+
+
+def _load_max(es: ErrorSet) -> float:
+    d = es.dim
+    return float(max(abs(es.lo[d]), abs(es.hi[d])))
+
+
+def workspace_bounds(sc, es: ErrorSet) -> tuple[np.ndarray, np.ndarray]:
+    """Bounding box ``(lo, hi)`` (d,) of the tips some corner port of the error set lets a reachable
+    wrist put through it, padded by the largest deflection a declared load can add."""
+    from ..kinematics import arm_for
+    from ..kinematics.shaft import flexed_tip
+
+    arm = arm_for(sc.robot)
+    L = sc.instrument.length
+    w = arm.sample_wrists(161 if sc.dim == 2 else 41)
+    tips = []
+    tmax = _load_max(es)
+    for port in es.port_corners():
+        r = np.linalg.norm(port - w, axis=-1)
+        ww = w[(r < L) & (r > 1e-6)]
+        if not len(ww):
+            continue
+        if sc.dim == 2:  # the planar beam at the load corners, as before
+            for t in {es.lo[2], es.hi[2]}:
+                tips.append(flexed_tip(ww, port, L, t))
+        else:
+            d = port - ww
+            tips.append(ww + L * d / np.linalg.norm(d, axis=-1, keepdims=True))
+    if not tips:
+        raise ErrplanError(f"{sc.source}: the tip workspace is empty: no reachable wrist puts the shaft through the port")
+    t = np.concatenate(tips)
+    pad = L * math.atan(tmax * L * L / 3.0) if sc.dim == 3 else 0.0
+    return t.min(axis=0) - pad, t.max(axis=0) + pad
+
+
+def tip_grid(sc, es: ErrorSet, res: float) -> tuple[np.ndarray, ...]:
+    """Grid axes (d of them): the scenario's region, else the padded workspace bounding box."""
+    from ..inputs import check_allocation
+
+    region = sc.fields.region
+    if region:
+        spans = [_axis_range(*region[a], res, True) for a in sc.axes]
+        for a, (i0, i1) in zip(sc.axes, spans):
+            if i1 < i0:
+                raise ErrplanError(f"{sc.source}: [fields] region.{a} = {list(region[a])}: holds no grid point at "
+                                   f"resolution {res} m (an empty region)")
+    else:
+        lo, hi = workspace_bounds(sc, es)
+        spans = [_axis_range(l - 2 * res, h + 2 * res, res, False) for l, h in zip(lo, hi)]
+    counts = [i1 - i0 + 1 for i0, i1 in spans]
+    n = math.prod(counts)
+    check_allocation("[fields] resolution", res, n, BYTES_PER_POINT, "tip grid")
+    if n > MAX_GRID_POINTS:
+        raise ErrplanError(f"resolution = {res}: the grid would have {n:,} points ({' x '.join(map(str, counts))}; "
+                           f"max {MAX_GRID_POINTS:,}): use a coarser resolution or a [fields] region")
+    return tuple(np.arange(i0, i1 + 1) * res for i0, i1 in spans)
+
+
+# ----------------------------------------------------------------------------- tiles
+@dataclass(frozen=True)
+class FieldJob:
+    """Everything a tile needs (picklable: shipped once to each cluster worker)."""
+
+    X: np.ndarray  # (n, d) candidate tips
+    k: float
+    want_phi: bool
+    want_rho: bool
+    refine: int
+    samples: int | None
+    kernel: dict[str, Any] | None  # compiled path: the kernel's array arguments
+    evaluator: Any = None  # numpy path: a fields.evaluator.Evaluator
+
+
+def run_tile(job: FieldJob, span: tuple[int, int]) -> dict[str, np.ndarray]:
+    """Worst case on tips ``job.X[i0:i1]``: ``valid``, ``G_norm``, ``phi_max``, ``rho_star``, ``k_star``."""
+    i0, i1 = span
+    X = np.ascontiguousarray(job.X[i0:i1])
+    if job.kernel is not None:
+        from .kernels import worst_case_tile
+
+        n = len(X)
+        out = {"valid": np.zeros(n, bool), "G_norm": np.empty(n), "phi_max": np.empty(n),
+               "rho_star": np.empty(n), "k_star": np.empty(n)}
+        kk = job.kernel
+        worst_case_tile(X, kk["grid"], kk["counts"], kk["active"], kk["periodic"], kk["lo"], kk["hi"], kk["step0"],
+                        kk["base_port"], kk["est"], kk["L"], job.k, kk["arm"], kk["chain"], kk["rmap"],
+                        job.refine, EXTRA_PASSES, SECOND_START, job.want_phi, job.want_rho,
+                        out["valid"], out["G_norm"], out["phi_max"], out["rho_star"], out["k_star"])
+        return out
+    return _numpy_tile(job.evaluator, X, job.k, job.samples, job.refine, job.want_rho)
+
+
+def _numpy_tile(ev, X: np.ndarray, k: float, samples, refine: int, want_rho: bool) -> dict[str, np.ndarray]:
+    wc = worst_case(ev, X, k, samples=samples, refine=refine, keep_parts=want_rho)
+    out = {"valid": wc["valid"], "G_norm": wc["G_norm"], "phi_max": wc["phi_max"]}
+    n = len(X)
+    rfull, kfull = np.full(n, np.nan), np.full(n, np.nan)
+    if want_rho:
         v = wc["valid"]
         mu = wc["mu"][v].reshape(int(v.sum()), -1)
         nu = wc["nu"][v].reshape(int(v.sum()), -1)
         rs, ks = minimize_gain(mu, nu)
         # Certify at k*: the refined worst case over the continuous error set at that gain.
-        xs = pts[cand][v]
-        rs_ref = _refined_at_gain(ev, xs, ks, samples=samples, refine=refine)
+        rs_ref = _refined_at_gain(ev, X[v], ks, samples=samples, refine=refine)
         rs_ref = np.where(ks > 0, np.maximum(rs, rs_ref), 1.0)
         # The scenario gain is a candidate too: rho* never exceeds the refined ||G|| at k.
         g_k = wc["G_norm"][v]
         use_k = g_k < rs_ref
         rs_ref, ks = np.where(use_k, g_k, rs_ref), np.where(use_k, k, ks)
         none = rs_ref >= 1.0  # no certified contraction: rho* = 1 (k -> 0), k* = 0
-        rs_ref, ks = np.where(none, 1.0, rs_ref), np.where(none, 0.0, ks)
-        rfull = np.full(len(cand), np.nan)
-        kfull = np.full(len(cand), np.nan)
-        rfull[v] = rs_ref
-        kfull[v] = ks
-        mf.rho_star = scatter(rfull)
-        mf.k_star = scatter(kfull)
-    return mf
+        rfull[v] = np.where(none, 1.0, rs_ref)
+        kfull[v] = np.where(none, 0.0, ks)
+    out["rho_star"], out["k_star"] = rfull, kfull
+    return out
 
 
+def _no_chain():
+    """Placeholder chain and reachability map for the planar kernel (same numba types, never read)."""
+    from ..kinematics.urdf import ChainData, ReachMap
+
+    chain = ChainData(np.zeros((1, 4, 4)), np.zeros((1, 3)), np.zeros(1, np.int64), np.zeros((1, 1)), np.zeros(1),
+                      np.zeros(1))
+    like = {"origin": np.zeros(3), "h": 1.0, "shape": np.ones(3, np.int64), "state": np.zeros((1, 1, 1), np.uint8),
+            "sub": 1, "seed_ptr": np.zeros(2, np.int64), "seeds": np.zeros((1, 1))}
+    rmap = ReachMap(**{f: like[f] for f in ReachMap._fields})
+    return chain, rmap
+
+
+def _kernel_args(sc, es: ErrorSet, samples: int | None) -> dict[str, Any]:
+    from ..kinematics import arm_for
+
+    arm = arm_for(sc.robot)
+    if sc.dim == 2:
+        arm_p = np.array([*arm.base, arm.l1, arm.l2, *arm.home, *arm.q1_limits, *arm.q2_limits, *arm.sum_limits,
+                          math.cos(arm.home[0]), math.sin(arm.home[0]), math.cos(arm.home[1]), math.sin(arm.home[1])],
+                         float)
+        chain, rmap = _no_chain()
+    else:
+        arm_p = np.zeros(16)
+        chain, rmap = arm.kernel()
+    return {"grid": np.ascontiguousarray(es.sample_grid(samples)), "counts": es.counts(samples),
+            "active": es.active, "periodic": es.periodic, "lo": es.lo_arr, "hi": es.hi_arr,
+            "step0": es.spacing(samples), "base_port": np.asarray(es.base_port, float),
+            "est": np.asarray(sc.port.estimate, float), "L": float(sc.instrument.length), "arm": arm_p,
+            "chain": chain, "rmap": rmap}
+
+
+def error_set(sc) -> tuple[ErrorSet, dict]:
+    """The scenario's error set with a ``port_offset`` effect folded into the true port, and the
+    remaining effects that change the true Jacobian (Plant keyword arguments)."""
+    from dataclasses import replace
+
+    from ..kinematics.truth import effect_kwargs
+    from .evaluator import JACOBIAN_EFFECTS
+
+    es = ErrorSet.from_scenario(sc)
+    if sc.dim == 2:
+        kw = {k: v for k, v in effect_kwargs(sc.effects).items() if k in JACOBIAN_EFFECTS and any(x != 0 for x in v)}
+        off = kw.pop("port_offset", None)
+    else:
+        kw = {name: p for name, p in sc.effects.items()
+              if name in ("joint_offset", "gravity_sag", "shaft_flexion") and any(v != 0 for v in p.values())}
+        po = sc.effects.get("port_offset")
+        off = tuple(po[a] for a in ("dx", "dy", "dz")) if po else None
+    if off is not None:
+        es = replace(es, base_port=tuple(b + o for b, o in zip(es.base_port, off)))
+    return es, kw
+
+
+def compute_fields(sc, resolution: float | None = None, rho_star: bool = False, *,
+                   samples: int | None = None, refine: int = REFINE_LEVELS,
+                   progress: Progress | None = None, metrics: tuple[str, ...] | None = None,
+                   workers: int | None = 1, scheduler: str | None = None,
+                   tile_points: int = TILE_POINTS) -> MetricField:
+    """Worst-case fields of a scenario on its tip grid (docs/interfaces.md "fields npz", "3-D fields npz").
+
+    ``metrics``: names of ALL_METRICS to compute (default G_norm, phi_hat_max, phi_max, plus
+    rho_star with ``rho_star``); ``valid`` is always computed. ``workers``/``scheduler``: where the
+    tiles run (:func:`errplan.cluster.map_tasks`); the arrays do not depend on it.
+    """
+    from ..cluster import map_tasks
+
+    names = tuple(metrics) if metrics else parse_metrics(None, rho_star)
+    if rho_star and "rho_star" not in names:
+        names = names + ("rho_star",)
+    want_phi = "phi_max" in names
+    want_rho = "rho_star" in names
+    res = float(resolution or sc.fields.resolution)
+    if not (res > 0 and math.isfinite(res)):
+        raise ErrplanError(f"resolution = {resolution!r}: expected a grid spacing > 0 m")
+    es, jac_effects = error_set(sc)
+    axes = tip_grid(sc, es, res)
+    P = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, sc.dim)
+    # Cheap prefilter: a robustly valid tip is within the shaft length of every port of the box,
+    # in particular of its corners (the same strict test each instance applies).
+    L = sc.instrument.length
+    near = np.ones(len(P), bool)
+    for port in es.port_corners():
+        near &= np.sqrt(np.sum((P - port) ** 2, axis=-1)) < L
+    cand = np.flatnonzero(near)
+    k = float(sc.controller.gain)
+    compiled = sc.controller.jacobian == "rigid" and not jac_effects
+    if compiled:
+        job = FieldJob(P[cand], k, want_phi, want_rho, refine, samples, _kernel_args(sc, es, samples))
+    elif sc.dim == 2:
+        from .evaluator import Evaluator
+
+        job = FieldJob(P[cand], k, want_phi, want_rho, refine, samples, None, Evaluator.from_scenario(sc))
+    else:
+        raise ErrplanError(f"{sc.source}: [effects] {', '.join(jac_effects)}: fields of a spatial truth whose "
+                           "effects move the arm are not supported yet (port_offset, tracker_offset and "
+                           "port_friction are)")
+    spans = [(i, min(i + tile_points, len(cand))) for i in range(0, len(cand), tile_points)]
+
+    def tick(done, total):
+        if progress:
+            progress(done / total, f"tile {done}/{total}")
+
+    parts = map_tasks(run_tile, job, spans, workers=workers, scheduler=scheduler, progress=tick)
+    shape = tuple(len(a) for a in axes)
+
+    def scatter(key, fill=np.nan, dtype=float):
+        a = np.full(len(P), fill, dtype=dtype)
+        if parts:
+            a[cand] = np.concatenate([p[key] for p in parts])
+        return a.reshape(shape)
+
+    valid = scatter("valid", False, bool)
+    gn = scatter("G_norm")
+    ph = None
+    if "phi_hat_max" in names:
+        ph = phi_hat_max(np.where(valid, gn, 1.0))
+        ph[~valid] = np.nan
+    meta = {"scenario": sc.name, "dim": sc.dim, "gain": k, "resolution": res, "jacobian": sc.controller.jacobian,
+            "error_set": {"base_port": list(es.base_port), "lo": list(es.lo), "hi": list(es.hi),
+                          "periodic": es.periodic.tolist(), "noise": list(es.noise),
+                          "samples": samples or es.samples, "refine_levels": refine},
+            "length": L, "effects": {name: dict(p) for name, p in sc.effects.items()},
+            "metrics": list(names), "region": {a: list(v) for a, v in sc.fields.region.items()} if sc.fields.region
+            else None}
+    kw = dict(meta=meta, rho_star=scatter("rho_star") if want_rho else None,
+              k_star=scatter("k_star") if want_rho else None)
+    if sc.dim == 3:
+        kw["x"] = axes[0]
+    return MetricField(axes[-2], axes[-1], valid, gn if "G_norm" in names else None, ph,
+                       scatter("phi_max") if want_phi else None, **kw)

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import itertools
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -10,28 +11,44 @@ import numpy as np
 # ----------------------------------------------------------------------------- error set
 @dataclass(frozen=True)
 class ErrorSet:
-    """A box of error parameters ``theta = (dy, dz, t)`` and the controller noise bounds.
+    """A box of error parameters ``theta`` and the controller's noise bounds.
 
-    ``port = base_port + [dy, dz]``; ``t`` is the lateral tip load over EI (1/m^2).
+    Planar (``len(base_port) == 2``): ``theta = (dy, dz, t)``, ``port = base_port + [dy, dz]``, ``t``
+    the signed lateral tip load over EI (1/m^2) in the shaft frame. Spatial (``len(base_port) ==
+    3``): ``theta = (dx, dy, dz, tau, psi)``, ``port = base_port + [dx, dy, dz]``, ``tau`` the
+    lateral load magnitude and ``psi`` its direction around the port->tip line (periodic on
+    [0, 2 pi), sampled at ``max(8, samples)`` directions, active whenever ``tau`` can be > 0).
     ``noise = (position, angle)`` bounds each measured coordinate of P2's flexion controller.
     """
 
-    base_port: tuple[float, float]
-    lo: tuple[float, float, float]
-    hi: tuple[float, float, float]
+    base_port: tuple[float, ...]
+    lo: tuple[float, ...]
+    hi: tuple[float, ...]
     noise: tuple[float, float] = (0.0, 0.0)
     samples: int = 5
 
     @classmethod
     def from_scenario(cls, sc) -> "ErrorSet":
         u = sc.uncertainty
-        if u.port_y is None and u.port_z is None:
-            base, py, pz = sc.port.position, (0.0, 0.0), (0.0, 0.0)
+        d = sc.dim
+        names = ("port_x", "port_y", "port_z")[3 - d:]
+        boxes = [getattr(u, n) for n in names]
+        if all(b is None for b in boxes):
+            base, offs = sc.port.position, [(0.0, 0.0)] * d
         else:
-            base, py, pz = sc.port.estimate, u.port_y or (0.0, 0.0), u.port_z or (0.0, 0.0)
+            base, offs = sc.port.estimate, [b or (0.0, 0.0) for b in boxes]
         tl = u.tip_force_over_ei or (0.0, 0.0)
         noise = (u.sensor_noise.position, u.sensor_noise.angle) if u.sensor_noise else (0.0, 0.0)
-        return cls(tuple(base), (py[0], pz[0], tl[0]), (py[1], pz[1], tl[1]), noise, u.samples)
+        lo = [o[0] for o in offs] + [tl[0]]
+        hi = [o[1] for o in offs] + [tl[1]]
+        if d == 3:
+            lo.append(0.0)
+            hi.append(2 * math.pi if tl[1] > 0 else 0.0)
+        return cls(tuple(base), tuple(lo), tuple(hi), noise, u.samples)
+
+    @property
+    def dim(self) -> int:
+        return len(self.base_port)
 
     @property
     def lo_arr(self) -> np.ndarray:
@@ -46,22 +63,53 @@ class ErrorSet:
         """Mask of the uncertain axes (those with a non-degenerate range)."""
         return self.hi_arr > self.lo_arr
 
-    def sample_grid(self, samples: int | None = None) -> np.ndarray:
-        """Parameters (n, 3) on a regular grid over the box, ``samples`` per uncertain axis."""
+    @property
+    def periodic(self) -> np.ndarray:
+        """Mask of the periodic axes (the load direction ``psi`` in 3-D)."""
+        out = np.zeros(len(self.lo), bool)
+        if self.dim == 3:
+            out[4] = True
+        return out
+
+    def counts(self, samples: int | None = None) -> np.ndarray:
+        """Samples per axis: ``samples`` on an uncertain axis, ``max(8, samples)`` on a periodic one."""
         n = samples or self.samples
-        axes = [np.linspace(l, h, n) if h > l else np.array([l]) for l, h in zip(self.lo, self.hi)]
-        return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+        c = np.where(self.active, n, 1)
+        return np.where(self.active & self.periodic, max(8, n), c).astype(np.int64)
+
+    def axis_samples(self, samples: int | None = None) -> list[np.ndarray]:
+        out = []
+        for l, h, c, per in zip(self.lo, self.hi, self.counts(samples), self.periodic):
+            if c == 1:
+                out.append(np.array([l]))
+            elif per:
+                out.append(l + (h - l) * np.arange(c) / c)
+            else:
+                out.append(np.linspace(l, h, c))
+        return out
+
+    def sample_grid(self, samples: int | None = None) -> np.ndarray:
+        """Parameters (m, na) on a regular grid over the box (C order over the axes)."""
+        axes = self.axis_samples(samples)
+        return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, len(self.lo))
 
     def corners(self) -> np.ndarray:
-        axes = [(l, h) if h > l else (l,) for l, h in zip(self.lo, self.hi)]
+        axes = [(l, h) if h > l and not per else (l,) for l, h, per in zip(self.lo, self.hi, self.periodic)]
         return np.array(list(itertools.product(*axes)), float)
 
+    def port_corners(self) -> np.ndarray:
+        """True ports (c, d) at the corners of the port box."""
+        d = self.dim
+        axes = [(l, h) if h > l else (l,) for l, h in zip(self.lo[:d], self.hi[:d])]
+        return np.asarray(self.base_port, float) + np.array(list(itertools.product(*axes)), float)
+
     def spacing(self, samples: int | None = None) -> np.ndarray:
-        n = samples or self.samples
-        return (self.hi_arr - self.lo_arr) / (n - 1)
+        c = self.counts(samples)
+        span = self.hi_arr - self.lo_arr
+        return np.where(self.periodic, span / c, span / np.maximum(c - 1, 1))
 
     def port(self, theta: np.ndarray) -> np.ndarray:
-        return np.asarray(self.base_port) + theta[..., :2]
+        return np.asarray(self.base_port) + theta[..., :self.dim]
 
     def noise_corners(self) -> np.ndarray:
         """Sensor-noise vectors (c, 6) at the corners of the noise box: [pw(2), pt(2), th_w, th_t]."""
@@ -70,5 +118,3 @@ class ErrorSet:
             return np.zeros((1, 6))
         axes = [(-pos, pos) if pos > 0 else (0.0,)] * 4 + [(-ang, ang) if ang > 0 else (0.0,)] * 2
         return np.array(list(itertools.product(*axes)), float)
-
-

@@ -3,30 +3,48 @@ and the grid's construction."""
 from __future__ import annotations
 
 import json
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import ErrplanError
-from ..kinematics.shaft import flexed_tip
 
 
 # ----------------------------------------------------------------------------- field object
+METRIC_NAMES = ("G_norm", "phi_hat_max", "phi_max", "rho_star", "k_star")
+
+
 @dataclass
 class MetricField:
-    """Worst-case metric arrays on a regular ``(y, z)`` grid; NaN outside the workspace."""
+    """Worst-case metric arrays on a regular grid of tips; NaN outside the workspace.
+
+    Planar: axes ``y, z`` and arrays (ny, nz). Spatial: axes ``x, y, z`` and arrays (nx, ny, nz)
+    (``x`` is None in the plane). A metric not computed (``--metrics``) is None.
+    """
 
     y: np.ndarray
     z: np.ndarray
     valid: np.ndarray
-    G_norm: np.ndarray
-    phi_hat_max: np.ndarray
-    phi_max: np.ndarray
+    G_norm: np.ndarray | None
+    phi_hat_max: np.ndarray | None
+    phi_max: np.ndarray | None
     rho_star: np.ndarray | None = None
     k_star: np.ndarray | None = None
     meta: dict = field(default_factory=dict)
+    x: np.ndarray | None = None
+
+    @property
+    def dim(self) -> int:
+        return 2 if self.x is None else 3
+
+    @property
+    def axis_names(self) -> tuple[str, ...]:
+        return ("y", "z") if self.x is None else ("x", "y", "z")
+
+    @property
+    def axes(self) -> tuple[np.ndarray, ...]:
+        return tuple(getattr(self, a) for a in self.axis_names)
 
     @property
     def resolution(self) -> float:
@@ -37,40 +55,52 @@ class MetricField:
     def array(self, name: str) -> np.ndarray:
         a = getattr(self, name, None)
         if a is None:
-            raise ErrplanError(f"field {name!r} was not computed (use --rho-star or compute_fields(rho_star=True))")
+            raise ErrplanError(f"field {name!r} was not computed (use --rho-star, --metrics or "
+                               "compute_fields(rho_star=True))")
         return a
 
     def points(self) -> np.ndarray:
-        """Tip positions (ny, nz, 2) of the grid."""
-        return np.stack(np.meshgrid(self.y, self.z, indexing="ij"), axis=-1)
+        """Tip positions (*shape, d) of the grid."""
+        return np.stack(np.meshgrid(*self.axes, indexing="ij"), axis=-1)
 
     def sample(self, name: str, pts: np.ndarray) -> np.ndarray:
-        """Bilinear interpolation of a field at points (..., 2); NaN where a corner is invalid."""
+        """Multilinear (bi- or trilinear) interpolation of a field at points (..., d); NaN where a
+        corner is invalid or the point is off the grid."""
         a = self.array(name)
         pts = np.asarray(pts, float)
-        fy = (pts[..., 0] - self.y[0]) / self.resolution
-        fz = (pts[..., 1] - self.z[0]) / self.resolution
-        i0 = np.floor(fy).astype(int)
-        j0 = np.floor(fz).astype(int)
-        inside = (i0 >= 0) & (j0 >= 0) & (i0 < len(self.y) - 1) & (j0 < len(self.z) - 1)
-        i0c = np.clip(i0, 0, len(self.y) - 2)
-        j0c = np.clip(j0, 0, len(self.z) - 2)
-        ty, tz = fy - i0c, fz - j0c
-        v = ((1 - ty) * (1 - tz) * a[i0c, j0c] + ty * (1 - tz) * a[i0c + 1, j0c]
-             + (1 - ty) * tz * a[i0c, j0c + 1] + ty * tz * a[i0c + 1, j0c + 1])
+        axes = self.axes
+        i0s, ts = [], []
+        inside = np.ones(pts.shape[:-1], bool)
+        for k, ax in enumerate(axes):
+            f = (pts[..., k] - ax[0]) / self.resolution
+            i0 = np.floor(f).astype(int)
+            inside &= (i0 >= 0) & (i0 < len(ax) - 1)
+            i0 = np.clip(i0, 0, len(ax) - 2)
+            i0s.append(i0)
+            ts.append(f - i0)
+        v = np.zeros(pts.shape[:-1])
+        for corner in np.ndindex(*(2,) * len(axes)):
+            wgt = np.ones(pts.shape[:-1])
+            for k, c in enumerate(corner):
+                wgt = wgt * (ts[k] if c else 1 - ts[k])
+            v = v + wgt * a[tuple(i0 + c for i0, c in zip(i0s, corner))]
         return np.where(inside, v, np.nan)
 
     def summary(self) -> dict:
-        """Share of the workspace with ||G|| < 1 (and rho* < 1) and max/median of each field."""
+        """Share of the workspace with ||G|| < 1 (and rho* < 1) and max/median/min of each field."""
         n = int(self.valid.sum())
-        out: dict = {"grid": [len(self.y), len(self.z)], "resolution": self.resolution, "valid_points": n,
-                     "workspace_area_m2": n * self.resolution**2}
+        out: dict = {"grid": [len(a) for a in self.axes], "resolution": self.resolution, "valid_points": n}
+        if self.dim == 2:
+            out["workspace_area_m2"] = n * self.resolution**2
+        else:
+            out["workspace_volume_m3"] = n * self.resolution**3
         if n == 0:
             return out
-        out["share_G_below_1"] = float(np.mean(self.G_norm[self.valid] < 1.0))
+        if self.G_norm is not None:
+            out["share_G_below_1"] = float(np.mean(self.G_norm[self.valid] < 1.0))
         if self.rho_star is not None:
             out["share_rho_star_below_1"] = float(np.mean(self.rho_star[self.valid] < 1.0))
-        for name in ("G_norm", "phi_hat_max", "phi_max", "rho_star", "k_star"):
+        for name in METRIC_NAMES:
             a = getattr(self, name)
             if a is not None:
                 v = a[self.valid]
@@ -81,44 +111,23 @@ class MetricField:
     def save(self, path: str | Path) -> None:
         """Write the npz of docs/interfaces.md (atomically: nothing half-written)."""
         path = Path(path)
-        arrays = {"y": self.y, "z": self.z, "valid": self.valid, "G_norm": self.G_norm,
-                  "phi_hat_max": self.phi_hat_max, "phi_max": self.phi_max,
-                  "meta": np.array(json.dumps(self.meta))}
-        if self.rho_star is not None:
-            arrays["rho_star"] = self.rho_star
-            arrays["k_star"] = self.k_star
+        arrays = {a: ax for a, ax in zip(self.axis_names, self.axes)}
+        arrays["valid"] = self.valid
+        for name in METRIC_NAMES:
+            if getattr(self, name) is not None:
+                arrays[name] = getattr(self, name)
+        arrays["meta"] = np.array(json.dumps(self.meta))
         tmp = path.with_name(path.name + ".part")
-        with open(tmp, "wb") as f:
-            np.savez_compressed(f, **arrays)
-        tmp.replace(path)
+        try:
+            with open(tmp, "wb") as f:
+                np.savez_compressed(f, **arrays)
+            tmp.replace(path)
+        finally:
+            tmp.unlink(missing_ok=True)
 
     @classmethod
     def load(cls, path: str | Path) -> "MetricField":
         with np.load(path) as d:
             meta = json.loads(str(d["meta"])) if "meta" in d else {}
-            return cls(d["y"], d["z"], d["valid"].astype(bool), d["G_norm"], d["phi_hat_max"], d["phi_max"],
-                       d["rho_star"] if "rho_star" in d else None, d["k_star"] if "k_star" in d else None, meta)
-
-
-# ----------------------------------------------------------------------------- computation
-def _aligned_axis(lo: float, hi: float, res: float) -> np.ndarray:
-    i0, i1 = math.floor(lo / res), math.ceil(hi / res)
-    return np.arange(i0, i1 + 1) * res
-
-
-def workspace_bounds(ev: "Evaluator") -> tuple[float, float, float, float]:
-    """Bounding box (y0, y1, z0, z1) of tips reachable under any corner instance."""
-    w = ev.arm.sample_wrists(161)
-    tips = []
-    for th in ev.errors.corners():
-        port = ev.errors.port(th)
-        r = np.linalg.norm(port - w, axis=-1)
-        ww = w[(r < ev.length) & (r > 1e-6)]
-        if len(ww):
-            tips.append(flexed_tip(ww, port, ev.length, th[2]))
-    if not tips:
-        raise ErrplanError("the tip workspace is empty: no reachable wrist puts the shaft through the port")
-    t = np.concatenate(tips)
-    return float(t[:, 0].min()), float(t[:, 0].max()), float(t[:, 1].min()), float(t[:, 1].max())
-
-
+            get = {n: (d[n] if n in d else None) for n in METRIC_NAMES}
+            return cls(d["y"], d["z"], d["valid"].astype(bool), meta=meta, x=d["x"] if "x" in d else None, **get)

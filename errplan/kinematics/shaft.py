@@ -1,6 +1,12 @@
 """The instrument shaft: P2's rigid lever (eq. 17) and simply supported flexed beam (eqs. 1-18).
 
-Points are ``[y, z]`` (m) with shape ``(..., 2)``; ``L`` is the shaft length (wrist pivot to tip);
+Points are ``[y, z]`` (m) with shape ``(..., 2)`` in the plane and ``[x, y, z]`` with shape
+``(..., 3)`` in space (the lever functions and :func:`flexed_tip`/:func:`flexed_jacobian` take
+either). In space the load ``t`` is a world-frame vector (..., 3) of tip load over EI: its
+component normal to the wrist->port line bends the shaft in the plane of that line and the
+component, exactly as the planar beam with load ``|t_perp|`` (docs/physics.md "Flexed shaft in
+3-D"); the Jacobian holds the port and the world vector ``t`` constant (to first order the same
+as holding the lateral load constant, the planar convention). In the plane: ``L`` is the shaft length (wrist pivot to tip);
 ``t`` is the lateral tip load over flexural rigidity, ``Ft/EI`` (1/m^2), positive along the
 normal ``dir'(phi)`` of the wrist->tip chord (the side of increasing angle). Only ``t`` matters
 (docs/physics.md); ``t = 0`` is the rigid lever.
@@ -23,7 +29,9 @@ _NEWTON_ITERS = 8
 
 
 def _norm(v: np.ndarray) -> np.ndarray:
-    return np.sqrt(v[..., 0] ** 2 + v[..., 1] ** 2)
+    if v.shape[-1] == 2:
+        return np.sqrt(v[..., 0] ** 2 + v[..., 1] ** 2)
+    return np.sqrt(np.sum(v * v, axis=-1))
 
 
 def _outer(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -48,6 +56,8 @@ def lever_jacobian(w: np.ndarray, p: np.ndarray, L: float) -> np.ndarray:
     d = p - w
     rho = _norm(d)
     u = d / rho[..., None]
+    if d.shape[-1] == 3:  # I - (L/rho)(I - u u^T) (docs/physics.md "Lever in 3-D")
+        return np.eye(3) - (L / rho)[..., None, None] * (np.eye(3) - _outer(u, u))
     n = np.stack([u[..., 1], -u[..., 0]], axis=-1)
     return _outer(u, u) + (1.0 - L / rho)[..., None, None] * _outer(n, n)
 
@@ -119,8 +129,55 @@ def flexed_geometry(w: np.ndarray, p: np.ndarray, L: float, t) -> dict[str, np.n
 
 
 def flexed_tip(w: np.ndarray, p: np.ndarray, L: float, t) -> np.ndarray:
-    """Tip of the flexed shaft (P2 eqs. 6, 7, 10, 18)."""
+    """Tip of the flexed shaft (P2 eqs. 6, 7, 10, 18); in space ``t`` is the world load vector."""
+    if np.shape(w)[-1] == 3:
+        return _spatial_geometry(w, p, L, t)["tip"]
     return flexed_geometry(w, p, L, t)["tip"]
+
+
+def _spatial_geometry(w, p, L: float, t) -> dict[str, np.ndarray]:
+    """The 3-D flexed shaft: wrist->port unit ``u``, bending normal ``n``, lateral load ``tau``,
+    port position ``a`` along the chord, chord angle ``beta`` from ``u`` toward ``n``, ``tip``."""
+    w, p = np.asarray(w, float), np.asarray(p, float)
+    t = np.broadcast_to(np.asarray(t, float), np.broadcast_shapes(w.shape, p.shape))
+    d = p - w
+    rho = _norm(d)
+    u = d / rho[..., None]
+    tp = t - np.sum(t * u, axis=-1, keepdims=True) * u
+    tau = _norm(tp)
+    bent = tau > 0
+    n = np.where(bent[..., None], tp / np.where(bent, tau, 1.0)[..., None], 0.0)
+    a = np.where(bent, _solve_a(rho, L, np.where(bent, tau, 0.0)), rho)
+    b = L - a
+    beta = np.arctan(tau * b * b / 3.0)
+    chord = np.cos(beta)[..., None] * u + np.sin(beta)[..., None] * n
+    return {"rho": rho, "u": u, "n": n, "tau": tau, "a": a, "b": b, "beta": beta, "tip": w + L * chord}
+
+
+def flexed_wrist_plane(x: np.ndarray, p: np.ndarray, L: float, tau, e2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """3-D wrist putting the tip at ``x`` through port ``p`` with a lateral load of magnitude ``tau``
+    bending the shaft in the plane of the port->tip line and the unit vector ``e2`` normal to it.
+
+    Returns ``(w, t)``: the wrist and the world load vector ``t`` (normal to the wrist->port line,
+    ``|t| = tau``) that reproduce ``x`` through :func:`flexed_tip`. The field kernels parametrize the
+    load direction by the angle of ``e2`` around the port->tip line.
+    """
+    x, p = np.asarray(x, float), np.asarray(p, float)
+    e2 = np.asarray(e2, float)
+    tau = np.asarray(tau, float)
+    e = x - p
+    r = _norm(e)
+    e1 = e / r[..., None]
+    b = _solve_b(r, L, tau)
+    a = L - b
+    al = np.arctan(tau * a * b / 3.0)
+    chord = np.cos(al)[..., None] * e1 - np.sin(al)[..., None] * e2
+    w = x - L * chord
+    u = (p - w) / _norm(p - w)[..., None]
+    nt = chord - np.sum(chord * u, axis=-1, keepdims=True) * u
+    nn = _norm(nt)
+    t = np.where((nn > 0)[..., None], tau[..., None] * nt / np.where(nn > 0, nn, 1.0)[..., None], 0.0)
+    return w, t
 
 
 def flexed_jacobian(w: np.ndarray, p: np.ndarray, L: float, t) -> np.ndarray:
@@ -128,7 +185,13 @@ def flexed_jacobian(w: np.ndarray, p: np.ndarray, L: float, t) -> np.ndarray:
 
     ``J = I + L n_phi (d phi / d w)^T`` with ``d phi/d w = -n_theta/rho - beta'(a) a'(rho) u_theta``,
     ``beta = atan(t b^2/3)``. Equals :func:`lever_jacobian` at ``t = 0``.
+
+    In space (``w`` (..., 3), ``t`` the world load vector): ``J = I + L d chord / d w`` with
+    ``chord = cos(beta) u + sin(beta) n`` differentiated through ``u(w)``, ``n(w)`` (the normal part
+    of the constant world ``t``), ``rho(w)`` and ``tau(w)`` (implicit in P2 eq. 18 for ``a``).
     """
+    if np.shape(w)[-1] == 3:
+        return _spatial_jacobian(w, p, L, t)
     g = flexed_geometry(w, p, L, t)
     t = np.asarray(t, float)
     rho, a, b = g["rho"], g["a"], g["b"]
@@ -143,6 +206,32 @@ def flexed_jacobian(w: np.ndarray, p: np.ndarray, L: float, t) -> np.ndarray:
     grad_phi = -n / rho[..., None] - (beta_p * a_p)[..., None] * u
     eye = np.broadcast_to(np.eye(2), grad_phi.shape[:-1] + (2, 2))
     return eye + L * _outer(n_phi, grad_phi)
+
+
+def _spatial_jacobian(w, p, L: float, t) -> np.ndarray:
+    g = _spatial_geometry(w, p, L, t)
+    t = np.broadcast_to(np.asarray(t, float), g["tip"].shape)
+    u, n, rho, tau, a, b, beta = g["u"], g["n"], g["rho"], g["tau"], g["a"], g["b"], g["beta"]
+    eye = np.eye(3)
+    Du = -(eye - _outer(u, u)) / rho[..., None, None]
+    ut = np.sum(u * t, axis=-1)
+    tDu = np.einsum("...i,...ij->...j", t, Du)
+    Dtp = -ut[..., None, None] * Du - _outer(u, tDu)
+    dtau = np.einsum("...i,...ij->...j", n, Dtp)
+    safe = np.where(tau > 0, tau, 1.0)
+    Dn = (Dtp - _outer(n, dtau)) / safe[..., None, None]
+    s = tau * b * b / 3.0
+    gg = 1.0 + s * s
+    dgg = -(4.0 * tau * b / 3.0) * s
+    Fa = 2.0 * a * gg + a * a * dgg
+    a_rho = 2.0 * rho / Fa
+    a_tau = -(a * a * 2.0 * s * b * b / 3.0) / Fa
+    beta_a = -(2.0 * tau * b / 3.0) / gg
+    beta_tau = (b * b / 3.0) / gg + beta_a * a_tau
+    dbeta = (beta_a * a_rho)[..., None] * (-u) + beta_tau[..., None] * dtau
+    cb, sb = np.cos(beta)[..., None], np.sin(beta)[..., None]
+    v = -sb * u + cb * n
+    return eye + L * (_outer(v, dbeta) + cb[..., None] * Du + sb[..., None] * Dn)
 
 
 def flexed_wrist(x: np.ndarray, p: np.ndarray, L: float, t) -> np.ndarray:
