@@ -84,7 +84,7 @@ def _map_dask(fn, shared, items, scheduler: str, progress) -> list:
     except ImportError as e:  # pragma: no cover - a dependency
         raise ErrplanError(f"--scheduler {scheduler}: dask.distributed is not installed ({e})") from None
     try:
-        client = Client(scheduler, timeout="10s", set_as_default=False)
+        client = Client(scheduler, timeout="5s")
     except (OSError, TimeoutError, ValueError) as e:
         raise ErrplanError(f"--scheduler {scheduler}: cannot reach a dask scheduler there ({e})") from None
     try:
@@ -92,8 +92,8 @@ def _map_dask(fn, shared, items, scheduler: str, progress) -> list:
         futs = [client.submit(_run_remote, fn, shared_f, it, pure=False) for it in items]
         index = {f.key: i for i, f in enumerate(futs)}
         out: list = [None] * len(items)
-        for done, fut in enumerate(as_completed(futs), 1):
-            out[index[fut.key]] = fut.result()
+        for done, (fut, res) in enumerate(as_completed(futs, with_results=True), 1):
+            out[index[fut.key]] = res
             if progress:
                 progress(done, len(items))
         return out
