@@ -16,7 +16,9 @@ def test_port_offset_effect_equals_moving_the_true_port():
     a = compute_fields(SC.with_(effects={"port_offset": {"dy": 0.003, "dz": -0.002}}), 0.004)
     b = compute_fields(SC.with_(port=dataclasses.replace(SC.port, position=(0.003, 0.158))), 0.004)
     assert np.array_equal(a.valid, b.valid)
-    assert np.nanmax(np.abs(a.G_norm - b.G_norm)) < 1e-12
+    # The rigid controller runs the compiled kernel, the flexion controller the numpy search: equal to
+    # rounding, relative to max(1, ||G||) (||G|| reaches 83 near the port).
+    assert np.nanmax(np.abs(a.G_norm - b.G_norm) / np.maximum(1.0, np.abs(b.G_norm))) < 1e-13
 
 
 def test_general_effect_path_reproduces_the_closed_form_without_effects():
@@ -64,7 +66,9 @@ def test_flexion_controller_on_an_unbent_shaft_falls_back_to_the_lever():
     flex = SC.with_(controller=dataclasses.replace(SC.controller, jacobian="flexion"))
     a, b = compute_fields(flex, 0.008), compute_fields(SC, 0.008)
     assert np.array_equal(a.valid, b.valid) and a.valid.any()
-    assert np.nanmax(np.abs(a.G_norm - b.G_norm)) < 1e-12
+    # The rigid controller runs the compiled kernel, the flexion controller the numpy search: equal to
+    # rounding, relative to max(1, ||G||) (||G|| reaches 83 near the port).
+    assert np.nanmax(np.abs(a.G_norm - b.G_norm) / np.maximum(1.0, np.abs(b.G_norm))) < 1e-13
     plant = Plant.from_scenario(SC)
     q = plant.configuration_for_tip(np.array([0.0, 0.375]))
     J_flex = ControllerModel.from_scenario(flex).J_hat(q, plant)
