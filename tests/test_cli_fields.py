@@ -122,3 +122,45 @@ def test_scenario_resolution_is_the_default(tmp_path, capsys):
     assert MetricField.load(out).resolution == 0.025
     doc = make_scenario_dict()
     assert doc["fields"]["resolution"] == 0.01  # the factory was not mutated
+
+
+# ----------------------------------------------------------------------------- spatial
+def test_spatial_fields_command_writes_3d_npz(tmp_path, capsys):
+    out = tmp_path / "s.npz"
+    js = tmp_path / "s.json"
+    rc = main(["-q", "fields", str(SCENARIOS / "phantom15_spatial.toml"), "--out", str(out), "--resolution", "0.03",
+               "--metrics", "G_norm,rho_star", "--workers", "1", "--json", str(js)])
+    assert rc == 0
+    text = capsys.readouterr().out
+    with np.load(out) as d:
+        assert {"x", "y", "z", "valid", "G_norm", "rho_star", "k_star"} <= set(d.files)
+        assert "phi_max" not in d.files and "phi_hat_max" not in d.files
+        assert d["valid"].shape == (len(d["x"]), len(d["y"]), len(d["z"]))
+        assert d["G_norm"].shape == d["valid"].shape
+        assert np.all(np.isnan(d["G_norm"][~d["valid"]])) and np.all(np.isfinite(d["G_norm"][d["valid"]]))
+        # the region of the scenario: x in [-0.12, 0.12] on multiples of 0.03
+        np.testing.assert_allclose(d["x"], np.arange(-4, 5) * 0.03)
+    mf = MetricField.load(out)
+    assert mf.dim == 3 and mf.phi_max is None
+    assert np.all(mf.rho_star[mf.valid] <= mf.G_norm[mf.valid] + 1e-12)  # rho* never above ||G|| at k
+    assert "G_norm" in text and "rho_star" in text and "cm^3" in text and "phi_max" not in text
+    assert json.loads(js.read_text())["summary"]["grid"] == list(mf.valid.shape)
+
+
+def test_metrics_option_rejects_unknown_names(tmp_path, capsys):
+    out = tmp_path / "x.npz"
+    rc = main(["-q", "fields", str(SCENARIOS / "beasley2004_port.toml"), "--out", str(out), "--metrics", "G_norm,foo"])
+    assert rc == 2 and not out.exists()
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--metrics" in err[0] and "foo" in err[0]
+
+
+def test_planar_region_limits_the_grid(tmp_path):
+    d = make_scenario_dict()
+    d["fields"] = {"resolution": 0.01, "region": {"y": [-0.05, 0.05], "z": [0.30, 0.40]}}
+    path = write_scenario(tmp_path, d)
+    out = tmp_path / "r.npz"
+    assert main(["-q", "fields", str(path), "--out", str(out)]) == 0
+    mf = MetricField.load(out)
+    np.testing.assert_allclose(mf.y, np.arange(-5, 6) * 0.01, atol=1e-12)
+    np.testing.assert_allclose(mf.z, np.arange(30, 41) * 0.01, atol=1e-12)

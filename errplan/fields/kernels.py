@@ -193,10 +193,12 @@ def _flexed_J3(w, p, L, tvec, a, J, S):
 
 # ----------------------------------------------------------------------------- one instance
 @njit(cache=True, error_model="numpy")
-def instance(x, theta, base_port, est, L, arm, chain, rmap, M, S, V):
+def instance(x, theta, base_port, est, L, arm, chain, rmap, M, S, V, reach_known=False):
     """``M = J Jhat^-1`` (d x d, into ``M``) of one error instance at tip ``x``; False where the
     instance cannot reach the tip (shaft not through the port, wrist unreachable) or the
-    controller's Jacobian is singular there. ``S`` (8, 3, 3) and ``V`` (8, 3) are scratch."""
+    controller's Jacobian is singular there. ``S`` (8, 3, 3) and ``V`` (8, 3) are scratch.
+    ``reach_known``: the caller has certified that every wrist of the error set is reachable
+    (:func:`_tip_reach`), so the per-instance check is skipped (3-D)."""
     d = x.shape[0]
     p = V[0]
     e = V[1]
@@ -259,51 +261,78 @@ def instance(x, theta, base_port, est, L, arm, chain, rmap, M, S, V):
         return True
     # d == 3
     tau = theta[3]
-    tvec = V[3]
     if tau == 0.0:
+        # Straight shaft (docs/physics.md "Lever in 3-D"): J = I - s P, P = I - u u^T, u = e / r and
+        # s = L / (L - r) on the line; Jhat = I - sh Ph through the estimate, so
+        # Jhat^-1 = I + c Ph with c = sh / (1 - sh) (P is a projector): no inversion.
         for i in range(3):
             w[i] = x[i] - L * e[i] / r
-            tvec[i] = 0.0
-        a = 0.0
-    else:
-        # The bending plane holds the port->tip line e1 and e2(psi); in it the planar beam with load
-        # tau (docs/physics.md): chord c = cos(alpha) e1 - sin(alpha) e2, wrist w = x - L c.
-        e1 = V[4]
-        f1 = V[5]
-        f2 = V[6]
+        if not reach_known and not reach_point(chain, rmap, w[0], w[1], w[2]):
+            return False
+        u0, u1, u2 = e[0] / r, e[1] / r, e[2] / r
+        s_ = L / (L - r)
+        d0, d1, d2 = est[0] - w[0], est[1] - w[1], est[2] - w[2]
+        rho = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        sh = L / rho
+        # det(Jhat) = (1 - sh)^2: singular relative to its scale ||Jhat||_F^3 ~ (1 + 2 (1 - sh)^2)^1.5
+        one = 1.0 - sh
+        if not one * one > RCOND * (1.0 + 2.0 * one * one) ** 1.5:
+            return False
+        c = sh / one
+        u = V[3]
+        v = V[4]
+        u[0], u[1], u[2] = u0, u1, u2
+        v[0], v[1], v[2] = d0 / rho, d1 / rho, d2 / rho
+        P = S[5]
+        Ph = S[6]
         for i in range(3):
-            e1[i] = e[i] / r
-        _perp_basis(e1, f1, f2)
-        cp, sp = math.cos(theta[4]), math.sin(theta[4])
-        b = _solve_b(r, L, tau)
-        a = L - b
-        al = math.atan(tau * a * b / 3.0)
-        ca, sa = math.cos(al), math.sin(al)
+            for j in range(3):
+                dij = 1.0 if i == j else 0.0
+                P[i, j] = dij - u[i] * u[j]
+                Ph[i, j] = dij - v[i] * v[j]
+        # M = (I - s P)(I + c Ph) = I + c Ph - s P - s c P Ph
+        sc = s_ * c
         for i in range(3):
-            e2 = cp * f1[i] + sp * f2[i]
-            w[i] = x[i] - L * (ca * e1[i] - sa * e2)
-        # world load: tau along the normal of the wrist->port line toward the chord
-        rho = 0.0
-        for i in range(3):
-            rho += (p[i] - w[i]) ** 2
-        rho = math.sqrt(rho)
-        cu = 0.0
-        for i in range(3):
-            cu += (ca * e1[i] - sa * (cp * f1[i] + sp * f2[i])) * (p[i] - w[i]) / rho
-        nn = 0.0
-        for i in range(3):
-            ci = ca * e1[i] - sa * (cp * f1[i] + sp * f2[i])
-            tvec[i] = ci - cu * (p[i] - w[i]) / rho
-            nn += tvec[i] * tvec[i]
-        nn = math.sqrt(nn)
-        for i in range(3):
-            tvec[i] = tau * tvec[i] / nn
-    if not reach_point(chain, rmap, w[0], w[1], w[2]):
+            for j in range(3):
+                dij = 1.0 if i == j else 0.0
+                M[i, j] = (dij + c * Ph[i, j] - s_ * P[i, j]
+                           - sc * (P[i, 0] * Ph[0, j] + P[i, 1] * Ph[1, j] + P[i, 2] * Ph[2, j]))
+        return True
+    # A lateral load: the bending plane holds the port->tip line e1 and e2(psi); in it the planar
+    # beam with load tau (docs/physics.md): chord c = cos(alpha) e1 - sin(alpha) e2, wrist x - L c.
+    tvec = V[3]
+    e1 = V[4]
+    f1 = V[5]
+    f2 = V[6]
+    for i in range(3):
+        e1[i] = e[i] / r
+    _perp_basis(e1, f1, f2)
+    cp, sp = math.cos(theta[4]), math.sin(theta[4])
+    b = _solve_b(r, L, tau)
+    a = L - b
+    al = math.atan(tau * a * b / 3.0)
+    ca, sa = math.cos(al), math.sin(al)
+    for i in range(3):
+        w[i] = x[i] - L * (ca * e1[i] - sa * (cp * f1[i] + sp * f2[i]))
+    if not reach_known and not reach_point(chain, rmap, w[0], w[1], w[2]):
         return False
-    if tau == 0.0:
-        _lever_J(w, p, L, J)
-    else:
-        _flexed_J3(w, p, L, tvec, a, J, S)
+    # world load: tau along the normal of the wrist->port line toward the chord
+    rho = 0.0
+    for i in range(3):
+        rho += (p[i] - w[i]) ** 2
+    rho = math.sqrt(rho)
+    cu = 0.0
+    for i in range(3):
+        cu += (ca * e1[i] - sa * (cp * f1[i] + sp * f2[i])) * (p[i] - w[i]) / rho
+    nn = 0.0
+    for i in range(3):
+        ci = ca * e1[i] - sa * (cp * f1[i] + sp * f2[i])
+        tvec[i] = ci - cu * (p[i] - w[i]) / rho
+        nn += tvec[i] * tvec[i]
+    nn = math.sqrt(nn)
+    for i in range(3):
+        tvec[i] = tau * tvec[i] / nn
+    _flexed_J3(w, p, L, tvec, a, J, S)
     _lever_J(w, est, L, Jh)
     Jinv = S[4]
     det = inv3(Jh, Jinv)
@@ -320,6 +349,59 @@ def instance(x, theta, base_port, est, L, arm, chain, rmap, M, S, V):
                 acc += J[i, l] * Jinv[l, j]
             M[i, j] = acc
     return True
+
+
+@njit(cache=True, error_model="numpy")
+def _tip_reach(x, base_port, lo, hi, L, rmap):
+    """Reachability of every wrist the error set can need at tip ``x`` (3-D), from the map alone:
+    1 all certified in, 0 all out (or off the map), 2 unknown (check instance by instance).
+
+    Over the port box (centre ``pc``, half-diagonal ``delta``) the lever wrist
+    ``w(p) = x - L (x - p)/|x - p|`` moves by at most ``(L / r_min) delta`` (its Jacobian in p has
+    norm L/r), ``r_min = |x - pc| - delta``; a lateral load moves it off the lever wrist by at most
+    ``L * atan(tau_max L^2 / 12)`` (the chord turns by ``atan(tau a b / 3)``, ``a b <= L^2 / 4``).
+    """
+    pc0 = base_port[0] + 0.5 * (lo[0] + hi[0])
+    pc1 = base_port[1] + 0.5 * (lo[1] + hi[1])
+    pc2 = base_port[2] + 0.5 * (lo[2] + hi[2])
+    delta = 0.5 * math.sqrt((hi[0] - lo[0]) ** 2 + (hi[1] - lo[1]) ** 2 + (hi[2] - lo[2]) ** 2)
+    e0, e1, e2 = x[0] - pc0, x[1] - pc1, x[2] - pc2
+    r = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
+    rmin = r - delta
+    if not (rmin > 0.0 and r < L):
+        return 2
+    R = L / rmin * delta + L * math.atan(max(abs(lo[3]), abs(hi[3])) * L * L / 12.0) + 1e-9
+    w0, w1, w2 = x[0] - L * e0 / r, x[1] - L * e1 / r, x[2] - L * e2 / r
+    h = rmap.h
+    ilo = np.empty(3, np.int64)
+    ihi = np.empty(3, np.int64)
+    wc = (w0, w1, w2)
+    n = 1
+    for a in range(3):
+        ilo[a] = int(math.floor((wc[a] - R - rmap.origin[a]) / h))
+        ihi[a] = int(math.floor((wc[a] + R - rmap.origin[a]) / h))
+        if ihi[a] < 0 or ilo[a] >= rmap.shape[a]:
+            return 0  # the whole ball lies off the map: nothing there is reachable
+        if ilo[a] < 0 or ihi[a] >= rmap.shape[a]:
+            return 2
+        n *= ihi[a] - ilo[a] + 1
+    if n > 4096:
+        return 2
+    seen_in = False
+    seen_out = False
+    for i in range(ilo[0], ihi[0] + 1):
+        for j in range(ilo[1], ihi[1] + 1):
+            for k in range(ilo[2], ihi[2] + 1):
+                st = rmap.state[i, j, k]
+                if st == 1:
+                    seen_in = True
+                elif st == 0:
+                    seen_out = True
+                else:
+                    return 2
+                if seen_in and seen_out:
+                    return 2
+    return 1 if seen_in else 0
 
 
 # ----------------------------------------------------------------------------- metrics of M
@@ -446,7 +528,7 @@ def _peak_raise(vals, j, counts, periodic, na):
 
 @njit(cache=True, error_model="numpy")
 def _pattern(which, k, x, th, best, step0, lo, hi, active, periodic, refine, extra, base_port, est, L, arm,
-             chain, rmap, M, S, V, cand):
+             chain, rmap, M, S, V, cand, known):
     """Coordinate pattern search for the maximum of metric ``which`` (0: ||G|| at gain k, 1: |phi_max|)
     from ``th`` (updated in place) with value ``best``. Returns ``(best, ok)``; ``ok`` is False as
     soon as a polled instance cannot reach the tip (robust validity)."""
@@ -469,7 +551,7 @@ def _pattern(which, k, x, th, best, step0, lo, hi, active, periodic, refine, ext
                         if v == th[ax]:
                             continue  # clipped back onto the centre: a worst case on the box face
                     cand[ax] = v
-                    if not instance(x, cand, base_port, est, L, arm, chain, rmap, M, S, V):
+                    if not instance(x, cand, base_port, est, L, arm, chain, rmap, M, S, V, known):
                         return best, False
                     f = _poll_value(which, M, k)
                     if f > best:
@@ -543,8 +625,13 @@ def worst_case_tile(X, grid, counts, active, periodic, lo, hi, step0, base_port,
     for ii in range(n):
         x = X[ii]
         ok = True
-        for j in range(m):
-            if not instance(x, grid[j], base_port, est, L, arm, chain, rmap, Ms[j], S, V):
+        known = False
+        if d == 3:
+            tr = _tip_reach(x, base_port, lo, hi, L, rmap)
+            ok = tr != 0
+            known = tr == 1
+        for j in range(m if ok else 0):
+            if not instance(x, grid[j], base_port, est, L, arm, chain, rmap, Ms[j], S, V, known):
                 ok = False
                 break
             vals_g[j] = gnorm(Ms[j], k)
@@ -582,7 +669,7 @@ def worst_case_tile(X, grid, counts, active, periodic, lo, hi, step0, base_port,
                 for i in range(na):
                     th[i] = grid[start, i]
                 b, ok = _pattern(which, k, x, th, vals[start], step0, lo, hi, active, periodic, refine, extra,
-                                 base_port, est, L, arm, chain, rmap, M, S, V, cand)
+                                 base_port, est, L, arm, chain, rmap, M, S, V, cand, known)
                 if not ok:
                     break
                 best_all = max(best_all, b)
@@ -612,7 +699,7 @@ def worst_case_tile(X, grid, counts, active, periodic, lo, hi, step0, base_port,
                 for i in range(na):
                     th[i] = grid[jbest, i]
                 ref, ok = _pattern(0, ks, x, th, vbest, step0, lo, hi, active, periodic, refine, extra,
-                                   base_port, est, L, arm, chain, rmap, M, S, V, cand)
+                                   base_port, est, L, arm, chain, rmap, M, S, V, cand, known)
                 rs = max(rs, ref) if ok else 1.0
             else:
                 rs = 1.0
