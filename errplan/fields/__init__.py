@@ -20,7 +20,7 @@ only if it is reachable under every instance evaluated (robust validity).
 """
 from __future__ import annotations
 
-from .compute import ALL_METRICS, DEFAULT_METRICS, compute_fields, error_set, parse_metrics, tip_grid, workspace_bounds
+from .compute import ALL_METRICS, DEFAULT_METRICS, KernelEvaluator, compute_fields, error_set, parse_metrics, tip_grid, workspace_bounds
 from .errorset import ErrorSet
 from .evaluator import EFFECT_NEWTON_ITERS, JACOBIAN_EFFECTS, Evaluator
 from .grid import METRIC_NAMES, MetricField
@@ -29,4 +29,4 @@ from .search import EXTRA_PASSES, REFINE_LEVELS, SECOND_START, Progress, minimiz
 __all__ = ["ErrorSet", "Evaluator", "MetricField", "compute_fields", "minimize_gain", "worst_case",
            "workspace_bounds", "REFINE_LEVELS", "EXTRA_PASSES", "SECOND_START", "EFFECT_NEWTON_ITERS",
            "JACOBIAN_EFFECTS", "Progress", "ALL_METRICS", "DEFAULT_METRICS", "METRIC_NAMES", "error_set",
-           "parse_metrics", "tip_grid"]
+           "parse_metrics", "tip_grid", "KernelEvaluator"]

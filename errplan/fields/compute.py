@@ -199,6 +199,47 @@ def _kernel_args(sc, es: ErrorSet, samples: int | None) -> dict[str, Any]:
             "chain": chain, "rmap": rmap}
 
 
+class KernelEvaluator:
+    """The compiled physics of one error instance, batched (planar and spatial, rigid controller,
+    no effect that moves the arm): ``M = J Jhat^-1`` and validity for (tip, instance) pairs, and the
+    worst case over the error set at any tips. The d-generic evaluator of gains and tolerances."""
+
+    def __init__(self, sc, samples: int | None = None):
+        self.scenario = sc
+        self.errors, effects = error_set(sc)
+        if sc.controller.jacobian != "rigid" or effects:
+            raise ErrplanError(f"{sc.source}: the compiled evaluator covers the rigid controller without "
+                               f"[effects] that move the arm (has {sc.controller.jacobian!r}, {sorted(effects)})")
+        self.dim = sc.dim
+        self.length = float(sc.instrument.length)
+        self.estimate = tuple(sc.port.estimate)
+        self._args = _kernel_args(sc, self.errors, samples)
+
+    def motion_maps(self, x: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(M, ok)`` for tips ``x`` (..., d) under instances ``theta`` (..., na), broadcast together;
+        ``M`` (..., d, d) is NaN where ``ok`` is False (unreachable, shaft not through the port,
+        singular controller Jacobian)."""
+        from .kernels import motion_maps
+
+        x = np.asarray(x, float)
+        theta = np.asarray(theta, float)
+        shape = np.broadcast_shapes(x.shape[:-1], theta.shape[:-1])
+        X = np.ascontiguousarray(np.broadcast_to(x, shape + x.shape[-1:]).reshape(-1, self.dim))
+        TH = np.ascontiguousarray(np.broadcast_to(theta, shape + theta.shape[-1:]).reshape(-1, theta.shape[-1]))
+        M = np.empty((len(X), self.dim, self.dim))
+        ok = np.empty(len(X), bool)
+        a = self._args
+        motion_maps(X, TH, a["base_port"], a["est"], a["L"], a["arm"], a["chain"], a["rmap"], M, ok)
+        return M.reshape(shape + (self.dim, self.dim)), ok.reshape(shape)
+
+    def worst_case(self, x: np.ndarray, k: float, *, phi: bool = True, rho: bool = False,
+                   refine: int = REFINE_LEVELS, samples: int | None = None) -> dict[str, np.ndarray]:
+        """Worst case at tips ``x`` (n, d): ``valid``, ``G_norm`` (gain k), ``phi_max``, ``rho_star``, ``k_star``."""
+        args = self._args if samples is None else _kernel_args(self.scenario, self.errors, samples)
+        job = FieldJob(np.asarray(x, float).reshape(-1, self.dim), float(k), phi, rho, refine, samples, args)
+        return run_tile(job, (0, len(job.X)))
+
+
 def error_set(sc) -> tuple[ErrorSet, dict]:
     """The scenario's error set with a ``port_offset`` effect folded into the true port, and the
     remaining effects that change the true Jacobian (Plant keyword arguments)."""

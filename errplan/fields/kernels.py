@@ -712,3 +712,19 @@ def worst_case_tile(X, grid, counts, active, periodic, lo, hi, step0, base_port,
         else:
             out_rho[ii] = np.nan
             out_k[ii] = np.nan
+
+
+@njit(cache=True, error_model="numpy")
+def motion_maps(X, TH, base_port, est, L, arm, chain, rmap, out_M, out_ok):
+    """``M = J Jhat^-1`` (into ``out_M`` (n, d, d)) and validity (``out_ok`` (n,)) of instance
+    ``TH[i]`` at tip ``X[i]``; invalid rows of ``out_M`` are NaN."""
+    d = X.shape[1]
+    S = np.zeros((8, 3, 3))
+    V = np.zeros((8, 3))
+    for i in range(X.shape[0]):
+        ok = instance(X[i], TH[i], base_port, est, L, arm, chain, rmap, out_M[i], S, V, False)
+        out_ok[i] = ok
+        if not ok:
+            for a in range(d):
+                for b in range(d):
+                    out_M[i, a, b] = np.nan
