@@ -5,7 +5,10 @@ Pipeline (:func:`calibrate`):
 1. **Replay with the declared model.** The declared model is the scenario's truth as it stands
    (arm, shaft, ``port.position``, the tip load of its error set closest to 0 — P2's scenarios
    fix one — and any ``[effects]`` it already declares). *Pose residual*: tracked
-   tip minus the model's tracked tip at the encoder angles, every row at once. *Trajectory
+   tip minus the model's tracked tip at the encoder angles, every row at once; port friction's
+   direction ``u`` for row t+1 is the motion the command of step t produced under the declared
+   model, ``x_model(q(t+1)) - x_model(q(t))`` from two consecutive encoder rows of the run
+   (:func:`motion_model`, :meth:`MeasuredData.commanded_directions`; docs/physics.md). *Trajectory
    residual*: the controller (:class:`errplan.simulation.ControllerModel`, at each run's gain)
    re-simulated noise-free on the model from each run's first encoder reading, step for step
    against the measured tracked tips, all runs batched. ``trajectory_rms_*`` covers each run's
@@ -17,8 +20,8 @@ Pipeline (:func:`calibrate`):
 2. **Noise floor** (:func:`noise_floor`): the pose residual is fitted by a flexible smooth model
    — on compact clusters of rows (k-means of the model tip positions, 60-240 rows each) a
    quadratic or cubic Legendre polynomial (cluster size and degree by AIC) in the local tip
-   position times ``[1, u_y, u_z]`` (``u`` the commanded
-   direction, so anything linear in the motion direction, like port friction, is smooth too) —
+   position times ``[1, u_y, u_z]`` (``u`` friction's direction, so anything linear in the motion
+   direction, like port friction, is smooth too) —
    and the noise floor is the degrees-of-freedom corrected RMS of what is left,
    ``sqrt(RSS / (2n - 2m))``. Every effect of the catalogue and the usual unmodelled ones (link
    lengths, scale errors) are smooth in the configuration, so what the local polynomials cannot
@@ -85,6 +88,36 @@ def check_against_model(data: MeasuredData, plant, what: str = "the declared mod
                         f"where {what} cannot hold the shaft through the port at "
                         f"{np.round(plant.true_port, 4).tolist()} or is outside the joint limits "
                         f"(is the data from this scenario?)")
+    # every effect of the catalogue moves the tip by mm to cm; a tracked tip farther from the
+    # model's tip than the whole shaft, or a target outside anything the tip can reach, is not
+    # measured data of this scenario (and would only overflow the fits)
+    L = float(plant.length)
+    with np.errstate(all="ignore"):
+        model_tip = plant.tip(data.q)
+        off = np.linalg.norm(data.tip - model_tip, axis=-1)
+    bad = np.flatnonzero(~(off < L))
+    if len(bad):
+        i = int(bad[0])
+        raise DataError(f"{data.source}: row {i + 1} (run {data.run_ids[data.run[i]]!r}, step {data.step[i]}): tracked tip "
+                        f"{_pt(data.tip[i])} is {_m(off[i])} from {what}'s tip {_pt(model_tip[i])} at its encoder "
+                        f"angles, more than the shaft length {L:g} m (is the data from this scenario?)")
+    reach = 2.0 * (L + float(plant.arm.l1) + float(plant.arm.l2))  # a bound on the tip workspace's diameter
+    with np.errstate(all="ignore"):
+        far = np.linalg.norm(data.target - model_tip, axis=-1)
+    bad = np.flatnonzero(~(far < reach))
+    if len(bad):
+        i = int(bad[0])
+        raise DataError(f"{data.source}: row {i + 1} (run {data.run_ids[data.run[i]]!r}): target {_pt(data.target[i])} is "
+                        f"{_m(far[i])} from the tip, farther than the robot can reach ({reach:g} m; is the data from "
+                        f"this scenario?)")
+
+
+def _pt(x) -> str:
+    return "[" + ", ".join(f"{float(v):.6g}" for v in x) + "]"
+
+
+def _m(d: float) -> str:
+    return f"{d:.4g} m" if math.isfinite(d) else "more than 1e300 m"
 
 
 def rms(r: np.ndarray) -> float:
@@ -93,9 +126,20 @@ def rms(r: np.ndarray) -> float:
     return float(np.sqrt(np.mean(r * r))) if r.size else float("nan")
 
 
+def motion_model(sc):
+    """``x_model`` of docs/physics.md ``port_friction``: the scenario's arm, shaft (its tip load) and
+    ``port.position``, no effects. Friction's direction is the motion a command produces under it,
+    for the bench (:func:`errplan.experiment.run_experiment`), the replay and the fits alike."""
+    from .experiment import truth_plant
+
+    return truth_plant(sc, effects=False, noise=False)
+
+
 def pose_residual(data: MeasuredData, plant, u: np.ndarray | None = None) -> np.ndarray:
-    """Tracked tip minus the model's tracked tip at the encoder angles (n, 2), m."""
-    u = data.commanded_directions() if u is None else u
+    """Tracked tip minus the model's tracked tip at the encoder angles (n, 2), m. ``u`` (friction's
+    direction per row) defaults to :meth:`MeasuredData.commanded_directions` under
+    ``plant.declared()``."""
+    u = data.commanded_directions(plant.declared()) if u is None else u
     return data.tip - predict_tracked(plant, data.q, u)
 
 
@@ -108,22 +152,26 @@ def _controller_jacobian(ctrl, plant, q: np.ndarray) -> np.ndarray:
         return ctrl.J_hat(q, plant)
 
 
-def replay(data: MeasuredData, plant, ctrl) -> tuple[np.ndarray, np.ndarray]:
+def replay(data: MeasuredData, plant, ctrl, model=None) -> tuple[np.ndarray, np.ndarray]:
     """Re-simulate every run on ``plant`` with controller ``ctrl`` from its first encoder reading.
 
     Noise-free and quasi-static, exactly the loop of :func:`errplan.simulation.simulate`, batched
-    over runs. Returns the predicted tracked tip for every row (n, 2) and, per run, whether the
-    replay stayed in the workspace for the whole measured length (runs,). A replay that leaves the
-    workspace holds its last state.
+    over runs; friction's direction is the motion each command produces under ``model`` (default
+    ``plant.declared()``; :func:`motion_model`). Returns the predicted tracked tip for every row
+    (n, 2) and, per run, whether the replay stayed in the workspace for the whole measured length
+    (runs,). A replay that leaves the workspace holds its last state.
     """
     from .metrics import inv2
 
+    model = plant.declared() if model is None else model
     first = data.first
     R = data.runs
     lengths = data.lengths
-    order = np.argsort(data.run, kind="stable")  # rows are run-major already; keep it general
-    row_of = np.full((R, int(lengths.max())), -1)
-    row_of[data.run[order], data.step[order]] = order
+    T = int(lengths.max()) if R else 0
+    # rows of each step, in run order (O(rows) memory, whatever the run lengths)
+    by_step = np.lexsort((data.run, data.step))
+    bounds = np.searchsorted(data.step[by_step], np.arange(T + 1))
+    first = first[np.argsort(data.run[first])]  # run r's step 0
     q = data.q[first].copy()
     target = data.target[first]
     gain = data.gain[first]
@@ -132,14 +180,15 @@ def replay(data: MeasuredData, plant, ctrl) -> tuple[np.ndarray, np.ndarray]:
     pred = np.zeros_like(data.tip)
     off = np.asarray(plant.tracker_offset, float)
     tracked = np.zeros((R, 2))
-    for t in range(int(lengths.max())):
+    for t in range(T):
         with np.errstate(invalid="ignore", divide="ignore"):
             tr = plant.tip(q, u) + off
         tracked = np.where(alive[:, None], tr, tracked)
-        has = lengths > t
-        pred[row_of[has, t]] = tracked[has]
-        if t == lengths.max() - 1:
+        rows_t = by_step[bounds[t]:bounds[t + 1]]
+        pred[rows_t] = tracked[data.run[rows_t]]
+        if t == T - 1:
             break
+        has = lengths > t
         err = target - tracked
         with np.errstate(invalid="ignore", divide="ignore"):
             Jinv, singular = inv2(_controller_jacobian(ctrl, plant, q))
@@ -149,8 +198,8 @@ def replay(data: MeasuredData, plant, ctrl) -> tuple[np.ndarray, np.ndarray]:
             ok = (~singular & plant.arm.within_limits(plant.link_angles_q(q_new))
                   & plant.shaft_reaches(plant.wrist(q_new)) & np.all(np.isfinite(q_new), axis=-1))
         step_ok = alive & ok & has
-        n = np.linalg.norm(err, axis=-1)
-        u = np.where((step_ok & (n > 0))[:, None], err / np.where(n > 0, n, 1.0)[:, None], u)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            u = np.where(step_ok[:, None], model.motion_direction(q, q_new, u), u)
         q = np.where(step_ok[:, None], q_new, q)
         alive &= ok | ~has
     return pred, alive
@@ -162,9 +211,11 @@ def approach_mask(data: MeasuredData, tolerance: float) -> tuple[np.ndarray, np.
     A run's approach is steps 1 .. the first step whose tracked tip is within ``tolerance`` of the
     target: after arrival the measured tip only jitters with the noise the controller chases,
     which no noise-free replay predicts. A run that never arrives counts whole if its distance to
-    the target never grew beyond its start distance (a slow gain), and is left out if it did
-    (it diverged or cycles: the controller is not contracting there, ||G|| >= 1, and the path
-    amplifies the measurement noise, so no replay can follow it step for step).
+    the target never grew beyond its start distance after the first command (a slow gain), and is
+    left out if it did (it diverged or cycles: the controller is not contracting there,
+    ||G|| >= 1, and the path amplifies the measurement noise, so no replay can follow it step for
+    step). The first command is not held against a run: it starts the tip moving from rest, and
+    port friction then holds the tip back by up to its size, once, in a run that converges.
     """
     e = np.linalg.norm(data.tip - data.target, axis=-1)
     big = np.iinfo(np.int64).max
@@ -172,17 +223,18 @@ def approach_mask(data: MeasuredData, tolerance: float) -> tuple[np.ndarray, np.
     idx = np.flatnonzero((e < tolerance) & (data.step >= 1))
     np.minimum.at(arrive, data.run[idx], data.step[idx])
     e0 = e[data.first][np.argsort(data.run[data.first])]
-    emax = np.zeros(data.runs)
-    np.maximum.at(emax, data.run, e)
-    unsettled = (arrive == big) & (emax > e0 + tolerance)
+    late = data.step >= 2
+    elate = np.zeros(data.runs)
+    np.maximum.at(elate, data.run[late], e[late])
+    unsettled = (arrive == big) & (elate > e0 + tolerance)
     mask = (data.step >= 1) & (data.step <= arrive[data.run]) & ~unsettled[data.run]
     return mask, unsettled
 
 
-def trajectory_errors(data: MeasuredData, plant, ctrl, tolerance: float) -> tuple[float, float]:
+def trajectory_errors(data: MeasuredData, plant, ctrl, tolerance: float, model=None) -> tuple[float, float]:
     """Per-coordinate RMS of measured minus replayed tracked tips over the approach rows (see
     :func:`approach_mask`; NaN if there are none) and over every step >= 1 of every run."""
-    pred, _ = replay(data, plant, ctrl)
+    pred, _ = replay(data, plant, ctrl, model)
     r = data.tip - pred
     mask, _ = approach_mask(data, tolerance)
     return (rms(r[mask]) if np.any(mask) else float("nan")), rms(r[data.step >= 1])
@@ -199,6 +251,17 @@ def _legendre_total(x: np.ndarray, degree: int) -> np.ndarray:
     return np.stack(cols, axis=-1)
 
 
+def _nearest(x: np.ndarray, c: np.ndarray, block: int = 2**20) -> np.ndarray:
+    """Index of the nearest centre (k, 2) for each point (n, 2), in blocks of rows so that the
+    distance table never exceeds ``block`` entries (the number of clusters grows with the rows)."""
+    out = np.empty(len(x), int)
+    step = max(1, block // max(len(c), 1))
+    for i in range(0, len(x), step):
+        xb = x[i:i + step]
+        out[i:i + len(xb)] = np.argmin(np.sum((xb[:, None, :] - c[None]) ** 2, axis=2), axis=1)
+    return out
+
+
 def kmeans_labels(x: np.ndarray, clusters: int, iters: int = 30) -> np.ndarray:
     """Deterministic k-means of points (n, 2): farthest-point initialisation from the point
     nearest the centroid, then Lloyd iterations. Returns labels (n,) in 0..clusters-1."""
@@ -213,7 +276,7 @@ def kmeans_labels(x: np.ndarray, clusters: int, iters: int = 30) -> np.ndarray:
     c = x[idx].copy()
     lab = np.zeros(n, int)
     for _ in range(iters):
-        new = np.argmin(np.linalg.norm(x[:, None] - c[None], axis=2), axis=1)
+        new = _nearest(x, c)
         if np.array_equal(new, lab) and _ > 0:
             break
         lab = new
@@ -288,7 +351,7 @@ class NoiseFloor:
 def noise_floor(r: np.ndarray, x: np.ndarray, u: np.ndarray, configs=FLEX_CONFIGS) -> NoiseFloor:
     """Estimate the measurement noise (per coordinate, m) from a pose residual ``r`` (n, 2).
 
-    ``x`` (n, 2) are the model tip positions (where the rows are), ``u`` (n, 2) the commanded
+    ``x`` (n, 2) are the model tip positions (where the rows are), ``u`` (n, 2) friction's
     directions. Every catalogue effect and the usual unmodelled ones are smooth in the
     configuration (friction linear in ``u``), so a flexible local model — polynomials in ``x``
     times ``[1, u_y, u_z]`` on compact clusters of rows — follows them, and what is left is the
@@ -649,15 +712,17 @@ class CalibrationReport:
 def calibrate(sc, data: MeasuredData, *, validate: MeasuredData | None = None, seed: int = 0,
               folds: int = DEFAULT_FOLDS, progress: Callable[[float, str], None] | None = None) -> CalibrationReport:
     """Find which catalogue effects (if any) the data need on top of the scenario's declared model."""
-    from .experiment import bench_controller
+    from .experiment import bench_controller, require_planar
 
+    require_planar(sc, "calibration")
     prog = progress or (lambda f, m="": None)
     base = declared_plant(sc)
     check_against_model(data, base)
     if validate is not None:
         check_against_model(validate, base)
     ctrl = bench_controller(sc)
-    u = data.commanded_directions()
+    xmodel = motion_model(sc)  # friction's u: the motion each command produces under the declared model
+    u = data.commanded_directions(xmodel)
     r0 = pose_residual(data, base, u)
     if not np.all(np.isfinite(r0)):
         i = int(np.flatnonzero(~np.all(np.isfinite(r0), axis=1))[0])
@@ -704,8 +769,8 @@ def calibrate(sc, data: MeasuredData, *, validate: MeasuredData | None = None, s
     tol = arrival_tolerance(nf.sigma)
 
     def errors(d: MeasuredData, r_before: np.ndarray, r_after: np.ndarray) -> Errors:
-        tb, tb_all = trajectory_errors(d, base, ctrl, tol)
-        ta, ta_all = trajectory_errors(d, after, ctrl, tol)
+        tb, tb_all = trajectory_errors(d, base, ctrl, tol, xmodel)
+        ta, ta_all = trajectory_errors(d, after, ctrl, tol, xmodel)
         mask, unsettled = approach_mask(d, tol)
         return Errors(rms(r_before), rms(r_after), tb, ta, tb_all, ta_all, d.rows, d.runs, d.source, tol,
                       int(mask.sum()), int(unsettled.sum()))
@@ -713,10 +778,10 @@ def calibrate(sc, data: MeasuredData, *, validate: MeasuredData | None = None, s
     fit_err = errors(data, r0, r1)
     val_err = None
     if validate is not None:
-        uv = validate.commanded_directions()
+        uv = validate.commanded_directions(xmodel)
         val_err = errors(validate, pose_residual(validate, base, uv), pose_residual(validate, after, uv))
-    pred0, _ = replay(data, base, ctrl)
-    pred1, _ = replay(data, after, ctrl)
+    pred0, _ = replay(data, base, ctrl, xmodel)
+    pred1, _ = replay(data, after, ctrl, xmodel)
     prog(1.0, "done")
     cand_list = sorted(cands.values(), key=lambda c: (len(c.effects), c.bic))
     return CalibrationReport(

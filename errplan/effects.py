@@ -128,7 +128,8 @@ class PortFriction(Effect):
     units = ("m", "m")
     default_scales = (1e-3, 1e-3)
     plant_field = "friction"
-    description = "the port holds the tip back against the commanded motion (axial fa, normal fn)"
+    description = ("the port holds the tip back against the motion the last command produced under the declared "
+                   "model (axial fa, normal fn)")
 
 
 #: the catalogue, in physics.md order
@@ -144,7 +145,9 @@ def make_effect(name: str) -> Effect:
 
 
 def predict_tracked(plant, q: np.ndarray, u: np.ndarray | None) -> np.ndarray:
-    """What the tracker reads (n, 2) for encoder angles ``q`` (n, 2) and commanded directions ``u``."""
+    """What the tracker reads (n, 2) for encoder angles ``q`` (n, 2) and friction's directions ``u``
+    (n, 2): the unit motion the last command produced under the declared model
+    (:meth:`errplan.experiment.MeasuredData.commanded_directions`)."""
     return plant.tip(q, u) + np.asarray(plant.tracker_offset, float)
 
 
@@ -242,9 +245,11 @@ class EffectModel:
 
     def fit(self, q: np.ndarray, u: np.ndarray | None, tracked: np.ndarray, base,
             x0: Sequence[float] | None = None) -> "EffectModel":
-        """Fit the combination to measured rows: encoder angles ``q`` (n, 2) rad, commanded
-        directions ``u`` (n, 2) (port friction), tracked tips ``tracked`` (n, 2) m; ``base`` the
-        declared :class:`Plant`. ``x0`` a start (physics.md units, default zero). Returns self."""
+        """Fit the combination to measured rows: encoder angles ``q`` (n, 2) rad, friction's
+        directions ``u`` (n, 2) (the motion each row's command produced under the declared model,
+        :meth:`errplan.experiment.MeasuredData.commanded_directions`), tracked tips ``tracked``
+        (n, 2) m; ``base`` the declared :class:`Plant`. ``x0`` a start (physics.md units, default
+        zero). Returns self."""
         from scipy.optimize import least_squares
 
         q = np.asarray(q, float)

@@ -37,6 +37,16 @@ TARGET_DISTANCE = 0.020
 DEFAULT_STARTS = 8
 DEFAULT_MAX_STEPS = 60
 DEFAULT_DWELL = 10
+#: memory (bytes) one measured-data row costs from parsing through calibration (the parsed row,
+#: its arrays, the residuals and least-squares Jacobians of the candidate fits, the replay):
+#: tracemalloc measured about 1 kB per row on a 2,300-row bench; four times that for a margin
+ROW_BYTES = 4096
+#: memory (bytes) one bench row costs while it is simulated and written (state lists, arrays, CSV text)
+BENCH_ROW_BYTES = 1024
+#: memory (bytes) per candidate start tip while the starts are chosen (the tip, its flags, distances)
+START_TIP_BYTES = 64
+#: candidate tips checked at once (each with 25 probe points through the inverse kinematics)
+START_CHUNK = 8192
 
 
 # ----------------------------------------------------------------------------- data
@@ -80,26 +90,43 @@ class MeasuredData:
     def lengths(self) -> np.ndarray:
         return np.bincount(self.run, minlength=self.runs)
 
-    def commanded_directions(self) -> np.ndarray:
-        """Unit direction ``u`` (n, 2) of the tip motion commanded in the step that led to each row.
+    def commanded_directions(self, model) -> np.ndarray:
+        """Friction's direction ``u`` (n, 2) for every row (docs/physics.md ``port_friction``).
 
-        Under the declared model the command ``k Jhat^-1 (target - tip)`` moves the tip along
-        ``target - tip(t-1)`` (docs/physics.md ``port_friction``). Step 0 has no command: ``u = 0``.
-        A command of zero length keeps the previous direction.
+        The friction state of row t+1 comes from the command issued at step t, which the encoders
+        read at t+1 (interfaces.md). That command moves the tip, under the declared ``model`` (a
+        :class:`errplan.simulation.Plant`; its :meth:`~errplan.simulation.Plant.model_tip` is
+        ``x_model``: arm, shaft and declared port, no effects), along
+        ``x_model(q(t+1)) - x_model(q(t))``: row t+1's ``u`` is that direction, from two
+        consecutive encoder rows of the run. Step 0 has ``u = 0``; a step that commands no motion
+        keeps the previous ``u``. This is not the desired direction ``target - tip(t)``: the two
+        differ by up to phi_max wherever the controller's Jacobian is wrong.
         """
-        err = self.target - self.tip
-        n = np.linalg.norm(err, axis=-1)
-        u_cmd = np.where(n[:, None] > 0, err / np.where(n > 0, n, 1.0)[:, None], np.nan)
-        u = np.zeros_like(self.tip)
-        prev = np.zeros_like(self.tip)
-        prev[1:] = u_cmd[:-1]
-        new_run = self.step == 0
-        prev[new_run] = 0.0
-        u[:] = prev
-        # zero-length commands keep the last direction (rare: exact hits of the target)
-        bad = np.flatnonzero(np.isnan(u[:, 0]))
-        for i in bad:
-            u[i] = u[i - 1] if self.step[i] > 1 else 0.0
+        n = self.rows
+        u = np.zeros((n, 2))
+        if n == 0:
+            return u
+        order = np.lexsort((self.step, self.run))  # run-major, steps ascending (the usual layout already)
+        run, step = self.run[order], self.step[order]
+        xm = model.model_tip(self.q[order])
+        d = np.zeros_like(xm)
+        follows = np.zeros(n, bool)
+        follows[1:] = (run[1:] == run[:-1]) & (step[1:] == step[:-1] + 1)
+        d[1:] = xm[1:] - xm[:-1]
+        norm = np.sqrt(np.sum(d * d, axis=-1))
+        moved = follows & np.isfinite(norm) & (norm > 0)
+        # the last moving step at or before each row, within the same run (forward fill)
+        idx = np.where(moved, np.arange(n), -1)
+        last = np.maximum.accumulate(idx)
+        run_start = np.zeros(n, int)
+        starts = np.flatnonzero(np.r_[True, run[1:] != run[:-1]])
+        run_start[starts] = starts
+        run_start = np.maximum.accumulate(run_start)
+        has = last >= run_start
+        src = np.where(has, last, 0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            unit = d[src] / np.where(norm[src] > 0, norm[src], 1.0)[:, None]
+        u[order] = np.where(has[:, None], unit, 0.0)
         return u
 
     def subset(self, runs: np.ndarray) -> "MeasuredData":
@@ -143,8 +170,12 @@ def parse_measured_csv(text: str, source: str = "<memory>") -> MeasuredData:
     ``r`` is line ``r + 1``). Extra columns are ignored. Runs may appear in any order; their
     steps must be 0, 1, ... without gaps or repeats, target and gain constant, at least 2 steps.
     """
+    from .inputs import check_allocation
+
     if not text.strip():
         raise DataError(f"{source}: the file is empty (expected a header {','.join(COLUMNS)} and data rows)")
+    lines = text.count("\n") + 1
+    check_allocation(source, f"{lines:,} lines", lines, ROW_BYTES, "reading and calibrating its rows")
     reader = csv.reader(io.StringIO(text))
     try:
         header = next(reader)
@@ -205,10 +236,10 @@ def parse_measured_csv(text: str, source: str = "<memory>") -> MeasuredData:
             bad = np.flatnonzero(v[:, j] != v[0, j])
             if len(bad):
                 r = rows[bad[0]][1]
-                raise DataError(f"{source}: run {rid!r}: column {c!r} changes within the run (row {r}: {v[bad[0], j]!r}, "
-                                f"first row: {v[0, j]!r}); a run has one target and one gain")
+                raise DataError(f"{source}: run {rid!r}: column {c!r} changes within the run (row {r}: "
+                                f"{float(v[bad[0], j])!r}, first row: {float(v[0, j])!r}); a run has one target and one gain")
         if not v[0, 2] > 0:
-            raise DataError(f"{source}: run {rid!r} column 'gain': value {v[0, 2]!r} (row {rows[0][1]}) is not > 0")
+            raise DataError(f"{source}: run {rid!r} column 'gain': value {float(v[0, 2])!r} (row {rows[0][1]}) is not > 0")
         run_ids.append(rid)
         R.append(np.full(len(rows), ri))
         S.append(np.array(steps))
@@ -218,17 +249,19 @@ def parse_measured_csv(text: str, source: str = "<memory>") -> MeasuredData:
 
 
 def read_measured_csv(path: str | Path) -> MeasuredData:
-    """Read a measured-data CSV file (see :func:`parse_measured_csv`)."""
+    """Read a measured-data CSV file (see :func:`parse_measured_csv`): a missing file, a directory,
+    a binary or non-UTF-8 file, or a file too large for this machine is one :class:`DataError`."""
+    from .inputs import read_text
+
     p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8-sig")
-    except FileNotFoundError:
-        raise DataError(f"{p}: data file not found") from None
-    except UnicodeDecodeError:
-        raise DataError(f"{p}: not a text (UTF-8) CSV file") from None
-    except OSError as e:
-        raise DataError(f"{p}: cannot read data file: {e.strerror}") from None
-    return parse_measured_csv(text, str(p))
+    return parse_measured_csv(read_text(p, "data file"), str(p))
+
+
+def require_planar(sc, what: str) -> None:
+    """Bench runs and calibration are planar for now: a spatial scenario gets one clear error."""
+    if getattr(sc, "dim", 2) != 2:
+        raise ErrplanError(f"{sc.source}: {what} of a spatial scenario (robot from a URDF) is not available yet; "
+                           f"it runs on planar scenarios")
 
 
 # ----------------------------------------------------------------------------- starts
@@ -263,6 +296,7 @@ def choose_starts(sc, n_starts: int = DEFAULT_STARTS, *, spacing: float = 0.005,
     through the true port with 0.05 rad joint-limit margin, the tip 30 mm and the wrist 40 mm away
     from the port (and from the controller's port estimate).
     """
+    require_planar(sc, "a bench run")
     if n_starts < 1:
         raise ErrplanError(f"starts {n_starts}: expected at least 1")
     arm = Arm.from_robot(sc.robot)
@@ -286,13 +320,25 @@ def choose_starts(sc, n_starts: int = DEFAULT_STARTS, *, spacing: float = 0.005,
         raise ErrplanError(f"{sc.source}: the shaft cannot reach through the port from any wrist pose")
     tips = w + L * (port - w) / np.linalg.norm(port - w, axis=-1)[:, None]
     lo, hi = tips.min(axis=0), tips.max(axis=0)
-    gy = np.arange(lo[0], hi[0] + spacing / 2, spacing)
-    gz = np.arange(lo[1], hi[1] + spacing / 2, spacing)
+    from .inputs import check_allocation
+
+    ny, nz = (float(np.floor((hi[i] - lo[i]) / spacing + 0.5)) + 1 for i in range(2))
+    # the tip workspace spans about 2 (shaft length + reach): name whichever of the two dominates
+    big = max(("[instrument] length", L), ("[robot] link_lengths", [arm.l1, arm.l2]),
+              key=lambda kv: kv[1] if np.isscalar(kv[1]) else sum(kv[1]))
+    check_allocation(big[0], big[1], ny * nz, START_TIP_BYTES,
+                     f"the bench's start search ({ny:.3g} x {nz:.3g} candidate tips at {spacing * 1000:g} mm "
+                     f"over the tip workspace)")
+    gy = lo[0] + spacing * np.arange(int(ny))
+    gz = lo[1] + spacing * np.arange(int(nz))
     cand = np.stack(np.meshgrid(gy, gz, indexing="ij"), axis=-1).reshape(-1, 2)
     ang = np.arange(12) * (np.pi / 6)
     ring = np.stack([np.sin(ang), np.cos(ang)], axis=-1)
     probe = np.vstack([[0.0, 0.0], radius * ring, 0.5 * radius * ring])  # (25, 2)
-    ok = np.all(_tip_valid(arm, L, port, est, cand[:, None, :] + probe[None], **kw), axis=1)
+    ok = np.zeros(len(cand), bool)
+    for c0 in range(0, len(cand), START_CHUNK):  # 25 probes per tip: in chunks, memory stays flat
+        c = cand[c0:c0 + START_CHUNK]
+        ok[c0:c0 + len(c)] = np.all(_tip_valid(arm, L, port, est, c[:, None, :] + probe[None], **kw), axis=1)
     cand = cand[ok]
     if len(cand) == 0 and not chosen:
         raise ErrplanError(f"{sc.source}: no start tip has its {radius * 1000:g} mm neighbourhood inside the tip "
@@ -370,18 +416,27 @@ def run_experiment(sc, seed: int = 0, *, plant=None, starts=None, n_starts: int 
     effects and sensor noise) — tests use it for effects outside the catalogue. ``tolerance``
     (m) defaults to ``max(0.5 mm, 3 tracker_sigma)``. Deterministic from ``seed``.
     """
+    from .inputs import check_allocation
     from .simulation import simulate
 
-    if max_steps < 1:
-        raise ErrplanError(f"max_steps {max_steps}: expected at least 1")
-    if dwell < 0:
-        raise ErrplanError(f"dwell {dwell}: expected >= 0")
+    require_planar(sc, "a bench run")
+    if isinstance(max_steps, bool) or not isinstance(max_steps, (int, np.integer)) or max_steps < 1:
+        raise ErrplanError(f"max_steps {max_steps!r}: expected an integer >= 1")
+    if isinstance(dwell, bool) or not isinstance(dwell, (int, np.integer)) or dwell < 0:
+        raise ErrplanError(f"dwell {dwell!r}: expected an integer >= 0")
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or not 0 <= seed < 2**63:
+        raise ErrplanError(f"seed {seed!r}: expected an integer from 0 to 2^63 - 1")
     truth = plant if plant is not None else truth_plant(sc)
+    # friction's direction u is the motion a command produces under the *declared* model (the
+    # scenario's arm, shaft and port.position, no effects), whatever the truth is
+    model = truth_plant(sc, effects=False, noise=False)
     ctrl = bench_controller(sc)
     tol = tolerance if tolerance is not None else max(5e-4, 3 * truth.tracker_sigma)
     S = np.atleast_2d(np.asarray(starts, float)) if starts is not None else choose_starts(sc, n_starts)
-    rng = np.random.default_rng(seed)
     offs = target_offsets()
+    check_allocation("--max-steps", max_steps, len(S) * len(offs) * (max_steps + 1.0), BENCH_ROW_BYTES,
+                     f"the bench data ({len(S)} start(s) x {len(offs)} runs x up to {max_steps + 1} rows)")
+    rng = np.random.default_rng(seed)
     gain = sc.controller.gain
     ids, R, ST, TG, K, Q, X, status = [], [], [], [], [], [], [], []
     for si, s in enumerate(S):
@@ -391,7 +446,8 @@ def run_experiment(sc, seed: int = 0, *, plant=None, starts=None, n_starts: int 
             raise ErrplanError(f"start {si} {np.round(s, 4).tolist()}: {e}") from None
         for ti, off in enumerate(offs):
             tg = s + off
-            res = simulate(truth, ctrl, q0, tg[None], gain, tolerance=1e-300, max_steps=max_steps, rng=rng)
+            res = simulate(truth, ctrl, q0, tg[None], gain, tolerance=1e-300, max_steps=max_steps, rng=rng,
+                           model=model)
             e = np.linalg.norm(res.tracked - tg, axis=-1)
             hit = np.flatnonzero(e < tol)
             n = len(res.q)

@@ -165,7 +165,7 @@ def plant_at(plant: Plant, q_true: np.ndarray):
 
 def simulate(plant: Plant, controller: ControllerModel, q0: np.ndarray, waypoints, gains, *,
              tolerance: float = 1e-5, max_steps: int = 2000, rng: np.random.Generator | None = None,
-             path_start=None, switch_tolerance: float | None = None) -> SimResult:
+             path_start=None, switch_tolerance: float | None = None, model: Plant | None = None) -> SimResult:
     """Drive the tip through ``waypoints`` (m, 2) with per-segment ``gains`` (m,).
 
     The controller aims at waypoint ``i`` until the tracked tip is within ``tolerance`` of it, then
@@ -173,7 +173,17 @@ def simulate(plant: Plant, controller: ControllerModel, q0: np.ndarray, waypoint
     waypoints; ``tolerance`` for the last one). ``rng`` adds the plant's measurement noise (None: noise-free).
     Stops early (status ``left_workspace``) if a command leaves the joint limits or pulls the
     shaft out of the port; ``max_steps`` bounds the total number of commands.
+
+    Port friction (docs/physics.md): the state after a command holds the tip back against ``u``,
+    the unit direction of ``x_model(q + dq) - x_model(q)`` — the motion the command produces
+    under the declared ``model`` (default ``plant.declared()``: the plant's arm, shaft, tip load
+    and declared port, no effects), ``q`` the encoder reading the command started from. ``u``
+    keeps its last value when a command produces no motion; the state before the first command
+    has ``u = 0``. (errplan used to take ``u`` as the desired direction ``target - tracked tip``.
+    That was wrong wherever the controller's Jacobian is wrong: friction opposes the motion that
+    happens, and the two directions differ by up to phi_max.)
     """
+    from .inputs import check_allocation
     wp = np.atleast_2d(np.asarray(waypoints, float))
     gains = np.broadcast_to(np.asarray(gains, float), (len(wp),))
     if np.any(~np.isfinite(gains)) or np.any(gains <= 0):
@@ -181,6 +191,11 @@ def simulate(plant: Plant, controller: ControllerModel, q0: np.ndarray, waypoint
     switch_tol = float(tolerance if switch_tolerance is None else switch_tolerance)
     if not (tolerance > 0 and switch_tol > 0 and np.isfinite(tolerance) and np.isfinite(switch_tol)):
         raise ErrplanError(f"tolerance {tolerance!r} / switch_tolerance {switch_tolerance!r}: expected lengths > 0 m")
+    if isinstance(max_steps, bool) or not isinstance(max_steps, (int, np.integer)) or max_steps < 0:
+        raise ErrplanError(f"max_steps {max_steps!r}: expected an integer >= 0")
+    # per step: the state lists (q, tip, tracked, target, segment, gain) and the final arrays
+    check_allocation("max_steps", max_steps, max_steps + 1, 768, "the simulated run")
+    model = plant.declared() if model is None else model
     q = np.asarray(q0, float).copy()
     if not plant.arm.within_limits(plant.link_angles_q(q)):
         raise ErrplanError(f"start configuration {q.tolist()} is outside the joint limits")
@@ -216,9 +231,8 @@ def simulate(plant: Plant, controller: ControllerModel, q0: np.ndarray, waypoint
             q_read = q_new + rng.normal(0.0, plant.encoder_sigma, 2)
         else:
             q_read = q_new
-        n = np.linalg.norm(err)
-        if n > 0:
-            u = err / n  # commanded tip motion under the declared model: k Jhat Jhat^-1 err
+        # the motion this command produces under the declared model (friction opposes it)
+        u = model.motion_direction(q, q_new, u)
         w = plant.wrist(q_new)
         if not plant.arm.within_limits(plant.link_angles_q(q_new)) or not plant.shaft_reaches(w):
             status = "left_workspace"

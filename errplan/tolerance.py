@@ -54,6 +54,7 @@ from typing import Any, Callable
 import numpy as np
 
 from .errors import ErrplanError, InfeasibleError
+from .inputs import memory_budget
 from .fields import ErrorSet, Evaluator
 from .kinematics.arm import Arm, direction
 from .kinematics.shaft import (estimate_from_ends, flexed_end_angles, flexed_geometry, flexed_jacobian,
@@ -69,6 +70,15 @@ REFINE_TOL = 0.01
 #: Bisection stops when the bracket is below this fraction of its upper end (or 1e-7 m / 1/m^2).
 BISECT_RTOL = 2e-4
 HOLDS = ("tip_force", "port_force", "port_deflection")
+#: memory (bytes) per region tip while a worst case over an error set is evaluated (measured with
+#: tracemalloc at about 350 B for the rigid controller; the flexion controller and the bisection
+#: state need more)
+TIP_BYTES = 2048
+#: memory (bytes) per (depth, noise draw) evaluation of P2's flexion model (measured: about 265 B)
+EVAL_BYTES = 512
+#: (depth x draw) evaluations per chunk of random noise draws: memory stays flat whatever the
+#: number of depths and draws (the maximum over the draws does not depend on the chunking)
+EVAL_CHUNK = 2_000_000
 NOISE_SAMPLING = ("worst", "random")
 
 
@@ -315,10 +325,15 @@ def insertion_worst(model: InsertionModel, rl: np.ndarray, position: float, angl
     st = model.state(rl)
     fn = {"G": model.g_norm, "fp": model.fp_error, "port": model.port_error}[what]
     if sampling == "random":
+        from .inputs import check_allocation
+
+        check_allocation("draws", draws, draws, 6 * 8, "the noise draws")
+        step = int(min(2000, max(1, EVAL_CHUNK // max(len(rl), 1))))
+        check_allocation("samples", len(rl), len(rl) * step, EVAL_BYTES, "the noise evaluations")
         nz = random_noise(draws, position, angle, seed)
         out = np.full(len(rl), -np.inf)
-        for c0 in range(0, draws, 2000):
-            chunk = np.broadcast_to(nz[c0:c0 + 2000], (len(rl),) + nz[c0:c0 + 2000].shape)
+        for c0 in range(0, draws, step):
+            chunk = np.broadcast_to(nz[c0:c0 + step], (len(rl),) + nz[c0:c0 + step].shape)
             out = np.maximum(out, fn(st, chunk).max(axis=1))
         return out
     if sampling != "worst":
@@ -529,6 +544,10 @@ def tracker_noise(length: float, tip_load: float, band: tuple[float, float], *, 
 def region_grid(region: dict, spacing: float) -> np.ndarray:
     """Tips (m, 2) on a grid over ``region = {y: [lo, hi], z: [lo, hi]}`` with edges included and
     spacing at most ``spacing``."""
+    from .inputs import check_allocation
+
+    n_y, n_z = _grid_size(region, spacing)
+    check_allocation("spacing", spacing, n_y * n_z, 2 * 8 * 3, "the region grid")
     axes = []
     for key in ("y", "z"):
         lo, hi = region[key]
@@ -643,6 +662,15 @@ def _set_worst(ev: Evaluator, x: np.ndarray, oset: _OffsetSet, e: np.ndarray, k:
     return best, valid, reach
 
 
+def _grid_size(region: dict, spacing: float) -> tuple[float, float]:
+    """:func:`_grid_counts` as floats, computed without building anything (a size check first)."""
+    out = []
+    for key in ("y", "z"):
+        lo, hi = region[key]
+        out.append(1.0 if hi == lo else max(2.0, math.ceil((hi - lo) / spacing - 1e-9) + 1.0))
+    return out[0], out[1]
+
+
 def _grid_counts(region: dict, spacing: float) -> tuple[int, int]:
     out = []
     for key in ("y", "z"):
@@ -664,8 +692,14 @@ def _region_tolerance(ev: Evaluator, region: dict, oset: _OffsetSet, k: float, *
     initial grid, then nested refinements (each halves the spacing, keeping the old tips) until the
     answer changes by less than ``REFINE_TOL``. A refinement only bisects the new tips that fail at
     the current answer (the others cannot lower the minimum), so it costs about one evaluation."""
+    from .inputs import check_allocation
+
     ext = max(region["y"][1] - region["y"][0], region["z"][1] - region["z"][0])
     h = float(spacing) if spacing else ext / 8.0
+    n_y, n_z = _grid_size(region, min(h, ext) if ext > 0 else 1.0)
+    key, value = ("spacing", h) if spacing else ("region", f"{{y = {list(region['y'])}, z = {list(region['z'])}}}")
+    check_allocation(key, value, n_y * n_z, TIP_BYTES,
+                     f"the region grid ({n_y:.3g} x {n_z:.3g} tips at {min(h, ext) if ext > 0 else 0.0:g} m)")
     counts = _grid_counts(region, min(h, ext) if ext > 0 else 1.0)
     x = _grid(region, counts)
     g0, ok0, r0 = _set_worst(ev, x, oset, np.zeros(len(x)), k)
@@ -695,6 +729,8 @@ def _region_tolerance(ev: Evaluator, region: dict, oset: _OffsetSet, k: float, *
     change, refinements = (0.0 if ext == 0 else None), 0
     while ext > 0 and refinements < 6 and best["value"] > 0 and not best["capped"]:
         fine = tuple(2 * n - 1 if n > 1 else 1 for n in counts)
+        if float(fine[0]) * fine[1] * TIP_BYTES > memory_budget():
+            break  # the machine cannot hold a finer grid: the answer stays unconverged (reported)
         xf = _grid(region, fine)
         old = np.zeros(fine, bool)
         old[:: (2 if fine[0] > 1 else 1), :: (2 if fine[1] > 1 else 1)] = True
@@ -856,10 +892,34 @@ def _tip_load(o: dict, where: str) -> float:
     return float(t)
 
 
+def check_sizes(sc) -> None:
+    """Every size a scenario's ``[[tolerance]]`` queries will allocate, checked against the memory
+    budget before any query runs (:func:`errplan.inputs.check_allocation`): the region grids of
+    ``port`` and ``tip_load`` queries (from ``region`` and ``spacing``), and the noise evaluations
+    of ``insertion_band`` queries (``samples`` x ``draws``)."""
+    from .inputs import check_allocation
+
+    for tol in sc.tolerances:
+        o = tol.options
+        where = f"[[tolerance]] {tol.name!r}"
+        region = o.get("region")
+        if tol.kind in ("port", "tip_load") and region is not None:
+            ext = max(region["y"][1] - region["y"][0], region["z"][1] - region["z"][0])
+            h = float(o["spacing"]) if o.get("spacing") else ext / 8.0
+            n_y, n_z = _grid_size(region, min(h, ext) if ext > 0 else 1.0)
+            key, value = ((f"{where} spacing", h) if o.get("spacing") else
+                          (f"{where} region", f"{{y = {list(region['y'])}, z = {list(region['z'])}}}"))
+            check_allocation(key, value, n_y * n_z, TIP_BYTES, f"the region grid ({n_y:.3g} x {n_z:.3g} tips)")
+        if tol.kind == "insertion_band" and o.get("noise_sampling") == "random":
+            draws = o.get("draws", 10000)
+            check_allocation(f"{where} draws", draws, draws, 6 * 8, "the noise draws")
+
+
 def run_all(sc, progress: Progress | None = None) -> list[ToleranceResult]:
     """Answer every ``[[tolerance]]`` query of ``sc`` in order."""
     if not sc.tolerances:
         raise ErrplanError(f"{sc.source}: the scenario has no [[tolerance]] queries")
+    check_sizes(sc)  # every query's grid before the first query starts
     out = []
     for i, tol in enumerate(sc.tolerances):
         def sub(f, msg, i=i, tol=tol):

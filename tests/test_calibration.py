@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from errplan.calibration import (approach_mask, calibrate, check_against_model, declared_plant, noise_floor,
-                                 pose_residual, replay, structure_test, to_toml)
+from errplan.calibration import (approach_mask, calibrate, check_against_model, declared_plant, motion_model,
+                                 noise_floor, pose_residual, replay, structure_test, to_toml)
 from errplan.cli import main
 from errplan.effects import predict_tracked
 from errplan.errors import DataError
@@ -151,6 +151,150 @@ def test_tracker_scale_error_is_not_explained(port):
     assert rep.structure.structured_rms > rep.noise.sigma
 
 
+# ----------------------------------------------------------------------------- the issue's regime
+# A P1-style bench whose controller's port estimate is about 1 cm off the declared port (here
+# (+10, +5) mm, 11.2 mm) at gain 0.05 (40 runs from 5 starts, up to 60 steps each): where the
+# controller's Jacobian is wrong, the motion a command produces differs from the desired direction
+# by up to phi_max, and port friction opposes the motion that happens (docs/physics.md).
+ONE_CM_ESTIMATE = (0.010, 0.165)
+ONE_CM_TRUTHS = dict(TRUTHS, port_friction={"fa": 0.002, "fn": 0.0012})
+
+
+def one_cm(sc, estimate=ONE_CM_ESTIMATE, gain=0.05):
+    from errplan.scenario import Port
+
+    return sc.with_(port=Port(sc.port.position, tuple(estimate)), controller=replace(sc.controller, gain=gain))
+
+
+def check_done(rep, truth: dict) -> None:
+    """The issue's "done means": exactly the bench's effects, each parameter within 2.5 sigma and
+    25 %, the pose residual within 10 % of the noise floor, the replayed trajectory error cut by at
+    least 30 % (held-out validation file), and explained."""
+    assert sorted(rep.selected) == sorted(truth), rep.selected
+    for e, ps in truth.items():
+        for p, v in ps.items():
+            got, sig = rep.parameters[e][p], rep.uncertainty[e][p]
+            assert 0 < sig < math.inf
+            assert abs(got - v) < 2.5 * sig and abs(got - v) < 0.25 * abs(v), f"{e}.{p}: {got:.6g} +- {sig:.3g}, true {v}"
+    e = rep.errors
+    assert rep.validation_errors is e
+    assert e.pose_after <= 1.1 * rep.noise.sigma < e.pose_before
+    assert e.trajectory_after <= 0.7 * e.trajectory_before
+    assert rep.explained
+
+
+def _one_cm_effect_params():
+    for e in ONE_CM_TRUTHS:
+        yield e if e == "port_friction" else pytest.param(e, marks=pytest.mark.slow)
+
+
+@pytest.mark.parametrize("effect", list(_one_cm_effect_params()))
+def test_each_effect_on_a_one_cm_bench(port, effect):
+    sc = one_cm(port)
+    truth = {effect: ONE_CM_TRUTHS[effect]}
+    rep = calibrate(sc, bench(sc, truth, 11), validate=bench(sc, truth, 12), seed=0)
+    check_done(rep, truth)
+
+
+@pytest.mark.parametrize("pair", [
+    ("gravity_sag", "port_friction"),
+    pytest.param(("port_offset", "port_friction"), marks=pytest.mark.slow),
+    pytest.param(("shaft_flexion", "port_friction"), marks=pytest.mark.slow),
+    pytest.param(("joint_offset", "tracker_offset"), marks=pytest.mark.slow),
+])
+def test_two_effects_on_a_one_cm_bench(port, pair):
+    sc = one_cm(port)
+    truth = {e: ONE_CM_TRUTHS[e] for e in pair}
+    rep = calibrate(sc, bench(sc, truth, 11), validate=bench(sc, truth, 12), seed=1)
+    check_done(rep, truth)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("estimate,gain", [((0.0, 0.149), 0.05), ((-0.008, 0.168), 0.3)])
+def test_friction_on_other_one_cm_benches(port, estimate, gain):
+    """The estimate off along other directions, and a faster gain."""
+    sc = one_cm(port, estimate, gain)
+    truth = {"port_friction": ONE_CM_TRUTHS["port_friction"]}
+    rep = calibrate(sc, bench(sc, truth, 31), validate=bench(sc, truth, 32), seed=0)
+    check_done(rep, truth)
+
+
+@pytest.mark.slow
+def test_stated_sigmas_match_the_spread_over_benches(port):
+    """The 2.5-sigma criterion is only meaningful if the stated sigmas are honest: over 10 benches
+    (different noise seeds) the z-scores of gravity sag + friction have an RMS near 1 (a 5-parameter
+    fit has a few % chance of one |z| > 2.5 on any single bench)."""
+    from errplan.effects import EffectModel, GravitySag, PortFriction
+
+    sc = one_cm(port)
+    truth = {"gravity_sag": ONE_CM_TRUTHS["gravity_sag"], "port_friction": ONE_CM_TRUTHS["port_friction"]}
+    tv = np.array([v for ps in truth.values() for v in ps.values()])
+    z = []
+    for seed in range(100, 110):
+        d = bench(sc, truth, seed)
+        m = EffectModel([GravitySag(), PortFriction()]).fit(d.q, d.commanded_directions(motion_model(sc)), d.tip,
+                                                            declared_plant(sc))
+        z.append((m.values_ - tv) / m.sigma_)
+    z = np.array(z)
+    rms_z = np.sqrt(np.mean(z ** 2, axis=0))
+    assert np.all((rms_z > 0.5) & (rms_z < 1.6)), rms_z
+    assert np.abs(z).max() < 4.0
+
+
+def test_noise_only_on_a_one_cm_bench_selects_nothing(port):
+    sc = one_cm(port)
+    rep = calibrate(sc, bench(sc, {}, 33), seed=0)
+    assert rep.selected == [] and rep.explained
+    assert rep.noise.sigma == pytest.approx(sc.sensors.tracker_sigma, rel=0.06)
+
+
+def test_friction_fit_uses_the_motion_not_the_desired_direction(port):
+    """On the friction bench the true model fits to the noise with the motion direction (what
+    calibrate uses) and not with the desired direction: the fit of friction alone with the old u
+    leaves a residual well above the noise floor (what the issue saw: 1.7x)."""
+    from errplan.effects import EffectModel, PortFriction
+
+    sc = one_cm(port)
+    truth = {"port_friction": ONE_CM_TRUTHS["port_friction"]}
+    d = bench(sc, truth, 11)
+    base = declared_plant(sc)
+    u = d.commanded_directions(motion_model(sc))
+    good = EffectModel([PortFriction()]).fit(d.q, u, d.tip, base)
+    err = d.target - d.tip
+    old = np.zeros_like(u)
+    old[1:] = (err / np.linalg.norm(err, axis=1)[:, None])[:-1]
+    old[d.step == 0] = 0.0
+    bad = EffectModel([PortFriction()]).fit(d.q, old, d.tip, base)
+    sigma = sc.sensors.tracker_sigma
+    assert math.sqrt(good.rss_ / (2 * d.rows)) == pytest.approx(sigma, rel=0.05)
+    assert math.sqrt(bad.rss_ / (2 * d.rows)) > 1.3 * sigma
+    assert good.values_ == pytest.approx([0.002, 0.0012], rel=0.02)
+
+
+def test_cli_friction_bench_end_to_end(tmp_path):
+    """errplan experiment + errplan calibrate on files, as in docs/calibration.md's friction example."""
+    doc = tomllib.loads(PORT.read_text())
+    doc["port"]["estimate"] = list(ONE_CM_ESTIMATE)
+    doc["controller"]["gain"] = 0.05
+    declared = tmp_path / "declared.toml"
+    declared.write_text(to_toml(doc))
+    doc["effects"] = {"port_friction": dict(ONE_CM_TRUTHS["port_friction"])}
+    truth = tmp_path / "truth.toml"
+    truth.write_text(to_toml(doc))
+    for seed, name in ((1, "bench.csv"), (2, "val.csv")):
+        assert main(["-q", "experiment", str(truth), "--out", str(tmp_path / name), "--seed", str(seed),
+                     "--starts", "5"]) == 0
+    assert main(["-q", "calibrate", str(declared), str(tmp_path / "bench.csv"), "--validate", str(tmp_path / "val.csv"),
+                 "--json", str(tmp_path / "cal.json")]) == 0
+    js = json.loads((tmp_path / "cal.json").read_text())
+    assert js["selected"] == ["port_friction"] and js["explained"] is True
+    for p, v in ONE_CM_TRUTHS["port_friction"].items():
+        got, sig = js["parameters"]["port_friction"][p], js["uncertainty"]["port_friction"][p]
+        assert abs(got - v) < 2.5 * sig and abs(got - v) < 0.25 * v
+    assert js["pose_rms_after"] <= 1.1 * js["noise_floor"]
+    assert js["trajectory_rms_after"] <= 0.7 * js["trajectory_rms_before"]
+
+
 # ----------------------------------------------------------------------------- pieces
 @pytest.mark.parametrize("effect", [None, "gravity_sag", "port_friction"])
 def test_noise_floor_estimates_the_tracker_sigma(port, effect):
@@ -160,7 +304,7 @@ def test_noise_floor_estimates_the_tracker_sigma(port, effect):
         sc = port.with_(sensors=replace(port.sensors, tracker_sigma=sigma))
         d = bench(sc, truth, 51)
         base = declared_plant(port)
-        u = d.commanded_directions()
+        u = d.commanded_directions(motion_model(port))
         nf = noise_floor(pose_residual(d, base, u), predict_tracked(base, d.q, u), u)
         assert nf.sigma == pytest.approx(sigma, rel=0.08)
 
@@ -168,7 +312,7 @@ def test_noise_floor_estimates_the_tracker_sigma(port, effect):
 def test_structure_test_sees_a_smooth_field_and_not_noise(port):
     d = bench(port, {}, 52)
     base = declared_plant(port)
-    u = d.commanded_directions()
+    u = d.commanded_directions(motion_model(port))
     x = predict_tracked(base, d.q, u)
     rng = np.random.default_rng(0)
     noise = rng.normal(0, 2e-4, x.shape)
@@ -202,7 +346,13 @@ def test_approach_mask():
     assert m.tolist() == [False, True, True, False, False] and out.tolist() == [False]
     m, out = approach_mask(d, 1e-6)  # never arrives, never moves away: a slow run, all of it counts
     assert m.tolist() == [False, True, True, True, True] and out.tolist() == [False]
-    grows = text.replace("a,1,0,0.34,1,0,0,0,0.33", "a,1,0,0.34,1,0,0,0,0.30")  # 40 mm away after step 1
+    # 40 mm away after the first command only, then closing in: friction's lag as the tip starts to
+    # move (a one-off jump of at most the friction's size), the run converges and counts whole
+    lag = text.replace("a,1,0,0.34,1,0,0,0,0.33", "a,1,0,0.34,1,0,0,0,0.30")
+    m, out = approach_mask(parse_measured_csv(lag), 1e-6)
+    assert m.tolist() == [False, True, True, True, True] and out.tolist() == [False]
+    # farther than at the start after a later command: diverged or cycling, left out
+    grows = text.replace("a,3,0,0.34,1,0,0,0,0.338", "a,3,0,0.34,1,0,0,0,0.29")
     m, out = approach_mask(parse_measured_csv(grows), 1e-6)
     assert not m.any() and out.tolist() == [True]
 

@@ -192,3 +192,73 @@ def test_flexion_controller_plan_certified_and_monotonic_with_sensor_noise():
     for seed in range(5):
         rep = replay(plant, ctrl, q.start, gs.waypoints, gs.gains, gs.options, seed)
         assert rep.sim.converged and rep.sim.monotonic, seed
+
+
+# ----------------------------------------------------------------------------- port friction
+def _lever_by_hand(arm, q, port, L):
+    """The declared model's tip from the physics.md formulas (wrist by hand, then the lever)."""
+    q = np.asarray(q, float)
+    a1 = q[..., 0] + arm.home[0]
+    a2 = a1 + q[..., 1] + arm.home[1]
+    w = (np.asarray(arm.base) + arm.l1 * np.stack([np.sin(a1), np.cos(a1)], -1)
+         + arm.l2 * np.stack([np.sin(a2), np.cos(a2)], -1))
+    d = np.asarray(port) - w
+    return w + L * d / np.linalg.norm(d, axis=-1, keepdims=True)
+
+
+@pytest.mark.parametrize("x0,target", [((0.0, 0.40), (0.0, 0.42)), ((0.03, 0.36), (0.044, 0.346)),
+                                       ((-0.05, 0.33), (-0.05, 0.31))])
+def test_friction_opposes_the_motion_the_command_produces(x0, target):
+    """Port friction (physics.md): after each command the tip is held back against u, the direction of
+    x_model(q + dq) - x_model(q) under the declared model, which here (port estimate off by (20, 10) mm)
+    is not the desired direction target - tip. Checked step by step against the formulas by hand."""
+    sc = _port_scenario()
+    fa, fn = 0.002, 0.0012
+    plant = Plant.from_scenario(sc.with_(effects={"port_friction": {"fa": fa, "fn": fn}}))
+    ctrl = ControllerModel.from_scenario(sc)
+    q0 = plant.configuration_for_tip(np.asarray(x0, float))
+    r = simulate(plant, ctrl, q0, [target], [0.3], max_steps=8, tolerance=1e-12)
+    assert r.steps == 8
+    arm, port, L = plant.arm, sc.port.position, sc.instrument.length
+    u = np.zeros(2)
+    angles = []
+    for t in range(r.steps + 1):
+        tip0 = _lever_by_hand(arm, r.q[t], port, L)
+        if t > 0:
+            d = _lever_by_hand(arm, r.q[t], port, L) - _lever_by_hand(arm, r.q[t - 1], port, L)
+            u = d / np.linalg.norm(d)
+            desired = r.target[t - 1] - r.tracked[t - 1]
+            angles.append(np.degrees(np.arccos(np.clip(u @ desired / np.linalg.norm(desired), -1, 1))))
+        a1 = r.q[t, 0] + arm.home[0]
+        a2 = a1 + r.q[t, 1] + arm.home[1]
+        wr = (np.asarray(arm.base) + arm.l1 * np.array([np.sin(a1), np.cos(a1)])
+              + arm.l2 * np.array([np.sin(a2), np.cos(a2)]))
+        s = (tip0 - wr) / np.linalg.norm(tip0 - wr)
+        n = np.array([s[1], -s[0]])
+        want = tip0 - (fa * (u @ s) * s + fn * (u @ n) * n)
+        assert np.allclose(r.tip[t], want, atol=1e-12), t
+    assert max(angles) > 2.0  # the motion that happens is not the desired direction
+
+
+def test_friction_keeps_u_when_a_command_moves_nothing():
+    """A plant/model pair whose declared model does not move for a command (the target is the tracked
+    tip): u keeps its last value; before the first command u = 0 (no friction at step 0)."""
+    sc = _port_scenario(estimate=(0.0, 0.160))
+    plant = Plant.from_scenario(sc.with_(effects={"port_friction": {"fa": 0.002, "fn": 0.001}}))
+    ctrl = ControllerModel.from_scenario(sc)
+    q0 = plant.configuration_for_tip(np.array([0.0, 0.36]))
+    assert np.allclose(simulate(plant, ctrl, q0, [[0.0, 0.37]], [0.5], max_steps=0).tip[0],
+                       plant.tip(q0), atol=1e-15)
+    m = plant.declared()
+    u1 = m.motion_direction(q0, q0 + [0.01, 0.0], np.zeros(2))
+    assert np.allclose(np.linalg.norm(u1), 1.0)
+    assert np.array_equal(m.motion_direction(q0, q0, u1), u1)
+    assert np.array_equal(m.motion_direction(q0, q0, np.zeros(2)), np.zeros(2))
+
+
+def test_simulation_size_is_checked_before_running():
+    sc = _port_scenario()
+    plant, ctrl = Plant.from_scenario(sc), ControllerModel.from_scenario(sc)
+    q0 = plant.configuration_for_tip(np.array([0.0, 0.36]))
+    with pytest.raises(ErrplanError, match=r"max_steps = 1000000000000000: the simulated run would need .*PiB"):
+        simulate(plant, ctrl, q0, [[0.0, 0.37]], [0.5], max_steps=10**15)

@@ -2,11 +2,19 @@
 (``errplan.cli.<command>``) and is imported only when run, so ``errplan fields`` never pays for
 ompl, casadi or rerun at start-up. Any :class:`errplan.ErrplanError` becomes one line on stderr
 and exit code 2; nothing is written in that case (outputs are written atomically at the end).
+
+Inputs are checked before work starts (:mod:`errplan.inputs`: file decoding, and every size that
+follows from the input against the memory the machine can hold). As a last line of defence,
+a ``MemoryError``, a ``UnicodeError`` or an ``OSError`` (a file that cannot be read or written)
+that still escapes also becomes one line and exit code 2; any other exception is a bug in errplan:
+one line saying so and exit code 1 (``ERRPLAN_TRACEBACK=1`` shows the traceback). A user never
+sees a traceback.
 """
 from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 
 from ..errors import ErrplanError
@@ -22,6 +30,12 @@ def _positive_float(s: str) -> float:
     if not v > 0 or v == float("inf"):
         raise argparse.ArgumentTypeError(f"{s!r}: expected a number > 0")
     return v
+
+
+def check_seed(option: str, value) -> None:
+    """A seed given on the command line: an integer from 0 to 2^32 - 1 (numpy and OMPL take it)."""
+    if value is not None and not 0 <= value <= 2**32 - 1:
+        raise ErrplanError(f"{option} {value}: expected an integer from 0 to 4294967295")
 
 
 class _OneLineParser(argparse.ArgumentParser):
@@ -50,6 +64,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--resolution", type=_positive_float, default=None, help="grid spacing, m (default: [fields] resolution)")
     s.add_argument("--rho-star", action="store_true", help="also compute rho_star and k_star (best achievable contraction)")
     s.add_argument("--samples", type=int, default=None, help="samples per uncertain axis (default: [uncertainty] samples)")
+    s.add_argument("--metrics", default=None,
+                   help="comma-separated subset of G_norm,phi_hat_max,phi_max,rho_star (default: the first three)")
+    s.add_argument("--workers", type=int, default=None, help="local worker processes for the grid's tiles (default: all cores)")
+    s.add_argument("--scheduler", default=None, help="address of a dask.distributed scheduler to run the tiles on instead")
     s.add_argument("--json", default=None, help="also write the summary as JSON")
 
     s = sub.add_parser("plan", help="plan every query, pick gains, simulate planned vs direct")
@@ -92,19 +110,50 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split())
+
+
+def _fail(command: str, message: str) -> None:
+    if sys.stderr.isatty():  # clear an updating progress line first
+        sys.stderr.write("\r" + " " * 60 + "\r")
+    print(f"errplan {command}: error: {_one_line(message)}", file=sys.stderr)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    cmd = args.command
     try:
-        mod = importlib.import_module(f"errplan.cli.{args.command}")
+        mod = importlib.import_module(f"errplan.cli.{cmd}")
         return int(mod.run(args) or 0)
     except ErrplanError as e:
-        if sys.stderr.isatty():  # clear an updating progress line first
-            sys.stderr.write("\r" + " " * 60 + "\r")
-        print(f"errplan {args.command}: error: {e}", file=sys.stderr)
+        _fail(cmd, str(e))
         return 2
     except KeyboardInterrupt:  # pragma: no cover
         print("errplan: interrupted", file=sys.stderr)
         return 130
+    except MemoryError as e:  # the input checks should have caught it: still one line, exit 2
+        if os.environ.get("ERRPLAN_TRACEBACK"):
+            raise
+        _fail(cmd, f"out of memory ({e or 'no details'}): an input size is too large for this machine")
+        return 2
+    except UnicodeError as e:
+        if os.environ.get("ERRPLAN_TRACEBACK"):
+            raise
+        _fail(cmd, f"an input file is not UTF-8 text ({e})")
+        return 2
+    except OSError as e:
+        if os.environ.get("ERRPLAN_TRACEBACK"):
+            raise
+        where = f"{e.filename}: " if getattr(e, "filename", None) else ""
+        _fail(cmd, f"{where}{e.strerror or e}")
+        return 2
+    except Exception as e:  # a bug in errplan: say so in one line, no traceback for the user
+        if os.environ.get("ERRPLAN_TRACEBACK"):
+            raise
+        _fail(cmd, f"internal error {type(e).__name__}: {e} (this is a bug in errplan, not in the input; "
+                   f"ERRPLAN_TRACEBACK=1 shows the traceback)")
+        return 1
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -7,17 +7,8 @@ anything is written; outputs are written atomically at the end.
 """
 from __future__ import annotations
 
-from pathlib import Path
-
 from ..errors import ErrplanError
 from ..report import Progress, write_atomic, write_json
-
-
-def _check_dir(opt: str, value: str | None) -> None:
-    if value:
-        p = Path(value)
-        if not p.parent.exists():
-            raise ErrplanError(f"{opt} {value}: directory {p.parent} does not exist")
 
 
 def run(args) -> int:
@@ -25,9 +16,13 @@ def run(args) -> int:
     from ..experiment import read_measured_csv
     from ..scenario import load_scenario
 
+    from ..inputs import check_output
+    from . import check_seed
+
     sc = load_scenario(args.scenario)
     for opt, v in (("--json", args.json), ("--record", args.record), ("--export-scenario", args.export_scenario)):
-        _check_dir(opt, v)
+        check_output(opt, v)
+    check_seed("--seed", args.seed)
     folds = getattr(args, "folds", 5)
     if folds < 2:
         raise ErrplanError(f"--folds {folds}: expected an integer >= 2")

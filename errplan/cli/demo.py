@@ -23,6 +23,7 @@ def bundled_scenario() -> Path:
 
 def run(args) -> int:
     from ..fields import compute_fields
+    from ..inputs import check_output
     from ..pipeline import run_pipeline, summary_table
     from ..planning import plan_scenario
     from ..scenario import load_scenario
@@ -32,9 +33,8 @@ def run(args) -> int:
     sc = load_scenario(path)
     if not sc.queries:
         raise ErrplanError(f"{path}: the scenario has no [[query]] to plan")
-    rec = Path(args.record) if args.record else None
-    if rec is not None and not rec.parent.exists():
-        raise ErrplanError(f"--record {args.record}: directory {rec.parent} does not exist")
+    rec = check_output("--record", args.record)
+    check_output("--json", args.json)
     quiet = getattr(args, "quiet", False)
     prog = Progress("fields", quiet=quiet)
     mf = compute_fields(sc, rho_star=True, progress=prog)

@@ -17,10 +17,12 @@ def run(args) -> int:
     from ..experiment import run_experiment
     from ..scenario import load_scenario
 
+    from ..inputs import check_output
+    from . import check_seed
+
     sc = load_scenario(args.scenario)
-    out = Path(args.out)
-    if not out.parent.exists():
-        raise ErrplanError(f"--out {args.out}: directory {out.parent} does not exist")
+    out = check_output("--out", args.out)
+    check_seed("--seed", args.seed)
     starts = getattr(args, "starts", 8)
     max_steps = getattr(args, "max_steps", 60)
     dwell = getattr(args, "dwell", 10)

@@ -56,11 +56,16 @@ def run(args) -> int:
     from ..planning import plan_scenario, select_queries
     from ..scenario import load_scenario
 
+    from ..inputs import check_output
+    from . import check_seed
+
     sc = load_scenario(args.scenario)
     select_queries(sc, args.query)  # a bad --query fails before the fields are computed
     for opt, value in (("--json", args.json), ("--record", args.record)):
-        if value and not Path(value).resolve().parent.exists():
-            raise ErrplanError(f"{opt} {value}: directory {Path(value).parent} does not exist")
+        check_output(opt, value)
+    check_seed("--seed", args.seed)
+    if args.seed is None and sc.planner.seed > 2**32 - 1:
+        raise ErrplanError(f"{sc.source}: [planner] seed = {sc.planner.seed}: expected an integer from 0 to 4294967295")
     prog = Progress("plan", quiet=args.quiet)
     prog.quiet = prog.quiet or not prog.tty  # progress only on a terminal: an error stays the one line on stderr
     plan = plan_scenario(sc, query=args.query, planner=args.planner, time=args.time, seed=args.seed,

@@ -6,21 +6,16 @@ notes/readme_tolerance.md for every key). Nothing is written when a query fails.
 """
 from __future__ import annotations
 
-from pathlib import Path
-
-from ..errors import ErrplanError
 from ..report import Progress, format_table, write_json
 
 
 def run(args) -> int:
+    from ..inputs import check_output
     from ..scenario import load_scenario
     from ..tolerance import run_all
 
     sc = load_scenario(args.scenario)
-    if args.json:
-        out = Path(args.json)
-        if not out.parent.exists():
-            raise ErrplanError(f"--json {args.json}: directory {out.parent} does not exist")
+    check_output("--json", args.json)
     prog = Progress("tolerance", quiet=args.quiet)
     prog.quiet = prog.quiet or not prog.tty  # progress only on a terminal: an error stays the one line on stderr
     results = run_all(sc, progress=prog)

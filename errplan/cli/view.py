@@ -42,8 +42,11 @@ def check_recording(path: str | os.PathLike) -> Path:
                            f"or `errplan demo`)")
     if p.is_dir():
         raise ErrplanError(f"{p}: is a directory, expected an .rrd recording")
-    with open(p, "rb") as f:
-        head = f.read(4)
+    try:
+        with open(p, "rb") as f:
+            head = f.read(4)
+    except OSError as e:
+        raise ErrplanError(f"{p}: cannot read the recording: {e.strerror or e}") from None
     if head[:3] != b"RRF":
         raise ErrplanError(f"{p}: not a rerun recording (the file does not start with an .rrd header)")
     return p

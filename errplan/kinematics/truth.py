@@ -77,9 +77,30 @@ class Plant:
         r = np.linalg.norm(self.true_port - np.asarray(w, float), axis=-1)
         return (r > 1e-9) & (r < self.length)
 
+    def declared(self) -> "Plant":
+        """The declared model under this plant: its arm, shaft, tip load and ``port`` (the declared
+        port position), without any effect and without noise."""
+        return Plant(self.arm, self.length, self.port, self.load)
+
+    def model_tip(self, q: np.ndarray) -> np.ndarray:
+        """``x_model(q)`` of docs/physics.md ``port_friction``: the declared model's tip (..., 2) at
+        joint angles ``q`` (arm, shaft with the plant's tip load, ``port``; no effects). Friction's
+        direction ``u`` is the direction of ``x_model(q + dq) - x_model(q)``."""
+        q = np.asarray(q, float)
+        w = self.arm.forward(q)
+        t = np.broadcast_to(np.asarray(self.load, float), np.shape(w)[:-1])
+        return flexed_geometry(w, np.asarray(self.port, float), self.length, t)["tip"]
+
+    def motion_direction(self, q_from: np.ndarray, q_to: np.ndarray, u_prev: np.ndarray) -> np.ndarray:
+        """Friction's ``u`` (..., 2) for a joint command from ``q_from`` to ``q_to``: the unit
+        direction of ``x_model(q_to) - x_model(q_from)``, or ``u_prev`` where the command produces
+        no motion (see :func:`motion_direction`)."""
+        return motion_direction(self.model_tip(q_from), self.model_tip(q_to), u_prev)
+
     def tip(self, q_enc: np.ndarray, u: np.ndarray | None = None) -> np.ndarray:
-        """True tip (..., 2) for encoder angles; ``u`` the unit commanded tip-motion direction
-        (port friction holds the tip back against it)."""
+        """True tip (..., 2) for encoder angles; ``u`` the unit direction of the tip motion the
+        last joint command produced under the declared model (:meth:`motion_direction`; port
+        friction holds the tip back against it; ``u = 0`` before the first command)."""
         w = self.wrist(q_enc)
         g = flexed_geometry(w, self.true_port, self.length, self.shaft_load(w))
         tip = g["tip"]
@@ -115,6 +136,17 @@ class Plant:
             raise ErrplanError(f"tip {np.round(x, 5).tolist()} is not reachable by the true robot "
                                f"(port {np.round(self.true_port, 5).tolist()}, shaft {self.length} m)")
         return q - np.asarray(self.joint_offset)
+
+
+def motion_direction(x_from: np.ndarray, x_to: np.ndarray, u_prev: np.ndarray) -> np.ndarray:
+    """Unit direction (..., 2) of ``x_to - x_from`` (declared-model tips before and after a joint
+    command); where the command moves nothing (a zero or non-finite difference), ``u_prev``: u
+    keeps its last value (docs/physics.md ``port_friction``)."""
+    d = np.asarray(x_to, float) - np.asarray(x_from, float)
+    n = np.sqrt(np.sum(d * d, axis=-1, keepdims=True))
+    moved = (n > 0) & np.isfinite(n)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(moved, d / np.where(moved, n, 1.0), np.asarray(u_prev, float))
 
 
 def effect_kwargs(effects) -> dict:
