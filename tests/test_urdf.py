@@ -1,0 +1,744 @@
+"""URDF arms (errplan.kinematics.urdf, docs/physics.md "Spatial robots (3-D)").
+
+Forward kinematics and Jacobians are checked against pinocchio, central finite differences and a
+hand-written chain of explicit rotation matrices; the PHANToM against P1's planar arm;
+reachability against brute-force IK (many seeds) and closed-form IK of the Omni and the PHANToM;
+gravity against finite differences of the potential energy (pinocchio's and a hand-written one).
+The Omni is read from ../shared/robots, never copied into the repository.
+"""
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+import pinocchio as pin
+import pytest
+from numba import njit
+from scipy.spatial import cKDTree
+
+from errplan.errors import ErrplanError
+from errplan.kinematics import urdf as U
+from errplan.kinematics.arm import Arm
+from errplan.kinematics.urdf import CoupledLimit, UrdfArm, phantom_urdf
+
+REPO = Path(__file__).resolve().parents[1]
+ROBOTS = Path(__file__).resolve().parents[2] / "shared" / "robots"
+OMNI = ROBOTS / "omni_description" / "urdf" / "omni.urdf"
+PHANTOM = REPO / "scenarios" / "phantom15.urdf"
+JOINTS = ["waist", "shoulder", "elbow"]
+OMNI_RPY = (math.pi / 2, 0.0, math.pi)
+PHANTOM_BASE = (0.0, 0.210, -0.210)
+SUM = CoupledLimit(("shoulder", "elbow"), (1.0, 1.0), -0.3, 2.8)
+PLANAR = Arm(base=(0.21, -0.21), l1=0.21, l2=0.21, home=(0.0, -math.pi / 2), q1_limits=(-1.9, 1.2),
+             q2_limits=(-0.7, 1.0), sum_limits=(-0.3, 2.8))
+
+
+@pytest.fixture(scope="module", autouse=True)
+def cache_dir(tmp_path_factory):
+    """Reachability maps go to a fresh cache directory, never the user's."""
+    old = os.environ.get("ERRPLAN_CACHE_DIR")
+    path = tmp_path_factory.mktemp("errplan-cache")
+    os.environ["ERRPLAN_CACHE_DIR"] = str(path)
+    yield path
+    if old is None:
+        os.environ.pop("ERRPLAN_CACHE_DIR", None)
+    else:
+        os.environ["ERRPLAN_CACHE_DIR"] = old
+
+
+def load_omni(**kw):
+    assert OMNI.is_file(), f"the Omni URDF is expected at {OMNI} (shared/ beside the repository)"
+    return UrdfArm.load(OMNI, JOINTS, "tip", base_rpy=OMNI_RPY, **kw)
+
+
+def load_phantom(**kw):
+    return UrdfArm.load(PHANTOM, JOINTS, "wrist", base_position=PHANTOM_BASE, coupled_limits=[SUM], **kw)
+
+
+@pytest.fixture(scope="module")
+def omni():
+    return load_omni()
+
+
+@pytest.fixture(scope="module")
+def phantom():
+    return load_phantom()
+
+
+def random_q(arm, n, seed, feasible=True):
+    rng = np.random.default_rng(seed)
+    lo, hi = arm.limits[:, 0], arm.limits[:, 1]
+    q = lo + rng.random((4 * n if feasible else n, arm.n)) * (hi - lo)
+    if feasible:
+        q = q[arm.within_limits(q)][:n]
+        assert len(q) == n
+    return q
+
+
+def fd_jacobian(f, q, h=1e-6):
+    cols = []
+    for i in range(q.shape[-1]):
+        e = np.zeros(q.shape[-1])
+        e[i] = h
+        cols.append((f(q + e) - f(q - e)) / (2 * h))
+    return np.stack(cols, axis=-1)
+
+
+# ============================================================================ references
+def rpy(r, p, y):
+    """URDF rpy: Rz(y) Ry(p) Rx(r), written out."""
+    cr, sr, cp, sp, cy, sy = np.cos(r), np.sin(r), np.cos(p), np.sin(p), np.cos(y), np.sin(y)
+    return (np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]]) @ np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
+            @ np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]]))
+
+
+def rot(axis, a):
+    """Rotation by angle a about a unit axis (Rodrigues)."""
+    k = np.asarray(axis, float) / np.linalg.norm(axis)
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + np.sin(a) * K + (1 - np.cos(a)) * K @ K
+
+
+def tf(R=np.eye(3), p=(0.0, 0.0, 0.0)):
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = p
+    return T
+
+
+def pin_world(arm_path, frame, base_position, base_rpy, q):
+    """Wrist position and world Jacobian columns from pinocchio (actuated joints = first 3 q)."""
+    model = pin.buildModelFromUrdf(str(arm_path))
+    data = model.createData()
+    fid = model.getFrameId(frame)
+    R = rpy(*base_rpy)
+    W, J = [], []
+    for qk in q:
+        qq = pin.neutral(model)
+        qq[:3] = qk
+        pin.forwardKinematics(model, data, qq)
+        pin.updateFramePlacements(model, data)
+        pin.computeJointJacobians(model, data, qq)
+        W.append(np.asarray(base_position) + R @ data.oMf[fid].translation)
+        Jf = pin.getFrameJacobian(model, data, fid, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED)
+        J.append(R @ np.asarray(Jf)[:3, :3])
+    return np.array(W), np.array(J)
+
+
+def _wrap(a):
+    return (a + np.pi) % (2 * np.pi) - np.pi
+
+
+def omni_exact(W):
+    """Closed-form reachability of the Omni, from its URDF numbers: waist about the root z axis at
+    height 0.09; in the torso plane x = 0 a two-link arm from the shoulder at (y, z) = (0, 0.035)
+    (link 1 0.134 m at angle 0.23 + q1 from the torso y axis, link 2 0.08 + 0.0525 m at a further
+    -2.15 + q2); wrist1 turns about the link-2 axis, so the tip does not move with it."""
+    p = W @ rpy(*OMNI_RPY)      # root frame: R^T w
+    px, py, pz = p[:, 0], p[:, 1], p[:, 2]
+    l1, l2 = 0.134, 0.1325
+    lim = np.array([[-0.98, 0.98], [-0.24, 1.57], [-0.2, 1.95]])
+    rho = np.hypot(px, py)
+    out = np.zeros(len(W), bool)
+    for sg in (1.0, -1.0):
+        q0 = np.where(rho == 0, 0.0, np.arctan2(-sg * px, sg * py))
+        dy, dz = sg * rho, pz - 0.09 - 0.035
+        c = (dy * dy + dz * dz - l1 * l1 - l2 * l2) / (2 * l1 * l2)
+        for br in (1.0, -1.0):
+            a2 = br * np.arccos(np.clip(c, -1, 1))
+            a1 = np.arctan2(dz, dy) - np.arctan2(l2 * np.sin(a2), l1 + l2 * np.cos(a2))
+            q = np.stack([q0, _wrap(a1 - 0.23), _wrap(a2 + 2.15)], -1)
+            out |= (np.abs(c) <= 1) & np.all((q >= lim[:, 0]) & (q <= lim[:, 1]), -1)
+    return out
+
+
+def phantom_exact(W):
+    """Closed-form reachability of the PHANToM: the waist turns P1's planar arm about the vertical
+    axis through the shoulder; a wrist is reachable if, for a waist angle within its limits, the
+    point in the turned plane is reachable by the planar Arm."""
+    d = W - np.array(PHANTOM_BASE)
+    rho = np.hypot(d[:, 0], d[:, 2])
+    out = np.zeros(len(W), bool)
+    for sg in (1.0, -1.0):
+        psi = np.where(rho == 0, 0.0, np.arctan2(sg * d[:, 0], sg * d[:, 2]))
+        planar = np.stack([PHANTOM_BASE[1] + d[:, 1], PHANTOM_BASE[2] + sg * rho], -1)
+        out |= (psi >= -1.0) & (psi <= 1.0) & PLANAR.reachable(planar)
+    return out
+
+
+def brute_reachable(arm, W, per_joint=28, k=40, n_random=16, iters=60, seed=0):
+    """Brute-force IK: projected Levenberg-Marquardt (numpy) from the k configurations of a
+    joint grid whose wrists are nearest to w plus n_random random configurations; reachable when
+    a run ends with |f(q) - w| < 1e-9 within all limits."""
+    lo, hi = arm.limits[:, 0], arm.limits[:, 1]
+    g = [np.linspace(a, b, per_joint) for a, b in arm.limits]
+    G = np.stack(np.meshgrid(*g, indexing="ij"), -1).reshape(-1, 3)
+    _, idx = cKDTree(arm.forward(G)).query(W, k=k)
+    rng = np.random.default_rng(seed)
+    seeds = np.concatenate([G[idx], lo + rng.random((len(W), n_random, 3)) * (hi - lo)], axis=1)
+    m = seeds.shape[1]
+    Q = seeds.reshape(-1, 3).copy()
+    T = np.repeat(W, m, axis=0)
+    lam = np.full(len(Q), 1e-9)
+    e = np.sum((T - arm.forward(Q)) ** 2, -1)
+    active = np.ones(len(Q), bool)
+    slow = np.zeros(len(Q), int)
+    for _ in range(iters):
+        a = np.flatnonzero(active)
+        if len(a) == 0:
+            break
+        q, t = Q[a], T[a]
+        r = t - arm.forward(q)
+        J = arm.jacobian(q)
+        A = np.einsum("kji,kjl->kil", J, J)
+        A = A + (lam[a] * np.trace(A, axis1=1, axis2=2))[:, None, None] * np.eye(3)
+        dq = np.linalg.solve(A, np.einsum("kji,kj->ki", J, r)[..., None])[..., 0]
+        qn = np.clip(q + dq, lo, hi)
+        en = np.sum((t - arm.forward(qn)) ** 2, -1)
+        acc = en < e[a]
+        slow[a] = np.where(en < 0.99 * e[a], 0, slow[a] + 1)     # a rejected or tiny step is slow
+        Q[a[acc]] = qn[acc]
+        e[a[acc]] = en[acc]
+        lam[a] = np.where(acc, np.maximum(lam[a] * 0.1, 1e-12), lam[a] * 10)
+        active[a] = (e[a] > 1e-26) & (slow[a] < 6)
+        # a point reached by one seed needs no other
+        hit = np.zeros(len(W), bool)
+        reached = a[e[a] < 1e-18]
+        hit[reached[arm.within_limits(Q[reached])] // m] = True
+        active &= ~np.repeat(hit, m)
+    ok = (np.sqrt(e) < 1e-9) & arm.within_limits(Q)
+    return ok.reshape(len(W), m).any(-1)
+
+
+def map_state(arm, W):
+    _, rm = arm.kernel()
+    f = np.floor((W - rm.origin) / rm.h).astype(np.int64)
+    inside = np.all((f >= 0) & (f < rm.shape), axis=1)
+    st = np.zeros(len(W), np.int64)
+    st[inside] = rm.state[f[inside, 0], f[inside, 1], f[inside, 2]]
+    return st
+
+
+def near_boundary(exact, W, h):
+    """Points whose exact reachability changes within one voxel edge along some axis."""
+    base = exact(W)
+    out = np.zeros(len(W), bool)
+    for d in range(3):
+        for s in (-h, h):
+            Wd = W.copy()
+            Wd[:, d] += s
+            out |= exact(Wd) != base
+    return out
+
+
+def workspace_box(arm, margin=0.02):
+    S = arm.sample_wrists(25)
+    return S.min(0) - margin, S.max(0) + margin
+
+
+# ============================================================================ the bundled PHANToM
+def test_phantom_urdf_file_is_generated():
+    assert PHANTOM.read_text(encoding="utf-8") == phantom_urdf()
+
+
+def test_phantom_matches_planar_arm(phantom):
+    rng = np.random.default_rng(1)
+    q12 = np.stack([rng.uniform(-2.5, 2.0, 500), rng.uniform(-1.5, 2.0, 500)], -1)
+    q = np.concatenate([np.zeros((500, 1)), q12], -1)
+    w = phantom.forward(q)
+    assert np.allclose(w[:, 0], 0.0, atol=1e-15)
+    assert np.allclose(w[:, 1:], PLANAR.forward(q12), rtol=0, atol=1e-15)
+    J = phantom.jacobian(q)
+    assert np.allclose(J[:, 1:, 1:], PLANAR.jacobian(q12), rtol=0, atol=1e-15)
+    assert np.allclose(J[:, 0, 1:], 0.0, atol=1e-15)
+    assert np.array_equal(phantom.within_limits(q), PLANAR.within_limits(q12))
+    assert np.allclose(phantom.limit_margin(q), np.minimum(PLANAR.limit_margin(q12), 1.0))  # waist 0: 1 rad
+    assert np.allclose(phantom.forward([0.0, 0.0, 0.0]), [0.0, 0.0, 0.0], atol=1e-15)  # P1's home
+    # the waist turns the plane about the vertical axis through the shoulder
+    w1 = phantom.forward(np.concatenate([np.full((500, 1), 0.7), q12], -1))
+    d0, d1 = w - PHANTOM_BASE, w1 - PHANTOM_BASE
+    assert np.allclose(d1[:, 1], d0[:, 1])
+    assert np.allclose(d1[:, [2, 0]], d0[:, [2, 2]] * [math.cos(0.7), math.sin(0.7)], atol=1e-15)
+    assert phantom.limits.tolist() == [[-1.0, 1.0], [-1.9, 1.2], [-0.7, 1.0]]
+
+
+def test_phantom_reachable_at_x0_equals_planar(phantom):
+    y, z = np.meshgrid(np.linspace(-0.45, 0.65, 221), np.linspace(-0.65, 0.45, 221), indexing="ij")
+    planar = np.stack([y, z], -1).reshape(-1, 2)
+    W = np.concatenate([np.zeros((len(planar), 1)), planar], -1)
+    got = phantom.reachable(W)
+    want = PLANAR.reachable(planar)
+    assert want.sum() > 4000
+    assert np.array_equal(got, want)
+
+
+def test_phantom_gravity_torque(phantom):
+    model = pin.buildModelFromUrdf(str(PHANTOM))
+    data = model.createData()
+    model.gravity.linear = np.array([0.0, -9.81, 0.0])   # base_rpy = 0: root frame = world frame
+    q = random_q(phantom, 40, 3)
+    tau = phantom.gravity_torque(q)
+    assert np.all(tau[:, 0] == 0.0)                      # waist: vertical axis
+    h = 1e-6
+    for qk, tk in zip(q, tau):
+        fd = [(pin.computePotentialEnergy(model, data, qk + h * e) - pin.computePotentialEnergy(model, data, qk - h * e))
+              / (2 * h) for e in np.eye(3)]
+        assert np.allclose(tk, fd, rtol=0, atol=1e-8)
+    assert np.all(phantom.gravity_torque([0.0, 0.5, 0.3])[1:] != 0.0)
+    # at home the upper arm is horizontal (along +z) and the lower arm hangs: elbow torque 0,
+    # shoulder torque = (m1 l1 / 2 + (m2 + m_gimbal) l1) g > 0 (raising the arm raises V)
+    m_rod = U.ALUMINIUM_DENSITY * math.pi * U.ROD_RADIUS ** 2 * 0.21
+    m_gim = U.ALUMINIUM_DENSITY * 4 / 3 * math.pi * (2 * U.ROD_RADIUS) ** 3
+    t0 = phantom.gravity_torque([0.0, 0.0, 0.0])
+    assert t0[2] == pytest.approx(0.0, abs=1e-15)
+    assert t0[1] == pytest.approx((m_rod * 0.105 + (m_rod + m_gim) * 0.21) * 9.81, rel=1e-9)
+
+
+# ============================================================================ FK and Jacobian
+@pytest.mark.parametrize("which", ["omni", "phantom"])
+def test_kernel_fk_and_jacobian_vs_pinocchio_and_fd(which, omni, phantom):
+    arm = omni if which == "omni" else phantom
+    path, frame = (OMNI, "tip") if which == "omni" else (PHANTOM, "wrist")
+    q = random_q(arm, 200, 2, feasible=False)
+    W, J = pin_world(path, frame, arm.base_position, arm.base_rpy, q)
+    assert np.allclose(arm.forward(q), W, rtol=0, atol=1e-14)
+    assert np.allclose(arm.jacobian(q), J, rtol=0, atol=1e-14)
+    assert np.allclose(arm.jacobian(q), fd_jacobian(arm.forward, q), rtol=0, atol=1e-9)
+    # the single-point kernels called from compiled code
+    out, outJ = np.empty(3), np.empty((3, 3))
+    chain = arm.chain
+    U.fk_point(chain, q[5], out)
+    U.jac_point(chain, q[5], outJ)
+    assert np.allclose(out, W[5], atol=1e-14) and np.allclose(outJ, J[5], atol=1e-14)
+    # batch shapes
+    assert arm.forward(q.reshape(10, 20, 3)).shape == (10, 20, 3)
+    assert arm.jacobian(q.reshape(10, 20, 3)).shape == (10, 20, 3, 3)
+
+
+def test_omni_frame_and_chain_points(omni):
+    assert omni.joint_names == ("waist", "shoulder", "elbow")
+    assert omni.limits.tolist() == [[-0.98, 0.98], [-0.24, 1.57], [-0.2, 1.95]]   # from the URDF
+    q = random_q(omni, 50, 4)
+    pts = omni.chain_points(q)
+    assert np.allclose(pts[:, 0], 0.0)                           # the root at base_position
+    assert np.allclose(pts[:, -1], omni.forward(q), atol=1e-15)  # ... to the wrist
+    # y is up: the waist joint is 0.09 m above the root, on the vertical axis
+    assert np.any(np.all(np.isclose(pts, [0.0, 0.09, 0.0], atol=1e-12), axis=-1), axis=-1).all()
+    seg = np.linalg.norm(np.diff(pts, axis=1), axis=-1)
+    assert np.allclose(seg, seg[0], atol=1e-12)                   # rigid links keep their lengths
+    # wrist1 (held) does not move the tip: the tip lies on its axis
+    moved = load_omni(fixed_joints={"wrist1": 1.1})
+    assert np.allclose(moved.forward(q), omni.forward(q), atol=1e-15)
+
+
+TOY = """<?xml version="1.0"?>
+<robot name="toy">
+  <link name="root"/>
+  <link name="l1"><inertial><origin xyz="0.01 0 0.05"/><mass value="0.7"/>
+    <inertia ixx="1e-3" ixy="0" ixz="0" iyy="1e-3" iyz="0" izz="1e-3"/></inertial></link>
+  <link name="mount"/>
+  <link name="l2"><inertial><origin xyz="0.1 0.02 0"/><mass value="0.5"/>
+    <inertia ixx="1e-3" ixy="0" ixz="0" iyy="1e-3" iyz="0" izz="1e-3"/></inertial></link>
+  <link name="l3"/>
+  <link name="l4"><inertial><origin xyz="0.03 0 -0.01"/><mass value="0.3"/>
+    <inertia ixx="1e-4" ixy="0" ixz="0" iyy="1e-4" iyz="0" izz="1e-4"/></inertial></link>
+  <link name="tool"/>
+  <link name="side"><inertial><origin xyz="0 0.04 0"/><mass value="0.2"/>
+    <inertia ixx="1e-4" ixy="0" ixz="0" iyy="1e-4" iyz="0" izz="1e-4"/></inertial></link>
+  <joint name="j1" type="revolute"><parent link="root"/><child link="l1"/>
+    <origin xyz="0.01 0.02 0.10" rpy="0.1 -0.2 0.3"/><axis xyz="0 0 1"/>
+    <limit lower="-2.0" upper="2.0" effort="1" velocity="1"/></joint>
+  <joint name="mount_fixed" type="fixed"><parent link="l1"/><child link="mount"/>
+    <origin xyz="0.05 0 0.02" rpy="0 0.4 0"/></joint>
+  <joint name="j2" type="REVOLUTE_TYPE"><parent link="mount"/><child link="l2"/>
+    <origin xyz="0 0.03 0.15" rpy="-0.3 0 0.2"/><axis xyz="0 0.6 0.8"/>
+    <limit lower="J2_LO" upper="J2_HI" effort="1" velocity="1"/></joint>
+  <joint name="roll" type="revolute"><parent link="l2"/><child link="l3"/>
+    <origin xyz="0.2 0 0"/><axis xyz="1 0 0"/><limit lower="-3" upper="3" effort="1" velocity="1"/></joint>
+  <joint name="j3" type="prismatic"><parent link="l3"/><child link="l4"/>
+    <origin xyz="0 0.05 0" rpy="0 0 0.5"/><axis xyz="1 0 0"/>
+    <limit lower="0.05" upper="0.25" effort="1" velocity="1"/></joint>
+  <joint name="tool_fixed" type="fixed"><parent link="l4"/><child link="tool"/>
+    <origin xyz="0.02 0.01 -0.03" rpy="0.2 0.1 0"/></joint>
+  <joint name="side_joint" type="revolute"><parent link="l1"/><child link="side"/>
+    <origin xyz="0 0 0.03"/><axis xyz="0 1 0"/><limit lower="-1" upper="1" effort="1" velocity="1"/></joint>
+</robot>
+"""
+TOY_BASE, TOY_RPY, TOY_ROLL = (0.3, -0.1, 0.25), (0.4, -0.7, 1.2), 0.3
+
+
+def toy_text(j2_type="revolute", j2_lo=-1.5, j2_hi=1.5):
+    return TOY.replace("REVOLUTE_TYPE", j2_type).replace("J2_LO", str(j2_lo)).replace("J2_HI", str(j2_hi))
+
+
+@pytest.fixture(scope="module")
+def toy_path(tmp_path_factory):
+    p = tmp_path_factory.mktemp("toy") / "toy.urdf"
+    p.write_text(toy_text())
+    return p
+
+
+def load_toy(path, **kw):
+    args = dict(base_position=TOY_BASE, base_rpy=TOY_RPY, fixed_joints={"roll": TOY_ROLL})
+    args.update(kw)
+    return UrdfArm.load(path, ["j1", "j2", "j3"], "tool", **args)
+
+
+def toy_frames(q):
+    """World frames of the toy's links, by explicit matrices."""
+    q1, q2, q3 = q
+    B = tf(rpy(*TOY_RPY), TOY_BASE)
+    l1 = B @ tf(rpy(0.1, -0.2, 0.3), (0.01, 0.02, 0.10)) @ tf(rot([0, 0, 1], q1))
+    mount = l1 @ tf(rpy(0, 0.4, 0), (0.05, 0, 0.02))
+    l2 = mount @ tf(rpy(-0.3, 0, 0.2), (0, 0.03, 0.15)) @ tf(rot([0, 0.6, 0.8], q2))
+    l3 = l2 @ tf(p=(0.2, 0, 0)) @ tf(rot([1, 0, 0], TOY_ROLL))
+    l4 = l3 @ tf(rpy(0, 0, 0.5), (0, 0.05, 0)) @ tf(p=(q3, 0, 0))
+    tool = l4 @ tf(rpy(0.2, 0.1, 0), (0.02, 0.01, -0.03))
+    side = l1 @ tf(p=(0, 0, 0.03))
+    return {"l1": l1, "l2": l2, "l4": l4, "tool": tool, "side": side}
+
+
+def toy_potential(q):
+    """V = sum m g . c with world gravity 9.81 along -y (links with inertial data)."""
+    F = toy_frames(q)
+    V = 0.0
+    for link, m, c in [("l1", 0.7, (0.01, 0, 0.05)), ("l2", 0.5, (0.1, 0.02, 0)), ("l4", 0.3, (0.03, 0, -0.01)),
+                       ("side", 0.2, (0, 0.04, 0))]:
+        V += m * 9.81 * (F[link] @ np.append(c, 1.0))[1]
+    return V
+
+
+def test_hand_written_chain(toy_path):
+    arm = load_toy(toy_path)
+    rng = np.random.default_rng(7)
+    q = np.stack([rng.uniform(-2, 2, 100), rng.uniform(-1.5, 1.5, 100), rng.uniform(0.05, 0.25, 100)], -1)
+    want = np.array([toy_frames(qk)["tool"][:3, 3] for qk in q])
+    assert np.allclose(arm.forward(q), want, rtol=0, atol=1e-14)
+    assert np.allclose(arm.jacobian(q), fd_jacobian(arm.forward, q), rtol=0, atol=1e-9)
+    assert arm.chain.jtype.tolist() == [0, 0, 1]
+    assert arm.limits.tolist() == [[-2.0, 2.0], [-1.5, 1.5], [0.05, 0.25]]
+    pts = arm.chain_points(q[:3])
+    assert np.allclose(pts[:, 0], TOY_BASE) and np.allclose(pts[:, -1], want[:3], atol=1e-14)
+    for k, qk in enumerate(q[:3]):        # every joint origin on the chain is drawn
+        F = toy_frames(qk)
+        for p in (F["l1"][:3, 3], F["l2"][:3, 3], (F["l4"] @ tf(p=(-qk[2], 0, 0)))[:3, 3]):
+            assert np.min(np.linalg.norm(pts[k] - p, axis=-1)) < 1e-14
+    # the held joint's value matters; the off-chain joint does not exist for the wrist
+    other = load_toy(toy_path, fixed_joints={"roll": -0.2})
+    assert not np.allclose(other.forward(q), arm.forward(q))
+    # gravity, with a rotated base and a branch (side) off the chain: dV/dq by finite differences
+    tau = arm.gravity_torque(q[:10])
+    h = 1e-6
+    for qk, tk in zip(q[:10], tau):
+        fd = [(toy_potential(qk + h * e) - toy_potential(qk - h * e)) / (2 * h) for e in np.eye(3)]
+        assert np.allclose(tk, fd, rtol=0, atol=1e-8)
+    # inverse through a prismatic joint and a held joint
+    W = arm.forward(q[:200])
+    qi, ok = arm.inverse(W)
+    assert ok.all() and np.allclose(arm.forward(qi), W, rtol=0, atol=1e-10) and arm.within_limits(qi).all()
+
+
+def test_continuous_joint_wraps(tmp_path):
+    text = toy_text().replace('<joint name="j1" type="revolute">', '<joint name="j1" type="continuous">')
+    p = tmp_path / "cont.urdf"
+    p.write_text(text)
+    arm = load_toy(p)
+    assert arm.limits[0].tolist() == [-math.pi, math.pi]
+    rng = np.random.default_rng(8)
+    q = np.stack([rng.uniform(-math.pi, math.pi, 300), rng.uniform(-1.5, 1.5, 300), rng.uniform(0.05, 0.25, 300)], -1)
+    q[:100, 0] = np.where(q[:100, 0] > 0, math.pi - 1e-3 * rng.random(100), -math.pi + 1e-3 * rng.random(100))
+    W = arm.forward(q)
+    qi, ok = arm.inverse(W)
+    assert ok.all() and np.allclose(arm.forward(qi), W, rtol=0, atol=1e-10)
+    assert np.all(np.abs(qi[:, 0]) <= math.pi)
+    assert arm.reachable(W).all()
+
+
+# ============================================================================ inverse
+@pytest.mark.parametrize("which", ["omni", "phantom"])
+def test_inverse_round_trip(which, omni, phantom):
+    arm = omni if which == "omni" else phantom
+    q = random_q(arm, 5000, 11)
+    W = arm.forward(q)
+    qi, ok = arm.inverse(W)
+    assert ok.all()
+    assert np.max(np.linalg.norm(arm.forward(qi) - W, axis=-1)) < 1e-10
+    assert arm.within_limits(qi).all()
+    # near = the true configuration: the same branch comes back
+    qn, okn = arm.inverse(W, near=q)
+    assert okn.all() and np.allclose(qn, q, atol=1e-8)
+    # unreachable: NaN, not ok
+    far = W + 10.0
+    qf, okf = arm.inverse(far)
+    assert not okf.any() and np.isnan(qf).all()
+    qs, oks = arm.inverse(W[0])
+    assert qs.shape == (3,) and oks.shape == () and bool(oks)
+
+
+def test_inverse_finds_the_second_elbow_branch():
+    """P1's limits allow one elbow branch only (relative angle q2 - pi/2 < 0). With the elbow
+    allowed past straight, wrists that only the branch opposite to the home pose's reaches
+    within the limits are found, and so are wrists behind the shoulder (waist turned by pi)."""
+    lims = [[-1.0, 4.0], [-1.9, 1.2], [-0.7, 3.0]]
+    arm = UrdfArm.load(PHANTOM, JOINTS, "wrist", base_position=PHANTOM_BASE, joint_limits=lims,
+                       coupled_limits=[CoupledLimit(("shoulder", "elbow"), (1.0, 1.0), -0.3, 3.5)])
+    planar = Arm(base=(0.21, -0.21), l1=0.21, l2=0.21, home=(0.0, -math.pi / 2), q1_limits=(-1.9, 1.2),
+                 q2_limits=(-0.7, 3.0), sum_limits=(-0.3, 3.5))
+    q = random_q(arm, 20000, 12)
+    q[:, 0] = 0.0                               # the plane x = 0: closed-form branches
+    q = q[arm.within_limits(q)]
+    W = arm.forward(q)
+    pref, other, reach = planar.inverse_branches(W[:, 1:])
+    only_other = reach & ~planar.within_limits(pref) & planar.within_limits(other)
+    assert only_other.sum() > 50
+    # waist 0 or pi put the arm in the plane x = 0; the map must find whichever holds
+    qi, ok = arm.inverse(W[only_other])
+    assert ok.all()
+    assert np.allclose(arm.forward(qi), W[only_other], rtol=0, atol=1e-10) and arm.within_limits(qi).all()
+    at_zero = np.abs(qi[:, 0]) < 1e-9
+    assert at_zero.sum() > 0 and np.allclose(qi[at_zero, 1:], other[only_other][at_zero], atol=1e-8)
+    # random configurations over the whole box, all four branches
+    q = random_q(arm, 20000, 13)
+    W = arm.forward(q)
+    qi, ok = arm.inverse(W)
+    assert ok.all() and np.max(np.linalg.norm(arm.forward(qi) - W, axis=-1)) < 1e-10
+    assert arm.within_limits(qi).all()
+    assert np.any(qi[:, 0] > math.pi / 2) and np.any(qi[:, 2] > math.pi / 2)
+
+
+def test_kernels_from_compiled_code(omni):
+    chain, rmap = omni.kernel()
+
+    @njit
+    def sweep(chain, rmap, W, q, ok, reach):
+        for k in range(W.shape[0]):
+            reach[k] = U.reach_point(chain, rmap, W[k, 0], W[k, 1], W[k, 2])
+            ok[k] = U.ik_point(chain, rmap, W[k, 0], W[k, 1], W[k, 2], q[k])
+
+    lo, hi = workspace_box(omni)
+    W = lo + np.random.default_rng(13).random((3000, 3)) * (hi - lo)
+    q, ok, reach = np.empty((3000, 3)), np.empty(3000, bool), np.empty(3000, bool)
+    sweep(chain, rmap, W, q, ok, reach)
+    assert np.array_equal(reach, omni.reachable(W))
+    assert np.array_equal(ok, reach)
+    assert np.allclose(omni.forward(q[ok]), W[ok], rtol=0, atol=1e-10)
+    assert np.isnan(q[~ok]).all()
+    assert not U.reach_point(chain, rmap, np.nan, 0.0, 0.1)
+
+
+# ============================================================================ reachability
+@pytest.mark.parametrize("which", ["omni", "phantom"])
+def test_reach_map_guarantees(which, omni, phantom, capsys):
+    """In/out voxels agree with closed-form IK everywhere; boundary voxels (exact IK) too."""
+    arm = omni if which == "omni" else phantom
+    exact = omni_exact if which == "omni" else phantom_exact
+    chain, rmap = arm.kernel()
+    assert arm.map_info.get("conflicts", 0) == 0
+    # every wrist of a feasible configuration (incl. on the limit faces) is in a non-out voxel
+    g = [np.linspace(a, b, 41) for a, b in arm.limits]
+    Q = np.stack(np.meshgrid(*g, indexing="ij"), -1).reshape(-1, 3)
+    Wq = arm.forward(Q[arm.within_limits(Q)])
+    assert np.all(map_state(arm, Wq) != 0)
+    rng = np.random.default_rng(21)
+    lo, hi = workspace_box(arm)
+    W = lo + rng.random((100000, 3)) * (hi - lo)
+    got, want, st = arm.reachable(W), exact(W), map_state(arm, W)
+    assert want.sum() > 10000
+    for s in (0, 1):
+        assert np.array_equal(got[st == s], want[st == s]), f"state {s} voxels disagree with closed-form IK"
+    # points inside boundary voxels
+    B = np.argwhere(rmap.state == 2)
+    Wb = rmap.origin + (B[rng.integers(0, len(B), 30000)] + rng.random((30000, 3))) * rmap.h
+    gb, eb = arm.reachable(Wb), exact(Wb)
+    near = near_boundary(exact, W, rmap.h)
+    with capsys.disabled():
+        print(f"\n[{which}] reach map: h = {rmap.h * 1e3:.2f} mm, voxels in/out/boundary = "
+              f"{(rmap.state == 1).sum()}/{(rmap.state == 0).sum()}/{(rmap.state == 2).sum()}; closed-form IK "
+              f"disagreements: {int((got != want).sum())} of {len(W)} random points "
+              f"({int((got != want)[near].sum())} of {int(near.sum())} within one voxel of the boundary), "
+              f"{int((gb != eb).sum())} of {len(Wb)} points in boundary voxels")
+    assert np.array_equal(got, want)
+    assert np.array_equal(gb, eb)
+    # in voxels: IK succeeds there too
+    assert arm.inverse(W[st == 1])[1].all()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("which", ["omni", "phantom"])
+def test_reachable_vs_brute_force_ik(which, omni, phantom, capsys):
+    arm = omni if which == "omni" else phantom
+    exact = omni_exact if which == "omni" else phantom_exact
+    _, rmap = arm.kernel()
+    rng = np.random.default_rng(31)
+    lo, hi = workspace_box(arm)
+    W = lo + rng.random((20000, 3)) * (hi - lo)
+    got, st = arm.reachable(W), map_state(arm, W)
+    brute = brute_reachable(arm, W)
+    near = near_boundary(exact, W, rmap.h)
+    bad = got != brute
+    with capsys.disabled():
+        print(f"\n[{which}] reachable vs brute-force IK on {len(W)} points: {int(bad.sum())} disagreements; "
+              f"{int(bad[st == 2].sum())} of {int((st == 2).sum())} in boundary voxels, "
+              f"{int(bad[near].sum())} of {int(near.sum())} within one voxel of the boundary")
+    assert not bad[st != 2].any()
+    assert bad[st == 2].mean() <= 0.002
+    assert bad[near].mean() <= 0.01
+
+
+# ============================================================================ map cache
+def test_map_cache(tmp_path, monkeypatch):
+    monkeypatch.setenv("ERRPLAN_CACHE_DIR", str(tmp_path))
+    a = load_phantom()
+    ra = a.reach_map()
+    assert a.map_info["from_cache"] is False
+    files = list(tmp_path.glob("reachmap-*.npz"))
+    assert len(files) == 1 and not list(tmp_path.glob(".reachmap-*"))   # written atomically
+    b = load_phantom()
+    rb = b.reach_map()
+    assert b.map_info["from_cache"] is True
+    for f in U.ReachMap._fields:
+        assert np.array_equal(np.asarray(getattr(ra, f)), np.asarray(getattr(rb, f)))
+    # a corrupt file is rebuilt, never trusted
+    files[0].write_bytes(b"not an npz")
+    c = load_phantom()
+    rc = c.reach_map()
+    assert c.map_info["from_cache"] is False and np.array_equal(rc.state, ra.state)
+    # a well-formed file whose content does not match its checksum is rebuilt too
+    with np.load(files[0]) as z:
+        arrs = {k: z[k] for k in z.files}
+    arrs["state"] = np.zeros_like(arrs["state"])
+    with open(files[0], "wb") as f:
+        np.savez(f, **arrs)
+    d = load_phantom()
+    assert np.array_equal(d.reach_map().state, ra.state) and d.map_info["from_cache"] is False
+    # anything the map depends on changes the key
+    e = UrdfArm.load(PHANTOM, JOINTS, "wrist", base_position=PHANTOM_BASE)   # no coupled limit
+    e.reach_map()
+    assert e.map_info["from_cache"] is False
+    assert len(list(tmp_path.glob("reachmap-*.npz"))) == 2
+
+
+def test_sampling_and_distance(phantom):
+    S = phantom.sample_wrists(15)
+    assert S.shape[1] == 3 and len(S) > 1000
+    assert np.all(phantom.reachable(S) | (map_state(phantom, S) == 2))
+    assert phantom.min_distance_to(phantom.forward([0.2, 0.3, 0.1])) == 0.0
+    far = np.array([0.0, 2.0, 0.0])
+    assert phantom.min_distance_to(far) == pytest.approx(np.min(np.linalg.norm(phantom.sample_wrists() - far, axis=-1)))
+
+
+def test_resolve_uri(monkeypatch, tmp_path):
+    monkeypatch.delenv("ROS_PACKAGE_PATH", raising=False)
+    arm = load_omni()
+    uri = "package://omni_description/meshes/base.stl"
+    assert arm.resolve_uri(uri) is None
+    with_path = load_omni(package_path=[str(ROBOTS)])
+    assert with_path.resolve_uri(uri) == ROBOTS / "omni_description" / "meshes" / "base.stl"
+    assert with_path.resolve_uri("package://omni_description/meshes/nope.stl") is None
+    monkeypatch.setenv("ROS_PACKAGE_PATH", os.pathsep.join([str(tmp_path), str(ROBOTS)]))
+    assert arm.resolve_uri(uri) == ROBOTS / "omni_description" / "meshes" / "base.stl"
+    assert arm.resolve_uri("../meshes/base.stl") == (OMNI.parent / "../meshes/base.stl")
+    assert arm.resolve_uri("http://example.invalid/x.stl") is None
+
+
+# ============================================================================ bad input
+def write(tmp_path, text, name="r.urdf"):
+    p = tmp_path / name
+    p.write_text(text)
+    return p
+
+
+LIM = '<limit lower="-1" upper="1" effort="1" velocity="1"/>'
+PLANAR3 = f"""<robot name="planar3"><link name="a"/><link name="b"/><link name="c"/><link name="d"/>
+<joint name="p1" type="revolute"><parent link="a"/><child link="b"/><axis xyz="0 0 1"/>{LIM}</joint>
+<joint name="p2" type="revolute"><parent link="b"/><child link="c"/><origin xyz="0.1 0 0"/><axis xyz="0 0 1"/>{LIM}</joint>
+<joint name="p3" type="revolute"><parent link="c"/><child link="d"/><origin xyz="0.1 0 0"/><axis xyz="0 0 1"/>{LIM}</joint>
+</robot>"""
+
+
+@pytest.mark.parametrize("case, pattern", [
+    ("missing", r"URDF file .*nope\.urdf not found"),
+    ("directory", r"is a directory"),
+    ("not_xml", r"r\.urdf is not XML"),
+    ("not_urdf", r"r\.urdf is not a URDF: its root element is <foo>"),
+    ("invalid_urdf", r"r\.urdf is not a valid URDF: .*does not specify limits"),
+    ("unknown_joint", r"toy\.urdf: joint 'jx' is not in the URDF"),
+    ("off_chain", r"toy\.urdf: joint 'side_joint' is not on the chain from the root link 'root' to the wrist link 'tool'"),
+    ("no_wrist", r"toy\.urdf: wrist link 'hand' is not in the URDF"),
+    ("fixed_actuated", r"toy\.urdf: joint 'mount_fixed' is fixed"),
+    ("floating", r"r\.urdf: joint 'j2' on the chain to 'tool' is (freeflyer|floating)"),
+    ("two_joints", r"toy\.urdf: 2 actuated joint\(s\) \['j1', 'j2'\] cannot place the wrist in 3-D"),
+    ("planar", r"r\.urdf: joints \['p1', 'p2', 'p3'\] cannot place the wrist 'd' in 3-D"),
+    ("order", r"toy\.urdf: joints \['j2', 'j1', 'j3'\] must be listed from the root to the wrist"),
+    ("fixed_off_chain", r"toy\.urdf: fixed_joints names 'side_joint', which is not a movable joint on the chain"),
+    ("fixed_actuated_name", r"toy\.urdf: fixed_joints names 'j1', which is an actuated joint"),
+    ("fixed_nan", r"toy\.urdf: fixed_joints value of 'roll' must be a finite number"),
+    ("limits_reversed", r"toy\.urdf: joint_limits for 'j2' are reversed: \[1\.0, -1\.0\]"),
+    ("limits_shape", r"toy\.urdf: joint_limits must be 3 finite pairs"),
+    ("urdf_limits_reversed", r"r\.urdf: joint 'j2' has reversed limits in the URDF: lower 1\.5 > upper -1\.5"),
+    ("coupled_reversed", r"toy\.urdf: coupled limit \['j1', 'j2'\] bounds are reversed: \[1\.0, -1\.0\]"),
+    ("coupled_unknown", r"toy\.urdf: coupled limit \['j1', 'roll'\] names 'roll', which is not an actuated joint"),
+    ("base_rpy", r"toy\.urdf: base_rpy must be 3 finite numbers"),
+    ("empty", r"toy\.urdf: the joint limits leave no feasible configuration"),
+])
+def test_bad_input(case, pattern, tmp_path, toy_path, capfd):
+    j = ["j1", "j2", "j3"]
+    calls = {
+        "missing": lambda: UrdfArm.load(tmp_path / "nope.urdf", j, "tool"),
+        "directory": lambda: UrdfArm.load(tmp_path, j, "tool"),
+        "not_xml": lambda: UrdfArm.load(write(tmp_path, "robot: {not xml"), j, "tool"),
+        "not_urdf": lambda: UrdfArm.load(write(tmp_path, "<foo><bar/></foo>"), j, "tool"),
+        "invalid_urdf": lambda: UrdfArm.load(write(tmp_path, TOY.replace(
+            '<limit lower="J2_LO" upper="J2_HI" effort="1" velocity="1"/>', "").replace("REVOLUTE_TYPE", "revolute")), j, "tool"),
+        "unknown_joint": lambda: UrdfArm.load(toy_path, ["j1", "jx", "j3"], "tool"),
+        "off_chain": lambda: UrdfArm.load(toy_path, ["j1", "side_joint", "j3"], "tool"),
+        "no_wrist": lambda: UrdfArm.load(toy_path, j, "hand"),
+        "fixed_actuated": lambda: UrdfArm.load(toy_path, ["j1", "mount_fixed", "j3"], "tool"),
+        "floating": lambda: UrdfArm.load(write(tmp_path, toy_text(j2_type="floating")), ["j1", "roll", "j3"], "tool"),
+        "two_joints": lambda: UrdfArm.load(toy_path, ["j1", "j2"], "tool"),
+        "planar": lambda: UrdfArm.load(write(tmp_path, PLANAR3), ["p1", "p2", "p3"], "d"),
+        "order": lambda: UrdfArm.load(toy_path, ["j2", "j1", "j3"], "tool"),
+        "fixed_off_chain": lambda: load_toy(toy_path, fixed_joints={"side_joint": 0.1}),
+        "fixed_actuated_name": lambda: load_toy(toy_path, fixed_joints={"j1": 0.1}),
+        "fixed_nan": lambda: load_toy(toy_path, fixed_joints={"roll": float("nan")}),
+        "limits_reversed": lambda: load_toy(toy_path, joint_limits=[[-1, 1], [1, -1], [0.1, 0.2]]),
+        "limits_shape": lambda: load_toy(toy_path, joint_limits=[[-1, 1], [0.1, 0.2]]),
+        "urdf_limits_reversed": lambda: load_toy(write(tmp_path, toy_text(j2_lo=1.5, j2_hi=-1.5))),
+        "coupled_reversed": lambda: load_toy(toy_path, coupled_limits=[CoupledLimit(("j1", "j2"), (1.0, 1.0), 1.0, -1.0)]),
+        "coupled_unknown": lambda: load_toy(toy_path, coupled_limits=[CoupledLimit(("j1", "roll"), (1.0, 1.0), -1.0, 1.0)]),
+        "base_rpy": lambda: load_toy(toy_path, base_rpy=(0.0, 1.0)),
+        "empty": lambda: load_toy(toy_path, coupled_limits=[CoupledLimit(("j1", "j2"), (1.0, 1.0), 5.0, 6.0)]),
+    }
+    with pytest.raises(ErrplanError, match=pattern) as info:
+        calls[case]()
+    msg = str(info.value)
+    assert "\n" not in msg
+    assert info.value.__cause__ is None
+    assert capfd.readouterr().err == ""          # nothing from urdfdom/pinocchio leaks to stderr
+
+
+def test_gravity_without_inertial_data(omni):
+    with pytest.raises(ErrplanError, match=r"omni\.urdf: the links moved by joint 'waist' carry no inertial data"):
+        omni.gravity_torque([0.0, 0.0, 0.0])
+
+
+def test_from_robot():
+    class Robot:
+        urdf = str(PHANTOM)
+        joints = tuple(JOINTS)
+        wrist = "wrist"
+        base_position = PHANTOM_BASE
+        base_rpy = (0.0, 0.0, 0.0)
+        joint_limits = ((-1.0, 1.0), (-1.9, 1.2), (-0.7, 1.0))
+        fixed_joints = {}
+        coupled_limits = (SUM,)
+        package_path = ()
+
+    arm = UrdfArm.from_robot(Robot())
+    ref = load_phantom()
+    q = random_q(ref, 50, 41)
+    assert np.array_equal(arm.forward(q), ref.forward(q))
+    assert np.array_equal(arm.chain.A, ref.chain.A) and np.array_equal(arm.chain.lo, ref.chain.lo)
+    assert arm.chain.A.tolist()[-1] == [0.0, 1.0, 1.0] and arm.chain.lo[-1] == -0.3 and arm.chain.hi[-1] == 2.8
