@@ -22,7 +22,7 @@ import numpy as np
 from numba import njit
 
 from ..kinematics.urdf import reach_point
-from ..linalg import g_norm3, inv3, phi_max3
+from ..linalg import _smax3, inv3, phi_max3
 
 NEWTON = 8  # Newton iterations of the beam's port-position equation (as kinematics.shaft)
 RCOND = 1e-12  # a controller Jacobian with |det| <= RCOND * scale is singular: the tip is invalid
@@ -91,30 +91,6 @@ def _lever_J(w, p, L, J):
     return rho
 
 
-@njit(cache=True, error_model="numpy")
-def _flexed_J2(w, p, L, t, a, J):
-    """Planar flexed shaft ``d tip / d w`` at constant port and ``t`` (kinematics.shaft.flexed_jacobian)."""
-    dy, dz = p[0] - w[0], p[1] - w[1]
-    rho = math.sqrt(dy * dy + dz * dz)
-    theta = math.atan2(dy, dz)
-    b = L - a
-    s = t * b * b / 3.0
-    phi = theta + math.atan(s)
-    u0, u1 = math.sin(theta), math.cos(theta)
-    n0, n1 = math.cos(theta), -math.sin(theta)
-    np0, np1 = math.cos(phi), -math.sin(phi)
-    gg = 1.0 + s * s
-    dgg = -(4.0 * t * b / 3.0) * s
-    beta_p = -(2.0 * t * b / 3.0) / gg
-    a_p = 2.0 * rho / (2.0 * a * gg + a * a * dgg)
-    g0 = -n0 / rho - beta_p * a_p * u0
-    g1 = -n1 / rho - beta_p * a_p * u1
-    J[0, 0] = 1.0 + L * np0 * g0
-    J[0, 1] = L * np0 * g1
-    J[1, 0] = L * np1 * g0
-    J[1, 1] = 1.0 + L * np1 * g1
-
-
 # ----------------------------------------------------------------------------- spatial pieces
 @njit(cache=True, error_model="numpy")
 def _perp_basis(e, f1, f2):
@@ -137,42 +113,60 @@ def _perp_basis(e, f1, f2):
     f2[2] = e[0] * f1[1] - e[1] * f1[0]
 
 
+# ----------------------------------------------------------------------------- one instance
+# Numba increfs the parent of every array view it creates (an atomic operation), so the hot path
+# below takes whole arrays and indices and works on scalars: no view per call.
+@njit(cache=True, error_model="numpy")
+def _flexed_parts2(w0, w1, p0, p1, L, t, a):
+    """Conformal parts (mr, mi, nr, ni) of the planar flexed-shaft ``d tip / d w``
+    (kinematics.shaft.flexed_jacobian) at constant port and ``t``; ``a`` the port's position along
+    the chord."""
+    dy, dz = p0 - w0, p1 - w1
+    rho = math.sqrt(dy * dy + dz * dz)
+    theta = math.atan2(dy, dz)
+    b = L - a
+    s = t * b * b / 3.0
+    phi = theta + math.atan(s)
+    u0, u1 = math.sin(theta), math.cos(theta)
+    n0, n1 = math.cos(theta), -math.sin(theta)
+    q0, q1 = math.cos(phi), -math.sin(phi)
+    gg = 1.0 + s * s
+    dgg = -(4.0 * t * b / 3.0) * s
+    beta_p = -(2.0 * t * b / 3.0) / gg
+    a_p = 2.0 * rho / (2.0 * a * gg + a * a * dgg)
+    g0 = -n0 / rho - beta_p * a_p * u0
+    g1 = -n1 / rho - beta_p * a_p * u1
+    j00, j01 = 1.0 + L * q0 * g0, L * q0 * g1
+    j10, j11 = L * q1 * g0, 1.0 + L * q1 * g1
+    return 0.5 * (j00 + j11), 0.5 * (j10 - j01), 0.5 * (j00 - j11), 0.5 * (j01 + j10)
+
+
 @njit(cache=True, error_model="numpy")
 def _flexed_J3(w, p, L, tvec, a, J, S):
-    """Spatial flexed shaft ``d tip / d w`` at constant port and constant world load ``tvec``
-    (docs/physics.md "Flexed shaft in 3-D"; derivation in kinematics.shaft.flexed_jacobian).
-    ``S`` is a (6, 3, 3) scratch array."""
-    rho = 0.0
+    """Spatial flexed shaft ``d tip / d w`` (3 x 3 into ``J``) at constant port ``p`` and constant
+    world load ``tvec`` (docs/physics.md "Flexed shaft in 3-D"; the derivation is
+    kinematics.shaft.flexed_jacobian's). ``S`` is a (6, 3, 3) scratch array."""
+    rho = math.sqrt((p[0] - w[0]) ** 2 + (p[1] - w[1]) ** 2 + (p[2] - w[2]) ** 2)
     for i in range(3):
-        rho += (p[i] - w[i]) ** 2
-    rho = math.sqrt(rho)
-    u = S[0, 0]
+        S[0, 0, i] = (p[i] - w[i]) / rho  # u
+    ut = S[0, 0, 0] * tvec[0] + S[0, 0, 1] * tvec[1] + S[0, 0, 2] * tvec[2]
     for i in range(3):
-        u[i] = (p[i] - w[i]) / rho
-    ut = u[0] * tvec[0] + u[1] * tvec[1] + u[2] * tvec[2]
-    tp = S[0, 1]
+        S[0, 1, i] = tvec[i] - ut * S[0, 0, i]  # t_perp
+    tau = math.sqrt(S[0, 1, 0] ** 2 + S[0, 1, 1] ** 2 + S[0, 1, 2] ** 2)
     for i in range(3):
-        tp[i] = tvec[i] - ut * u[i]
-    tau = math.sqrt(tp[0] ** 2 + tp[1] ** 2 + tp[2] ** 2)
-    n = S[0, 2]
-    for i in range(3):
-        n[i] = tp[i] / tau
-    Du = S[1]  # d u / d w = -(I - u u^T) / rho
-    for i in range(3):
+        S[0, 2, i] = S[0, 1, i] / tau  # n
+    for i in range(3):  # Du = d u / d w = -(I - u u^T) / rho
         for j in range(3):
-            Du[i, j] = -((1.0 if i == j else 0.0) - u[i] * u[j]) / rho
-    Dtp = S[2]  # d t_perp / d w = -(u.t) Du - u (t^T Du)
-    for j in range(3):
-        tDu = tvec[0] * Du[0, j] + tvec[1] * Du[1, j] + tvec[2] * Du[2, j]
+            S[1, i, j] = -((1.0 if i == j else 0.0) - S[0, 0, i] * S[0, 0, j]) / rho
+    for j in range(3):  # Dtp = d t_perp / d w = -(u.t) Du - u (t^T Du)
+        tDu = tvec[0] * S[1, 0, j] + tvec[1] * S[1, 1, j] + tvec[2] * S[1, 2, j]
         for i in range(3):
-            Dtp[i, j] = -ut * Du[i, j] - u[i] * tDu
-    Dn = S[3]
-    dtau = S[4, 0]
-    for j in range(3):
-        dtau[j] = n[0] * Dtp[0, j] + n[1] * Dtp[1, j] + n[2] * Dtp[2, j]
-    for i in range(3):
+            S[2, i, j] = -ut * S[1, i, j] - S[0, 0, i] * tDu
+    for j in range(3):  # d tau / d w
+        S[4, 0, j] = S[0, 2, 0] * S[2, 0, j] + S[0, 2, 1] * S[2, 1, j] + S[0, 2, 2] * S[2, 2, j]
+    for i in range(3):  # Dn
         for j in range(3):
-            Dn[i, j] = (Dtp[i, j] - n[i] * dtau[j]) / tau
+            S[3, i, j] = (S[2, i, j] - S[0, 2, i] * S[4, 0, j]) / tau
     b = L - a
     s = tau * b * b / 3.0
     gg = 1.0 + s * s
@@ -185,93 +179,104 @@ def _flexed_J3(w, p, L, tvec, a, J, S):
     beta_tau = (b * b / 3.0) / gg + beta_a * a_tau
     cb, sb = math.cos(beta), math.sin(beta)
     for i in range(3):
-        v = -sb * u[i] + cb * n[i]
+        v = -sb * S[0, 0, i] + cb * S[0, 2, i]
         for j in range(3):
-            dbeta = beta_a * a_rho * (-u[j]) + beta_tau * dtau[j]
-            J[i, j] = (1.0 if i == j else 0.0) + L * (v * dbeta + cb * Du[i, j] + sb * Dn[i, j])
+            dbeta = -beta_a * a_rho * S[0, 0, j] + beta_tau * S[4, 0, j]
+            J[i, j] = (1.0 if i == j else 0.0) + L * (v * dbeta + cb * S[1, i, j] + sb * S[3, i, j])
 
 
-# ----------------------------------------------------------------------------- one instance
-@njit(cache=True, error_model="numpy")
-def instance(x, theta, base_port, est, L, arm, chain, rmap, M, S, V, reach_known=False):
-    """``M = J Jhat^-1`` (d x d, into ``M``) of one error instance at tip ``x``; False where the
-    instance cannot reach the tip (shaft not through the port, wrist unreachable) or the
+@njit(cache=True, error_model="numpy", inline="always")
+def instance(x, theta, base_port, est, L, arm, chain, rmap, Mb, jm, S, V, reach_known=False):
+    """``M = J Jhat^-1`` of one error instance at tip ``x`` into ``Mb[jm]`` (d x d); False where
+    the instance cannot reach the tip (shaft not through the port, wrist unreachable) or the
     controller's Jacobian is singular there. ``S`` (8, 3, 3) and ``V`` (8, 3) are scratch.
     ``reach_known``: the caller has certified that every wrist of the error set is reachable
-    (:func:`_tip_reach`), so the per-instance check is skipped (3-D)."""
-    d = x.shape[0]
-    p = V[0]
-    e = V[1]
-    w = V[2]
-    a = 0.0
-    r2 = 0.0
-    for i in range(d):
-        p[i] = base_port[i] + theta[i]
-        e[i] = x[i] - p[i]
-        r2 += e[i] * e[i]
-    r = math.sqrt(r2)
-    if not (r > 1e-9 and r < L):
-        return False
-    J = S[5]
-    Jh = S[6]
-    if d == 2:
+    (:func:`_tip_reach`), so the per-instance check is skipped (3-D). Inlined, like the planar body,
+    so that the planar closed forms run without a call (a call reference-counts every array argument)."""
+    if x.shape[0] == 2:
+        return _instance2(x, theta, base_port, est, L, arm, chain, rmap, Mb, jm, S, V, reach_known)
+    return _instance3(x, theta, base_port, est, L, arm, chain, rmap, Mb, jm, S, V, reach_known)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _instance2(x, theta, base_port, est, L, arm, chain, rmap, Mb, jm, S, V, reach_known):
+    """The planar instance: conformal parts of J and Jhat in real arithmetic."""
+    if True:
+        # Conformal parts (errplan.metrics) in real arithmetic: mu = mr + i mi, nu = nr + i ni.
+        p0, p1 = base_port[0] + theta[0], base_port[1] + theta[1]
+        e0, e1 = x[0] - p0, x[1] - p1
+        r = math.sqrt(e0 * e0 + e1 * e1)
+        if not (r > 1e-9 and r < L):
+            return False
         t = theta[2]
         if t == 0.0:
-            # Straight shaft: the lever's wrist, and J, Jhat through their conformal parts
-            # (kinematics.shaft.lever_parts): mu = 1 - L/(2 rho), nu = -(L/(2 rho)) n_c^2.
-            w0 = x[0] - L * e[0] / r
-            w1 = x[1] - L * e[1] / r
+            # Straight shaft: the lever's wrist, and J through its conformal parts
+            # (kinematics.shaft.lever_parts): mu = 1 - L/(2 rho), nu = -(L/(2 rho)) n_c^2 with
+            # n_c = (e_z - i e_y)/r and rho = |p - w| = L - r on the line.
+            ir = 1.0 / r
+            w0 = x[0] - L * e0 * ir
+            w1 = x[1] - L * e1 * ir
             if not _planar_reachable(arm, w0, w1):
                 return False
-            h = L / (2.0 * (L - r))  # rho = |p - w| = L - r on the line
-            nc = complex(e[1], -e[0]) / r
-            mu1 = 1.0 - h
-            nu1 = -h * nc * nc
+            h = L / (2.0 * (L - r))
+            m1r, m1i = 1.0 - h, 0.0
+            n1r = -h * (e1 * e1 - e0 * e0) * ir * ir
+            n1i = 2.0 * h * e0 * e1 * ir * ir
         else:
             b = _solve_b(r, L, t)
             a = L - b
-            phi = math.atan2(e[0], e[1]) - math.atan(t * a * b / 3.0)
+            phi = math.atan2(e0, e1) - math.atan(t * a * b / 3.0)
             w0 = x[0] - L * math.sin(phi)
             w1 = x[1] - L * math.cos(phi)
             if not _planar_reachable(arm, w0, w1):
                 return False
-            w[0], w[1] = w0, w1
-            _flexed_J2(w[:2], p[:2], L, t, a, J[:2, :2])
-            mu1 = complex(0.5 * (J[0, 0] + J[1, 1]), 0.5 * (J[1, 0] - J[0, 1]))
-            nu1 = complex(0.5 * (J[0, 0] - J[1, 1]), 0.5 * (J[0, 1] + J[1, 0]))
+            m1r, m1i, n1r, n1i = _flexed_parts2(w0, w1, p0, p1, L, t, a)
+        # the controller's lever through the estimate: mu2 real, nu2 = -h2 (d_z - i d_y)^2 / rho^2
         dy, dz = est[0] - w0, est[1] - w1
         rho2 = dy * dy + dz * dz
-        rho = math.sqrt(rho2)
-        h = L / (2.0 * rho)
-        nc = complex(dz, -dy)
-        mu2 = 1.0 - h
-        nu2 = -h * nc * nc / rho2
-        det = mu2.real * mu2.real + mu2.imag * mu2.imag - (nu2.real * nu2.real + nu2.imag * nu2.imag)
-        scale = mu2.real * mu2.real + mu2.imag * mu2.imag + nu2.real * nu2.real + nu2.imag * nu2.imag
-        if not abs(det) > RCOND * scale:
+        h2 = L / (2.0 * math.sqrt(rho2))
+        m2 = 1.0 - h2
+        n2r = -h2 * (dz * dz - dy * dy) / rho2
+        n2i = 2.0 * h2 * dz * dy / rho2
+        nn2 = n2r * n2r + n2i * n2i
+        det = m2 * m2 - nn2
+        if not abs(det) > RCOND * (m2 * m2 + nn2):
             return False
-        imu = mu2.conjugate() / det
-        inu = -nu2 / det
-        mu = mu1 * imu + nu1 * inu.conjugate()
-        nu = mu1 * inu + nu1 * imu.conjugate()
-        M[0, 0] = mu.real + nu.real
-        M[1, 1] = mu.real - nu.real
-        M[1, 0] = mu.imag + nu.imag
-        M[0, 1] = nu.imag - mu.imag
+        # inverse parts (conj(mu2), -nu2) / det; mu = mu1 imu + nu1 conj(inu), nu = mu1 inu + nu1 conj(imu)
+        imr = m2 / det
+        inr, ini = -n2r / det, -n2i / det
+        mr = m1r * imr + n1r * inr + n1i * ini
+        mi = m1i * imr + n1i * inr - n1r * ini
+        nr = m1r * inr - m1i * ini + n1r * imr
+        ni = m1r * ini + m1i * inr + n1i * imr
+        Mb[jm, 0, 0] = mr + nr
+        Mb[jm, 1, 1] = mr - nr
+        Mb[jm, 1, 0] = mi + ni
+        Mb[jm, 0, 1] = ni - mi
         return True
-    # d == 3
+    return False
+
+
+@njit(cache=True, error_model="numpy")
+def _instance3(x, theta, base_port, est, L, arm, chain, rmap, Mb, jm, S, V, reach_known):
+    """The spatial instance: the 3-D lever in closed form, or the flexed shaft under a load."""
+    p0, p1, p2 = base_port[0] + theta[0], base_port[1] + theta[1], base_port[2] + theta[2]
+    e0, e1, e2 = x[0] - p0, x[1] - p1, x[2] - p2
+    r = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
+    if not (r > 1e-9 and r < L):
+        return False
     tau = theta[3]
     if tau == 0.0:
         # Straight shaft (docs/physics.md "Lever in 3-D"): J = I - s P, P = I - u u^T, u = e / r and
         # s = L / (L - r) on the line; Jhat = I - sh Ph through the estimate, so
         # Jhat^-1 = I + c Ph with c = sh / (1 - sh) (P is a projector): no inversion.
-        for i in range(3):
-            w[i] = x[i] - L * e[i] / r
-        if not reach_known and not reach_point(chain, rmap, w[0], w[1], w[2]):
+        ir = 1.0 / r
+        u0, u1, u2 = e0 * ir, e1 * ir, e2 * ir
+        w0, w1, w2 = x[0] - L * u0, x[1] - L * u1, x[2] - L * u2
+        if not reach_known and not reach_point(chain, rmap, w0, w1, w2):
             return False
-        u0, u1, u2 = e[0] / r, e[1] / r, e[2] / r
         s_ = L / (L - r)
-        d0, d1, d2 = est[0] - w[0], est[1] - w[1], est[2] - w[2]
+        d0, d1, d2 = est[0] - w0, est[1] - w1, est[2] - w2
         rho = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
         sh = L / rho
         # det(Jhat) = (1 - sh)^2: singular relative to its scale ||Jhat||_F^3 ~ (1 + 2 (1 - sh)^2)^1.5
@@ -279,62 +284,60 @@ def instance(x, theta, base_port, est, L, arm, chain, rmap, M, S, V, reach_known
         if not one * one > RCOND * (1.0 + 2.0 * one * one) ** 1.5:
             return False
         c = sh / one
-        u = V[3]
-        v = V[4]
-        u[0], u[1], u[2] = u0, u1, u2
-        v[0], v[1], v[2] = d0 / rho, d1 / rho, d2 / rho
-        P = S[5]
-        Ph = S[6]
-        for i in range(3):
-            for j in range(3):
-                dij = 1.0 if i == j else 0.0
-                P[i, j] = dij - u[i] * u[j]
-                Ph[i, j] = dij - v[i] * v[j]
-        # M = (I - s P)(I + c Ph) = I + c Ph - s P - s c P Ph
+        v0, v1, v2 = d0 / rho, d1 / rho, d2 / rho
+        # M = (I - s P)(I + c Ph) = I + c Ph - s P - s c P Ph, with P Ph = I - u u^T - v v^T + (u.v) u v^T
+        uv = u0 * v0 + u1 * v1 + u2 * v2
         sc = s_ * c
         for i in range(3):
+            ui = u0 if i == 0 else (u1 if i == 1 else u2)
+            vi = v0 if i == 0 else (v1 if i == 1 else v2)
             for j in range(3):
+                uj = u0 if j == 0 else (u1 if j == 1 else u2)
+                vj = v0 if j == 0 else (v1 if j == 1 else v2)
                 dij = 1.0 if i == j else 0.0
-                M[i, j] = (dij + c * Ph[i, j] - s_ * P[i, j]
-                           - sc * (P[i, 0] * Ph[0, j] + P[i, 1] * Ph[1, j] + P[i, 2] * Ph[2, j]))
+                P = dij - ui * uj
+                Ph = dij - vi * vj
+                PPh = dij - ui * uj - vi * vj + uv * ui * vj
+                Mb[jm, i, j] = dij + c * Ph - s_ * P - sc * PPh
         return True
     # A lateral load: the bending plane holds the port->tip line e1 and e2(psi); in it the planar
     # beam with load tau (docs/physics.md): chord c = cos(alpha) e1 - sin(alpha) e2, wrist x - L c.
+    p = V[0]
+    w = V[2]
     tvec = V[3]
-    e1 = V[4]
+    e1v = V[4]
     f1 = V[5]
     f2 = V[6]
-    for i in range(3):
-        e1[i] = e[i] / r
-    _perp_basis(e1, f1, f2)
+    p[0], p[1], p[2] = p0, p1, p2
+    e1v[0], e1v[1], e1v[2] = e0 / r, e1 / r, e2 / r
+    _perp_basis(e1v, f1, f2)
     cp, sp = math.cos(theta[4]), math.sin(theta[4])
     b = _solve_b(r, L, tau)
     a = L - b
     al = math.atan(tau * a * b / 3.0)
     ca, sa = math.cos(al), math.sin(al)
     for i in range(3):
-        w[i] = x[i] - L * (ca * e1[i] - sa * (cp * f1[i] + sp * f2[i]))
+        w[i] = x[i] - L * (ca * e1v[i] - sa * (cp * f1[i] + sp * f2[i]))
     if not reach_known and not reach_point(chain, rmap, w[0], w[1], w[2]):
         return False
     # world load: tau along the normal of the wrist->port line toward the chord
-    rho = 0.0
-    for i in range(3):
-        rho += (p[i] - w[i]) ** 2
-    rho = math.sqrt(rho)
+    rho = math.sqrt((p[0] - w[0]) ** 2 + (p[1] - w[1]) ** 2 + (p[2] - w[2]) ** 2)
     cu = 0.0
     for i in range(3):
-        cu += (ca * e1[i] - sa * (cp * f1[i] + sp * f2[i])) * (p[i] - w[i]) / rho
+        cu += (ca * e1v[i] - sa * (cp * f1[i] + sp * f2[i])) * (p[i] - w[i]) / rho
     nn = 0.0
     for i in range(3):
-        ci = ca * e1[i] - sa * (cp * f1[i] + sp * f2[i])
+        ci = ca * e1v[i] - sa * (cp * f1[i] + sp * f2[i])
         tvec[i] = ci - cu * (p[i] - w[i]) / rho
         nn += tvec[i] * tvec[i]
     nn = math.sqrt(nn)
     for i in range(3):
         tvec[i] = tau * tvec[i] / nn
+    J = S[5]
+    Jh = S[6]
+    Jinv = S[7]
     _flexed_J3(w, p, L, tvec, a, J, S)
     _lever_J(w, est, L, Jh)
-    Jinv = S[4]
     det = inv3(Jh, Jinv)
     scale = 0.0
     for i in range(3):
@@ -344,10 +347,7 @@ def instance(x, theta, base_port, est, L, arm, chain, rmap, M, S, V, reach_known
         return False
     for i in range(3):
         for j in range(3):
-            acc = 0.0
-            for l in range(3):
-                acc += J[i, l] * Jinv[l, j]
-            M[i, j] = acc
+            Mb[jm, i, j] = J[i, 0] * Jinv[0, j] + J[i, 1] * Jinv[1, j] + J[i, 2] * Jinv[2, j]
     return True
 
 
@@ -406,38 +406,42 @@ def _tip_reach(x, base_port, lo, hi, L, rmap):
 
 # ----------------------------------------------------------------------------- metrics of M
 @njit(cache=True, error_model="numpy")
-def gnorm(M, k):
-    """``||I - k M||_2``: ``|1 - k mu| + k |nu|`` in the plane, the closed-form sigma_max in 3-D."""
-    if M.shape[0] == 2:
-        mr = 0.5 * (M[0, 0] + M[1, 1])
-        mi = 0.5 * (M[1, 0] - M[0, 1])
-        nr = 0.5 * (M[0, 0] - M[1, 1])
-        ni = 0.5 * (M[0, 1] + M[1, 0])
+def gnorm(Mb, j, k):
+    """``||I - k M||_2`` of ``M = Mb[j]``: ``|1 - k mu| + k |nu|`` in the plane, the closed-form
+    sigma_max in 3-D."""
+    if Mb.shape[1] == 2:
+        mr = 0.5 * (Mb[j, 0, 0] + Mb[j, 1, 1])
+        mi = 0.5 * (Mb[j, 1, 0] - Mb[j, 0, 1])
+        nr = 0.5 * (Mb[j, 0, 0] - Mb[j, 1, 1])
+        ni = 0.5 * (Mb[j, 0, 1] + Mb[j, 1, 0])
         return math.sqrt((1.0 - k * mr) ** 2 + (k * mi) ** 2) + k * math.sqrt(nr * nr + ni * ni)
-    return g_norm3(M, k)
+    return _smax3(1.0 - k * Mb[j, 0, 0], -k * Mb[j, 0, 1], -k * Mb[j, 0, 2],
+                  -k * Mb[j, 1, 0], 1.0 - k * Mb[j, 1, 1], -k * Mb[j, 1, 2],
+                  -k * Mb[j, 2, 0], -k * Mb[j, 2, 1], 1.0 - k * Mb[j, 2, 2])
 
 
 @njit(cache=True, error_model="numpy")
-def phimax(M):
-    """Exact ``|phi_max|`` of ``M``: the conformal closed form in the plane, the S^2 method in 3-D."""
-    if M.shape[0] == 2:
-        mr = 0.5 * (M[0, 0] + M[1, 1])
-        mi = 0.5 * (M[1, 0] - M[0, 1])
-        amu = math.hypot(mr, mi)
-        anu = math.hypot(0.5 * (M[0, 0] - M[1, 1]), 0.5 * (M[0, 1] + M[1, 0]))
+def phimax(Mb, j):
+    """Exact ``|phi_max|`` of ``M = Mb[j]``: the conformal closed form in the plane, the S^2 method
+    of errplan.linalg in 3-D."""
+    if Mb.shape[1] == 2:
+        mr = 0.5 * (Mb[j, 0, 0] + Mb[j, 1, 1])
+        mi = 0.5 * (Mb[j, 1, 0] - Mb[j, 0, 1])
+        amu = math.sqrt(mr * mr + mi * mi)
+        anu = math.sqrt((0.5 * (Mb[j, 0, 0] - Mb[j, 1, 1])) ** 2 + (0.5 * (Mb[j, 0, 1] + Mb[j, 1, 0])) ** 2)
         if not amu > 0.0:
             return math.pi
         ratio = anu / amu
         if not ratio < 1.0:
             return math.pi
         return min(math.pi, abs(math.atan2(mi, mr)) + math.asin(ratio))
-    return phi_max3(M)
+    return phi_max3(Mb[j])
 
 
 # ----------------------------------------------------------------------------- the search
 @njit(cache=True, error_model="numpy")
-def _poll_value(which, M, k):
-    return gnorm(M, k) if which == 0 else phimax(M)
+def _poll_value(which, Mb, j, k):
+    return gnorm(Mb, j, k) if which == 0 else phimax(Mb, j)
 
 
 @njit(cache=True, error_model="numpy")
@@ -551,9 +555,9 @@ def _pattern(which, k, x, th, best, step0, lo, hi, active, periodic, refine, ext
                         if v == th[ax]:
                             continue  # clipped back onto the centre: a worst case on the box face
                     cand[ax] = v
-                    if not instance(x, cand, base_port, est, L, arm, chain, rmap, M, S, V, known):
+                    if not instance(x, cand, base_port, est, L, arm, chain, rmap, M, 0, S, V, known):
                         return best, False
-                    f = _poll_value(which, M, k)
+                    f = _poll_value(which, M, 0, k)
                     if f > best:
                         best = f
                         for i in range(na):
@@ -582,7 +586,7 @@ def _golden_gain(Ms, m, iters):
     def f(kk):
         v = 0.0
         for i in range(m):
-            v = max(v, gnorm(Ms[i], kk))
+            v = max(v, gnorm(Ms, i, kk))
         return v
 
     fc, fd = f(c), f(d)
@@ -611,17 +615,19 @@ def worst_case_tile(X, grid, counts, active, periodic, lo, hi, step0, base_port,
     Writes ``out_valid`` (robustly reachable), ``out_g`` (worst ||G|| at gain ``k``), ``out_p``
     (worst |phi_max|, if ``want_phi``), ``out_rho``/``out_k`` (rho*, k*, if ``want_rho``; rho*
     certified by a refined worst case at k*, the scenario gain used where it does better).
+    One search for both dimensions; only :func:`instance` branches on d.
     """
     n, d = X.shape
     m, na = grid.shape
     vals_g = np.empty(m)
     vals_p = np.empty(m)
     Ms = np.empty((m, d, d))
-    M = np.empty((d, d))
+    M = np.empty((1, d, d))
     S = np.zeros((8, 3, 3))
     V = np.zeros((8, 3))
     th = np.empty(na)
     cand = np.empty(na)
+    results = np.empty(2)
     for ii in range(n):
         x = X[ii]
         ok = True
@@ -631,11 +637,11 @@ def worst_case_tile(X, grid, counts, active, periodic, lo, hi, step0, base_port,
             ok = tr != 0
             known = tr == 1
         for j in range(m if ok else 0):
-            if not instance(x, grid[j], base_port, est, L, arm, chain, rmap, Ms[j], S, V, known):
+            if not instance(x, grid[j], base_port, est, L, arm, chain, rmap, Ms, j, S, V, known):
                 ok = False
                 break
-            vals_g[j] = gnorm(Ms[j], k)
-            vals_p[j] = phimax(Ms[j]) if want_phi else 0.0
+            vals_g[j] = gnorm(Ms, j, k)
+            vals_p[j] = phimax(Ms, j) if want_phi else 0.0
         if not ok:
             out_valid[ii] = False
             out_g[ii] = np.nan
@@ -643,7 +649,6 @@ def worst_case_tile(X, grid, counts, active, periodic, lo, hi, step0, base_port,
             out_rho[ii] = np.nan
             out_k[ii] = np.nan
             continue
-        results = np.empty(2)
         for which in range(2 if want_phi else 1):
             vals = vals_g if which == 0 else vals_p
             jbest = 0
@@ -693,7 +698,7 @@ def worst_case_tile(X, grid, counts, active, periodic, lo, hi, step0, base_port,
                 jbest = 0
                 vbest = -1.0
                 for j in range(m):
-                    v = gnorm(Ms[j], ks)
+                    v = gnorm(Ms, j, ks)
                     if v > vbest:
                         vbest, jbest = v, j
                 for i in range(na):
@@ -722,7 +727,7 @@ def motion_maps(X, TH, base_port, est, L, arm, chain, rmap, out_M, out_ok):
     S = np.zeros((8, 3, 3))
     V = np.zeros((8, 3))
     for i in range(X.shape[0]):
-        ok = instance(X[i], TH[i], base_port, est, L, arm, chain, rmap, out_M[i], S, V, False)
+        ok = instance(X[i], TH[i], base_port, est, L, arm, chain, rmap, out_M, i, S, V, False)
         out_ok[i] = ok
         if not ok:
             for a in range(d):
