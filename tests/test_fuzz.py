@@ -444,8 +444,79 @@ def calibrate_option_cases() -> list[Case]:
     ]
 
 
+_PLANAR_3R = """<?xml version="1.0"?>
+<robot name="planar3r">
+  <link name="base"/><link name="a"/><link name="b"/><link name="c"/><link name="wrist"/>
+  <joint name="j1" type="revolute"><parent link="base"/><child link="a"/><origin xyz="0 0 0"/>
+    <axis xyz="1 0 0"/><limit lower="-2" upper="2" effort="1" velocity="1"/></joint>
+  <joint name="j2" type="revolute"><parent link="a"/><child link="b"/><origin xyz="0 0 0.2"/>
+    <axis xyz="1 0 0"/><limit lower="-2" upper="2" effort="1" velocity="1"/></joint>
+  <joint name="j3" type="revolute"><parent link="b"/><child link="c"/><origin xyz="0 0 0.2"/>
+    <axis xyz="1 0 0"/><limit lower="-2" upper="2" effort="1" velocity="1"/></joint>
+  <joint name="fix" type="fixed"><parent link="c"/><child link="wrist"/><origin xyz="0 0 0.1"/></joint>
+</robot>
+"""
+
+
+def spatial_robot_cases() -> list[Case]:
+    """Bad spatial robots and points (issue 10): each one clear error from ``errplan fields``."""
+    urdf_src = (SCENARIOS / "phantom15.urdf").read_text(encoding="utf-8")
+    doc = _doc(SCENARIOS / "phantom15_spatial.toml")
+    doc.pop("query", None)
+    doc.pop("tolerance", None)
+
+    def case(cid, urdf_files, **changes):
+        d = copy.deepcopy(doc)
+        d["robot"]["urdf"] = "{d}/arm.urdf"
+        for path, value in changes.items():
+            tbl, key = path.split(".")
+            if value is None:
+                d[tbl].pop(key, None)
+            else:
+                d[tbl][key] = value
+        files = dict(urdf_files)
+        return cid, d, files
+
+    raw = [
+        case("urdf-missing", {}),
+        case("urdf-not-xml", {"arm.urdf": "this is not xml <robot"}),
+        case("urdf-binary", {"arm.urdf": bytes(range(256)) * 4}),
+        case("urdf-utf16", {"arm.urdf": urdf_src.encode("utf-16")}),
+        case("urdf-not-a-robot", {"arm.urdf": "<?xml version='1.0'?><html><body/></html>"}),
+        case("urdf-empty", {"arm.urdf": ""}),
+        case("urdf-is-a-directory", {"arm.urdf": None}),
+        case("joint-not-in-urdf", {"arm.urdf": urdf_src},
+             **{"robot.joints": ["waist", "shoulder", "knee"], "robot.coupled_limits": None}),
+        case("joints-two", {"arm.urdf": urdf_src}, **{"robot.joints": ["waist", "shoulder"]}),
+        case("joints-repeated", {"arm.urdf": urdf_src}, **{"robot.joints": ["waist", "waist", "elbow"]}),
+        case("wrist-link-not-in-urdf", {"arm.urdf": urdf_src}, **{"robot.wrist": "hand"}),
+        case("wrist-before-joints", {"arm.urdf": urdf_src}, **{"robot.wrist": "upper_arm"}),
+        case("fixed-joint-unknown", {"arm.urdf": urdf_src}, **{"robot.fixed_joints": {"nope": 0.1}}),
+        case("planar-3r-cannot-place-wrist", {"arm.urdf": _PLANAR_3R},
+             **{"robot.joints": ["j1", "j2", "j3"], "robot.coupled_limits": None}),
+        case("port-2-vector", {"arm.urdf": urdf_src}, **{"port.position": [0.0, 0.16]}),
+        case("estimate-2-vector", {"arm.urdf": urdf_src}, **{"port.estimate": [0.0, 0.16]}),
+        case("port-4-vector", {"arm.urdf": urdf_src}, **{"port.position": [0.0, 0.0, 0.16, 0.0]}),
+        case("load-negative", {"arm.urdf": urdf_src}, **{"uncertainty.tip_force_over_ei": [-1.0, 1.0]}),
+        case("region-2d", {"arm.urdf": urdf_src}, **{"fields.region": {"y": [-0.1, 0.1], "z": [0.3, 0.4]}}),
+        case("region-empty", {"arm.urdf": urdf_src},
+             **{"fields.region": {"x": [0.001, 0.002], "y": [0.0, 0.1], "z": [0.3, 0.4]}}),
+        case("flexion-controller", {"arm.urdf": urdf_src}, **{"controller.jacobian": "flexion"}),
+        case("sensor-noise", {"arm.urdf": urdf_src},
+             **{"uncertainty.sensor_noise": {"position": 0.001, "angle": 0.002}}),
+        case("joint-limits-2-pairs", {"arm.urdf": urdf_src}, **{"robot.joint_limits": [[-1, 1], [-1, 1]]}),
+        case("base-rpy-2", {"arm.urdf": urdf_src}, **{"robot.base_rpy": [0.0, 0.0]}),
+    ]
+    out = []
+    for cid, d, files in raw:
+        files = {k: v for k, v in files.items()}
+        files["s.toml"] = to_toml(d).replace("{d}/arm.urdf", "arm.urdf")
+        out.append(Case(f"spatial-robot:{cid}", files, ["-q", "fields", "{d}/s.toml", "--out", "{d}/f.npz"]))
+    return out
+
+
 SCENARIO_CASES = [c for f in BUNDLED for c in scenario_cases(f)]
-OTHER_CASES = effect_cases() + toml_syntax_cases() + file_cases() + option_cases()
+OTHER_CASES = effect_cases() + toml_syntax_cases() + file_cases() + option_cases() + spatial_robot_cases()
 CASES = SCENARIO_CASES + OTHER_CASES
 
 
