@@ -1,18 +1,31 @@
-"""Planner benchmark: cost ratio to the grid optimum and time, per OMPL planner.
+"""Planner benchmark: cost ratio to the grid optimum and time, per OMPL planner, planar and spatial.
 
-    python benchmarks/planning.py [--time 1.0] [--random 8] [--planners RRTstar,BITstar,...]
-                                  [--uncapped] [--resolution 0.002] [--seed 11]
+    python benchmarks/planning.py [--dims 2,3] [--time 1.0] [--random 8] [--random3 8]
+                                  [--planners RRTstar,BITstar,...] [--uncapped] [--no-grid-seed]
+                                  [--resolution 0.002] [--seed 11] [--spatial-scenario] [--workers N]
 
-Queries: every bundled [[query]] of scenarios/beasley2004_port.toml and beasley2004_bounded.toml,
-plus ``--random`` seeded random queries per scenario (start and goal uniform in the usable
-region, at least 50 mm apart), half of them drawn among queries whose grid optimum is at least
-2 % cheaper than the straight line or whose straight line is not usable ("hard"). The reference is
-errplan.reference.grid_optimum (Dijkstra, moves up to 4 cells, 48-connected), on the same
-CostMap. For each planner: ``raw`` = cost of the OMPL solution / grid optimum, ``final`` = after
-errplan's refine_path (what `errplan plan` returns), time = search + refine per query (s),
-``iters/s`` = planner iterations per second of search. By default each planner runs with errplan's
-settings (iteration cap ITERATION_RATE * 0.75 * time, time cap); ``--uncapped`` lets every planner
-use its whole search time.
+Planar (``--dims 2``): every bundled [[query]] of scenarios/beasley2004_port.toml and
+beasley2004_bounded.toml, plus ``--random`` seeded random queries per scenario (start and goal
+uniform in the usable region, at least 50 mm apart), half of them drawn among queries whose grid
+optimum is at least 2 % cheaper than the straight line or whose straight line is not usable
+("hard"). The reference is errplan.planning.reference.grid_optimum (Dijkstra, moves up to 4 cells,
+48 directions), on the same CostMap.
+
+Spatial (``--dims 3``): the synthetic spatial fields of tests/test_planning_spatial.py (a hole
+along the port axis, a bar with a thin passage below it, an invalid shell, a non-certifiable blob;
+41 x 41 x 33 nodes at 5 mm) with two objectives, phi_hat_max with weight 1 (certifiable) and G_norm
+with weight 4 (not certifiable); per objective the query across the port-axis hole and
+``--random3`` seeded random queries (half hard). With ``--spatial-scenario``, also the fields of
+scenarios/phantom15_spatial.toml (computed here, ``--workers``). Reference: grid_optimum with moves
+up to 3 cells (290 directions, at most 2.5 % above the continuous optimum in free space).
+
+For each planner: ``raw`` = cost of the OMPL solution / grid optimum, ``final`` = after errplan's
+candidates and refine_path (what `errplan plan` returns), ``from OMPL`` = queries whose returned
+path was refined from the OMPL search's result (rather than the straight line or, in space, the
+coarse cell-graph path), time = search + refine per query (s), ``iters/s`` = planner iterations per
+second of search. By default each planner runs with errplan's settings (iteration cap
+``ITERATION_RATE * 0.75 * time``, time cap); ``--uncapped`` lets every planner use its whole search
+time; ``--no-grid-seed`` plans without the coarse cell-graph candidate (OMPL and refinement alone).
 """
 from __future__ import annotations
 
@@ -20,22 +33,28 @@ import argparse
 import math
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "tests"))
 
 from errplan.errors import ErrplanError  # noqa: E402
-from errplan.planning import (PLANNERS, PlannerSettings, costmap_for, fields_for_planning,  # noqa: E402
+from errplan.planning import (PLANNERS, CostMap, PlannerSettings, costmap_for, fields_for_planning,  # noqa: E402
                               plan_query)
-from errplan.reference import GridGraph, grid_optimum  # noqa: E402
+from errplan.planning.reference import GridGraph, grid_optimum  # noqa: E402
 from errplan.report import format_table  # noqa: E402
 from errplan.scenario import load_scenario  # noqa: E402
 
+COLUMNS = ["planner", "solved", "failed", "raw mean", "raw max", "final mean", "final max", "final > 1.05",
+           "from OMPL", "time mean (s)", "time max (s)", "iters/s"]
+
 
 def random_queries(cm, graph, n: int, rng: np.random.Generator, hard: bool) -> list[tuple]:
+    """Planar random queries (unchanged from the planar benchmark)."""
     cells = np.argwhere(cm.cell_ok)
     out = []
     tries = 0
@@ -54,21 +73,43 @@ def random_queries(cm, graph, n: int, rng: np.random.Generator, hard: bool) -> l
     return out
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--time", type=float, default=1.0)
-    ap.add_argument("--random", type=int, default=8, help="random queries per scenario (half of them hard)")
-    ap.add_argument("--planners", default="BITstar,RRTstar,InformedRRTstar,SORRTstar,FMT,BFMT,RRTConnect")
-    ap.add_argument("--uncapped", action="store_true", help="no iteration cap: every planner runs its full time")
-    ap.add_argument("--resolution", type=float, default=None)
-    ap.add_argument("--seed", type=int, default=11)
-    ap.add_argument("--radius", type=int, default=4, help="move radius of the grid reference")
-    ap.add_argument("--verbose", action="store_true")
-    args = ap.parse_args(argv)
-    planners = args.planners.split(",")
-    for p in planners:
-        if p not in PLANNERS:
-            raise SystemExit(f"unknown planner {p}; choose from {', '.join(PLANNERS)}")
+def run_planners(planners, problems, args, verbose) -> list[list]:
+    """One table row per planner over ``problems`` = [(label, cm, settings, [(name, s, g, ref)])]."""
+    rows = []
+    for pname in planners:
+        raw, fin, times, rates, fails, from_ompl = [], [], [], [], 0, 0
+        for label, cm, base, qs in problems:
+            for qname, s, g, ref in qs:
+                st = replace(base, planner=pname, iterations=10**9 if args.uncapped else None,
+                             grid_seed=False if args.no_grid_seed else None)
+                try:
+                    qp = plan_query(cm, s, g, st, name=qname)
+                except ErrplanError as e:
+                    fails += 1
+                    if verbose:
+                        print(f"  {pname} {label} {qname}: {e}")
+                    continue
+                raw.append(qp.raw_cost / ref)
+                fin.append(qp.planned.cost / ref)
+                times.append(qp.time_total)
+                rates.append(qp.iterations / max(qp.time_solve, 1e-9))
+                from_ompl += qp.source in ("planner", "first solution")
+                if verbose:
+                    print(f"  {pname:16s} {label:20s} {qname:12s} raw {raw[-1]:.4f} final {fin[-1]:.4f} "
+                          f"{qp.time_solve:.2f}+{qp.time_refine:.2f} s {qp.iterations} it ({qp.stopped_by}, "
+                          f"from {qp.source})", flush=True)
+        n = len(raw)
+        if n == 0:
+            rows.append([pname, 0, fails] + ["-"] * (len(COLUMNS) - 3))
+            continue
+        raw_f = [r for r in raw if math.isfinite(r)]
+        rows.append([pname, n, fails, float(np.mean(raw_f)) if raw_f else "-", float(np.max(raw_f)) if raw_f else "-",
+                     float(np.mean(fin)), float(np.max(fin)), int(np.sum(np.array(fin) > 1.05)), from_ompl,
+                     float(np.mean(times)), float(np.max(times)), float(np.median(rates))])
+    return rows
+
+
+def planar(args, planners) -> None:
     rng = np.random.default_rng(args.seed)
     problems = []
     setup_rows = []
@@ -91,46 +132,88 @@ def main(argv=None) -> int:
         for _, s, g, _ in qs:
             grid_optimum(cm, s, g, args.radius, graph=graph)
         tq = (time.perf_counter() - t0) / max(len(qs), 1)
-        setup_rows.append([sc.name, f"{cm.ny}x{cm.nz}", cm.h * 1000, tf, tg, tq, len(qs)])
-        problems.append((sc, cm, qs))
+        setup_rows.append([sc.name, cm.grid_text().split(" grid")[0], cm.h * 1000, tf, tg, tq, len(qs)])
+        problems.append((sc.name, cm, PlannerSettings(planners[0], args.time, sc.planner.seed), qs))
     print(format_table(["scenario", "grid", "res (mm)", "fields (s)", "reference graph (s)", "reference/query (s)",
-                        "queries"], setup_rows, "setup (fields with rho_star, reference graph and search)"))
+                        "queries"], setup_rows, "planar setup (fields with rho_star, reference graph and search)"))
     print()
-    rows = []
-    for pname in planners:
-        raw, fin, times, rates, fails, worse_direct = [], [], [], [], 0, 0
-        for sc, cm, qs in problems:
-            for qname, s, g, ref in qs:
-                st = PlannerSettings(pname, args.time, sc.planner.seed,
-                                     iterations=10**9 if args.uncapped else None)
-                try:
-                    qp = plan_query(cm, s, g, st, name=qname)
-                except ErrplanError as e:
-                    fails += 1
-                    if args.verbose:
-                        print(f"  {pname} {sc.name} {qname}: {e}")
-                    continue
-                raw.append(qp.raw_cost / ref)
-                fin.append(qp.planned.cost / ref)
-                times.append(qp.time_total)
-                rates.append(qp.iterations / max(qp.time_solve, 1e-9))
-                if qp.direct.valid and qp.planned.cost > 1.05 * qp.direct.cost:
-                    worse_direct += 1
-                if args.verbose:
-                    print(f"  {pname:16s} {sc.name:20s} {qname:12s} raw {raw[-1]:.4f} final {fin[-1]:.4f} "
-                          f"{qp.time_solve:.2f}+{qp.time_refine:.2f} s {qp.iterations} it ({qp.stopped_by})")
-        n = len(raw)
-        if n == 0:
-            rows.append([pname, 0, fails, "-", "-", "-", "-", "-", "-", "-", "-"])
-            continue
-        rows.append([pname, n, fails, float(np.mean(raw)), float(np.max(raw)), float(np.mean(fin)),
-                     float(np.max(fin)), int(np.sum(np.array(fin) > 1.05)), float(np.mean(times)),
-                     float(np.max(times)), float(np.median(rates))])
+    rows = run_planners(planners, problems, args, args.verbose)
     mode = "uncapped (full time)" if args.uncapped else "errplan settings (iteration cap + time cap)"
-    print(format_table(["planner", "solved", "failed", "raw mean", "raw max", "final mean", "final max",
-                        "final > 1.05", "time mean (s)", "time max (s)", "iters/s"], rows,
-                       f"cost / grid optimum over {sum(len(q) for _, _, q in problems)} queries, "
-                       f"{args.time:g} s budget, {mode}"))
+    print(format_table(COLUMNS, rows, f"planar: cost / grid optimum over {sum(len(p[3]) for p in problems)} queries, "
+                                      f"{args.time:g} s budget, {mode}"))
+
+
+def spatial(args, planners) -> None:
+    from test_planning_spatial import random_queries as random_queries_3d, synthetic_field
+
+    rng = np.random.default_rng(args.seed)
+    mf = synthetic_field()
+    problems = []
+    setup_rows = []
+    cases = [("synthetic phi_hat_max x1", mf, "phi_hat_max", 1.0, True),
+             ("synthetic G_norm x4", mf, "G_norm", 4.0, False)]
+    if args.spatial_scenario:
+        sc = load_scenario(ROOT / "scenarios" / "phantom15_spatial.toml")
+        t0 = time.perf_counter()
+        mfs = fields_for_planning(sc, args.resolution3, workers=args.workers)
+        print(f"phantom15_spatial fields: {time.perf_counter() - t0:.1f} s")
+        p = sc.planner
+        cases.append((sc.name, mfs, p.metric, p.weight, p.certifiable))
+    for label, field, metric, weight, cert in cases:
+        cm = CostMap(field, metric, weight, cert, 0.02)
+        t0 = time.perf_counter()
+        graph = GridGraph(cm, args.radius3)
+        tg = time.perf_counter() - t0
+        qs = []
+        across = ((-0.06, 0.0, 0.33), (0.06, 0.0, 0.33))
+        if cm.point_ok(*across[0]) and cm.point_ok(*across[1]) and cm.connected(*across):
+            qs.append(("across-axis", *across, grid_optimum(cm, *across, args.radius3, graph=graph).cost))
+        for k, (s, g, ref) in enumerate(random_queries_3d(cm, graph, args.random3, rng, radius=args.radius3)):
+            qs.append((f"rand{k}", s, g, ref.cost))
+        t0 = time.perf_counter()
+        for _, s, g, _ in qs:
+            grid_optimum(cm, s, g, args.radius3, graph=graph)
+        tq = (time.perf_counter() - t0) / max(len(qs), 1)
+        setup_rows.append([label, cm.grid_text().split(" grid")[0], cm.h * 1000, graph.edges, tg, tq, len(qs)])
+        problems.append((label, cm, PlannerSettings(planners[0], args.time, 1), qs))
+    print(format_table(["fields", "grid", "res (mm)", "reference edges", "reference graph (s)", "reference/query (s)",
+                        "queries"], setup_rows, "spatial setup (reference graph and search)"))
+    print()
+    rows = run_planners(planners, problems, args, args.verbose)
+    mode = "uncapped (full time)" if args.uncapped else "errplan settings (iteration cap + time cap)"
+    seed = "without the coarse cell-graph candidate" if args.no_grid_seed else "with the coarse cell-graph candidate"
+    print(format_table(COLUMNS, rows, f"spatial: cost / grid optimum over {sum(len(p[3]) for p in problems)} "
+                                      f"queries, {args.time:g} s budget, {mode}, {seed}"))
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--dims", default="2,3", help="which tables: 2 (planar), 3 (spatial) or both")
+    ap.add_argument("--time", type=float, default=1.0)
+    ap.add_argument("--random", type=int, default=8, help="planar random queries per scenario (half of them hard)")
+    ap.add_argument("--random3", type=int, default=8, help="spatial random queries per objective (half hard)")
+    ap.add_argument("--planners", default="BITstar,RRTstar,InformedRRTstar,SORRTstar,FMT,BFMT,RRTConnect")
+    ap.add_argument("--uncapped", action="store_true", help="no iteration cap: every planner runs its full time")
+    ap.add_argument("--no-grid-seed", action="store_true", help="no coarse cell-graph candidate (spatial default: on)")
+    ap.add_argument("--resolution", type=float, default=None, help="planar fields resolution (m)")
+    ap.add_argument("--resolution3", type=float, default=None, help="phantom15_spatial fields resolution (m)")
+    ap.add_argument("--spatial-scenario", action="store_true", help="also plan on phantom15_spatial.toml's fields")
+    ap.add_argument("--workers", type=int, default=None, help="field workers for --spatial-scenario")
+    ap.add_argument("--seed", type=int, default=11)
+    ap.add_argument("--radius", type=int, default=4, help="move radius of the planar grid reference")
+    ap.add_argument("--radius3", type=int, default=3, help="move radius of the spatial grid reference")
+    ap.add_argument("--verbose", action="store_true")
+    args = ap.parse_args(argv)
+    planners = args.planners.split(",")
+    for p in planners:
+        if p not in PLANNERS:
+            raise SystemExit(f"unknown planner {p}; choose from {', '.join(PLANNERS)}")
+    dims = {int(d) for d in args.dims.split(",")}
+    if 2 in dims:
+        planar(args, planners)
+        print()
+    if 3 in dims:
+        spatial(args, planners)
     return 0
 
 

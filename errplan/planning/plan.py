@@ -1,0 +1,345 @@
+"""Planning a query and a scenario: settings, the two-phase search, refinement, results.
+
+:func:`plan_query` checks the endpoints (one clear :class:`~errplan.errors.InfeasibleError` naming
+the query, the endpoint and the value), runs the OMPL search (:mod:`errplan.planning.ompl_adapter`)
+inside the box where a path cheaper than a known one can lie (:func:`search_box`), refines the best
+path (:func:`errplan.planning.refine.refine_path`) and reports planned vs direct
+(:class:`QueryPlan`). :func:`plan_scenario` does it for every ``[[query]]`` of a scenario on its
+worst-case fields (:class:`ScenarioPlan`). The same code plans planar (``[y, z]``) and spatial
+(``[x, y, z]``) scenarios; only the cost map's dimension differs.
+"""
+from __future__ import annotations
+
+import math
+import time as _time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from ..errors import ErrplanError, InfeasibleError
+from . import ompl_adapter
+from .costmap import CostMap
+from .ompl_adapter import DEFAULT_PLANNER, check_planner, iteration_rate
+from .refine import refine_path
+from .report import PathReport, jsonable, path_report
+from .seed import cell_graph, seed_path
+
+# Whether plan_query adds the coarse cell-graph path (errplan.planning.seed) as a candidate, by
+# dimension: in the plane the sampling planners find the right side of every hole within the budget
+# (benchmarks/planning.py, planar tables), in space they miss narrow passages.
+GRID_SEED = {2: False, 3: True}
+
+
+@dataclass(frozen=True)
+class PlannerSettings:
+    """How to search: OMPL planner name, time budget per query (s), seed, iteration cap, refinement.
+
+    ``iterations`` (default ``time * (1 - refine_share) * iteration_rate(planner, dim)``) caps the
+    planner's iterations so a run depends only on the seed while the cap is reached within ``time``.
+    """
+
+    planner: str = DEFAULT_PLANNER
+    time: float = 1.0
+    seed: int = 1
+    iterations: int | None = None
+    refine: bool = True
+    refine_share: float = 0.25  # share of the time budget kept for refine_path
+    grid_seed: bool | None = None  # add the coarse cell-graph candidate (None: GRID_SEED[dim])
+
+    @classmethod
+    def from_scenario(cls, sc, planner: str | None = None, time: float | None = None,
+                      seed: int | None = None, **kw) -> "PlannerSettings":
+        p = sc.planner
+        return cls(planner=planner or p.planner, time=float(time if time is not None else p.time),
+                   seed=int(seed if seed is not None else p.seed), **kw)
+
+    def iteration_cap(self, dim: int = 2) -> int:
+        if self.iterations is not None:
+            return int(self.iterations)
+        return max(50, int(self.time * (1 - self.refine_share) * iteration_rate(self.planner, dim)))
+
+    def use_grid_seed(self, dim: int = 2) -> bool:
+        return GRID_SEED.get(dim, True) if self.grid_seed is None else bool(self.grid_seed)
+
+    def check(self) -> None:
+        check_planner(self.planner)
+        if not (self.time > 0 and math.isfinite(self.time)):
+            raise ErrplanError(f"time = {self.time!r}: expected a planning time > 0 s")
+        if isinstance(self.seed, bool) or self.seed < 0:
+            raise ErrplanError(f"seed = {self.seed!r}: expected an integer >= 0")
+
+
+@dataclass
+class QueryPlan:
+    """The plan of one query: planned and direct paths, and how the search went.
+
+    ``extra`` holds keys added by later steps (``gains``, ``simulation``); :meth:`to_json` merges it.
+    """
+
+    name: str
+    start: tuple[float, ...]
+    goal: tuple[float, ...]
+    planned: PathReport
+    direct: PathReport
+    planner: str
+    seed: int
+    iterations: int
+    stopped_by: str  # how the last search phase ended (see plan_query): "iterations" (the cap),
+    #                  "time" (the budget), "sampling" (stalled informed sampling), "planner" (by itself)
+    time_solve: float
+    time_refine: float
+    raw_cost: float  # cost of the planner's own path, before refine_path
+    extra: dict = field(default_factory=dict)
+    seed_cost: float | None = None  # cost of the coarse cell-graph path (errplan.planning.seed), if used
+    source: str = "planner"  # the candidate the returned path was refined from: "planner", "first
+    #                          solution", "direct" or "grid seed"
+
+    @property
+    def time_total(self) -> float:
+        return self.time_solve + self.time_refine
+
+    def to_json(self, timing: bool = True) -> dict:
+        """The query object of the plan JSON; ``timing=False`` leaves out the two wall-clock times,
+        the only values that differ between two runs with the same seed and settings."""
+        out = {"name": self.name, "start": [float(v) for v in self.start],
+               "goal": [float(v) for v in self.goal],
+               "planned": self.planned.to_json(), "direct": self.direct.to_json(),
+               "search": {"planner": self.planner, "seed": self.seed, "iterations": self.iterations,
+                          "stopped_by": self.stopped_by, "time_solve": self.time_solve,
+                          "time_refine": self.time_refine, "raw_cost": jsonable(self.raw_cost),
+                          "grid_seed_cost": jsonable(self.seed_cost), "source": self.source}}
+        if not timing:
+            del out["search"]["time_solve"], out["search"]["time_refine"]
+        out.update(self.extra)
+        return out
+
+
+@dataclass
+class ScenarioPlan:
+    """Plans of a scenario's queries, the objective they share and the field they were made on."""
+
+    scenario: str
+    metric: str
+    weight: float
+    certifiable: bool
+    settings: PlannerSettings
+    queries: list[QueryPlan]
+    costmap: CostMap
+    field_time: float = 0.0
+
+    def to_json(self, timing: bool = True) -> dict:
+        interp = "bilinear" if self.costmap.dim == 2 else "trilinear"
+        return {"scenario": self.scenario,
+                "objective": {"metric": self.metric, "weight": self.weight, "certifiable": self.certifiable,
+                              "certify_margin": self.costmap.certify_margin,
+                              "resolution": self.costmap.h,
+                              "definition": f"integral of (1 + weight * metric) ds, metric {interp} in the field"},
+                "queries": [q.to_json(timing) for q in self.queries]}
+
+
+# ============================================================================= planning
+def check_endpoints(cm: CostMap, start, goal, name: str = "query") -> None:
+    """Raise :class:`InfeasibleError` naming the endpoint, the cause and by how much when the start
+    or goal is unusable, or when they lie in disconnected parts of the usable region."""
+    for what, p in (("start", start), ("goal", goal)):
+        msg = cm.explain_point(p, f"{name}: {what}")
+        if msg:
+            raise InfeasibleError(msg)
+    if not cm.connected(start, goal):
+        raise InfeasibleError(f"{name}: start {list(map(float, start))} and goal {list(map(float, goal))} lie in "
+                              f"disconnected parts of the usable region: no path exists")
+
+
+def search_box(cm: CostMap, start, goal, bound_cost: float) -> tuple[float, ...]:
+    """Bounding box (``(lo, hi)`` per axis, flat) of every path from ``start`` to ``goal`` cheaper
+    than ``bound_cost``: such a path through x is at least ``|x - start| + |x - goal|`` long and
+    costs at least ``f_min`` per metre, so x lies in the ellipse (ellipsoid of revolution in space)
+    with foci start, goal and major axis ``bound_cost / f_min``. Padded by two cells and clipped to
+    the grid."""
+    s, g = np.asarray(start, float), np.asarray(goal, float)
+    d = float(np.linalg.norm(g - s)) if cm.dim != 2 else float(np.hypot(*(g - s)))
+    a = max(0.5 * bound_cost / cm.f_min, 0.5 * d)
+    b = math.sqrt(max(a * a - 0.25 * d * d, 0.0))
+    if cm.dim == 2:
+        th = math.atan2(g[1] - s[1], g[0] - s[0]) if d > 0 else 0.0
+        half = [math.sqrt((a * math.cos(th)) ** 2 + (b * math.sin(th)) ** 2),
+                math.sqrt((a * math.sin(th)) ** 2 + (b * math.cos(th)) ** 2)]
+    else:
+        e = (g - s) / d if d > 0 else np.eye(cm.dim)[0]
+        half = [math.sqrt(a * a * e[k] ** 2 + b * b * (1.0 - e[k] ** 2)) for k in range(cm.dim)]
+    c = 0.5 * (s + g)
+    lim = cm.bounds
+    out = []
+    for k in range(cm.dim):
+        hk = half[k] + 2 * cm.h
+        out += [max(lim[2 * k], c[k] - hk), min(lim[2 * k + 1], c[k] + hk)]
+    return tuple(out)
+
+
+def _no_path(name, st, start, goal, t_begin, used, status) -> InfeasibleError:
+    return InfeasibleError(
+        f"{name}: {st.planner} found no path from {list(start)} to {list(goal)} within the budget "
+        f"({_time.perf_counter() - t_begin:.2f} s, {used} iterations; status: {status}); try a longer --time")
+
+
+def plan_query(cm: CostMap, start, goal, settings: PlannerSettings | None = None, name: str = "query",
+               workspace_map: CostMap | None = None) -> QueryPlan:
+    """Plan one query on ``cm`` with OMPL, refine the solution, and report planned vs direct.
+
+    ``start``, ``goal``: d-vectors (m) in the field's axis order. The search runs in the box where
+    a path cheaper than a known one can be (:func:`search_box`): the cheaper of the straight line
+    (when it is usable) and the coarse cell-graph path (:func:`errplan.planning.seed.seed_path`,
+    when ``settings.use_grid_seed(d)``); without either, a first search over the whole grid stops
+    at its first solution, whose cost bounds the box of the second. This keeps informed samplers
+    (BIT*, Informed RRT*) from stalling on a small informed set in a large space. Every iteration
+    counts against one cap, and both phases share the time budget. The best of the planner's path,
+    the first solution and the straight line is refined (:func:`refine_path`), and so is the
+    coarse path; the cheaper result is returned, so the plan is never costlier than a usable
+    straight line.
+
+    Raises :class:`InfeasibleError` for an unusable start or goal, disconnected endpoints, or no
+    exact solution within the budget (no partial result is returned).
+    """
+    st = settings or PlannerSettings()
+    st.check()
+    start = tuple(float(v) for v in start)
+    goal = tuple(float(v) for v in goal)
+    check_endpoints(cm, start, goal, name)
+    ompl_adapter.quiet()
+    use_seed = st.use_grid_seed(cm.dim)
+    if use_seed:
+        cell_graph(cm)  # built once per cost map, outside the query's budget (like the cost map itself)
+    t_begin = _time.perf_counter()
+    direct = path_report(cm, np.array([start, goal]), workspace_map)
+    if math.dist(start, goal) < 1e-12:  # nothing to plan
+        return QueryPlan(name, start, goal, direct, direct, st.planner, st.seed, 0, "planner", 0.0, 0.0, 0.0)
+    t_end = t_begin + (st.time * (1 - st.refine_share) if st.refine else st.time)
+    cap = st.iteration_cap(cm.dim)
+    # Reseed before anything draws from the RNG so that each query is a function of the seed,
+    # whatever was planned before in this process.
+    ompl_adapter.seed(st.seed)
+    bound = direct.cost if direct.valid else math.inf
+    coarse = seed_path(cm, start, goal, limit=bound) if use_seed else None
+    if coarse is not None:
+        bound = coarse[1]
+    used = 0
+    first = None
+    status = ""
+    if not math.isfinite(bound):
+        first, used, why, status = ompl_adapter.search(cm, start, goal, st.planner, None, cap, t_end, first_only=True)
+        if first is None:
+            raise _no_path(name, st, start, goal, t_begin, used, status)
+        bound = cm.path_cost(first)[1]
+    box = search_box(cm, start, goal, bound)
+    raw, n, why, status = ompl_adapter.search(cm, start, goal, st.planner, box, max(cap - used, 1), t_end,
+                                              first_only=False)
+    used += n
+    if raw is None:
+        raw = first
+    if raw is None and coarse is None:
+        raise _no_path(name, st, start, goal, t_begin, used, status)
+    cands = []  # (source, path, exact cost)
+    if raw is not None:
+        ok, raw_cost = cm.path_cost(raw)
+        if not ok:  # cannot happen with the exact motion validator; refuse rather than return it
+            raise InfeasibleError(f"{name}: internal: the planner's path leaves the usable region")
+        cands.append(("planner" if raw is not first else "first solution", raw, raw_cost))
+    else:
+        raw_cost = math.inf
+    if first is not None and first is not raw:
+        cands.append(("first solution", first, cm.path_cost(first)[1]))
+    if direct.valid:
+        cands.append(("direct", np.array([start, goal]), direct.cost))
+    best = min(cands, key=lambda c: c[2]) if cands else None  # the first of equal costs
+    time_solve = _time.perf_counter() - t_begin
+    t1 = _time.perf_counter()
+    results = []
+    for src, path, cost in ([best] if best else []) + ([("grid seed", *coarse)] if coarse is not None else []):
+        if st.refine:
+            rr = refine_path(cm, path, deadline=t_begin + st.time)
+            path, cost = rr.path, rr.cost
+        results.append((cost, len(results), src, path))
+    cost, _, source, path = min(results)
+    time_refine = _time.perf_counter() - t1
+    planned = path_report(cm, path, workspace_map)
+    return QueryPlan(name, start, goal, planned, direct, st.planner, st.seed, used, why, time_solve,
+                     time_refine, float(raw_cost), seed_cost=None if coarse is None else float(coarse[1]),
+                     source=source)
+
+
+def fields_for_planning(sc, resolution: float | None = None, progress=None, **kw):
+    """The worst-case fields a scenario's planner needs (``rho_star`` too when certifiable or when
+    it is the metric), at ``resolution`` (default ``[fields] resolution``). Further keywords
+    (``workers``, ``metrics``, ``scheduler``) go to :func:`errplan.fields.compute_fields`."""
+    from ..fields import compute_fields
+
+    need_rho = sc.planner.certifiable or sc.planner.metric == "rho_star"
+    kw = {k: v for k, v in kw.items() if v is not None}
+    return compute_fields(sc, resolution, rho_star=need_rho, progress=progress, **kw)
+
+
+def costmap_for(sc, mf) -> CostMap:
+    """The :class:`CostMap` of a scenario's ``[planner]`` table on the fields ``mf``."""
+    p = sc.planner
+    need_rho = p.certifiable or p.metric == "rho_star"
+    if need_rho and getattr(mf, "rho_star", None) is None:
+        raise ErrplanError("the fields have no rho_star (needed by [planner] certifiable = true or metric = "
+                           "\"rho_star\"): compute them with rho_star=True (errplan fields --rho-star)")
+    dim = getattr(sc, "dim", 2)
+    if getattr(mf, "dim", 2) != dim:
+        raise ErrplanError(f"{sc.source}: the fields are {getattr(mf, 'dim', 2)}-D but the scenario is {dim}-D")
+    return CostMap(mf, p.metric, p.weight, p.certifiable, p.certify_margin)
+
+
+def select_queries(sc, name: str | None = None) -> list:
+    """The scenario's queries, or only the one called ``name`` (clear error listing the names)."""
+    qs = list(sc.queries)
+    if not qs:
+        pt = "[" + ", ".join(getattr(sc, "axes", ("y", "z"))) + "]"
+        raise ErrplanError(f"{sc.source}: the scenario has no [[query]] to plan (add [[query]] tables with "
+                           f"name, start = {pt}, goal = {pt})")
+    if name is None:
+        return qs
+    for q in qs:
+        if q.name == name:
+            return [q]
+    raise ErrplanError(f"--query {name!r}: no such query in {sc.source}; its queries are: "
+                       + ", ".join(repr(q.name) for q in qs))
+
+
+def plan_scenario(sc, mf=None, *, query: str | None = None, planner: str | None = None,
+                  time: float | None = None, seed: int | None = None, settings: PlannerSettings | None = None,
+                  progress: Callable[[float, str], None] | None = None,
+                  workers: int | None = None) -> ScenarioPlan:
+    """Plan every ``[[query]]`` of a scenario (or only ``query``) on its worst-case fields.
+
+    ``mf`` (a :class:`~errplan.fields.MetricField`, planar or spatial) is computed when not given
+    (:func:`fields_for_planning`; ``workers`` goes to :func:`errplan.fields.compute_fields`).
+    ``planner``, ``time`` and ``seed`` override ``[planner]``. Every endpoint is checked before
+    any search, so a bad query fails fast with :class:`InfeasibleError`. Returns a
+    :class:`ScenarioPlan`.
+    """
+    qs = select_queries(sc, query)
+    st = settings or PlannerSettings.from_scenario(sc, planner=planner, time=time, seed=seed)
+    st.check()
+    t0 = _time.perf_counter()
+    if mf is None:
+        mf = fields_for_planning(sc, progress=progress, workers=workers)
+    field_time = _time.perf_counter() - t0
+    cm = costmap_for(sc, mf)
+    if not cm.any_usable:
+        raise InfeasibleError(f"{sc.source}: no grid cell is usable for planning (robust workspace"
+                              + (f" with rho_star <= {cm.rho_bound:g}" if cm.certifiable else "") + " is empty)")
+    for q in qs:
+        check_endpoints(cm, q.start, q.goal, f"query {q.name!r}")
+    wm = CostMap(mf, cm.metric, cm.weight, certifiable=False) if cm.certifiable else cm
+    plans = []
+    for n, q in enumerate(qs):
+        if progress:
+            progress(n / len(qs), f"planning {q.name}")
+        plans.append(plan_query(cm, q.start, q.goal, st, name=f"query {q.name!r}", workspace_map=wm))
+        plans[-1].name = q.name
+    if progress:
+        progress(1.0, "planned")
+    return ScenarioPlan(sc.name, cm.metric, cm.weight, cm.certifiable, st, plans, cm, field_time)
