@@ -1,0 +1,114 @@
+"""The corrected scenario: the scenario's own TOML with the found effects under ``[effects]``."""
+from __future__ import annotations
+
+import math
+
+from ..errors import ErrplanError
+from .report import CalibrationReport
+
+
+# ----------------------------------------------------------------------------- scenario export
+def _toml_key(k: str) -> str:
+    import re
+
+    return k if re.fullmatch(r"[A-Za-z0-9_-]+", k) else _toml_str(k)
+
+
+def _toml_str(s: str) -> str:
+    out = ['"']
+    for ch in s:
+        if ch == '"':
+            out.append('\\"')
+        elif ch == "\\":
+            out.append("\\\\")
+        elif ch == "\n":
+            out.append("\\n")
+        elif ch == "\t":
+            out.append("\\t")
+        elif ord(ch) < 0x20 or ord(ch) == 0x7F:
+            out.append(f"\\u{ord(ch):04x}")
+        else:
+            out.append(ch)
+    out.append('"')
+    return "".join(out)
+
+
+def _toml_value(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, int):
+        return str(v)
+    if isinstance(v, float):
+        if not math.isfinite(v):
+            raise ErrplanError(f"cannot write the non-finite number {v} to TOML")
+        return repr(v)
+    if isinstance(v, str):
+        return _toml_str(v)
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    if isinstance(v, dict):
+        return "{ " + ", ".join(f"{_toml_key(k)} = {_toml_value(x)}" for k, x in v.items()) + " }"
+    if hasattr(v, "item"):
+        return _toml_value(v.item())
+    raise ErrplanError(f"cannot write {type(v).__name__} {v!r} to TOML")
+
+
+def to_toml(doc: dict, header: str = "") -> str:
+    """A TOML document for a parsed-TOML-like dict: tables as ``[a.b]`` sections, lists of
+    tables as ``[[a]]`` (their sub-tables inline), everything else inline."""
+    lines: list[str] = [f"# {h}" if h else "#" for h in header.splitlines()] if header else []
+
+    def is_aot(v) -> bool:
+        return isinstance(v, list) and len(v) > 0 and all(isinstance(x, dict) for x in v)
+
+    def emit(table: dict, path: list[str], inline_tables: bool) -> None:
+        for k, v in table.items():
+            if (isinstance(v, dict) and not inline_tables) or is_aot(v):
+                continue
+            lines.append(f"{_toml_key(k)} = {_toml_value(v)}")
+        if not inline_tables:
+            for k, v in table.items():
+                if isinstance(v, dict):
+                    sub = path + [_toml_key(k)]
+                    if any(not isinstance(x, dict) for x in v.values()) or not v:
+                        lines.append("")
+                        lines.append(f"[{'.'.join(sub)}]")
+                    emit(v, sub, False)
+        for k, v in table.items():
+            if is_aot(v):
+                sub = path + [_toml_key(k)]
+                for item in v:
+                    lines.append("")
+                    lines.append(f"[[{'.'.join(sub)}]]")
+                    emit(item, sub, True)
+
+    emit(doc, [], False)
+    return "\n".join(lines).lstrip("\n") + "\n"
+
+
+def corrected_scenario_toml(sc, report: CalibrationReport) -> str:
+    """The scenario's own TOML with the found effects under ``[effects]`` (declared + fitted)."""
+    import tomllib
+    from pathlib import Path
+
+    from ..scenario import parse_scenario
+
+    try:
+        doc = tomllib.loads(Path(sc.source).read_text(encoding="utf-8"))
+    except (OSError, tomllib.TOMLDecodeError) as e:
+        raise ErrplanError(f"{sc.source}: cannot re-read the scenario to export it: {e}") from None
+    effects = report.effects_table()
+    if effects:
+        doc["effects"] = {e: {p: float(v) for p, v in ps.items()} for e, ps in effects.items()}
+    else:
+        doc.pop("effects", None)
+    doc["name"] = f"{sc.name}-calibrated" if report.selected else sc.name
+    found = ", ".join(report.selected) or "none"
+    doc["description"] = (sc.description + " | " if sc.description else "") + f"calibrated: {found}"
+    header = (f"{sc.name} corrected by `errplan calibrate` on {report.data_source}\n"
+              f"found effects: {found}; explained: {str(report.explained).lower()}\n"
+              f"noise floor {report.noise.sigma:.3e} m; pose RMS {report.fit_errors.pose_before:.3e} -> "
+              f"{report.fit_errors.pose_after:.3e} m")
+    text = to_toml(doc, header)
+    parse_scenario(tomllib.loads(text), "<exported scenario>")  # reads back, or raises before writing
+    return text

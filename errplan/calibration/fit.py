@@ -1,0 +1,97 @@
+"""Candidate effect combinations fitted to the pose residual: fit on all rows, held-out error on
+folds of whole runs, BIC (step 3 of :mod:`errplan.calibration`)."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from ..effects import EffectModel
+from ..experiment import MeasuredData
+
+
+# ----------------------------------------------------------------------------- candidates
+@dataclass
+class Candidate:
+    """One effect combination tried: its fit on all the data, its held-out error and BIC."""
+
+    model: EffectModel
+    rms: float
+    bic: float
+    heldout_rms: float | None
+    selectable: bool
+    note: str = ""
+    selected: bool = False
+
+    @property
+    def effects(self) -> list[str]:
+        return self.model.names
+
+    @property
+    def label(self) -> str:
+        return self.model.label
+
+    def to_json(self, bic_none: float) -> dict:
+        m = self.model
+        return {
+            "effects": self.effects, "name": self.label, "n_params": m.n_params,
+            "parameters": m.parameters(), "uncertainty": _finite_or_none(m.uncertainties()),
+            "pose_rms": self.rms, "heldout_rms": self.heldout_rms, "bic": self.bic,
+            "delta_bic": self.bic - bic_none, "score": self.bic - bic_none,
+            "identifiable": bool(m.identifiable_), "condition_number": m.condition_ if math.isfinite(m.condition_) else None,
+            "max_correlation": m.max_correlation_, "selectable": self.selectable, "selected": self.selected,
+            "note": self.note,
+        }
+
+
+def _num(v: float) -> float | None:
+    """A finite number, or None (JSON has no NaN): e.g. a trajectory RMS with no approach rows."""
+    return float(v) if v is not None and math.isfinite(v) else None
+
+
+def _finite_or_none(d: dict) -> dict:
+    return {k: {p: (v if math.isfinite(v) else None) for p, v in ps.items()} for k, ps in d.items()}
+
+
+def _bic(rss: float, n_obs: int, p: int) -> float:
+    return n_obs * math.log(max(rss, 1e-300) / n_obs) + p * math.log(n_obs)
+
+
+def _folds(runs: int, k: int, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    perm = rng.permutation(runs)
+    fold = np.empty(runs, int)
+    fold[perm] = np.arange(runs) % k
+    return fold
+
+
+def fit_candidate(effects: Sequence[str], data: MeasuredData, u: np.ndarray, base, fold_of_run: np.ndarray | None) -> Candidate:
+    from ..effects import make_effect
+
+    m = EffectModel([make_effect(e) for e in effects]).fit(data.q, u, data.tip, base)
+    n = data.rows
+    bic = _bic(m.rss_, 2 * n, m.n_params)
+    ho = None
+    if fold_of_run is not None:
+        fold = fold_of_run[data.run]
+        sse = 0.0
+        for k in range(int(fold_of_run.max()) + 1):
+            te = fold == k
+            tr = ~te
+            if 2 * int(tr.sum()) < m.n_params + 2:
+                sse = float("nan")  # too few training rows for this candidate: no held-out error
+                break
+            if m.n_params:
+                mk = EffectModel(m.effects).fit(data.q[tr], u[tr], data.tip[tr], base, x0=m.values_)
+                vals = mk.values_
+            else:
+                vals = np.zeros(0)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                r = data.tip[te] - m.predict(base, data.q[te], u[te], vals)
+            r = np.where(np.isfinite(r), r, 1.0)
+            sse += float(np.sum(r * r))
+        ho = math.sqrt(sse / (2 * n)) if math.isfinite(sse) else None
+    note = "" if m.identifiable_ else f"not identifiable: {m.why_}"
+    return Candidate(m, math.sqrt(m.rss_ / (2 * n)), bic, ho, bool(m.identifiable_), note)

@@ -1,0 +1,184 @@
+"""The noise floor of a residual and the test for structure left in it (steps 2 and 5 of
+:mod:`errplan.calibration`): local polynomials on k-means clusters of rows."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .residual import rms
+
+STRUCTURE_P = 1e-3          # F-test level for "the residual has structure"
+STRUCTURE_RATIO = 1.0       # structured RMS >= this x noise floor -> not explained
+
+
+# ----------------------------------------------------------------------------- noise floor
+def _legendre_total(x: np.ndarray, degree: int) -> np.ndarray:
+    """Total-degree Legendre features of 2-D points in [-1, 1]^2 (n, (d+1)(d+2)/2)."""
+    from numpy.polynomial import legendre
+
+    V0 = legendre.legvander(x[:, 0], degree)
+    V1 = legendre.legvander(x[:, 1], degree)
+    cols = [V0[:, i] * V1[:, j] for i in range(degree + 1) for j in range(degree + 1 - i)]
+    return np.stack(cols, axis=-1)
+
+
+def _nearest(x: np.ndarray, c: np.ndarray, block: int = 2**20) -> np.ndarray:
+    """Index of the nearest centre (k, 2) for each point (n, 2), in blocks of rows so that the
+    distance table never exceeds ``block`` entries (the number of clusters grows with the rows)."""
+    out = np.empty(len(x), int)
+    step = max(1, block // max(len(c), 1))
+    for i in range(0, len(x), step):
+        xb = x[i:i + step]
+        out[i:i + len(xb)] = np.argmin(np.sum((xb[:, None, :] - c[None]) ** 2, axis=2), axis=1)
+    return out
+
+
+def kmeans_labels(x: np.ndarray, clusters: int, iters: int = 30) -> np.ndarray:
+    """Deterministic k-means of points (n, 2): farthest-point initialisation from the point
+    nearest the centroid, then Lloyd iterations. Returns labels (n,) in 0..clusters-1."""
+    n = len(x)
+    clusters = max(1, min(clusters, n))
+    idx = [int(np.argmin(np.linalg.norm(x - x.mean(axis=0), axis=1)))]
+    d = np.linalg.norm(x - x[idx[0]], axis=1)
+    for _ in range(clusters - 1):
+        i = int(np.argmax(d))
+        idx.append(i)
+        d = np.minimum(d, np.linalg.norm(x - x[i], axis=1))
+    c = x[idx].copy()
+    lab = np.zeros(n, int)
+    for _ in range(iters):
+        new = _nearest(x, c)
+        if np.array_equal(new, lab) and _ > 0:
+            break
+        lab = new
+        for k in range(len(c)):
+            m = lab == k
+            if np.any(m):
+                c[k] = x[m].mean(axis=0)
+    _, lab = np.unique(lab, return_inverse=True)
+    return lab
+
+
+@dataclass
+class LocalBasis:
+    """The flexible smooth model: on each cluster of rows (``labels``, k-means of the model tip
+    positions) a Legendre polynomial of ``degree`` in the local tip coordinates times
+    ``[1, u_y, u_z]`` (lower degree where a cluster has too few rows)."""
+
+    labels: np.ndarray
+    degree: int = 2
+
+    def _cluster(self, k: int, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        idx = np.flatnonzero(self.labels == k)
+        nc = len(idx)
+        d = self.degree
+        while d > 0 and 3 * (d + 1) * (d + 2) // 2 > nc / 2.5:
+            d -= 1
+        xx = x[idx]
+        lo, hi = xx.min(axis=0), xx.max(axis=0)
+        hi = np.where(hi > lo, hi, lo + 1e-3)
+        P = _legendre_total(2 * (xx - lo) / (hi - lo) - 1, d)
+        return idx, np.concatenate([P, P * u[idx, :1], P * u[idx, 1:2]], axis=1)
+
+    def fit(self, r: np.ndarray, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, float, int]:
+        """Fit residuals (n, 2): fitted values (n, 2), RSS (m^2), total rank per coordinate."""
+        fit = np.zeros_like(r)
+        rank = 0
+        for k in range(int(self.labels.max()) + 1):
+            idx, F = self._cluster(k, x, u)
+            if len(idx) == 0:
+                continue
+            coef, _, rk, _ = np.linalg.lstsq(F, r[idx], rcond=1e-10)
+            fit[idx] = F @ coef
+            rank += int(rk)
+        res = r - fit
+        return fit, float(np.sum(res * res)), rank
+
+
+#: flexible-model settings tried for the noise floor: (rows per cluster, polynomial degree)
+FLEX_CONFIGS = ((60, 2), (90, 2), (120, 2), (90, 3), (120, 3), (180, 3), (240, 3))
+
+
+@dataclass
+class NoiseFloor:
+    """Noise floor of a pose residual: ``sigma`` (m, per coordinate), the flexible model used
+    (clusters, degree, parameters per coordinate) and the RMS of the smooth part it removed (m)."""
+
+    sigma: float
+    clusters: int
+    degree: int
+    features: int
+    smooth_rms: float
+    basis: LocalBasis
+    x: np.ndarray = field(repr=False, default=None)
+
+    def to_json(self) -> dict:
+        return {"sigma": self.sigma, "clusters": self.clusters, "degree": self.degree,
+                "parameters_per_coordinate": self.features, "smooth_rms": self.smooth_rms,
+                "estimator": "dof-corrected RMS, sqrt(RSS / 2(n - m)), left by local polynomials in the tip position "
+                             "x [1, u_y, u_z] on k-means clusters of rows (cluster size and degree by AIC)"}
+
+
+def noise_floor(r: np.ndarray, x: np.ndarray, u: np.ndarray, configs=FLEX_CONFIGS) -> NoiseFloor:
+    """Estimate the measurement noise (per coordinate, m) from a pose residual ``r`` (n, 2).
+
+    ``x`` (n, 2) are the model tip positions (where the rows are), ``u`` (n, 2) friction's
+    directions. Every catalogue effect and the usual unmodelled ones are smooth in the
+    configuration (friction linear in ``u``), so a flexible local model — polynomials in ``x``
+    times ``[1, u_y, u_z]`` on compact clusters of rows — follows them, and what is left is the
+    noise: ``sigma = sqrt(RSS / (2 (n - m)))``, m the parameters per coordinate. The cluster size
+    and degree come from ``configs`` by AIC (``N ln(RSS/N) + 2 (2m)``, ``N = 2n``).
+    """
+    n = len(r)
+    N = 2 * n
+    best = None
+    for per, deg in configs:
+        labels = kmeans_labels(x, max(1, n // per))
+        basis = LocalBasis(labels, deg)
+        fit, rss, rank = basis.fit(r, x, u)
+        if n - rank < max(2, n // 4):
+            continue
+        aic = N * math.log(max(rss, 1e-300) / N) + 4 * rank
+        if best is None or aic < best[0]:
+            best = (aic, basis, fit, rss, rank, deg)
+    if best is None:
+        s = rms(r - r.mean(axis=0))
+        return NoiseFloor(s, 1, 0, 1, 0.0, LocalBasis(np.zeros(n, int), 0), x)
+    _, basis, fit, rss, rank, deg = best
+    return NoiseFloor(math.sqrt(rss / (2 * (n - rank))), int(basis.labels.max()) + 1, deg, rank, rms(fit), basis, x)
+
+
+@dataclass
+class Structure:
+    """Is a residual structured? F test of the flexible smooth model against "noise only"."""
+
+    rms: float            # per-coordinate RMS of the residual
+    structured_rms: float  # RMS of its smooth part beyond what a fit to pure noise absorbs
+    f_stat: float
+    p_value: float
+    ratio: float           # rms / noise floor
+    structured: bool
+
+    def to_json(self) -> dict:
+        return {"rms": self.rms, "structured_rms": self.structured_rms, "f_statistic": self.f_stat,
+                "p_value": self.p_value, "rms_over_noise_floor": self.ratio, "structured": self.structured}
+
+
+def structure_test(r: np.ndarray, u: np.ndarray, nf: NoiseFloor) -> Structure:
+    """F test of the noise floor's flexible model on residual ``r`` (same rows) and the RMS of the
+    smooth part beyond what fitting pure noise would absorb."""
+    from scipy.stats import f as fdist
+
+    n = len(r)
+    rss0 = float(np.sum(r * r))
+    ratio = rms(r) / max(nf.sigma, 1e-300)
+    _, rss1, rank = nf.basis.fit(r, nf.x, u)
+    df1, df2 = 2 * rank, 2 * (n - rank)
+    if df1 <= 0 or df2 <= 0:
+        return Structure(rms(r), 0.0, 0.0, 1.0, ratio, False)
+    fstat = ((rss0 - rss1) / df1) / max(rss1 / df2, 1e-300)
+    p = float(fdist.sf(fstat, df1, df2))
+    s = math.sqrt(max(0.0, (rss0 - rss1) - df1 * nf.sigma ** 2) / (2 * n))
+    return Structure(rms(r), s, float(fstat), p, ratio, bool(p < STRUCTURE_P and s >= STRUCTURE_RATIO * nf.sigma))

@@ -1,0 +1,198 @@
+"""The calibration report: errors before and after, the calibrate JSON of docs/interfaces.md and the
+text a person reads (step 6 of :mod:`errplan.calibration`)."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..effects import EffectModel
+from ..experiment import MeasuredData
+from .fit import Candidate, _finite_or_none, _num
+from .noise import STRUCTURE_P, STRUCTURE_RATIO, NoiseFloor, Structure
+
+TEXT_CANDIDATES = 10        # candidates listed on stdout (all of them in the JSON)
+
+
+# ----------------------------------------------------------------------------- report
+@dataclass
+class Errors:
+    """Before/after errors on one data set (m, per coordinate)."""
+
+    pose_before: float
+    pose_after: float
+    trajectory_before: float      # over each run's approach (see approach_mask)
+    trajectory_after: float
+    trajectory_all_before: float  # over every step >= 1
+    trajectory_all_after: float
+    rows: int
+    runs: int
+    source: str
+    arrival_tolerance: float
+    trajectory_rows: int = 0
+    unsettled_runs: int = 0
+
+    def to_json(self) -> dict:
+        return {"source": self.source, "rows": self.rows, "runs": self.runs,
+                "pose_rms_before": self.pose_before, "pose_rms_after": self.pose_after,
+                "trajectory_rms_before": _num(self.trajectory_before), "trajectory_rms_after": _num(self.trajectory_after),
+                "trajectory_rms_all_steps_before": _num(self.trajectory_all_before),
+                "trajectory_rms_all_steps_after": _num(self.trajectory_all_after),
+                "arrival_tolerance": self.arrival_tolerance, "trajectory_rows": self.trajectory_rows,
+                "trajectory_unsettled_runs_left_out": self.unsettled_runs}
+
+
+@dataclass
+class CalibrationReport:
+    """Everything ``errplan calibrate`` found; ``to_json`` is the calibrate JSON of interfaces.md."""
+
+    scenario: str
+    data_source: str
+    selected: list[str]
+    explained: bool
+    model: EffectModel
+    noise: NoiseFloor
+    structure: Structure
+    structure_before: Structure
+    candidates: list[Candidate]
+    fit_errors: Errors
+    validation_errors: Errors | None
+    declared_effects: dict
+    seed: int
+    folds: int
+    # arrays for the recording (fitting data)
+    points: np.ndarray = field(repr=False, default=None)        # model tips (n, 2)
+    residual_before: np.ndarray = field(repr=False, default=None)
+    residual_after: np.ndarray = field(repr=False, default=None)
+    tracked: np.ndarray = field(repr=False, default=None)
+    replay_before: np.ndarray = field(repr=False, default=None)
+    replay_after: np.ndarray = field(repr=False, default=None)
+    data: MeasuredData | None = field(repr=False, default=None)
+
+    @property
+    def errors(self) -> Errors:
+        """The errors the JSON reports: on the validation file when one was given."""
+        return self.validation_errors or self.fit_errors
+
+    @property
+    def fitted(self) -> dict[str, dict[str, float]]:
+        """The fitted values of the selected effects: what the data add to the declared model."""
+        return self.model.parameters()
+
+    @property
+    def parameters(self) -> dict[str, dict[str, float]]:
+        """The selected effects as the bench has them: a declared value of the same effect plus
+        the fitted correction (just the fitted value when the scenario declares none)."""
+        out = {}
+        for e, ps in self.fitted.items():
+            dec = self.declared_effects.get(e, {})
+            out[e] = {p: dec.get(p, 0.0) + v for p, v in ps.items()}
+        return out
+
+    @property
+    def uncertainty(self) -> dict[str, dict[str, float]]:
+        return _finite_or_none(self.model.uncertainties())
+
+    def effects_table(self) -> dict[str, dict[str, float]]:
+        """Effects for the corrected scenario: every declared effect, with the selected ones
+        replaced by their values on the bench (declared + fitted)."""
+        out = {k: dict(v) for k, v in self.declared_effects.items()}
+        for e, ps in self.parameters.items():
+            out[e] = dict(ps)
+        return out
+
+    def to_json(self) -> dict:
+        bic_none = next(c.bic for c in self.candidates if not c.effects)
+        e = self.errors
+        return {
+            "scenario": self.scenario,
+            "data": self.data_source,
+            "selected": list(self.selected),
+            "explained": bool(self.explained),
+            "parameters": self.parameters,
+            "fitted": self.fitted,
+            "uncertainty": self.uncertainty,
+            "noise_floor": self.noise.sigma,
+            "pose_rms_before": e.pose_before,
+            "pose_rms_after": e.pose_after,
+            "trajectory_rms_before": _num(e.trajectory_before),
+            "trajectory_rms_after": _num(e.trajectory_after),
+            "errors_on": "validation" if self.validation_errors else "data",
+            "fit": self.fit_errors.to_json(),
+            "validation": self.validation_errors.to_json() if self.validation_errors else None,
+            "noise": self.noise.to_json(),
+            "residual_structure": {"before": self.structure_before.to_json(), "after": self.structure.to_json(),
+                                   "rule": f"not explained when the smooth part of the residual is significant "
+                                           f"(F test p < {STRUCTURE_P:g}) and its RMS >= {STRUCTURE_RATIO:g} x noise floor"},
+            "declared_effects": self.declared_effects,
+            "effects": self.effects_table(),
+            "rms_convention": "per coordinate: sqrt(mean over rows and over y, z of residual^2), m",
+            "selection": {"rule": "lowest BIC among identifiable candidates whose held-out pose error (folds of runs) "
+                                  "beats every sub-model with one effect fewer",
+                          "folds": self.folds, "seed": self.seed},
+            "candidates": [c.to_json(bic_none) for c in self.candidates],
+        }
+
+    def text(self) -> str:
+        from ..report import format_table
+
+        mm = 1000.0
+        lines = [f"calibration of {self.scenario} on {self.data_source} ({self.fit_errors.rows} rows, "
+                 f"{self.fit_errors.runs} runs)"]
+        if self.declared_effects:
+            lines.append("declared effects: " + ", ".join(self.declared_effects))
+        lines.append(f"noise floor {self.noise.sigma * mm:.4f} mm per coordinate (left by local degree-{self.noise.degree} "
+                     f"polynomials on {self.noise.clusters} cluster(s) of rows)")
+        lines.append(f"pose residual of the declared model: RMS {self.structure_before.rms * mm:.4f} mm "
+                     f"({self.structure_before.ratio:.2f} x noise floor)")
+        lines.append("")
+        rows = []
+        order = sorted(self.candidates, key=lambda c: c.bic)
+        bic_none = next(c.bic for c in self.candidates if not c.effects)
+        shown = order[:TEXT_CANDIDATES]
+        shown += [c for c in order[TEXT_CANDIDATES:] if not c.effects or not c.selectable]
+        for c in shown:
+            rows.append([("* " if c.selected else "  ") + c.label, c.model.n_params, c.rms * mm,
+                         c.heldout_rms * mm if c.heldout_rms is not None else float("nan"), c.bic - bic_none,
+                         c.model.condition_, "yes" if c.selectable else "no", c.note])
+        more = len(order) - len(shown)
+        lines.append(format_table(["candidate", "p", "pose rms mm", "held-out mm", "dBIC", "cond", "ok", "note"], rows,
+                                  f"candidates (sorted by BIC; * selected; {len(order)} tried"
+                                  + (f", {more} more in the JSON)" if more else ")")))
+        lines.append("")
+        if self.selected:
+            prow = []
+            for e, ps in self.parameters.items():
+                from ..effects import EFFECTS
+
+                units = dict(zip(EFFECTS[e].params, EFFECTS[e].units))
+                for p, v in ps.items():
+                    s = self.uncertainty[e][p]
+                    f, unit = (mm, "mm") if units[p] == "m" else ((mm, "mrad") if units[p] == "rad" else (1.0, units[p]))
+                    sig = f"{s * f:.4f}" if s is not None else "?"
+                    dec = self.declared_effects.get(e)
+                    note = f"declared {dec.get(p, 0.0) * f:+.4f} + fitted {self.fitted[e][p] * f:+.4f}" if dec else ""
+                    prow.append([e, p, f"{v * f:+.4f} ± {sig}", unit, note])
+            lines.append(format_table(["effect", "param", "value ± 1 sigma", "unit", ""], prow, "selected effects"))
+        else:
+            lines.append("selected effects: none (the declared model explains the data down to the noise)")
+        e = self.errors
+        on = "validation data" if self.validation_errors else "the data"
+        lines.append("")
+        lines.append(format_table(["error (RMS per coordinate)", "before mm", "after mm"], [
+            ["pose (tracked vs model tip)", e.pose_before * mm, e.pose_after * mm],
+            ["trajectory, approach (controller replayed)", e.trajectory_before * mm, e.trajectory_after * mm],
+            ["trajectory, every step", e.trajectory_all_before * mm, e.trajectory_all_after * mm],
+        ], f"error before -> after on {on}"))
+        if e.unsettled_runs:
+            lines.append(f"({e.unsettled_runs} of {e.runs} runs diverged or cycled without arriving and are left out of "
+                         f"the approach RMS)")
+        s = self.structure
+        verdict = "yes" if self.explained else "NO"
+        lines.append(f"explained: {verdict} — residual after {s.rms * mm:.4f} mm = {s.ratio:.2f} x noise floor; "
+                     f"structured part {s.structured_rms * mm:.4f} mm (F test p = {s.p_value:.2g})")
+        if not self.explained:
+            lines.append("  a structured residual remains well above the noise floor: an effect outside the catalogue "
+                         "(see the residual map in --record);\n  the selected combination is only the catalogue's best "
+                         "approximation, its parameters absorb the unmodelled effect")
+        return "\n".join(lines)

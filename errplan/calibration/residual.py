@@ -1,0 +1,189 @@
+"""Replay measured data on a model: pose residual, friction's direction, batched controller replay,
+approach rows and the trajectory error (step 1 of :mod:`errplan.calibration`)."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ..effects import predict_tracked
+from ..errors import DataError
+from ..experiment import MeasuredData
+
+
+def arrival_tolerance(noise_sigma: float) -> float:
+    """Distance (m) within which a measured run counts as arrived: max(0.5 mm, 4 noise floors)."""
+    return max(5e-4, 4.0 * noise_sigma)
+
+
+
+# ----------------------------------------------------------------------------- residuals
+def declared_plant(sc):
+    """The declared model: the scenario's truth (``[port] position``, its tip load, the effects it
+    already declares), no noise (:func:`errplan.experiment.truth_plant`)."""
+    from ..experiment import truth_plant
+
+    return truth_plant(sc, effects=True, noise=False)
+
+
+def check_against_model(data: MeasuredData, plant, what: str = "the declared model") -> None:
+    """Every row's encoder angles must give a wrist from which the shaft reaches through the port."""
+    w = plant.wrist(data.q)
+    ok = plant.shaft_reaches(w) & plant.arm.within_limits(plant.link_angles_q(data.q), tol=0.05)
+    if not np.all(ok):
+        i = int(np.flatnonzero(~ok)[0])
+        raise DataError(f"{data.source}: row {i + 1} (run {data.run_ids[data.run[i]]!r}, step {data.step[i]}): encoder "
+                        f"angles {np.round(data.q[i], 5).tolist()} put the wrist at {np.round(w[i], 4).tolist()}, "
+                        f"where {what} cannot hold the shaft through the port at "
+                        f"{np.round(plant.true_port, 4).tolist()} or is outside the joint limits "
+                        f"(is the data from this scenario?)")
+    # every effect of the catalogue moves the tip by mm to cm; a tracked tip farther from the
+    # model's tip than the whole shaft, or a target outside anything the tip can reach, is not
+    # measured data of this scenario (and would only overflow the fits)
+    L = float(plant.length)
+    with np.errstate(all="ignore"):
+        model_tip = plant.tip(data.q)
+        off = np.linalg.norm(data.tip - model_tip, axis=-1)
+    bad = np.flatnonzero(~(off < L))
+    if len(bad):
+        i = int(bad[0])
+        raise DataError(f"{data.source}: row {i + 1} (run {data.run_ids[data.run[i]]!r}, step {data.step[i]}): tracked tip "
+                        f"{_pt(data.tip[i])} is {_m(off[i])} from {what}'s tip {_pt(model_tip[i])} at its encoder "
+                        f"angles, more than the shaft length {L:g} m (is the data from this scenario?)")
+    reach = 2.0 * (L + float(plant.arm.l1) + float(plant.arm.l2))  # a bound on the tip workspace's diameter
+    with np.errstate(all="ignore"):
+        far = np.linalg.norm(data.target - model_tip, axis=-1)
+    bad = np.flatnonzero(~(far < reach))
+    if len(bad):
+        i = int(bad[0])
+        raise DataError(f"{data.source}: row {i + 1} (run {data.run_ids[data.run[i]]!r}): target {_pt(data.target[i])} is "
+                        f"{_m(far[i])} from the tip, farther than the robot can reach ({reach:g} m; is the data from "
+                        f"this scenario?)")
+
+
+def _pt(x) -> str:
+    return "[" + ", ".join(f"{float(v):.6g}" for v in x) + "]"
+
+
+def _m(d: float) -> str:
+    return f"{d:.4g} m" if math.isfinite(d) else "more than 1e300 m"
+
+
+def rms(r: np.ndarray) -> float:
+    """Per-coordinate RMS of residual vectors (n, 2)."""
+    r = np.asarray(r, float)
+    return float(np.sqrt(np.mean(r * r))) if r.size else float("nan")
+
+
+def motion_model(sc):
+    """``x_model`` of docs/physics.md ``port_friction``: the scenario's arm, shaft (its tip load) and
+    ``port.position``, no effects. Friction's direction is the motion a command produces under it,
+    for the bench (:func:`errplan.experiment.run_experiment`), the replay and the fits alike."""
+    from ..experiment import truth_plant
+
+    return truth_plant(sc, effects=False, noise=False)
+
+
+def pose_residual(data: MeasuredData, plant, u: np.ndarray | None = None) -> np.ndarray:
+    """Tracked tip minus the model's tracked tip at the encoder angles (n, 2), m. ``u`` (friction's
+    direction per row) defaults to :meth:`MeasuredData.commanded_directions` under
+    ``plant.declared()``."""
+    u = data.commanded_directions(plant.declared()) if u is None else u
+    return data.tip - predict_tracked(plant, data.q, u)
+
+
+def _controller_jacobian(ctrl, plant, q: np.ndarray) -> np.ndarray:
+    """The controller's ``Jhat`` at encoder angles ``q`` (r, 2); the flexion controller reads the
+    model's end poses there (noise-free)."""
+    if ctrl.jacobian == "rigid":
+        return ctrl.J_hat(q)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return ctrl.J_hat(q, plant)
+
+
+def replay(data: MeasuredData, plant, ctrl, model=None) -> tuple[np.ndarray, np.ndarray]:
+    """Re-simulate every run on ``plant`` with controller ``ctrl`` from its first encoder reading.
+
+    Noise-free and quasi-static, exactly the loop of :func:`errplan.simulation.simulate`, batched
+    over runs; friction's direction is the motion each command produces under ``model`` (default
+    ``plant.declared()``; :func:`motion_model`). Returns the predicted tracked tip for every row
+    (n, 2) and, per run, whether the replay stayed in the workspace for the whole measured length
+    (runs,). A replay that leaves the workspace holds its last state.
+    """
+    from ..metrics import inv2
+
+    model = plant.declared() if model is None else model
+    first = data.first
+    R = data.runs
+    lengths = data.lengths
+    T = int(lengths.max()) if R else 0
+    # rows of each step, in run order (O(rows) memory, whatever the run lengths)
+    by_step = np.lexsort((data.run, data.step))
+    bounds = np.searchsorted(data.step[by_step], np.arange(T + 1))
+    first = first[np.argsort(data.run[first])]  # run r's step 0
+    q = data.q[first].copy()
+    target = data.target[first]
+    gain = data.gain[first]
+    u = np.zeros((R, 2))
+    alive = np.ones(R, bool)
+    pred = np.zeros_like(data.tip)
+    off = np.asarray(plant.tracker_offset, float)
+    tracked = np.zeros((R, 2))
+    for t in range(T):
+        with np.errstate(invalid="ignore", divide="ignore"):
+            tr = plant.tip(q, u) + off
+        tracked = np.where(alive[:, None], tr, tracked)
+        rows_t = by_step[bounds[t]:bounds[t + 1]]
+        pred[rows_t] = tracked[data.run[rows_t]]
+        if t == T - 1:
+            break
+        has = lengths > t
+        err = target - tracked
+        with np.errstate(invalid="ignore", divide="ignore"):
+            Jinv, singular = inv2(_controller_jacobian(ctrl, plant, q))
+            dq = gain[:, None] * np.einsum("rij,rj->ri", np.nan_to_num(Jinv), err)
+        q_new = q + dq
+        with np.errstate(invalid="ignore", divide="ignore"):
+            ok = (~singular & plant.arm.within_limits(plant.link_angles_q(q_new))
+                  & plant.shaft_reaches(plant.wrist(q_new)) & np.all(np.isfinite(q_new), axis=-1))
+        step_ok = alive & ok & has
+        with np.errstate(invalid="ignore", divide="ignore"):
+            u = np.where(step_ok[:, None], model.motion_direction(q, q_new, u), u)
+        q = np.where(step_ok[:, None], q_new, q)
+        alive &= ok | ~has
+    return pred, alive
+
+
+def approach_mask(data: MeasuredData, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
+    """Rows (n,) compared by the trajectory residual, and the runs (runs,) left out.
+
+    A run's approach is steps 1 .. the first step whose tracked tip is within ``tolerance`` of the
+    target: after arrival the measured tip only jitters with the noise the controller chases,
+    which no noise-free replay predicts. A run that never arrives counts whole if its distance to
+    the target never grew beyond its start distance after the first command (a slow gain), and is
+    left out if it did (it diverged or cycles: the controller is not contracting there,
+    ||G|| >= 1, and the path amplifies the measurement noise, so no replay can follow it step for
+    step). The first command is not held against a run: it starts the tip moving from rest, and
+    port friction then holds the tip back by up to its size, once, in a run that converges.
+    """
+    e = np.linalg.norm(data.tip - data.target, axis=-1)
+    big = np.iinfo(np.int64).max
+    arrive = np.full(data.runs, big)
+    idx = np.flatnonzero((e < tolerance) & (data.step >= 1))
+    np.minimum.at(arrive, data.run[idx], data.step[idx])
+    e0 = e[data.first][np.argsort(data.run[data.first])]
+    late = data.step >= 2
+    elate = np.zeros(data.runs)
+    np.maximum.at(elate, data.run[late], e[late])
+    unsettled = (arrive == big) & (elate > e0 + tolerance)
+    mask = (data.step >= 1) & (data.step <= arrive[data.run]) & ~unsettled[data.run]
+    return mask, unsettled
+
+
+def trajectory_errors(data: MeasuredData, plant, ctrl, tolerance: float, model=None) -> tuple[float, float]:
+    """Per-coordinate RMS of measured minus replayed tracked tips over the approach rows (see
+    :func:`approach_mask`; NaN if there are none) and over every step >= 1 of every run."""
+    pred, _ = replay(data, plant, ctrl, model)
+    r = data.tip - pred
+    mask, _ = approach_mask(data, tolerance)
+    return (rms(r[mask]) if np.any(mask) else float("nan")), rms(r[data.step >= 1])
