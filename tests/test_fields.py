@@ -20,7 +20,7 @@ from scipy.spatial import cKDTree
 
 from conftest import SCENARIOS, make_scenario_dict
 from errplan.errors import ErrplanError
-from errplan.fields import ErrorSet, Evaluator, MetricField, compute_fields, minimize_gain, worst_case
+from errplan.fields import REFINE_LEVELS, ErrorSet, Evaluator, MetricField, compute_fields, minimize_gain, worst_case
 from errplan.metrics import g_norm_from_parts
 from errplan.scenario import Uncertainty, load_scenario, parse_scenario
 
@@ -644,3 +644,21 @@ def test_flexion_controller_matches_independent_estimation():
     # the port) the controller's model is meaningless; errplan evaluates the beam through that port
     # anyway (flexed_geometry re-solves a from |port - wrist|), so its value there is a convention,
     # not checked here (notes/readme_foundation.md, "Left open").
+
+
+# ============================================================================ compiled vs numpy search
+@pytest.mark.parametrize("name", ["beasley2004_bounded.toml", "beasley2004_port.toml"])
+def test_compiled_kernel_equals_the_numpy_search(name):
+    """The compiled kernel (fields/kernels.py) and the numpy search (fields/search.py, the general
+    path) implement the same method: same robust workspace, same worst cases and rho* to rounding."""
+    import errplan.fields.compute as C
+
+    sc = load_scenario(SCENARIOS / name)
+    mf = compute_fields(sc, 0.006, rho_star=True)
+    P = mf.points().reshape(-1, 2)
+    ref = C._numpy_tile(Evaluator.from_scenario(sc), P, sc.controller.gain, None, REFINE_LEVELS, True)
+    v = mf.valid.ravel()
+    assert np.array_equal(v, ref["valid"]) and v.sum() > 1000
+    for key, tol in (("G_norm", 1e-12), ("phi_max", 1e-12), ("rho_star", 1e-12), ("k_star", 1e-6)):
+        a, b = getattr(mf, key).ravel()[v], ref[key][v]
+        assert np.max(np.abs(a - b) / np.maximum(1.0, np.abs(b))) < tol, key

@@ -19,7 +19,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from numba import literally, njit
 
 from ..kinematics.urdf import reach_point
 from ..linalg import _smax3, inv3, phi_max3
@@ -186,14 +186,15 @@ def _flexed_J3(w, p, L, tvec, a, J, S):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def instance(x, theta, base_port, est, L, arm, chain, rmap, Mb, jm, S, V, reach_known=False):
+def instance(d, x, theta, base_port, est, L, arm, chain, rmap, Mb, jm, S, V, reach_known=False):
     """``M = J Jhat^-1`` of one error instance at tip ``x`` into ``Mb[jm]`` (d x d); False where
     the instance cannot reach the tip (shaft not through the port, wrist unreachable) or the
     controller's Jacobian is singular there. ``S`` (8, 3, 3) and ``V`` (8, 3) are scratch.
     ``reach_known``: the caller has certified that every wrist of the error set is reachable
-    (:func:`_tip_reach`), so the per-instance check is skipped (3-D). Inlined, like the planar body,
-    so that the planar closed forms run without a call (a call reference-counts every array argument)."""
-    if x.shape[0] == 2:
+    (:func:`_tip_reach`), so the per-instance check is skipped (3-D). ``d`` is a compile-time
+    literal in the search kernels, so each specialization holds one body, inlined: a call would
+    reference-count every array argument, which costs more than the arithmetic."""
+    if d == 2:
         return _instance2(x, theta, base_port, est, L, arm, chain, rmap, Mb, jm, S, V, reach_known)
     return _instance3(x, theta, base_port, est, L, arm, chain, rmap, Mb, jm, S, V, reach_known)
 
@@ -257,7 +258,7 @@ def _instance2(x, theta, base_port, est, L, arm, chain, rmap, Mb, jm, S, V, reac
     return False
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def _instance3(x, theta, base_port, est, L, arm, chain, rmap, Mb, jm, S, V, reach_known):
     """The spatial instance: the 3-D lever in closed form, or the flexed shaft under a load."""
     p0, p1, p2 = base_port[0] + theta[0], base_port[1] + theta[1], base_port[2] + theta[2]
@@ -531,7 +532,7 @@ def _peak_raise(vals, j, counts, periodic, na):
 
 
 @njit(cache=True, error_model="numpy")
-def _pattern(which, k, x, th, best, step0, lo, hi, active, periodic, refine, extra, base_port, est, L, arm,
+def _pattern(d, which, k, x, th, best, step0, lo, hi, active, periodic, refine, extra, base_port, est, L, arm,
              chain, rmap, M, S, V, cand, known):
     """Coordinate pattern search for the maximum of metric ``which`` (0: ||G|| at gain k, 1: |phi_max|)
     from ``th`` (updated in place) with value ``best``. Returns ``(best, ok)``; ``ok`` is False as
@@ -555,7 +556,7 @@ def _pattern(which, k, x, th, best, step0, lo, hi, active, periodic, refine, ext
                         if v == th[ax]:
                             continue  # clipped back onto the centre: a worst case on the box face
                     cand[ax] = v
-                    if not instance(x, cand, base_port, est, L, arm, chain, rmap, M, 0, S, V, known):
+                    if not instance(d, x, cand, base_port, est, L, arm, chain, rmap, M, 0, S, V, known):
                         return best, False
                     f = _poll_value(which, M, 0, k)
                     if f > best:
@@ -615,9 +616,20 @@ def worst_case_tile(X, grid, counts, active, periodic, lo, hi, step0, base_port,
     Writes ``out_valid`` (robustly reachable), ``out_g`` (worst ||G|| at gain ``k``), ``out_p``
     (worst |phi_max|, if ``want_phi``), ``out_rho``/``out_k`` (rho*, k*, if ``want_rho``; rho*
     certified by a refined worst case at k*, the scenario gain used where it does better).
-    One search for both dimensions; only :func:`instance` branches on d.
+    One search for both dimensions; only :func:`instance` branches on d, a compile-time literal.
     """
-    n, d = X.shape
+    if X.shape[1] == 2:
+        _search(literally(2), X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L, k, arm, chain, rmap,
+                refine, extra, second_start, want_phi, want_rho, out_valid, out_g, out_p, out_rho, out_k)
+    else:
+        _search(literally(3), X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L, k, arm, chain, rmap,
+                refine, extra, second_start, want_phi, want_rho, out_valid, out_g, out_p, out_rho, out_k)
+
+
+@njit(cache=True, error_model="numpy")
+def _search(d, X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L, k, arm, chain, rmap,
+            refine, extra, second_start, want_phi, want_rho, out_valid, out_g, out_p, out_rho, out_k):
+    n = X.shape[0]
     m, na = grid.shape
     vals_g = np.empty(m)
     vals_p = np.empty(m)
@@ -637,7 +649,7 @@ def worst_case_tile(X, grid, counts, active, periodic, lo, hi, step0, base_port,
             ok = tr != 0
             known = tr == 1
         for j in range(m if ok else 0):
-            if not instance(x, grid[j], base_port, est, L, arm, chain, rmap, Ms, j, S, V, known):
+            if not instance(d, x, grid[j], base_port, est, L, arm, chain, rmap, Ms, j, S, V, known):
                 ok = False
                 break
             vals_g[j] = gnorm(Ms, j, k)
@@ -673,7 +685,7 @@ def worst_case_tile(X, grid, counts, active, periodic, lo, hi, step0, base_port,
                     continue
                 for i in range(na):
                     th[i] = grid[start, i]
-                b, ok = _pattern(which, k, x, th, vals[start], step0, lo, hi, active, periodic, refine, extra,
+                b, ok = _pattern(d, which, k, x, th, vals[start], step0, lo, hi, active, periodic, refine, extra,
                                  base_port, est, L, arm, chain, rmap, M, S, V, cand, known)
                 if not ok:
                     break
@@ -703,7 +715,7 @@ def worst_case_tile(X, grid, counts, active, periodic, lo, hi, step0, base_port,
                         vbest, jbest = v, j
                 for i in range(na):
                     th[i] = grid[jbest, i]
-                ref, ok = _pattern(0, ks, x, th, vbest, step0, lo, hi, active, periodic, refine, extra,
+                ref, ok = _pattern(d, 0, ks, x, th, vbest, step0, lo, hi, active, periodic, refine, extra,
                                    base_port, est, L, arm, chain, rmap, M, S, V, cand, known)
                 rs = max(rs, ref) if ok else 1.0
             else:
@@ -723,11 +735,18 @@ def worst_case_tile(X, grid, counts, active, periodic, lo, hi, step0, base_port,
 def motion_maps(X, TH, base_port, est, L, arm, chain, rmap, out_M, out_ok):
     """``M = J Jhat^-1`` (into ``out_M`` (n, d, d)) and validity (``out_ok`` (n,)) of instance
     ``TH[i]`` at tip ``X[i]``; invalid rows of ``out_M`` are NaN."""
-    d = X.shape[1]
+    if X.shape[1] == 2:
+        _motion_maps(literally(2), X, TH, base_port, est, L, arm, chain, rmap, out_M, out_ok)
+    else:
+        _motion_maps(literally(3), X, TH, base_port, est, L, arm, chain, rmap, out_M, out_ok)
+
+
+@njit(cache=True, error_model="numpy")
+def _motion_maps(d, X, TH, base_port, est, L, arm, chain, rmap, out_M, out_ok):
     S = np.zeros((8, 3, 3))
     V = np.zeros((8, 3))
     for i in range(X.shape[0]):
-        ok = instance(X[i], TH[i], base_port, est, L, arm, chain, rmap, out_M, i, S, V, False)
+        ok = instance(d, X[i], TH[i], base_port, est, L, arm, chain, rmap, out_M, i, S, V, False)
         out_ok[i] = ok
         if not ok:
             for a in range(d):
