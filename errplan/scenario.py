@@ -21,7 +21,7 @@ from .errors import ScenarioError
 
 METRICS = ("phi_hat_max", "G_norm", "phi_max", "rho_star")
 JACOBIANS = ("rigid", "flexion")
-TOLERANCE_KINDS = ("port", "insertion_band", "tip_load", "tracker_noise")
+TOLERANCE_KINDS = ("port", "insertion_band", "tip_load", "tracker_noise", "port_placement")
 EFFECT_PARAMS: dict[str, tuple[str, ...]] = {
     "port_offset": ("dy", "dz"),
     "joint_offset": ("dq1", "dq2"),
@@ -483,10 +483,13 @@ _TOL_KEYS = {
     "port": ("direction", "region", "gain", "tip_force_over_ei", "spacing"),
     "insertion_band": ("sensor_noise", "tip_force_over_ei", "gain", "samples", "length", "noise_sampling",
                        "draws", "seed", "hold", "shaft_angle"),
-    "tip_load": ("region", "gain", "port_y", "port_z", "spacing"),
+    "tip_load": ("region", "gain", "port_x", "port_y", "port_z", "spacing"),
     "tracker_noise": ("band", "tip_force_over_ei", "gain", "angle_ratio", "length", "samples", "hold",
                       "shaft_angle"),
+    "port_placement": ("candidates", "spacing", "region", "resolution", "gain", "certify_margin", "refine",
+                       "refine_levels"),
 }
+_TOL_PLANAR = ("insertion_band", "tracker_noise")  # P2's flexion controller: planar only
 _TOL_HOLDS = ("tip_force", "port_force", "port_deflection")
 
 
@@ -497,8 +500,10 @@ def _tol_int(ctx: _Ctx, t: Mapping[str, Any], key: str, w: str, lo: int, hi: int
     return s
 
 
-def _tolerances(ctx: _Ctx, v: Any, controller_gain: float) -> tuple[Tolerance, ...]:
-    """``[[tolerance]]`` tables (docs/interfaces.md; every key in notes/readme_tolerance.md)."""
+def _tolerances(ctx: _Ctx, v: Any, controller_gain: float, d: int = 2) -> tuple[Tolerance, ...]:
+    """``[[tolerance]]`` tables (docs/interfaces.md; every key in docs/tolerance.md). Regions and
+    candidate boxes have the scenario's axes (``x`` too in 3-D); ``insertion_band`` and
+    ``tracker_noise`` are planar only."""
     if not isinstance(v, list):
         raise ctx.fail("[[tolerance]]", v, "an array of tables")
     out = []
@@ -510,7 +515,11 @@ def _tolerances(ctx: _Ctx, v: Any, controller_gain: float) -> tuple[Tolerance, .
         kind = _get(ctx, t, "kind", w)
         if kind not in TOLERANCE_KINDS:
             raise ctx.fail(w + "kind", kind, " | ".join(f'"{k}"' for k in TOLERANCE_KINDS))
-        _check_keys(ctx, t, ("name", "kind") + _TOL_KEYS[kind], w)
+        if d == 3 and kind in _TOL_PLANAR:
+            raise ctx.fail(w + "kind", kind, '"port", "tip_load" or "port_placement" in a spatial scenario '
+                           "(insertion_band and tracker_noise are planar: P2's flexion controller)")
+        allowed = tuple(k for k in _TOL_KEYS[kind] if d == 3 or k != "port_x")
+        _check_keys(ctx, t, ("name", "kind") + allowed, w)
         name = t.get("name", f"tolerance{i}")
         if not isinstance(name, str) or not name:
             raise ctx.fail(w + "name", name, "a non-empty string")
@@ -519,21 +528,37 @@ def _tolerances(ctx: _Ctx, v: Any, controller_gain: float) -> tuple[Tolerance, .
         names.add(name)
         opts: dict[str, Any] = {}
         opts["gain"] = _num(ctx, t.get("gain", controller_gain), w + "gain", positive=True)
+        form = "{ " + ", ".join(f"{a} = [lo, hi]" for a in AXES[d]) + " }"
         if "region" in t:
-            r = t["region"]
-            if not isinstance(r, dict) or set(r) != {"y", "z"}:
-                raise ctx.fail(w + "region", r, "{ y = [lo, hi], z = [lo, hi] }")
-            opts["region"] = {
-                "y": _pair(ctx, r["y"], w + "region.y", ordered=True),
-                "z": _pair(ctx, r["z"], w + "region.z", ordered=True),
-            }
-        elif kind in ("port", "tip_load"):
-            raise ctx.fail(w + "region", None, "{ y = [lo, hi], z = [lo, hi] } (missing)")
+            opts["region"] = _region(ctx, t["region"], w + "region", d)
+        elif kind in ("port", "tip_load", "port_placement"):
+            raise ctx.fail(w + "region", None, form + " (missing)")
+        if kind == "port_placement":
+            if "candidates" not in t:
+                raise ctx.fail(w + "candidates", None, form + ": the box of nominal port positions to try (missing)")
+            opts["candidates"] = _region(ctx, t["candidates"], w + "candidates", d)
+            if "spacing" not in t:
+                raise ctx.fail(w + "spacing", None, "the candidate grid spacing > 0 m (missing)")
+            opts["spacing"] = _num(ctx, t["spacing"], w + "spacing", positive=True)
+            if "resolution" in t:
+                opts["resolution"] = _num(ctx, t["resolution"], w + "resolution", positive=True)
+            if "certify_margin" in t:
+                opts["certify_margin"] = _num(ctx, t["certify_margin"], w + "certify_margin", nonneg=True)
+                if opts["certify_margin"] >= 1:
+                    raise ctx.fail(w + "certify_margin", t["certify_margin"], "a number in [0, 1)")
+            if "refine" in t:
+                if not isinstance(t["refine"], bool):
+                    raise ctx.fail(w + "refine", t["refine"], "true or false")
+                opts["refine"] = t["refine"]
+            if "refine_levels" in t:
+                opts["refine_levels"] = _tol_int(ctx, t, "refine_levels", w, 0, 12)
         if kind == "port":
-            d = t.get("direction", "radial")
-            if d not in ("y", "z", "radial"):
-                raise ctx.fail(w + "direction", d, '"y" | "z" | "radial"')
-            opts["direction"] = d
+            dirs = ("x", "y", "z", "radial") if d == 3 else ("y", "z", "radial")
+            dd = t.get("direction", "radial")
+            if dd not in dirs:
+                raise ctx.fail(w + "direction", dd, " | ".join(f'"{a}"' for a in dirs)
+                               + (' ("x" only in a spatial scenario)' if dd == "x" else ""))
+            opts["direction"] = dd
         if "sensor_noise" in t:
             opts["sensor_noise"] = _noise(ctx, t["sensor_noise"], w + "sensor_noise")
         elif kind == "insertion_band":
@@ -544,11 +569,15 @@ def _tolerances(ctx: _Ctx, v: Any, controller_gain: float) -> tuple[Tolerance, .
                 opts["tip_force_over_ei"] = _pair(ctx, tl, w + "tip_force_over_ei", ordered=True)
             else:
                 opts["tip_force_over_ei"] = _num(ctx, tl, w + "tip_force_over_ei")
+            tls = opts["tip_force_over_ei"]
+            if d == 3 and min(tls if isinstance(tls, tuple) else (tls,)) < 0:
+                raise ctx.fail(w + "tip_force_over_ei", tl, "a lateral load magnitude >= 0 (1/m^2; a number or "
+                               "[lo, hi] with 0 <= lo <= hi) in a spatial scenario")
         if kind in ("insertion_band", "tracker_noise"):
             if opts.get("tip_force_over_ei", 0.0) == 0.0:
                 raise ctx.fail(w + "tip_force_over_ei", t.get("tip_force_over_ei"),
                                "a non-zero tip load Ft/EI (1/m^2): P2's flexion controller needs flexion")
-        for key in ("port_y", "port_z", "band"):
+        for key in ("port_x", "port_y", "port_z", "band"):
             if key in t:
                 opts[key] = _pair(ctx, t[key], w + key, ordered=True)
         if "band" in opts and not 0.0 < opts["band"][0] <= opts["band"][1] < 1.0:
@@ -557,7 +586,7 @@ def _tolerances(ctx: _Ctx, v: Any, controller_gain: float) -> tuple[Tolerance, .
             opts["angle_ratio"] = _num(ctx, t["angle_ratio"], w + "angle_ratio", nonneg=True)
         if "length" in t:
             opts["length"] = _num(ctx, t["length"], w + "length", positive=True)
-        if "spacing" in t:
+        if "spacing" in t and kind != "port_placement":
             opts["spacing"] = _num(ctx, t["spacing"], w + "spacing", positive=True)
             if opts["spacing"] < 1e-5:
                 raise ctx.fail(w + "spacing", t["spacing"], "a tip-grid spacing >= 0.00001 m")
@@ -641,7 +670,7 @@ def parse_scenario(doc: Mapping[str, Any], source: str = "<memory>") -> Scenario
         fields=_fields(ctx, _table(ctx, doc, "fields", False), d),
         planner=_planner(ctx, _table(ctx, doc, "planner", False)),
         queries=_queries(ctx, doc.get("query", []), d),
-        tolerances=_tolerances(ctx, doc.get("tolerance", []), controller.gain),
+        tolerances=_tolerances(ctx, doc.get("tolerance", []), controller.gain, d),
         effects=_effects(ctx, _table(ctx, doc, "effects", False), d, n_joints),
         source=source,
     )

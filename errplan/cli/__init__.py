@@ -79,9 +79,15 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--planner", default=None, help="OMPL planner name (default: [planner] planner)")
     s.add_argument("--seed", type=int, default=None, help="OMPL seed (default: [planner] seed)")
 
-    s = sub.add_parser("tolerance", help="tolerance-design queries of a scenario")
+    s = sub.add_parser("tolerance", help="tolerance-design queries of a scenario (port error, tip load, noise, port placement)")
     s.add_argument("scenario")
     s.add_argument("--json", default=None, help="tolerance JSON to write (answers and plot-ready curves)")
+    s.add_argument("--workers", type=int, default=None,
+                   help="local worker processes for the port-placement candidates (default: all cores)")
+    s.add_argument("--scheduler", default=None,
+                   help="address of a dask.distributed scheduler to run the port-placement candidates on instead")
+    s.add_argument("--record", default=None, help="rerun recording (.rrd) of the port-placement queries")
+    s.add_argument("--top", type=int, default=5, help="port-placement candidates listed per query (default: %(default)s)")
 
     s = sub.add_parser("experiment", help="a P1-style bench run on the scenario's truth -> measured-data CSV")
     s.add_argument("scenario")
