@@ -169,12 +169,23 @@ SEMANTIC = {
     ("tolerance", "*", "band"): {"negative": _neg, "zero": _zero, "huge": lambda v: [x * 1e12 for x in v]},
     ("tolerance", "*", "port_y"): {"reversed": _rev},
     ("tolerance", "*", "port_z"): {"reversed": _rev},
+    # port_placement (issue 12): a reversed (empty) box or region, a spacing or resolution <= 0
+    ("tolerance", "*", "region", "x"): {"reversed": _rev},
+    ("tolerance", "*", "candidates", "x"): {"reversed": _rev},
+    ("tolerance", "*", "candidates", "y"): {"reversed": _rev},
+    ("tolerance", "*", "candidates", "z"): {"reversed": _rev},
+    ("tolerance", "*", "spacing"): {"negative": _neg, "zero": _zero},
+    ("tolerance", "*", "resolution"): {"negative": _neg, "zero": _zero},
+    ("tolerance", "*", "certify_margin"): {"negative": _neg, "huge": lambda v: 1e12},
+    ("tolerance", "*", "refine_levels"): {"negative": _neg, "huge": lambda v: 10**12},
 }
 #: keys (and tables) a scenario cannot do without; a callable decides from the tolerance kind
 REQUIRED = {
     ("instrument",): True, ("instrument", "length"): True, ("port",): True, ("port", "position"): True,
     ("query", "*", "start"): True, ("query", "*", "goal"): True, ("tolerance", "*", "kind"): True,
-    ("tolerance", "*", "region"): lambda kind: kind in ("port", "tip_load"),
+    ("tolerance", "*", "region"): lambda kind: kind in ("port", "tip_load", "port_placement"),
+    ("tolerance", "*", "candidates"): lambda kind: kind == "port_placement",
+    ("tolerance", "*", "spacing"): lambda kind: kind == "port_placement",
     ("tolerance", "*", "sensor_noise"): lambda kind: kind == "insertion_band",
     ("tolerance", "*", "tip_force_over_ei"): lambda kind: kind in ("insertion_band", "tracker_noise"),
     ("tolerance", "*", "band"): lambda kind: kind == "tracker_noise",
@@ -238,6 +249,11 @@ def scenario_cases(src: Path) -> list[Case]:
         if isinstance(t, dict) and t.get("kind") in ("port", "tip_load") and isinstance(t.get("region"), dict):
             d = _set(doc, ("tolerance", i, "region", "y"), [-1e6, 1e6])
             add("huge-grid", ("tolerance", i, "region"), _set(d, ("tolerance", i, "spacing"), 1e-5))
+    # port placement: a candidate sweep over the budget, a task-region grid no machine holds
+    for i, t in enumerate(doc.get("tolerance", [])):
+        if isinstance(t, dict) and t.get("kind") == "port_placement":
+            add("tiny-spacing", ("tolerance", i, "spacing"), _set(doc, ("tolerance", i, "spacing"), 1e-9))
+            add("tiny-resolution", ("tolerance", i, "resolution"), _set(doc, ("tolerance", i, "resolution"), 1e-9))
     # required keys and tables removed
     for path, v in list(_leaves(doc)) + list(_paths_of_tables(doc)):
         for pattern, need in REQUIRED.items():
@@ -515,8 +531,70 @@ def spatial_robot_cases() -> list[Case]:
     return out
 
 
+def placement_cases() -> list[Case]:
+    """Bad port-placement queries (issue 12), planar and spatial, each one clear error from
+    ``errplan tolerance`` before any candidate runs: a candidate box or region of the wrong
+    dimension, a spacing <= 0 or so small that the sweep exceeds the candidate budget, an empty
+    region (no grid point at the resolution, or reversed), bad options."""
+    out = []
+    for src in (SCENARIOS / "beasley2004_bounded.toml", SCENARIOS / "phantom15_placement.toml"):
+        if not src.exists():
+            continue
+        doc = _doc(src)
+        doc.pop("query", None)
+        tols = [t for t in doc.get("tolerance", []) if t.get("kind") == "port_placement"]
+        if not tols:
+            continue
+        base = copy.deepcopy(tols[0])
+        d3 = "x" in base["candidates"]
+        good_box = base["candidates"]
+        wrong_box = ({"y": good_box["y"], "z": good_box["z"]} if d3 else
+                     {"x": [0.0, 0.01], "y": good_box["y"], "z": good_box["z"]})
+        wrong_region = ({"y": base["region"]["y"], "z": base["region"]["z"]} if d3 else
+                        dict(base["region"], x=[0.0, 0.0]))
+        empty = dict(base["region"], z=[base["region"]["z"][0] + 0.0001, base["region"]["z"][0] + 0.0002])
+        variants = {
+            "candidates-wrong-dimension": {"candidates": wrong_box},
+            "candidates-one-axis": {"candidates": {"z": good_box["z"]}},
+            "candidates-not-a-table": {"candidates": [0.0, 0.1]},
+            "region-wrong-dimension": {"region": wrong_region},
+            "spacing-zero": {"spacing": 0.0},
+            "spacing-negative": {"spacing": -0.01},
+            "spacing-over-budget": {"spacing": 1e-6},
+            "spacing-text": {"spacing": "fine"},
+            "resolution-over-budget": {"resolution": 1e-7},
+            "region-empty-at-resolution": {"region": empty, "resolution": 0.01},
+            "region-reversed": {"region": dict(base["region"], y=base["region"]["y"][::-1])},
+            "candidates-reversed": {"candidates": dict(good_box, z=good_box["z"][::-1])},
+            "certify-margin-one": {"certify_margin": 1.0},
+            "refine-not-bool": {"refine": 1},
+            "refine-levels-huge": {"refine_levels": 1000},
+            "planar-kind-beside": None,
+        }
+        for tag, change in variants.items():
+            d = copy.deepcopy(doc)
+            if change is None:
+                if not d3:
+                    continue
+                d["tolerance"] = [base, {"name": "band", "kind": "insertion_band", "tip_force_over_ei": 3.0,
+                                         "sensor_noise": {"position": 0.001, "angle": 0.002}}]
+            else:
+                d["tolerance"] = [dict(base, **change)]
+            out.append(_scenario_case(f"placement:{src.stem}:{tag}", d, "tolerance"))
+        d = copy.deepcopy(doc)
+        d["tolerance"] = [base]
+        text = to_toml(d)
+        tol = ["-q", "tolerance", "{d}/s.toml", "--json", "{d}/out.json"]
+        for tag, extra in (("workers-zero", ["--workers", "0"]), ("workers-negative", ["--workers", "-2"]),
+                           ("record-in-missing-directory", ["--record", "{d}/no/x.rrd"]),
+                           ("record-is-a-directory", ["--record", "{d}"]), ("top-negative", ["--top", "-1"])):
+            out.append(Case(f"placement:{src.stem}:{tag}", {"s.toml": text}, tol + extra))
+    return out
+
+
 SCENARIO_CASES = [c for f in BUNDLED for c in scenario_cases(f)]
-OTHER_CASES = effect_cases() + toml_syntax_cases() + file_cases() + option_cases() + spatial_robot_cases()
+OTHER_CASES = (effect_cases() + toml_syntax_cases() + file_cases() + option_cases() + spatial_robot_cases()
+               + placement_cases())
 CASES = SCENARIO_CASES + OTHER_CASES
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -398,3 +399,168 @@ def test_cli_region_outside_workspace_exits_2(tmp_path, capsys):
                    'region = { y = [0.5, 0.6], z = [0.5, 0.6] }\n')
     assert main(["--quiet", "tolerance", str(bad)]) == 2
     assert "outside the workspace" in capsys.readouterr().err
+
+
+# ----------------------------------------------------------------------------- spatial (3-D)
+URDF = str(ROOT / "scenarios" / "phantom15.urdf")
+SPATIAL_TOL_DOC = {
+    "name": "unseen-spatial-tolerance",
+    "robot": {"urdf": URDF, "joints": ["waist", "shoulder", "elbow"], "wrist": "wrist",
+              "base_position": [0.0, 0.205, -0.215], "base_rpy": [0.0, 0.0, 0.0],
+              "joint_limits": [[-0.9, 0.9], [-1.85, 1.2], [-0.7, 1.05]],
+              "coupled_limits": [{"joints": ["shoulder", "elbow"], "coeffs": [1.0, 1.0], "range": [-0.3, 2.8]}]},
+    "instrument": {"length": 0.310},
+    "port": {"position": [0.004, -0.006, 0.162], "estimate": [0.004, -0.006, 0.162]},
+    "controller": {"gain": 1.0},
+    "uncertainty": {"tip_force_over_ei": [0.0, 0.6], "samples": 3},
+}
+LINE3 = {"x": (0.0, 0.0), "y": (-0.002, 0.002), "z": (0.30, 0.40)}
+
+
+@pytest.fixture(scope="module")
+def spatial_sc():
+    return parse_scenario(json.loads(json.dumps(SPATIAL_TOL_DOC)), "<test>")
+
+
+def _fib_sphere(n):
+    i = np.arange(n) + 0.5
+    c = 1 - 2 * i / n
+    a = np.pi * (1 + 5 ** 0.5) * i
+    s = np.sqrt(1 - c * c)
+    return np.stack([s * np.cos(a), s * np.sin(a), c], -1)
+
+
+def _brute_lever3(sc, X, ports, k=1.0):
+    """Worst ||G|| and all-reachable over true ports (p, 3) at tips X (n, 3), with no load: the 3-D
+    lever (docs/physics.md) in numpy, the wrist by the arm's inverse kinematics checked by its
+    forward kinematics, the spectral norm by numpy's SVD. Nothing of errplan.fields or tolerance."""
+    from errplan.kinematics import arm_for
+
+    arm = arm_for(sc.robot)
+    L = sc.instrument.length
+    est = np.asarray(sc.port.estimate)
+    x = X[:, None, :]
+    p = ports[None, :, :]
+    r = np.linalg.norm(x - p, axis=-1)
+    w = x - L * (x - p) / r[..., None]
+    q, ok = arm.inverse(w)
+    ok &= (r < L) & np.isfinite(q).all(-1)
+    fk = arm.forward(np.where(ok[..., None], q, 0.0))
+    ok &= np.linalg.norm(fk - w, axis=-1) < 1e-7
+
+    def lever(port):
+        d = port - w
+        rho = np.linalg.norm(d, axis=-1)[..., None, None]
+        u = d / rho[..., 0]
+        return np.eye(3) - (L / rho) * (np.eye(3) - u[..., :, None] * u[..., None, :])
+
+    J, Jh = lever(p), lever(est)
+    G = np.eye(3) - k * J @ np.linalg.inv(Jh)
+    g = np.linalg.norm(G, 2, axis=(-2, -1))
+    return float(np.max(np.where(ok, g, -np.inf))), bool(ok.all())
+
+
+def _line_tips(region, n=21):
+    return np.stack(np.meshgrid(*[np.linspace(*region[a], 3 if a == "y" else (1 if a == "x" else n))
+                                  for a in ("x", "y", "z")], indexing="ij"), -1).reshape(-1, 3)
+
+
+@pytest.mark.parametrize("direction_", ["x", "y", "radial"])
+def test_spatial_port_tolerance_matches_independent_bisection(spatial_sc, direction_):
+    """3-D port tolerances (no load) against an independent bisection: lever formulas, IK and SVD on
+    41 offsets per segment or 2 x 300 ports of the ball, within 5 %."""
+    ours = port_tolerance(spatial_sc, LINE3, direction_, tip_force_over_ei=0.0)
+    assert ours["binding"] in ("G_norm", "reachability") and ours["value"] > 0
+    X = _line_tips(LINE3)
+    est = np.asarray(spatial_sc.port.estimate)
+    if direction_ == "radial":
+        sph = _fib_sphere(300)
+        unit = np.concatenate([sph, 0.5 * sph])
+    else:
+        unit = np.zeros((41, 3))
+        unit[:, "xyz".index(direction_)] = np.linspace(-1, 1, 41)
+
+    def good(e):
+        g, ok = _brute_lever3(spatial_sc, X, est + e * unit)
+        return ok and g < 1.0
+
+    lo, hi = 0.0, 0.1
+    assert good(lo) and not good(hi)
+    for _ in range(18):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if good(mid) else (lo, mid)
+    assert abs(ours["value"] - lo) <= 0.05 * lo, (direction_, ours["value"], lo)
+
+
+def test_spatial_port_tolerance_with_a_load_is_sound(spatial_sc):
+    """With the scenario's lateral load (0..0.6 /m^2, any direction) the answer is smaller than
+    without, and a dense check (kernels' single-instance maps, 9 offsets x 4 magnitudes x 24
+    directions) passes at 0.99 x the answer on the region grid and fails at 1.05 x somewhere."""
+    from errplan.fields import KernelEvaluator
+    from errplan.scenario import Port, Uncertainty
+
+    r = port_tolerance(spatial_sc, LINE3, "y")
+    r0 = port_tolerance(spatial_sc, LINE3, "y", tip_force_over_ei=0.0)
+    assert 0 < r["value"] < r0["value"]
+    sc0 = replace(spatial_sc, uncertainty=Uncertainty(samples=3))
+    kev = KernelEvaluator(sc0)
+    X = np.asarray(r["per_tip"]["points"], float)
+    X = np.concatenate([X, np.asarray(r["binding_point"], float)[None]])
+
+    def worst(e):
+        d = np.linspace(-e, e, 9)
+        tau = np.linspace(0.0, 0.6, 4)
+        psi = np.arange(24) * 2 * np.pi / 24
+        th = np.stack(np.meshgrid(d, tau, psi, indexing="ij"), -1).reshape(-1, 3)
+        th = np.stack([0 * th[:, 0], th[:, 0], 0 * th[:, 0], th[:, 1], th[:, 2]], -1)
+        M, ok = kev.motion_maps(X[:, None, :], th[None])
+        g = np.linalg.norm(np.eye(3) - np.where(ok[..., None, None], M, 0.0), 2, axis=(-2, -1))
+        return float(np.max(np.where(ok, g, np.inf)))
+
+    assert worst(0.99 * r["value"]) < 1.0 <= worst(1.05 * r["value"])
+
+
+def test_spatial_tip_load_tolerance_sound(spatial_sc):
+    """3-D tip load: the lateral-load disc of radius T (any direction normal to the shaft). A dense
+    check (9 magnitudes x 36 directions) at 0.99 T (all < 1) and 1.01 T (some >= 1 or unreachable)."""
+    from errplan.fields import KernelEvaluator
+
+    reg = {"x": (0.0, 0.02), "y": (-0.01, 0.01), "z": (0.38, 0.40)}
+    r = tip_load_tolerance(spatial_sc, reg)
+    assert r["value"] > 0 and r["binding"] in ("G_norm", "reachability")
+    kev = KernelEvaluator(replace(spatial_sc, uncertainty=replace(spatial_sc.uncertainty, tip_force_over_ei=None)))
+    X = np.asarray(r["per_tip"]["points"], float)
+    X = np.concatenate([X, np.asarray(r["binding_point"], float)[None]])
+
+    def worst(T):
+        tau, psi = np.meshgrid(np.linspace(0, T, 9), np.arange(36) * 2 * np.pi / 36, indexing="ij")
+        th = np.stack([np.zeros(tau.size)] * 3 + [tau.ravel(), psi.ravel()], -1)
+        M, ok = kev.motion_maps(X[:, None, :], th[None])
+        g = np.linalg.norm(np.eye(3) - np.where(ok[..., None, None], M, 0.0), 2, axis=(-2, -1))
+        return float(np.max(np.where(ok, g, np.inf)))
+
+    assert worst(0.99 * r["value"]) < 1.0 <= worst(1.01 * r["value"])
+
+
+def test_spatial_tolerance_tables_and_planar_only_kinds(tmp_path, capsys):
+    doc = json.loads(json.dumps(SPATIAL_TOL_DOC))
+    doc["tolerance"] = [{"name": "px", "kind": "port", "direction": "x", "tip_force_over_ei": 0.0,
+                         "region": {"x": [0.0, 0.0], "y": [0.0, 0.0], "z": [0.34, 0.36]}}]
+    sc = parse_scenario(doc, "<test>")
+    assert sc.tolerances[0].options["direction"] == "x"
+    for bad, key in ((dict(doc["tolerance"][0], region={"y": [0, 0], "z": [0.3, 0.4]}), "region"),
+                     (dict(doc["tolerance"][0], tip_force_over_ei=-1.0), "tip_force_over_ei"),
+                     ({"name": "b", "kind": "insertion_band", "tip_force_over_ei": 3.0,
+                       "sensor_noise": {"position": 0.001, "angle": 0.002}}, "planar")):
+        with pytest.raises(ScenarioError, match=key):
+            parse_scenario(dict(doc, tolerance=[bad]), "<test>")
+    with pytest.raises(ScenarioError, match="direction"):  # "x" only in 3-D
+        parse_scenario(_doc(direction="x", region={"y": [0, 0], "z": [0.3, 0.4]}))
+    p = tmp_path / "s.toml"
+    from conftest import to_toml
+
+    p.write_text(to_toml(doc), encoding="utf-8")
+    out = tmp_path / "o.json"
+    assert main(["-q", "tolerance", str(p), "--json", str(out)]) == 0
+    t = json.loads(out.read_text())["tolerances"][0]
+    assert t["direction"] == "x" and len(t["binding_point"]) == 3 and t["value"] > 0

@@ -38,7 +38,7 @@ class ToleranceResult:
             return [self.name, "tip_load", f"{d['value']:.4g} 1/m^2", _point(d["binding_point"]), d["binding"]]
         if self.kind == "port_placement":
             rho = d["max_rho_star"]
-            note = f"max rho* {rho:.3f}" if isinstance(rho, float) and math.isfinite(rho) else "max rho* -"
+            note = f"max rho* {rho:.4f}" if isinstance(rho, float) and math.isfinite(rho) else "max rho* -"
             if "refined" in d:
                 r = d["refined"]
                 note += f"; refined {_point(r['port'])}: {100 * r['coverage']:.1f}%"
