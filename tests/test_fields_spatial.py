@@ -305,3 +305,30 @@ def test_spatial_refinement_is_stable(phantom):
     assert dg.max() < 1e-3, dg.max()
     assert dp.max() < 3e-3, dp.max()
     assert np.median(dg) < 1e-6
+
+
+def test_phi_bound_is_an_upper_bound():
+    """The branch-and-bound of |phi_max| (kernels.phi_bound) never cuts off the exact value."""
+    from errplan.fields.kernels import phi_bound, phimax
+
+    rng = np.random.default_rng(11)
+    Ms = np.concatenate([np.eye(3) + 0.3 * rng.normal(size=(3000, 3, 3)), rng.normal(size=(1000, 3, 3))])
+    ub = np.array([phi_bound(Ms, j) for j in range(len(Ms))])
+    ex = np.array([phimax(Ms, j) for j in range(len(Ms))])
+    assert np.all(ub >= ex - 1e-12)
+    near = ub < math.pi
+    assert near.sum() > 2000  # the bound is informative for near-identity motion maps
+    assert np.median((ub - ex)[near]) < 0.2
+
+
+@pytest.mark.slow
+def test_phi_with_load_disc_matches_reference(phantom):
+    """Worst |phi_max| over the port box and the load disc against the dense reference."""
+    mf = compute_fields(phantom, 0.04, metrics=("G_norm", "phi_max"))
+    rng = np.random.default_rng(8)
+    idx, X = _sample_tips(mf, 3, rng)
+    for (i, j, l), x in zip(idx, X):
+        ref = reference_worst(phantom, x, n=3, n_dir=8, phi=True)
+        p = mf.phi_max[i, j, l]
+        assert p >= ref[1] - 3e-3, (x, p, ref[1])
+        assert p <= ref[1] + 0.05, (x, p, ref[1])

@@ -439,6 +439,23 @@ def phimax(Mb, j):
     return phi_max3(Mb[j])
 
 
+@njit(cache=True, error_model="numpy")
+def phi_bound(Mb, j):
+    """A cheap upper bound of ``|phi_max|`` of ``M = Mb[j]`` (3-D): for any k > 0 the actual motion
+    k M v lies in the ball of radius ||I - k M|| |v| around v, so the angle is at most
+    asin(||I - k M||) when that is below 1 (P1 eq. 10). k = tr(M) / ||M||_F^2 (the Frobenius-best
+    gain); pi when no bound below pi follows."""
+    tr = Mb[j, 0, 0] + Mb[j, 1, 1] + Mb[j, 2, 2]
+    f = 0.0
+    for a in range(3):
+        for b in range(3):
+            f += Mb[j, a, b] * Mb[j, a, b]
+    if not (tr > 0.0 and f > 0.0):
+        return math.pi
+    g = gnorm(Mb, j, tr / f)
+    return math.asin(g) if g < 1.0 else math.pi
+
+
 # ----------------------------------------------------------------------------- the search
 @njit(cache=True, error_model="numpy")
 def _poll_value(which, Mb, j, k):
@@ -558,6 +575,8 @@ def _pattern(d, which, k, x, th, best, step0, lo, hi, active, periodic, refine, 
                     cand[ax] = v
                     if not instance(d, x, cand, base_port, est, L, arm, chain, rmap, M, 0, S, V, known):
                         return best, False
+                    if which == 1 and d == 3 and phi_bound(M, 0) <= best:
+                        continue  # this instance cannot raise the worst |phi_max|
                     f = _poll_value(which, M, 0, k)
                     if f > best:
                         best = f
@@ -569,9 +588,42 @@ def _pattern(d, which, k, x, th, best, step0, lo, hi, active, periodic, refine, 
 
 
 @njit(cache=True, error_model="numpy")
-def _golden_gain(Ms, m, iters):
-    """``min over k > 0 of max_i ||I - k M_i||`` by golden section (convex in k); ``(rho, k)``,
-    ``(1, 0)`` where no gain contracts."""
+def _golden(Ms, idx, na_, kmax, iters):
+    """``min over k in [0, kmax] of max_{i in idx[:na_]} ||I - k Ms[i]||`` by golden section (convex in k)."""
+    gr = (math.sqrt(5.0) - 1.0) / 2.0
+    a, b = 0.0, kmax
+    c, d = b - gr * (b - a), a + gr * (b - a)
+    fc = 0.0
+    fd = 0.0
+    for q in range(na_):
+        fc = max(fc, gnorm(Ms, idx[q], c))
+        fd = max(fd, gnorm(Ms, idx[q], d))
+    for _ in range(iters):
+        if fc < fd:
+            b, d, fd = d, c, fc
+            c = b - gr * (b - a)
+            fc = 0.0
+            for q in range(na_):
+                fc = max(fc, gnorm(Ms, idx[q], c))
+        else:
+            a, c, fc = c, d, fd
+            d = a + gr * (b - a)
+            fd = 0.0
+            for q in range(na_):
+                fd = max(fd, gnorm(Ms, idx[q], d))
+    return 0.5 * (a + b)
+
+
+@njit(cache=True, error_model="numpy")
+def _golden_gain(Ms, m, iters, k0, idx):
+    """``min over k > 0 of max_i ||I - k M_i||`` over the m sampled instances; ``(rho, k)``,
+    ``(1, 0)`` where no gain contracts.
+
+    Cutting planes: golden section over an active set of instances (first the worst at the
+    scenario gain ``k0``), then every instance is checked at the minimiser and the worst one
+    joins the set, until none exceeds the active maximum. At the end the maximum over all
+    instances at k equals the active minimum, so k minimises the full maximum (each function is
+    convex in k, so is their maximum). ``idx`` is (m,) int scratch."""
     amax = 0.0
     for i in range(m):
         s = 0.0
@@ -580,28 +632,30 @@ def _golden_gain(Ms, m, iters):
                 s += Ms[i, a, b] ** 2
         amax = max(amax, math.sqrt(s))
     kmax = 2.0 / amax if amax > 0 else 1.0
-    gr = (math.sqrt(5.0) - 1.0) / 2.0
-    a, b = 0.0, kmax
-    c, d = b - gr * (b - a), a + gr * (b - a)
-
-    def f(kk):
-        v = 0.0
+    jw, vw = 0, -1.0
+    for i in range(m):
+        v = gnorm(Ms, i, k0)
+        if v > vw:
+            jw, vw = i, v
+    idx[0] = jw
+    n_act = 1
+    kk = 0.0
+    rho = 1.0
+    while True:
+        kk = _golden(Ms, idx, n_act, kmax, iters)
+        act = 0.0
+        for q in range(n_act):
+            act = max(act, gnorm(Ms, idx[q], kk))
+        jw, vw = -1, act
         for i in range(m):
-            v = max(v, gnorm(Ms, i, kk))
-        return v
-
-    fc, fd = f(c), f(d)
-    for _ in range(iters):
-        if fc < fd:
-            b, d, fd = d, c, fc
-            c = b - gr * (b - a)
-            fc = f(c)
-        else:
-            a, c, fc = c, d, fd
-            d = a + gr * (b - a)
-            fd = f(d)
-    kk = 0.5 * (a + b)
-    rho = f(kk)
+            v = gnorm(Ms, i, kk)
+            if v > vw * (1.0 + 1e-13) + 1e-15:
+                jw, vw = i, v
+        rho = vw
+        if jw < 0 or n_act >= m:
+            break
+        idx[n_act] = jw
+        n_act += 1
     if rho >= 1.0:
         return 1.0, 0.0
     return rho, kk
@@ -640,6 +694,10 @@ def _search(d, X, grid, counts, active, periodic, lo, hi, step0, base_port, est,
     th = np.empty(na)
     cand = np.empty(na)
     results = np.empty(2)
+    idx = np.empty(m, np.int64)
+    order = np.empty(m, np.int64)
+    # 3-D with a load: samples at tau = 0 repeat along the direction axis psi (the last one)
+    dup = d == 3 and na == 5 and counts[4] > 1
     for ii in range(n):
         x = X[ii]
         ok = True
@@ -649,11 +707,36 @@ def _search(d, X, grid, counts, active, periodic, lo, hi, step0, base_port, est,
             ok = tr != 0
             known = tr == 1
         for j in range(m if ok else 0):
+            if dup and grid[j, 3] == 0.0 and j % counts[4] != 0:
+                j0 = j - j % counts[4]  # the same instance: tau = 0 has no direction
+                for a in range(d):
+                    for b in range(d):
+                        Ms[j, a, b] = Ms[j0, a, b]
+                vals_g[j] = vals_g[j0]
+                continue
             if not instance(d, x, grid[j], base_port, est, L, arm, chain, rmap, Ms, j, S, V, known):
                 ok = False
                 break
             vals_g[j] = gnorm(Ms, j, k)
-            vals_p[j] = phimax(Ms, j) if want_phi else 0.0
+        if ok and want_phi:
+            if d == 2:
+                for j in range(m):
+                    vals_p[j] = phimax(Ms, j)
+            else:
+                # branch and bound: exact |phi_max| only where the cheap bound could beat the best
+                # exact value so far; elsewhere the bound stands in (never above the best exact)
+                for j in range(m):
+                    vals_p[j] = phi_bound(Ms, j)
+                    order[j] = j
+                order[:] = np.argsort(-vals_p)
+                best_exact = -1.0
+                for q in range(m):
+                    j = order[q]
+                    if vals_p[j] <= best_exact:
+                        vals_p[j] = min(vals_p[j], best_exact)
+                        continue
+                    vals_p[j] = phimax(Ms, j)
+                    best_exact = max(best_exact, vals_p[j])
         if not ok:
             out_valid[ii] = False
             out_g[ii] = np.nan
@@ -704,7 +787,7 @@ def _search(d, X, grid, counts, active, periodic, lo, hi, step0, base_port, est,
         out_g[ii] = results[0]
         out_p[ii] = results[1] if want_phi else np.nan
         if want_rho:
-            rs, ks = _golden_gain(Ms, m, 60)
+            rs, ks = _golden_gain(Ms, m, 60, k, idx)
             if ks > 0:
                 # certify at k*: the refined worst case over the continuous set at that gain
                 jbest = 0

@@ -276,6 +276,9 @@ def fields_for_planning(sc, resolution: float | None = None, progress=None, **kw
 
     need_rho = sc.planner.certifiable or sc.planner.metric == "rho_star"
     kw = {k: v for k, v in kw.items() if v is not None}
+    if sc.dim == 3 and "metrics" not in kw:
+        # In 3-D the exact |phi_max| is the costly metric: compute it only when it is the cost.
+        kw["metrics"] = ("G_norm", "phi_hat_max") + (("phi_max",) if sc.planner.metric == "phi_max" else ())
     return compute_fields(sc, resolution, rho_star=need_rho, progress=progress, **kw)
 
 
