@@ -137,6 +137,11 @@ CATALOGUE: tuple[type[Effect], ...] = (PortOffset, JointOffset, TrackerOffset, G
 EFFECTS: dict[str, type[Effect]] = {c.name: c for c in CATALOGUE}
 
 
+def catalogue(sc) -> list[Effect]:
+    """Every effect of the catalogue for scenario ``sc`` (its dimension and arm), in physics.md order."""
+    return [make_effect(c.name) for c in CATALOGUE]
+
+
 def make_effect(name: str) -> Effect:
     try:
         return EFFECTS[name]()

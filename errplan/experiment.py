@@ -28,7 +28,6 @@ from pathlib import Path
 import numpy as np
 
 from .errors import DataError, ErrplanError
-from .kinematics.arm import Arm
 from .kinematics.shaft import flexed_wrist
 
 COLUMNS = ("run", "step", "target_y", "target_z", "gain", "q1", "q2", "tip_y", "tip_z")
@@ -265,80 +264,137 @@ def require_planar(sc, what: str) -> None:
 
 
 # ----------------------------------------------------------------------------- starts
-def _tip_valid(arm: Arm, length: float, port: np.ndarray, estimate: np.ndarray, x: np.ndarray, *,
-               limit_margin: float, port_margin: float, wrist_margin: float) -> np.ndarray:
-    """Tips (..., 2) a straight shaft through ``port`` reaches with margins (joint limits, tip and
-    wrist away from the port, also for the controller's estimate)."""
+#: margins of a bench tip: joint limits (rad or m), tip from the port, wrist from the port (m)
+START_MARGINS = dict(limit_margin=0.05, port_margin=0.030, wrist_margin=0.040)
+#: start-grid spacing (m) of :func:`choose_starts` by dimension
+START_SPACING = {2: 0.005, 3: 0.010}
+
+
+def _straight_wrist(x: np.ndarray, port: np.ndarray, length: float) -> np.ndarray:
+    """The wrist (..., d) of a straight shaft of ``length`` whose tip is at ``x`` through ``port``."""
+    if x.shape[-1] == 2:
+        return flexed_wrist(x, port, length, np.zeros(x.shape[:-1]))
+    e = x - port
+    return x - length * e / np.linalg.norm(e, axis=-1, keepdims=True)
+
+
+def tip_valid(sc, x: np.ndarray, *, limit_margin: float, port_margin: float, wrist_margin: float) -> np.ndarray:
+    """Tips (..., d) a straight shaft through the true port reaches with margins: joint limits,
+    tip and wrist away from the port, also from the controller's estimate (planar and spatial)."""
+    from .kinematics import arm_for
+
+    arm = arm_for(sc.robot)
+    L = float(sc.instrument.length)
+    port = np.asarray(sc.port.position, float)
+    estimate = np.asarray(sc.port.estimate, float)
+    x = np.asarray(x, float)
+    dim = x.shape[-1]
     d = np.linalg.norm(x - port, axis=-1)
-    ok = (d > port_margin) & (d < length - wrist_margin)
-    xs = np.where(ok[..., None], x, port + [0.0, 0.5 * length])
-    w = flexed_wrist(xs, port, length, np.zeros(x.shape[:-1]))
+    ok = (d > port_margin) & (d < L - wrist_margin)
+    away = np.zeros(dim)
+    away[-1] = 0.5 * L
+    xs = np.where(ok[..., None], x, port + away)
+    w = _straight_wrist(xs, port, L)
     q, reach = arm.inverse(w)
     ok &= reach
     qs = np.where(reach[..., None], q, 0.0)
     ok &= arm.limit_margin(qs) >= limit_margin
     rho_e = np.linalg.norm(estimate - w, axis=-1)
-    ok &= (rho_e > wrist_margin) & (rho_e < length - port_margin)
+    ok &= (rho_e > wrist_margin) & (rho_e < L - port_margin)
     return ok
 
 
-def target_offsets(distance: float = TARGET_DISTANCE) -> np.ndarray:
-    """The eight target offsets (8, 2): +z, then counter-clockwise in 45 degree steps (P1 Sec. III-B)."""
-    a = np.arange(8) * (np.pi / 4)
-    return distance * np.stack([np.sin(a), np.cos(a)], axis=-1)
+def tip_workspace_grid(sc, spacing: float, what: str) -> np.ndarray:
+    """Grid points (m, d) at ``spacing`` over the bounding box of the tip workspace (a straight
+    shaft through the true port), clipped to ``[fields] region`` when the scenario has one; the
+    number of points is checked against the memory budget first."""
+    from .inputs import check_allocation
+    from .kinematics import arm_for
 
-
-def choose_starts(sc, n_starts: int = DEFAULT_STARTS, *, spacing: float = 0.005, radius: float = 0.030) -> np.ndarray:
-    """Start tips (m, 2): P1's L, M, N where they and their targets are reachable, then starts
-    spread over the tip workspace (farthest-point sampling over robust tips).
-
-    A robust tip has every point of its ``radius`` neighbourhood (centre, two rings) reachable
-    through the true port with 0.05 rad joint-limit margin, the tip 30 mm and the wrist 40 mm away
-    from the port (and from the controller's port estimate).
-    """
-    require_planar(sc, "a bench run")
-    if n_starts < 1:
-        raise ErrplanError(f"starts {n_starts}: expected at least 1")
-    arm = Arm.from_robot(sc.robot)
-    L = sc.instrument.length
+    arm = arm_for(sc.robot)
+    L = float(sc.instrument.length)
     port = np.asarray(sc.port.position, float)
-    est = np.asarray(sc.port.estimate, float)
-    kw = dict(limit_margin=0.05, port_margin=0.030, wrist_margin=0.040)
-    chosen: list[np.ndarray] = []
-    offs = target_offsets()
-    for s in P1_STARTS:
-        pts = np.vstack([np.asarray(s)[None], np.asarray(s) + offs])
-        if np.all(_tip_valid(arm, L, port, est, pts, limit_margin=0.02, port_margin=0.03, wrist_margin=0.04)):
-            chosen.append(np.asarray(s, float))
-        if len(chosen) >= n_starts:
-            return np.array(chosen)
-    # candidate tips: the tip workspace's bounding box on a grid
-    w = arm.sample_wrists(61)
+    dim = sc.dim
+    w = arm.sample_wrists(61 if dim == 2 else 21)
     rho = np.linalg.norm(port - w, axis=-1)
     w = w[(rho > 1e-6) & (rho < L)]
     if len(w) == 0:
         raise ErrplanError(f"{sc.source}: the shaft cannot reach through the port from any wrist pose")
     tips = w + L * (port - w) / np.linalg.norm(port - w, axis=-1)[:, None]
     lo, hi = tips.min(axis=0), tips.max(axis=0)
-    from .inputs import check_allocation
-
-    ny, nz = (float(np.floor((hi[i] - lo[i]) / spacing + 0.5)) + 1 for i in range(2))
+    region = sc.fields.region
+    if region:
+        for i, ax in enumerate(sc.axes):
+            if ax in region:
+                lo[i], hi[i] = max(lo[i], region[ax][0]), min(hi[i], region[ax][1])
+    counts = [float(np.floor(max(hi[i] - lo[i], 0.0) / spacing + 0.5)) + 1 for i in range(dim)]
     # the tip workspace spans about 2 (shaft length + reach): name whichever of the two dominates
-    big = max(("[instrument] length", L), ("[robot] link_lengths", [arm.l1, arm.l2]),
-              key=lambda kv: kv[1] if np.isscalar(kv[1]) else sum(kv[1]))
-    check_allocation(big[0], big[1], ny * nz, START_TIP_BYTES,
-                     f"the bench's start search ({ny:.3g} x {nz:.3g} candidate tips at {spacing * 1000:g} mm "
+    if dim == 2:
+        big = max(("[instrument] length", L), ("[robot] link_lengths", [arm.l1, arm.l2]),
+                  key=lambda kv: kv[1] if np.isscalar(kv[1]) else sum(kv[1]))
+    else:
+        big = ("[instrument] length", L)
+    check_allocation(big[0], big[1], float(np.prod(counts)), START_TIP_BYTES,
+                     f"{what} ({' x '.join(f'{c:.3g}' for c in counts)} candidate tips at {spacing * 1000:g} mm "
                      f"over the tip workspace)")
-    gy = lo[0] + spacing * np.arange(int(ny))
-    gz = lo[1] + spacing * np.arange(int(nz))
-    cand = np.stack(np.meshgrid(gy, gz, indexing="ij"), axis=-1).reshape(-1, 2)
-    ang = np.arange(12) * (np.pi / 6)
-    ring = np.stack([np.sin(ang), np.cos(ang)], axis=-1)
-    probe = np.vstack([[0.0, 0.0], radius * ring, 0.5 * radius * ring])  # (25, 2)
+    axes = [lo[i] + spacing * np.arange(int(counts[i])) for i in range(dim)]
+    return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, dim)
+
+
+def _probe(radius: float, dim: int) -> np.ndarray:
+    """Probe offsets of a start's neighbourhood: the centre, and two shells of the bench's
+    target directions at ``radius`` and half of it (planar: 12 directions each)."""
+    if dim == 2:
+        ang = np.arange(12) * (np.pi / 6)
+        ring = np.stack([np.sin(ang), np.cos(ang)], axis=-1)
+    else:
+        ring = target_offsets(1.0, 3)
+    return np.vstack([np.zeros((1, dim)), radius * ring, 0.5 * radius * ring])
+
+
+def target_offsets(distance: float = TARGET_DISTANCE, dim: int = 2) -> np.ndarray:
+    """Target offsets ``distance`` from a start. Planar (8, 2): +z, then counter-clockwise in 45
+    degree steps (P1 Sec. III-B). Spatial (14, 3): +-x, +-y, +-z, then the 8 cube diagonals
+    (docs/interfaces.md), all of length ``distance``."""
+    if dim == 2:
+        a = np.arange(8) * (np.pi / 4)
+        return distance * np.stack([np.sin(a), np.cos(a)], axis=-1)
+    axes = np.vstack([np.eye(3), -np.eye(3)])[[0, 3, 1, 4, 2, 5]]
+    diag = np.array([[sx, sy, sz] for sx in (1, -1) for sy in (1, -1) for sz in (1, -1)], float) / np.sqrt(3.0)
+    return distance * np.vstack([axes, diag]) + 0.0
+
+
+def choose_starts(sc, n_starts: int = DEFAULT_STARTS, *, spacing: float | None = None,
+                  radius: float = 0.030) -> np.ndarray:
+    """Start tips (m, d): P1's L, M, N (at x = 0 in 3-D) where they and their targets are
+    reachable, then starts spread over the tip workspace (farthest-point sampling over robust tips).
+
+    A robust tip has every point of its ``radius`` neighbourhood (centre, two shells) reachable
+    through the true port with 0.05 rad joint-limit margin, the tip 30 mm and the wrist 40 mm away
+    from the port (and from the controller's port estimate). The start grid is 5 mm in the plane,
+    10 mm in 3-D, over the tip workspace (within ``[fields] region`` when there is one).
+    """
+    if n_starts < 1:
+        raise ErrplanError(f"starts {n_starts}: expected at least 1")
+    dim = sc.dim
+    spacing = START_SPACING[dim] if spacing is None else spacing
+    kw = START_MARGINS
+    chosen: list[np.ndarray] = []
+    offs = target_offsets(dim=dim)
+    for s in P1_STARTS:
+        s = np.asarray(s if dim == 2 else (0.0,) + tuple(s), float)
+        pts = np.vstack([s[None], s + offs])
+        if np.all(tip_valid(sc, pts, limit_margin=0.02, port_margin=0.03, wrist_margin=0.04)):
+            chosen.append(s)
+        if len(chosen) >= n_starts:
+            return np.array(chosen)
+    cand = tip_workspace_grid(sc, spacing, "the bench's start search")
+    probe = _probe(radius, dim)
     ok = np.zeros(len(cand), bool)
-    for c0 in range(0, len(cand), START_CHUNK):  # 25 probes per tip: in chunks, memory stays flat
-        c = cand[c0:c0 + START_CHUNK]
-        ok[c0:c0 + len(c)] = np.all(_tip_valid(arm, L, port, est, c[:, None, :] + probe[None], **kw), axis=1)
+    chunk = max(1, START_CHUNK * 25 // len(probe))
+    for c0 in range(0, len(cand), chunk):  # the probes of every tip: in chunks, memory stays flat
+        c = cand[c0:c0 + chunk]
+        ok[c0:c0 + len(c)] = np.all(tip_valid(sc, c[:, None, :] + probe[None], **kw), axis=1)
     cand = cand[ok]
     if len(cand) == 0 and not chosen:
         raise ErrplanError(f"{sc.source}: no start tip has its {radius * 1000:g} mm neighbourhood inside the tip "
@@ -388,11 +444,12 @@ class ExperimentResult:
     """A bench run: the data and, per run, its start, target and how it ended."""
 
     data: MeasuredData
-    starts: np.ndarray            # (m, 2) start tips
+    starts: np.ndarray            # (m, d) start tips
     status: list[str]             # per run: "converged" | "max_steps" | "left_workspace"
     tolerance: float
     dwell: int
     max_steps: int
+    targets: list | None = None   # per start, the targets of its runs (m lists of d-vectors)
 
     def summary_rows(self) -> list[list]:
         d = self.data
@@ -407,14 +464,101 @@ class ExperimentResult:
         return rows
 
 
+def _inv_batch(A: np.ndarray, rcond: float = 1e-12) -> tuple[np.ndarray, np.ndarray]:
+    """Inverses of square matrices (..., d, d) and a mask of the singular ones (inverse 0 there)."""
+    A = np.asarray(A, float)
+    d = A.shape[-1]
+    with np.errstate(invalid="ignore", over="ignore"):
+        det = np.linalg.det(np.where(np.isfinite(A), A, 0.0))
+        scale = np.prod(np.linalg.norm(A, axis=-1), axis=-1)
+    singular = ~np.all(np.isfinite(A), axis=(-2, -1)) | ~(np.abs(det) > rcond * scale)
+    safe = np.where(singular[..., None, None], np.eye(d), A)
+    return np.where(singular[..., None, None], 0.0, np.linalg.inv(safe)), singular
+
+
+def simulate_bench(plant, ctrl, q0: np.ndarray, targets: np.ndarray, gain: float, *, max_steps: int,
+                   dwell: int, tolerance: float, rng: np.random.Generator | None = None, model=None) -> "MeasuredData":
+    """Every bench run at once (numpy over runs): the loop of :func:`errplan.simulation.simulate`
+    from encoder angles ``q0`` (R, n) toward ``targets`` (R, d) at ``gain``, stopped as
+    :func:`run_experiment` stops a run (``dwell`` steps after the tracked tip first comes within
+    ``tolerance``, after ``max_steps`` commands, or when a command leaves the workspace).
+
+    The same physics as ``simulate`` (noise drawn per step for all runs, so a seeded run differs
+    from ``run_experiment``'s in the noise draws only); used where many candidate runs must be
+    predicted quickly (:mod:`errplan.calibration.design`). Runs with fewer than 2 rows are dropped.
+    """
+    model = plant.declared() if model is None else model
+    q = np.array(q0, float)
+    targets = np.asarray(targets, float)
+    R, d = targets.shape
+    off = np.asarray(plant.tracker_offset, float)
+    u = np.zeros((R, d))
+    q_true = q.copy()
+    with np.errstate(invalid="ignore", divide="ignore"):
+        tip = plant.tip(q_true, u)
+    alive = np.ones(R, bool)
+    stop_at = np.full(R, max_steps)          # last step index recorded
+    rows_q, rows_x, rows_r, rows_s = [], [], [], []
+    for t in range(max_steps + 1):
+        tracked = tip + off
+        if rng is not None and plant.tracker_sigma > 0:
+            tracked = tracked + rng.normal(0.0, plant.tracker_sigma, tracked.shape)
+        idx = np.flatnonzero(alive)
+        rows_q.append(q[idx].copy()); rows_x.append(tracked[idx].copy())
+        rows_r.append(idx); rows_s.append(np.full(len(idx), t))
+        arrived = alive & (np.linalg.norm(tracked - targets, axis=-1) < tolerance) & (stop_at == max_steps)
+        stop_at = np.where(arrived, np.minimum(t + dwell, max_steps), stop_at)
+        alive &= t < stop_at
+        if not np.any(alive) or t == max_steps:
+            break
+        err = targets - tracked
+        if ctrl.jacobian == "rigid":
+            Jh = ctrl.J_hat(q)
+        else:
+            from .simulation import plant_at
+
+            with np.errstate(invalid="ignore", divide="ignore"):
+                Jh = ctrl.J_hat(q, plant_at(plant, q_true))
+        Jinv, singular = _inv_batch(Jh)
+        dq = gain * np.einsum("rij,rj->ri", Jinv, err)
+        q_new = q + dq
+        q_read = q_new + rng.normal(0.0, plant.encoder_sigma, q_new.shape) if (
+            rng is not None and plant.encoder_sigma > 0) else q_new
+        with np.errstate(invalid="ignore", divide="ignore"):
+            u_new = model.motion_direction(q, q_new, u)
+            ok = (~singular & plant.arm.within_limits(plant.link_angles_q(q_new))
+                  & plant.shaft_reaches(plant.wrist(q_new)) & np.all(np.isfinite(q_new), axis=-1))
+        alive &= ok
+        u = np.where(alive[:, None], u_new, u)
+        q = np.where(alive[:, None], q_read, q)
+        q_true = np.where(alive[:, None], q_new, q_true)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            tip = np.where(alive[:, None], plant.tip(q_true, u), tip)
+    run = np.concatenate(rows_r)
+    step = np.concatenate(rows_s)
+    order = np.lexsort((step, run))
+    run, step = run[order], step[order]
+    Q, X = np.concatenate(rows_q)[order], np.concatenate(rows_x)[order]
+    counts = np.bincount(run, minlength=R)
+    keep = counts[run] >= 2
+    kept = np.flatnonzero(counts >= 2)
+    remap = -np.ones(R, int)
+    remap[kept] = np.arange(len(kept))
+    return MeasuredData([str(r) for r in kept], remap[run[keep]], step[keep], targets[run[keep]],
+                        np.full(int(keep.sum()), float(gain)), Q[keep], X[keep], "<design>")
+
+
 def run_experiment(sc, seed: int = 0, *, plant=None, starts=None, n_starts: int = DEFAULT_STARTS,
                    max_steps: int = DEFAULT_MAX_STEPS, dwell: int = DEFAULT_DWELL,
-                   tolerance: float | None = None) -> ExperimentResult:
+                   tolerance: float | None = None, runs=None) -> ExperimentResult:
     """A P1-style bench run on the scenario's truth (see the module docstring).
 
     ``plant`` overrides the truth (default: :func:`truth_plant`, the scenario's port, load,
     effects and sensor noise) — tests use it for effects outside the catalogue. ``tolerance``
-    (m) defaults to ``max(0.5 mm, 3 tracker_sigma)``. Deterministic from ``seed``.
+    (m) defaults to ``max(0.5 mm, 3 tracker_sigma)``. Deterministic from ``seed``. ``runs``
+    (m, 2, d): explicit (start, target) pairs instead of every start times P1's targets (a designed
+    bench, :func:`errplan.calibration.design.design_experiment`); run ids are then
+    ``"<start index>-<run of that start>"`` with the starts numbered in order of appearance.
     """
     from .inputs import check_allocation
     from .simulation import simulate
@@ -432,10 +576,25 @@ def run_experiment(sc, seed: int = 0, *, plant=None, starts=None, n_starts: int 
     model = truth_plant(sc, effects=False, noise=False)
     ctrl = bench_controller(sc)
     tol = tolerance if tolerance is not None else max(5e-4, 3 * truth.tracker_sigma)
-    S = np.atleast_2d(np.asarray(starts, float)) if starts is not None else choose_starts(sc, n_starts)
-    offs = target_offsets()
-    check_allocation("--max-steps", max_steps, len(S) * len(offs) * (max_steps + 1.0), BENCH_ROW_BYTES,
-                     f"the bench data ({len(S)} start(s) x {len(offs)} runs x up to {max_steps + 1} rows)")
+    if runs is not None:
+        runs = np.asarray(runs, float)
+        S, inv = np.unique(runs[:, 0], axis=0, return_inverse=True)
+        first = [int(np.flatnonzero(inv.ravel() == k)[0]) for k in range(len(S))]
+        order = np.argsort(first)                      # starts in order of appearance
+        S = S[order]
+        rank = np.empty(len(order), int)
+        rank[order] = np.arange(len(order))
+        groups = [[] for _ in S]
+        for r, k in enumerate(inv.ravel()):
+            groups[rank[k]].append(runs[r, 1])
+        n_runs = len(runs)
+    else:
+        S = np.atleast_2d(np.asarray(starts, float)) if starts is not None else choose_starts(sc, n_starts)
+        offs = target_offsets(dim=getattr(sc, "dim", 2))
+        groups = [[s + o for o in offs] for s in S]
+        n_runs = len(S) * len(offs)
+    check_allocation("--max-steps", max_steps, n_runs * (max_steps + 1.0), BENCH_ROW_BYTES,
+                     f"the bench data ({len(S)} start(s), {n_runs} runs x up to {max_steps + 1} rows)")
     rng = np.random.default_rng(seed)
     gain = sc.controller.gain
     ids, R, ST, TG, K, Q, X, status = [], [], [], [], [], [], [], []
@@ -444,8 +603,8 @@ def run_experiment(sc, seed: int = 0, *, plant=None, starts=None, n_starts: int 
             q0 = truth.configuration_for_tip(s)
         except ErrplanError as e:
             raise ErrplanError(f"start {si} {np.round(s, 4).tolist()}: {e}") from None
-        for ti, off in enumerate(offs):
-            tg = s + off
+        for ti, tg in enumerate(groups[si]):
+            tg = np.asarray(tg, float)
             res = simulate(truth, ctrl, q0, tg[None], gain, tolerance=1e-300, max_steps=max_steps, rng=rng,
                            model=model)
             e = np.linalg.norm(res.tracked - tg, axis=-1)
@@ -467,4 +626,4 @@ def run_experiment(sc, seed: int = 0, *, plant=None, starts=None, n_starts: int 
         raise ErrplanError(f"{sc.source}: every bench run left the workspace on its first command")
     data = MeasuredData(ids, np.concatenate(R), np.concatenate(ST), np.concatenate(TG), np.concatenate(K),
                         np.concatenate(Q), np.concatenate(X), "<experiment>")
-    return ExperimentResult(data, S, status, tol, dwell, max_steps)
+    return ExperimentResult(data, S, status, tol, dwell, max_steps, [list(g) for g in groups])

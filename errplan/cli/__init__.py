@@ -98,6 +98,14 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--max-steps", type=int, default=60, help="commands per run at most (default: %(default)s)")
     s.add_argument("--dwell", type=int, default=10,
                    help="steps recorded after a run first arrives within tolerance (default: %(default)s)")
+    s.add_argument("--design", type=int, default=None, metavar="N",
+                   help="choose N runs that make the catalogue's parameters identifiable (experiment design) "
+                        "instead of --starts x P1's targets; compares with the default bench")
+    s.add_argument("--criterion", default="G", choices=("G", "D", "A", "E"),
+                   help="design criterion of the parameters' information (default: %(default)s, see docs/calibration.md)")
+    s.add_argument("--max-rows", type=int, default=None,
+                   help="designed bench: at most this many rows (default: the default bench's; 0: no limit)")
+    s.add_argument("--design-json", default=None, help="also write the design (runs, correlations, sigmas) as JSON")
 
     s = sub.add_parser("calibrate", help="close the loop: residual, effect found, error before/after")
     s.add_argument("scenario")

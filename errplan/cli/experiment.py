@@ -32,23 +32,48 @@ def run(args) -> int:
         raise ErrplanError(f"--max-steps {max_steps}: expected an integer >= 1")
     if dwell < 0:
         raise ErrplanError(f"--dwell {dwell}: expected an integer >= 0")
-    ex = run_experiment(sc, args.seed, n_starts=starts, max_steps=max_steps, dwell=dwell)
+    design_n = getattr(args, "design", None)
+    design_json = check_output("--design-json", getattr(args, "design_json", None))
+    max_rows = getattr(args, "max_rows", None)
+    if design_n is not None and design_n < 1:
+        raise ErrplanError(f"--design {design_n}: expected a number of runs >= 1")
+    if max_rows is not None and max_rows < 0:
+        raise ErrplanError(f"--max-rows {max_rows}: expected an integer >= 0 (0: no limit)")
+    if design_n is None and (max_rows is not None or design_json):
+        raise ErrplanError("--max-rows and --design-json go with --design N")
+    runs = None
+    if design_n is not None:
+        from ..calibration.design import design_experiment
+        from ..report import Progress, write_json
+
+        prog = Progress("design", quiet=args.quiet)
+        prog.quiet = prog.quiet or not prog.tty
+        design = design_experiment(sc, design_n, max_rows=max_rows, criterion=getattr(args, "criterion", "G"),
+                                   seed=args.seed, n_starts=starts, max_steps=max_steps, dwell=dwell, progress=prog)
+        prog.done()
+        print(design.text())
+        print()
+        runs = design.runs
+    ex = run_experiment(sc, args.seed, n_starts=starts, max_steps=max_steps, dwell=dwell, runs=runs)
     d = ex.data
     ex.data.source = str(out)
     d.write_csv(out)
+    if design_n is not None and design_json:
+        write_json(design_json, design.to_json())
     rows = []
-    per = 8
     for si, s in enumerate(ex.starts):
         ids = [r for r in range(d.runs) if d.run_ids[r].split("-")[0] == str(si)]
         if not ids:
             continue
+        per = len(ex.targets[si]) if ex.targets is not None else len(ids)
         steps = [int(np.sum(d.run == r)) - 1 for r in ids]
         final = [float(np.linalg.norm(d.tip[d.run == r][-1] - d.target[d.run == r][0]) * 1000) for r in ids]
         st = [ex.status[r] for r in ids]
-        rows.append([f"({s[0] * 1000:.1f}, {s[1] * 1000:.1f})", f"{len(ids)}/{per}", int(np.mean(steps)), max(steps),
-                     st.count("converged"), max(final)])
+        rows.append(["(" + ", ".join(f"{v * 1000:.1f}" for v in s) + ")", f"{len(ids)}/{per}", int(np.mean(steps)),
+                     max(steps), st.count("converged"), max(final)])
     eff = ", ".join(f"{k}({', '.join(f'{p}={v:g}' for p, v in ps.items())})" for k, ps in sc.effects.items()) or "none"
-    print(format_table(["start y, z (mm)", "runs", "mean steps", "max steps", "converged", "max final error (mm)"], rows,
+    axes = ", ".join(sc.axes)
+    print(format_table([f"start {axes} (mm)", "runs", "mean steps", "max steps", "converged", "max final error (mm)"], rows,
                        f"bench run on {sc.name}: gain {sc.controller.gain:g}, {sc.controller.jacobian} controller, "
                        f"seed {args.seed} -> {out}"))
     print(f"truth: effects {eff}; tracker sigma {sc.sensors.tracker_sigma * 1000:g} mm, encoder sigma "
