@@ -23,7 +23,9 @@ of a ``[fields] region``: the multiples of the resolution inside the region (so 
 be checked against ``errplan fields`` point for point).
 
 Work. Candidates are independent tasks (:func:`errplan.cluster.map_tasks`: this process, local
-worker processes, or a dask cluster; identical numbers either way). What does not change between
+worker processes, or a dask cluster; identical numbers either way). The first candidate runs here
+and is timed; the others are grouped into tasks of about ``TASK_SECONDS`` (at least ``MIN_TASKS``
+tasks), so that a cluster's per-task overhead stays small against the work. What does not change between
 candidates is built once and shipped once: the region grid, the error-set samples and, for a URDF
 arm, its chain and certified reachability map (the kernels' arrays); a task only swaps the
 estimate and the true-port reference in the kernel's arguments.
@@ -63,6 +65,10 @@ POINT_BYTES = 96
 #: refinement: halvings of the poll step (spacing / 2, / 4, / 8) and moves per step at most
 REFINE_LEVELS = 3
 REFINE_MOVES = 4
+#: candidates are grouped into tasks of about this many seconds (measured on the first candidate),
+#: keeping at least MIN_TASKS tasks
+TASK_SECONDS = 0.2
+MIN_TASKS = 16
 TIE_BREAK = "most covered region points, then the smaller max_rho_star, then the first candidate in grid order"
 
 
@@ -202,6 +208,35 @@ def evaluate_candidate(job: PlacementJob, cand: Candidate) -> tuple[int, int, fl
     return score(valid, rho, job.bound)
 
 
+def evaluate_batch(job: PlacementJob, cands: list) -> list:
+    """One task: a few candidates in a row (tasks of ``TASK_SECONDS`` or so keep a cluster's per-task
+    overhead small against the work)."""
+    return [evaluate_candidate(job, c) for c in cands]
+
+
+def run_candidates(job: PlacementJob, items: list, *, workers, scheduler, tick, seconds_each: float | None = None
+                   ) -> tuple[list, float]:
+    """``evaluate_candidate`` on every item, as tasks of about ``TASK_SECONDS`` each (at least
+    ``MIN_TASKS`` tasks when there are that many candidates). Without ``seconds_each`` the first
+    candidate is evaluated here and timed. Returns the results in order and the seconds per candidate
+    of that first one (or ``seconds_each``)."""
+    from ..cluster import map_tasks
+
+    out: list = []
+    rest = items
+    if seconds_each is None and items:
+        t0 = time.perf_counter()
+        out.append(evaluate_candidate(job, items[0]))
+        seconds_each = time.perf_counter() - t0
+        rest = items[1:]
+    if rest:
+        per = max(1, min(math.ceil(TASK_SECONDS / max(seconds_each or 0.0, 1e-6)), math.ceil(len(rest) / MIN_TASKS)))
+        batches = [rest[i:i + per] for i in range(0, len(rest), per)]
+        for part in map_tasks(evaluate_batch, job, batches, workers=workers, scheduler=scheduler, progress=tick):
+            out.extend(part)
+    return out, float(seconds_each or 0.0)
+
+
 def rank_key(covered: int, max_rho: float, index: int = 0) -> tuple:
     """Sort key of the objective: most covered, then the smaller max rho* (NaN last), then index."""
     return (-covered, max_rho if math.isfinite(max_rho) else math.inf, index)
@@ -219,7 +254,6 @@ def port_placement(sc, candidates: dict, spacing: float, region: dict, *, resolu
     ``candidates``) plus ``covered``, ``reachable``, ``region_points``, the grids, ``refined``
     (with ``refine``) and timing; with ``keep_arrays`` also ``_arrays`` (numpy arrays for the
     recording: coverage over the candidate grid, the best candidate's region fields)."""
-    from ..cluster import map_tasks
     from ..fields import KernelEvaluator, error_set
 
     t0 = time.perf_counter()
@@ -248,12 +282,12 @@ def port_placement(sc, candidates: dict, spacing: float, region: dict, *, resolu
                            "arm are not supported yet, nor placements on them")
     items = [_candidate_item(sc, c) for c in ports]
 
-    def tick(done, total, what="candidate"):
+    def tick(done, total, what="candidate tasks"):
         if progress:
             progress(done / total, f"{what} {done}/{total}")
 
     t_sweep = time.perf_counter()
-    results = map_tasks(evaluate_candidate, job, items, workers=workers, scheduler=scheduler, progress=tick)
+    results, t_one = run_candidates(job, items, workers=workers, scheduler=scheduler, tick=tick)
     sweep_s = time.perf_counter() - t_sweep
     m = len(X)
     order = sorted(range(len(items)), key=lambda i: rank_key(results[i][0], results[i][2], i))
@@ -276,7 +310,7 @@ def port_placement(sc, candidates: dict, spacing: float, region: dict, *, resolu
     }
     if refine:
         out["refined"] = _refine(job, sc, ports[ib], (cov_b, reach_b, rho_b), candidates, float(spacing),
-                                 int(refine_levels), workers, scheduler, tick)
+                                 int(refine_levels), workers, scheduler, tick, t_one)
     if keep_arrays:
         shape = tuple(len(a) for a in c_axes)
         valid_b, rho_best = candidate_fields(job, items[ib])
@@ -301,10 +335,8 @@ def _neighbours(d: int) -> np.ndarray:
     return np.concatenate([ax, diag])
 
 
-def _refine(job, sc, c0, s0, box, spacing, levels, workers, scheduler, tick) -> dict[str, Any]:
+def _refine(job, sc, c0, s0, box, spacing, levels, workers, scheduler, tick, t_one) -> dict[str, Any]:
     """Compass search from the best grid candidate on the lexicographic objective (module docstring)."""
-    from ..cluster import map_tasks
-
     axes = sc.axes
     lo = np.array([box[a][0] for a in axes])
     hi = np.array([box[a][1] for a in axes])
@@ -318,7 +350,7 @@ def _refine(job, sc, c0, s0, box, spacing, levels, workers, scheduler, tick) -> 
         for _ in range(REFINE_MOVES):
             polls = []
             for v in dirs:
-                p = np.clip(c + h * v, lo, hi)
+                p = np.round(np.clip(c + h * v, lo, hi), 12)  # as the candidate grid rounds
                 key = tuple(np.round(p, 12))
                 if key not in seen:
                     seen.add(key)
@@ -326,8 +358,8 @@ def _refine(job, sc, c0, s0, box, spacing, levels, workers, scheduler, tick) -> 
             if not polls:
                 break
             items = [_candidate_item(sc, p) for p in polls]
-            res = map_tasks(evaluate_candidate, job, items, workers=workers, scheduler=scheduler,
-                            progress=lambda d_, t_: tick(d_, t_, f"refinement step {h * 1000:.3g} mm:"))
+            res, _ = run_candidates(job, items, workers=workers, scheduler=scheduler, seconds_each=t_one,
+                                    tick=lambda d_, t_: tick(d_, t_, f"refinement step {h * 1000:.3g} mm:"))
             evals += len(polls)
             j = min(range(len(polls)), key=lambda i: rank_key(res[i][0], res[i][2], i))
             if rank_key(res[j][0], res[j][2]) < rank_key(cov, rho) and (
