@@ -15,8 +15,9 @@ The queries are the bundled examples, without their refinement:
 Each configuration runs the sweep (``port_placement``: what ``errplan tolerance`` does, in this
 process, kernels compiled and cached, the arm loaded) ``--repeat`` times; the table gives the
 fastest wall time of the sweep alone (map_tasks over the candidates), the time per candidate and
-the speed-up against 1 worker. The three runs of a query must give identical numbers (checked).
-The machine is shared: the load average at the start is printed beside the table.
+the speed-up against 1 worker, and for the in-process run the CPU time per candidate (the work
+itself, whatever the load). The three configurations of a query must give identical numbers
+(checked). The machine is shared: the load averages at the start and the end are in the title.
 """
 from __future__ import annotations
 
@@ -40,13 +41,17 @@ QUERIES = {
 
 
 def sweep(sc, o, *, workers=1, scheduler=None, quick=False):
+    """The query's sweep without refinement; adds ``cpu_seconds`` (this process's CPU time: the work
+    itself when ``workers == 1``, whatever the machine's load)."""
     cand = dict(o["candidates"])
     spacing = o["spacing"]
     if quick:  # a quarter of the candidates or fewer
         spacing = 2 * spacing
+    c0 = time.process_time()
     r = port_placement(sc, cand, spacing, o["region"], resolution=o.get("resolution"), gain=o.get("gain"),
                        certify_margin=o.get("certify_margin"), refine=False, workers=workers, scheduler=scheduler,
                        keep_arrays=False)
+    r["cpu_seconds"] = time.process_time() - c0
     return r
 
 
@@ -86,8 +91,9 @@ def main(argv=None) -> int:
                 t = best["sweep_seconds"]
                 n = len(best["candidates"])
                 base = base or t
+                cpu = best["cpu_seconds"] / n if kw.get("workers") == 1 else float("nan")
                 rows.append([label, name, n, best["region_points"], t, t / n, 1000 * t / n / best["region_points"],
-                             base / t])
+                             cpu, base / t])
             print(f"{label}: best port {[round(1000 * v, 1) for v in ref['best']]} mm, coverage "
                   f"{100 * ref['coverage']:.1f}% ({ref['covered']}/{ref['region_points']}), max rho* "
                   f"{ref['max_rho_star']:.4f}", file=sys.stderr)
@@ -95,9 +101,9 @@ def main(argv=None) -> int:
         if cluster is not None:
             cluster.close()
     print(format_table(["placement", "where", "candidates", "region points", "sweep s", "s / candidate",
-                        "ms / region point", "speed-up"], rows,
-                       f"port-placement sweep (fastest of {args.repeat}; load average at start {load:.1f} on "
-                       f"{os.cpu_count()} cores)"))
+                        "ms / region point", "CPU s / candidate", "speed-up"], rows,
+                       f"port-placement sweep (fastest of {args.repeat}; load average {load:.1f} at the start, "
+                       f"{os.getloadavg()[0]:.1f} at the end, on {os.cpu_count()} cores)"))
     return 0
 
 

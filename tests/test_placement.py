@@ -24,7 +24,6 @@ from conftest import to_toml
 from errplan.cli import main
 from errplan.errors import ErrplanError, ScenarioError
 from errplan.fields import Evaluator, KernelEvaluator, compute_fields
-from errplan.metrics import g_norm_from_parts
 from errplan.scenario import Fields, Port, load_scenario, parse_scenario
 from errplan.tolerance import candidate_scenario, port_placement, rank_key, run_all, run_query
 
@@ -481,3 +480,31 @@ def test_heat_image_is_placed_in_metres():
     assert u == pytest.approx(za[j]) and v == pytest.approx(-ya[-1 - i])
     assert img[i, j] == pytest.approx(vals[-1 - i, j]) and img[-1, 0] > 0  # coverage 0 is still drawn
     assert viridis([0.0, 1.0, np.nan]).tolist() == [[68, 1, 84], [253, 231, 37], [110, 110, 110]]
+
+
+def test_port_offset_effect_and_flexion_controller_follow_the_fields():
+    """A planar [effects.port_offset] moves the truth off every candidate as it moves it in the
+    fields (compiled path, true-port reference = c + offset); P2's flexion controller goes through
+    the fields' numpy path. Either way a candidate's region fields are compute_fields' arrays."""
+    from errplan.tolerance.placement import _candidate_item
+
+    for doc_changes, region, path in (
+            ({"effects": {"port_offset": {"dy": 0.003, "dz": -0.002}}}, {"y": (-0.06, 0.06), "z": (0.36, 0.44)},
+             "compiled"),
+            (None, {"y": (-0.01, 0.01), "z": (0.40, 0.42)}, "numpy")):
+        if doc_changes is None:
+            sc = load_scenario(ROOT / "scenarios" / "beasley_howe_flexion.toml")
+        else:
+            sc = _sc(PLANAR_DOC, **doc_changes)
+        c = (0.01, 0.17)
+        r = port_placement(sc, {"y": (c[0], c[0]), "z": (c[1], c[1])}, 0.01, region, resolution=0.01, workers=1)
+        assert r["path"] == path
+        sc_c = replace(candidate_scenario(sc, c), fields=Fields(0.01, region))
+        mf = compute_fields(sc_c, metrics=("rho_star",), workers=1)
+        np.testing.assert_array_equal(mf.valid.ravel(), r["_arrays"]["best_valid"])
+        np.testing.assert_array_equal(np.nan_to_num(mf.rho_star.ravel(), nan=-1),
+                                      np.nan_to_num(r["_arrays"]["best_rho_star"], nan=-1))
+        assert r["reachable"] == int(mf.valid.sum()) > 0
+        if path == "compiled":
+            item = _candidate_item(sc, c)
+            assert item.base_port == pytest.approx((c[0] + 0.003, c[1] - 0.002))

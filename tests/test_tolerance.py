@@ -497,7 +497,7 @@ def test_spatial_port_tolerance_with_a_load_is_sound(spatial_sc):
     without, and a dense check (kernels' single-instance maps, 9 offsets x 4 magnitudes x 24
     directions) passes at 0.99 x the answer on the region grid and fails at 1.05 x somewhere."""
     from errplan.fields import KernelEvaluator
-    from errplan.scenario import Port, Uncertainty
+    from errplan.scenario import Uncertainty
 
     r = port_tolerance(spatial_sc, LINE3, "y")
     r0 = port_tolerance(spatial_sc, LINE3, "y", tip_force_over_ei=0.0)
