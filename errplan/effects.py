@@ -43,13 +43,31 @@ class Effect:
     plant_field: str = ""
     description: str = ""
 
-    def __init__(self, scales: Sequence[float] | None = None):
+    def __init__(self, scales: Sequence[float] | None = None, *, dim: int = 2, n_joints: int = 2,
+                 fixed: Sequence[bool] | None = None):
+        self.dim, self.n_joints = int(dim), int(n_joints)
+        if self.dim != 2:  # the spatial parametrisation (docs/physics.md "Effects in 3-D")
+            from .scenario import effect_params
+
+            self.params = effect_params(self.name, self.dim, self.n_joints)
+            self.units, self.default_scales = self.spatial_units_scales()
         self.scales = tuple(float(s) for s in (scales if scales is not None else self.default_scales))
         if len(self.scales) != len(self.params) or not all(s > 0 for s in self.scales):
             raise ErrplanError(f"{self.name}: scales {list(self.scales)}: expected {len(self.params)} numbers > 0")
+        #: parameters whose sensitivity is identically zero for this robot (held at 0, never fitted,
+        #: reported as not identifiable: a vertical axis's gravity sag)
+        self.fixed = tuple(bool(f) for f in (fixed if fixed is not None else (False,) * len(self.params)))
+        if len(self.fixed) != len(self.params):
+            raise ErrplanError(f"{self.name}: fixed {list(self.fixed)}: expected {len(self.params)} flags")
+        self.why_fixed = ""
+
+    def spatial_units_scales(self) -> tuple[tuple[str, ...], tuple[float, ...]]:
+        """Units and typical sizes of the spatial parameters (the planar ones, per axis)."""
+        n = len(self.params)
+        return (self.units[0],) * n, (self.default_scales[0],) * n
 
     def __repr__(self) -> str:
-        return f"{type(self).__name__}()"
+        return f"{type(self).__name__}()" if self.dim == 2 else f"{type(self).__name__}(dim={self.dim}, n_joints={self.n_joints})"
 
     @property
     def n_params(self) -> int:
@@ -58,7 +76,11 @@ class Effect:
     def apply(self, plant, values: Sequence[float]):
         """The plant with this effect added (``values`` in physics.md units, order ``params``)."""
         cur = np.asarray(getattr(plant, self.plant_field), float)
-        return plant.with_(**{self.plant_field: tuple(float(v) for v in cur + np.asarray(values, float))})
+        add = np.asarray(values, float)
+        if cur.shape != add.shape:
+            raise ErrplanError(f"{self.name}: {len(add)} values {add.tolist()} for a plant with {cur.size} "
+                               f"({self.plant_field} = {cur.tolist()})")
+        return plant.with_(**{self.plant_field: tuple(float(v) for v in cur + add)})
 
     def values_of(self, plant) -> np.ndarray:
         """The values this effect has in a plant."""
@@ -112,6 +134,11 @@ class GravitySag(Effect):
     plant_field = "gravity_sag"
     description = "link angles = encoder angles - [c1 cos a1 + c2 cos a2, c3 cos a2]"
 
+    def spatial_units_scales(self):
+        # c_i in rad per N m: scaled so that one unit is about 1 mrad of sag (set per arm by
+        # :func:`catalogue` from the arm's generalized gravity)
+        return ("rad/(N m)",) * len(self.params), (1e-2,) * len(self.params)
+
 
 class ShaftFlexion(Effect):
     name = "shaft_flexion"
@@ -131,22 +158,103 @@ class PortFriction(Effect):
     description = ("the port holds the tip back against the motion the last command produced under the declared "
                    "model (axial fa, normal fn)")
 
+    def spatial_units_scales(self):
+        return tuple(self.units), tuple(self.default_scales)  # fa, fn in 3-D too
+
 
 #: the catalogue, in physics.md order
 CATALOGUE: tuple[type[Effect], ...] = (PortOffset, JointOffset, TrackerOffset, GravitySag, ShaftFlexion, PortFriction)
 EFFECTS: dict[str, type[Effect]] = {c.name: c for c in CATALOGUE}
 
 
-def catalogue(sc) -> list[Effect]:
-    """Every effect of the catalogue for scenario ``sc`` (its dimension and arm), in physics.md order."""
-    return [make_effect(c.name) for c in CATALOGUE]
+#: a joint whose generalized gravity stays below this share of the largest one over the joint
+#: range has an identically zero sensitivity (a vertical axis): its gravity sag is not identifiable
+GRAVITY_ZERO = 1e-9
 
 
-def make_effect(name: str) -> Effect:
+def gravity_scales(arm) -> tuple[tuple[float, ...], tuple[bool, ...], str]:
+    """For a URDF arm: typical sizes of the gravity-sag parameters c_i (rad per N m, 1 mrad of sag
+    at the RMS generalized gravity of joint i over a grid of its joint range), which joints have an
+    identically zero generalized gravity (a vertical axis: c_i not identifiable), and a sentence
+    saying so. Raises :class:`ErrplanError` for a URDF without inertial data."""
+    g = [np.linspace(lo, hi, 5) for lo, hi in arm.limits]
+    Q = np.stack(np.meshgrid(*g, indexing="ij"), axis=-1).reshape(-1, arm.n)
+    Q = Q[arm.within_limits(Q)] if np.any(arm.within_limits(Q)) else Q
+    tau = np.asarray(arm.gravity_torque(Q), float)
+    rms = np.sqrt(np.mean(tau ** 2, axis=0))
+    zero = rms <= GRAVITY_ZERO * max(float(rms.max()), 1e-300)
+    scales = tuple(float(1e-3 / r) if not z else 1.0 for r, z in zip(rms, zero))
+    names = [arm.joint_names[i] for i in np.flatnonzero(zero)]
+    why = (f"the generalized gravity of joint(s) {', '.join(names)} is identically zero (a vertical axis): "
+           f"its sag parameter is not identifiable") if names else ""
+    return scales, tuple(bool(z) for z in zero), why
+
+
+def catalogue(sc, names: Sequence[str] | None = None, *, skip_without_gravity: bool = False) -> list[Effect]:
+    """The catalogue's effects (``names``, default all, in physics.md order) for scenario ``sc``:
+    its dimension and, in 3-D, its arm's joints; gravity sag scaled by the arm's generalized gravity
+    with identically zero joints fixed. A URDF without inertial data has no gravity sag: one clear
+    error, or (``skip_without_gravity``) the catalogue without it."""
+    names = [c.name for c in CATALOGUE] if names is None else list(names)
+    if getattr(sc, "dim", 2) == 2:
+        return [make_effect(n) for n in names]
+    from .kinematics import arm_for
+
+    arm = arm_for(sc.robot)
+    out = []
+    for n in names:
+        if n == "gravity_sag":
+            try:
+                scales, fixed, why = gravity_scales(arm)
+            except ErrplanError as e:
+                if skip_without_gravity:
+                    continue
+                raise ErrplanError(f"{sc.source}: gravity_sag needs the arm's generalized gravity: {e}") from None
+            e = make_effect(n, dim=3, n_joints=arm.n, scales=scales, fixed=fixed)
+            e.why_fixed = why
+            out.append(e)
+        else:
+            out.append(make_effect(n, dim=3, n_joints=arm.n))
+    return out
+
+
+def make_effect(name: str, **kw) -> Effect:
     try:
-        return EFFECTS[name]()
+        cls = EFFECTS[name]
     except KeyError:
         raise ErrplanError(f"effect {name!r}: not an effect of docs/physics.md ({', '.join(EFFECTS)})") from None
+    return cls(**kw)
+
+
+class _GravityCache:
+    """A URDF arm whose generalized gravity is remembered for the last few joint arrays it was
+    asked about (by identity): the fits evaluate the plant hundreds of times on the same rows, and
+    tau_g depends only on the encoder angles. Everything else is the arm's."""
+
+    def __init__(self, arm, size: int = 8):
+        self._arm = arm
+        self._memo: list = []
+        self._size = size
+
+    def __getattr__(self, name):
+        return getattr(self._arm, name)
+
+    def gravity_torque(self, q):
+        for ref, tau in self._memo:
+            if ref is q:
+                return tau
+        tau = self._arm.gravity_torque(q)
+        if isinstance(q, np.ndarray):
+            self._memo.insert(0, (q, tau))
+            del self._memo[self._size:]
+        return tau
+
+
+def with_gravity_cache(plant):
+    """``plant`` with its URDF arm's generalized gravity memoised (a planar plant as it is)."""
+    if getattr(plant, "dim", 2) != 3 or isinstance(plant.arm, _GravityCache):
+        return plant
+    return plant.with_(arm=_GravityCache(plant.arm))
 
 
 def predict_tracked(plant, q: np.ndarray, u: np.ndarray | None) -> np.ndarray:
@@ -166,9 +274,11 @@ class EffectModel:
     max_nfev : evaluation budget of ``least_squares``.
 
     Fitted attributes: ``values_`` (p,) physics.md units, ``cov_`` (p, p), ``sigma_`` (p,),
-    ``rss_`` (m^2), ``n_obs_`` (scalar residuals, 2 per row), ``condition_`` (of the
-    column-normalised Jacobian), ``correlation_`` (p, p), ``max_correlation_``,
+    ``rss_`` (m^2), ``n_obs_`` (scalar residuals, d per row), ``condition_`` (of the
+    column-normalised Jacobian), ``correlation_`` (of the free parameters), ``max_correlation_``,
     ``identifiable_`` (bool), ``why_`` (a sentence when not identifiable), ``success_``.
+    Parameters an effect holds fixed for the robot (:attr:`Effect.fixed`: identically zero
+    sensitivity) are not fitted: value 0, sigma and covariance NaN.
     """
 
     def __init__(self, effects: Sequence[Effect] = (), *, fd_step: float = 1e-3, max_nfev: int = 200):
@@ -200,6 +310,38 @@ class EffectModel:
     def param_labels(self) -> list[str]:
         return [f"{e.name}.{p}" for e in self.effects for p in e.params]
 
+    @property
+    def free(self) -> np.ndarray:
+        """Mask (n_params,) of the parameters that are fitted (not fixed at 0 for the robot)."""
+        return np.array([not f for e in self.effects for f in e.fixed], bool)
+
+    @property
+    def n_free(self) -> int:
+        return int(self.free.sum())
+
+    @property
+    def free_labels(self) -> list[str]:
+        return [lab for lab, f in zip(self.param_labels, self.free) if f]
+
+    @property
+    def fixed_labels(self) -> list[str]:
+        return [lab for lab, f in zip(self.param_labels, self.free) if not f]
+
+    def free_index(self) -> dict[str, list[int]]:
+        """For each effect, the indices of its fitted parameters among the free ones."""
+        out, i = {}, 0
+        for e in self.effects:
+            k = sum(not f for f in e.fixed)
+            out[e.name] = list(range(i, i + k))
+            i += k
+        return out
+
+    def _full(self, z_free: np.ndarray) -> np.ndarray:
+        """Scaled values of every parameter from the free ones (fixed ones 0)."""
+        z = np.zeros(self.n_params)
+        z[self.free] = z_free
+        return z
+
     def _split(self, values: np.ndarray) -> list[np.ndarray]:
         out, i = [], 0
         for e in self.effects:
@@ -227,12 +369,14 @@ class EffectModel:
 
     # ------------------------------------------------------------------ fitting
     def _residual_fn(self, q, u, tracked, base):
+        """Residual (rows x d,) as a function of the free parameters in scaled units."""
         scales = self.scales
         tracked = np.asarray(tracked, float)
+        base = with_gravity_cache(base)
 
         def f(z: np.ndarray) -> np.ndarray:
             with np.errstate(invalid="ignore", divide="ignore"):
-                r = (tracked - predict_tracked(self.plant(base, z * scales), q, u)).ravel()
+                r = (tracked - predict_tracked(self.plant(base, self._full(z) * scales), q, u)).ravel()
             # a parameter value that breaks the geometry (shaft out of the port) is a huge misfit,
             # never a NaN inside the optimiser
             return np.where(np.isfinite(r), r, 1.0)
@@ -250,42 +394,46 @@ class EffectModel:
 
     def fit(self, q: np.ndarray, u: np.ndarray | None, tracked: np.ndarray, base,
             x0: Sequence[float] | None = None) -> "EffectModel":
-        """Fit the combination to measured rows: encoder angles ``q`` (n, 2) rad, friction's
-        directions ``u`` (n, 2) (the motion each row's command produced under the declared model,
+        """Fit the combination to measured rows: encoder angles ``q`` (n, N) rad, friction's
+        directions ``u`` (n, d) (the motion each row's command produced under the declared model,
         :meth:`errplan.experiment.MeasuredData.commanded_directions`), tracked tips ``tracked``
-        (n, 2) m; ``base`` the declared :class:`Plant`. ``x0`` a start (physics.md units, default
+        (n, d) m; ``base`` the declared :class:`Plant`. ``x0`` a start (physics.md units, default
         zero). Returns self."""
         from scipy.optimize import least_squares
 
         q = np.asarray(q, float)
         n = len(q)
-        p = self.n_params
-        self.n_obs_ = 2 * n
+        d = np.shape(tracked)[-1]
+        P = self.n_params
+        free = self.free
+        p = int(free.sum())
+        self.n_obs_ = d * n
         f = self._residual_fn(q, u, tracked, base)
-        scales = self.scales
+        all_scales = self.scales
+        scales = all_scales[free]
         if p == 0:
             r = f(np.zeros(0))
-            self.values_ = np.zeros(0)
-            self.cov_ = np.zeros((0, 0))
-            self.sigma_ = np.zeros(0)
+            self.values_ = np.zeros(P)
+            self.cov_ = np.full((P, P), np.nan)
+            self.sigma_ = np.full(P, np.nan)
             self.rss_ = float(r @ r)
             self.condition_ = 1.0
             self.correlation_ = np.zeros((0, 0))
             self.max_correlation_ = 0.0
-            self.identifiable_ = True
-            self.why_ = ""
+            self.identifiable_ = P == 0
+            self.why_ = "" if P == 0 else "no parameter of it can be identified on this robot"
             self.success_ = True
             self.nfev_ = 1
             return self
-        if 2 * n <= p:
+        if d * n <= p:
             raise ErrplanError(f"{self.label}: {n} rows cannot fit {p} parameters")
-        z0 = np.zeros(p) if x0 is None else np.asarray(x0, float) / scales
+        z0 = np.zeros(p) if x0 is None else np.asarray(x0, float)[free] / scales
         sol = least_squares(f, z0, jac=lambda z: self._jac(f, z), method="lm", max_nfev=self.max_nfev,
                             xtol=1e-10, ftol=1e-12, gtol=1e-12)
         z = sol.x
         r = f(z)
         J = self._jac(f, z)
-        self.values_ = z * scales
+        self.values_ = self._full(z) * all_scales
         self.rss_ = float(r @ r)
         self.nfev_ = int(sol.nfev)
         self.success_ = bool(sol.success) and bool(np.all(np.isfinite(z)))
@@ -294,11 +442,11 @@ class EffectModel:
         why = []
         dead = norms <= 1e-12 * max(1.0, float(np.max(norms)) if len(norms) else 1.0)
         if np.any(dead):
-            why.append("no data depend on " + ", ".join(np.array(self.param_labels)[dead]))
+            why.append("no data depend on " + ", ".join(np.array(self.free_labels)[dead]))
         Jn = J / np.where(dead, 1.0, norms)
         _, sv, Vt = np.linalg.svd(Jn, full_matrices=False)
         cond = float(sv[0] / sv[-1]) if sv[-1] > 1e-14 * sv[0] else float("inf")
-        s2 = self.rss_ / max(2 * n - p, 1)
+        s2 = self.rss_ / max(d * n - p, 1)
         if np.isfinite(cond) and not np.any(dead):
             A = (Vt.T / sv ** 2) @ Vt          # (Jn^T Jn)^-1, positive definite
             d = np.sqrt(np.diag(A))
@@ -315,13 +463,15 @@ class EffectModel:
             self.max_correlation_ = float(np.max(off)) if p > 1 else 0.0
         self.condition_ = cond
         self.correlation_ = corr
-        self.cov_ = cov_z * np.outer(scales, scales)
-        self.sigma_ = np.sqrt(np.diag(self.cov_))
+        cov = np.full((P, P), np.nan)
+        cov[np.ix_(free, free)] = cov_z * np.outer(scales, scales)
+        self.cov_ = cov
+        self.sigma_ = np.sqrt(np.diag(cov))
         if cond > MAX_CONDITION:
             why.append(f"condition number {cond:.3g} > {MAX_CONDITION:g}")
         if self.max_correlation_ > MAX_CORRELATION:
             i, j = np.unravel_index(int(np.nanargmax(np.where(np.isfinite(off), off, 2.0))), off.shape)
-            labels = self.param_labels
+            labels = self.free_labels
             why.append(f"{labels[i]} and {labels[j]} correlate {corr[i, j]:+.4f}")
         if not self.success_:
             why.append(f"the fit did not converge ({sol.message})")

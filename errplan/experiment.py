@@ -22,6 +22,7 @@ from __future__ import annotations
 import csv
 import io
 import math
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -30,7 +31,7 @@ import numpy as np
 from .errors import DataError, ErrplanError
 from .kinematics.shaft import flexed_wrist
 
-COLUMNS = ("run", "step", "target_y", "target_z", "gain", "q1", "q2", "tip_y", "tip_z")
+COLUMNS = ("run", "step", "target_y", "target_z", "gain", "q1", "q2", "tip_y", "tip_z")  # planar (csv_columns)
 P1_STARTS = ((0.0, 0.320), (0.0, 0.375), (0.0, 0.415))
 TARGET_DISTANCE = 0.020
 DEFAULT_STARTS = 8
@@ -49,13 +50,29 @@ START_CHUNK = 8192
 
 
 # ----------------------------------------------------------------------------- data
+def csv_columns(dim: int = 2, n_joints: int = 2) -> tuple[str, ...]:
+    """The measured-data CSV's columns (docs/interfaces.md): planar ``run, step, target_y,
+    target_z, gain, q1, q2, tip_y, tip_z``; spatial ``run, step, target_x, target_y, target_z, gain,
+    q1..qN, tip_x, tip_y, tip_z``."""
+    ax = ("y", "z") if dim == 2 else ("x", "y", "z")
+    return ("run", "step", *(f"target_{a}" for a in ax), "gain", *(f"q{i + 1}" for i in range(n_joints)),
+            *(f"tip_{a}" for a in ax))
+
+
+def data_shape(sc) -> tuple[int, int]:
+    """``(dim, n_joints)`` of the measured data of scenario ``sc``."""
+    if getattr(sc, "dim", 2) == 3:
+        return 3, len(sc.robot.joints)
+    return 2, 2
+
+
 @dataclass
 class MeasuredData:
     """Measured bench data, one row per controller step (docs/interfaces.md "Measured data").
 
     Arrays (n rows, run-major, steps ascending): ``run`` (n,) run index into ``run_ids``,
-    ``step`` (n,), ``target`` (n, 2) m, ``gain`` (n,), ``q`` (n, 2) encoder angles rad,
-    ``tip`` (n, 2) tracked tip m.
+    ``step`` (n,), ``target`` (n, d) m, ``gain`` (n,), ``q`` (n, N) encoder angles rad,
+    ``tip`` (n, d) tracked tip m; d = 2 planar ([y, z]), 3 spatial ([x, y, z]), N the actuated joints.
     """
 
     run_ids: list[str]
@@ -71,11 +88,24 @@ class MeasuredData:
     def __post_init__(self) -> None:
         self.run = np.asarray(self.run, int)
         self.step = np.asarray(self.step, int)
-        self.target = np.asarray(self.target, float).reshape(-1, 2)
+        n = len(self.step)
+        self.target = np.asarray(self.target, float).reshape(n, -1) if n else np.zeros((0, 2))
         self.gain = np.asarray(self.gain, float)
-        self.q = np.asarray(self.q, float).reshape(-1, 2)
-        self.tip = np.asarray(self.tip, float).reshape(-1, 2)
+        self.q = np.asarray(self.q, float).reshape(n, -1) if n else np.zeros((0, 2))
+        self.tip = np.asarray(self.tip, float).reshape(n, -1) if n else np.zeros((0, 2))
         self.first = np.flatnonzero(self.step == 0)
+
+    @property
+    def dim(self) -> int:
+        return self.tip.shape[1]
+
+    @property
+    def n_joints(self) -> int:
+        return self.q.shape[1]
+
+    @property
+    def columns(self) -> tuple[str, ...]:
+        return csv_columns(self.dim, self.n_joints)
 
     @property
     def rows(self) -> int:
@@ -102,7 +132,7 @@ class MeasuredData:
         differ by up to phi_max wherever the controller's Jacobian is wrong.
         """
         n = self.rows
-        u = np.zeros((n, 2))
+        u = np.zeros((n, self.dim))
         if n == 0:
             return u
         order = np.lexsort((self.step, self.run))  # run-major, steps ascending (the usual layout already)
@@ -139,11 +169,10 @@ class MeasuredData:
 
     def to_csv_text(self) -> str:
         out = io.StringIO()
-        out.write(",".join(COLUMNS) + "\n")
+        out.write(",".join(self.columns) + "\n")
+        vals = np.concatenate([self.target, self.gain[:, None], self.q, self.tip], axis=1)
         for i in range(self.rows):
-            vals = (self.target[i, 0], self.target[i, 1], self.gain[i], self.q[i, 0], self.q[i, 1],
-                    self.tip[i, 0], self.tip[i, 1])
-            out.write(f"{self.run_ids[self.run[i]]},{self.step[i]}," + ",".join(f"{v:.12g}" for v in vals) + "\n")
+            out.write(f"{self.run_ids[self.run[i]]},{self.step[i]}," + ",".join(f"{v:.12g}" for v in vals[i]) + "\n")
         return out.getvalue()
 
     def write_csv(self, path: str | Path) -> None:
@@ -162,17 +191,48 @@ def _cell_float(text: str, column: str, row: int, where: str) -> float:
     return v
 
 
-def parse_measured_csv(text: str, source: str = "<memory>") -> MeasuredData:
+def _check_header(header: list[str], cols: tuple[str, ...], source: str, dim: int, n_joints: int) -> None:
+    """One clear error for a header that does not fit the scenario: planar columns in a spatial
+    scenario or the reverse, joint columns for a different arm, missing or repeated columns."""
+    where = "a spatial scenario ([x, y, z])" if dim == 3 else "a planar scenario ([y, z])"
+    if dim == 3 and not any(c in header for c in ("target_x", "tip_x")) and any(
+            c in header for c in ("target_y", "target_z", "tip_y", "tip_z")):
+        raise DataError(f"{source}: planar columns (target_y, target_z, tip_y, tip_z without target_x, tip_x) for "
+                        f"{where}: expected the columns {','.join(cols)}")
+    if dim == 2 and any(c in header for c in ("target_x", "tip_x")):
+        raise DataError(f"{source}: spatial columns ({', '.join(c for c in ('target_x', 'tip_x') if c in header)}) for "
+                        f"{where}: expected the columns {','.join(cols)}")
+    joints = [h for h in header if re.fullmatch(r"q[0-9]+", h)]
+    extra = [h for h in joints if h not in cols]
+    if extra:
+        raise DataError(f"{source}: joint column(s) {', '.join(extra)}: the scenario's arm has {n_joints} actuated "
+                        f"joints (columns q1..q{n_joints}); is the data from this scenario?")
+    missing = [c for c in cols if c not in header]
+    if missing:
+        hint = ""
+        if any(re.fullmatch(r"q[0-9]+", c) for c in missing):
+            hint = f" (the scenario's arm has {n_joints} actuated joints: q1..q{n_joints})"
+        raise DataError(f"{source}: missing column(s) {', '.join(missing)}{hint} (header has "
+                        f"{', '.join(header) or 'nothing'}; expected {','.join(cols)})")
+    dup = [c for c in cols if header.count(c) > 1]
+    if dup:
+        raise DataError(f"{source}: column(s) {', '.join(dup)} appear more than once in the header")
+
+
+def parse_measured_csv(text: str, source: str = "<memory>", *, dim: int = 2, n_joints: int = 2) -> MeasuredData:
     """Parse measured-data CSV text (docs/interfaces.md); raise :class:`DataError` on any defect.
 
-    Rows are numbered from 1 (the first data row; the header is line 1 of the file, so data row
-    ``r`` is line ``r + 1``). Extra columns are ignored. Runs may appear in any order; their
+    ``dim`` and ``n_joints`` say which columns the scenario's data have (:func:`csv_columns`,
+    :func:`data_shape`). Rows are numbered from 1 (the first data row; the header is line 1 of the
+    file, so data row ``r`` is line ``r + 1``). Extra columns are ignored, except joint columns the
+    arm does not have and the other dimension's coordinates. Runs may appear in any order; their
     steps must be 0, 1, ... without gaps or repeats, target and gain constant, at least 2 steps.
     """
     from .inputs import check_allocation
 
+    cols = csv_columns(dim, n_joints)
     if not text.strip():
-        raise DataError(f"{source}: the file is empty (expected a header {','.join(COLUMNS)} and data rows)")
+        raise DataError(f"{source}: the file is empty (expected a header {','.join(cols)} and data rows)")
     lines = text.count("\n") + 1
     check_allocation(source, f"{lines:,} lines", lines, ROW_BYTES, "reading and calibrating its rows")
     reader = csv.reader(io.StringIO(text))
@@ -181,14 +241,9 @@ def parse_measured_csv(text: str, source: str = "<memory>") -> MeasuredData:
     except (StopIteration, csv.Error) as e:  # pragma: no cover - guarded by the empty check
         raise DataError(f"{source}: cannot read the CSV header: {e}") from None
     header = [h.strip() for h in header]
-    missing = [c for c in COLUMNS if c not in header]
-    if missing:
-        raise DataError(f"{source}: missing column(s) {', '.join(missing)} (header has {', '.join(header) or 'nothing'}; "
-                        f"expected {','.join(COLUMNS)})")
-    dup = [c for c in COLUMNS if header.count(c) > 1]
-    if dup:
-        raise DataError(f"{source}: column(s) {', '.join(dup)} appear more than once in the header")
-    idx = {c: header.index(c) for c in COLUMNS}
+    _check_header(header, cols, source, dim, n_joints)
+    idx = {c: header.index(c) for c in cols}
+    tcols = [c for c in cols if c.startswith("target_")] + ["gain"]
     runs: dict[str, list] = {}
     nrow = 0
     try:
@@ -208,7 +263,7 @@ def parse_measured_csv(text: str, source: str = "<memory>") -> MeasuredData:
             sv = _cell_float(st, "step", nrow, source)
             if sv != int(sv) or sv < 0:
                 raise DataError(f"{source}: row {nrow} column 'step': value {st!r} is not an integer >= 0")
-            vals = [_cell_float(row[idx[c]].strip(), c, nrow, source) for c in COLUMNS[2:]]
+            vals = [_cell_float(row[idx[c]].strip(), c, nrow, source) for c in cols[2:]]
             runs.setdefault(rid, []).append((int(sv), nrow, vals))
     except csv.Error as e:
         raise DataError(f"{source}: malformed CSV near row {nrow + 1}: {e}") from None
@@ -231,29 +286,32 @@ def parse_measured_csv(text: str, source: str = "<memory>") -> MeasuredData:
             raise DataError(f"{source}: run {rid!r}: steps must be 0, 1, 2, ... without gaps; step {expect} is missing "
                             f"(found {steps[expect]} at row {rows[expect][1]})")
         v = np.array([r[2] for r in rows])
-        for j, c in ((0, "target_y"), (1, "target_z"), (2, "gain")):
+        for j, c in enumerate(tcols):
             bad = np.flatnonzero(v[:, j] != v[0, j])
             if len(bad):
                 r = rows[bad[0]][1]
                 raise DataError(f"{source}: run {rid!r}: column {c!r} changes within the run (row {r}: "
                                 f"{float(v[bad[0], j])!r}, first row: {float(v[0, j])!r}); a run has one target and one gain")
-        if not v[0, 2] > 0:
-            raise DataError(f"{source}: run {rid!r} column 'gain': value {float(v[0, 2])!r} (row {rows[0][1]}) is not > 0")
+        if not v[0, dim] > 0:
+            raise DataError(f"{source}: run {rid!r} column 'gain': value {float(v[0, dim])!r} (row {rows[0][1]}) is not > 0")
         run_ids.append(rid)
         R.append(np.full(len(rows), ri))
         S.append(np.array(steps))
-        TG.append(v[:, 0:2]); K.append(v[:, 2]); Q.append(v[:, 3:5]); X.append(v[:, 5:7])
+        TG.append(v[:, 0:dim]); K.append(v[:, dim]); Q.append(v[:, dim + 1:dim + 1 + n_joints])
+        X.append(v[:, dim + 1 + n_joints:])
     return MeasuredData(run_ids, np.concatenate(R), np.concatenate(S), np.concatenate(TG), np.concatenate(K),
                         np.concatenate(Q), np.concatenate(X), source)
 
 
-def read_measured_csv(path: str | Path) -> MeasuredData:
-    """Read a measured-data CSV file (see :func:`parse_measured_csv`): a missing file, a directory,
-    a binary or non-UTF-8 file, or a file too large for this machine is one :class:`DataError`."""
+def read_measured_csv(path: str | Path, sc=None) -> MeasuredData:
+    """Read a measured-data CSV file (see :func:`parse_measured_csv`) with the columns of scenario
+    ``sc`` (default: planar): a missing file, a directory, a binary or non-UTF-8 file, or a file too
+    large for this machine is one :class:`DataError`."""
     from .inputs import read_text
 
     p = Path(path)
-    return parse_measured_csv(read_text(p, "data file"), str(p))
+    dim, n = data_shape(sc) if sc is not None else (2, 2)
+    return parse_measured_csv(read_text(p, "data file"), str(p), dim=dim, n_joints=n)
 
 
 def require_planar(sc, what: str) -> None:
@@ -563,7 +621,6 @@ def run_experiment(sc, seed: int = 0, *, plant=None, starts=None, n_starts: int 
     from .inputs import check_allocation
     from .simulation import simulate
 
-    require_planar(sc, "a bench run")
     if isinstance(max_steps, bool) or not isinstance(max_steps, (int, np.integer)) or max_steps < 1:
         raise ErrplanError(f"max_steps {max_steps!r}: expected an integer >= 1")
     if isinstance(dwell, bool) or not isinstance(dwell, (int, np.integer)) or dwell < 0:

@@ -71,8 +71,9 @@ RIDGE = 1e-9
 
 # ----------------------------------------------------------------------------- information
 def catalogue_model(sc) -> EffectModel:
-    """Every catalogue effect of the scenario's dimension, in one model (nothing fitted)."""
-    return EffectModel(catalogue(sc))
+    """Every catalogue effect of the scenario's dimension, in one model (nothing fitted; gravity sag
+    left out on a URDF without inertial data, its identically zero joints fixed)."""
+    return EffectModel(catalogue(sc, skip_without_gravity=True))
 
 
 def row_jacobian(sc, data: MeasuredData, model: EffectModel | None = None) -> np.ndarray:
@@ -86,8 +87,8 @@ def row_jacobian(sc, data: MeasuredData, model: EffectModel | None = None) -> np
     base = declared_plant(sc)
     u = data.commanded_directions(motion_model(sc))
     f = model._residual_fn(data.q, u, data.tip, base)
-    J = -model._jac(f, np.zeros(model.n_params))            # f = tracked - predicted
-    return J.reshape(data.rows, -1, model.n_params)
+    J = -model._jac(f, np.zeros(model.n_free))              # f = tracked - predicted
+    return J.reshape(data.rows, -1, model.n_free)
 
 
 def run_blocks(J: np.ndarray, data: MeasuredData) -> np.ndarray:
@@ -202,17 +203,15 @@ def bench_info(sc, data: MeasuredData, model: EffectModel | None = None) -> Benc
     """The identifiability summary of a bench (measured or predicted rows)."""
     model = catalogue_model(sc) if model is None else model
     J = row_jacobian(sc, data, model)
-    A = J.reshape(-1, model.n_params)
+    A = J.reshape(-1, model.n_free)
     return _info(sc, model, A.T @ A, data.rows, data.runs)
 
 
 def _info(sc, model: EffectModel, M: np.ndarray, rows: int, runs: int) -> BenchInfo:
-    effects, i = {}, 0
-    for e in model.effects:
-        effects[e.name] = list(range(i, i + e.n_params))
-        i += e.n_params
+    """The :class:`BenchInfo` of information ``M`` over the model's fitted (free) parameters."""
     sigma = float(sc.sensors.tracker_sigma) or 1e-4
-    return BenchInfo(M, rows, runs, model.param_labels, effects, model.scales, sigma)
+    effects = {k: v for k, v in model.free_index().items() if v}
+    return BenchInfo(M, rows, runs, model.free_labels, effects, model.scales[model.free], sigma)
 
 
 # ----------------------------------------------------------------------------- criteria, selection
@@ -617,8 +616,8 @@ def design_experiment(sc, n_runs: int | None = None, *, max_rows: int | None = N
     prog(0.4, "candidate rows")
     blocks = run_blocks(row_jacobian(sc, data, model), data)
     rows = data.lengths
-    if n_runs is not None and n_runs * int(rows.max()) * sc.dim < model.n_params:
-        raise ErrplanError(f"--design {n_runs}: too few runs for the catalogue's {model.n_params} parameters")
+    if n_runs is not None and n_runs * int(rows.max()) * sc.dim < model.n_free:
+        raise ErrplanError(f"--design {n_runs}: too few runs for the catalogue's {model.n_free} parameters")
     pairs = tuple((tuple(info0.effects[a]), tuple(info0.effects[b])) for a, b in itertools.combinations(info0.effects, 2))
     objective = Objective(criterion, pairs, separate)
     chosen = select_runs(blocks, rows, n_runs, max_rows=max_rows, objective=objective)

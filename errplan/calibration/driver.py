@@ -2,12 +2,12 @@
 from __future__ import annotations
 
 import itertools
-from typing import Callable
+from typing import Callable, Sequence
 
 import numpy as np
 
-from ..effects import CATALOGUE, predict_tracked
-from ..errors import DataError
+from ..effects import EFFECTS, catalogue, predict_tracked
+from ..errors import DataError, ErrplanError
 from ..experiment import MeasuredData
 from .fit import Candidate, _folds, fit_candidate
 from .noise import noise_floor, structure_test
@@ -21,12 +21,28 @@ DEFAULT_FOLDS = 5
 
 # ----------------------------------------------------------------------------- driver
 def calibrate(sc, data: MeasuredData, *, validate: MeasuredData | None = None, seed: int = 0,
-              folds: int = DEFAULT_FOLDS, progress: Callable[[float, str], None] | None = None) -> CalibrationReport:
-    """Find which catalogue effects (if any) the data need on top of the scenario's declared model."""
-    from ..experiment import bench_controller, require_planar
+              folds: int = DEFAULT_FOLDS, progress: Callable[[float, str], None] | None = None,
+              effects: Sequence[str] | None = None) -> CalibrationReport:
+    """Find which catalogue effects (if any) the data need on top of the scenario's declared model.
 
-    require_planar(sc, "calibration")
+    ``effects``: the candidate effects (default: the whole catalogue; on a URDF without inertial
+    data, the catalogue without gravity sag, said in the report; asking for it there is one error).
+    """
+    from ..experiment import bench_controller, data_shape
+
     prog = progress or (lambda f, m="": None)
+    dim, n_joints = data_shape(sc)
+    for d_ in (data,) + ((validate,) if validate is not None else ()):
+        if (d_.dim, d_.n_joints) != (dim, n_joints):
+            raise DataError(f"{d_.source}: data with {d_.dim}-D tips and {d_.n_joints} joints for a scenario with "
+                            f"{dim}-D tips and {n_joints} joints")
+    if effects is not None:
+        bad = [e for e in effects if e not in EFFECTS]
+        if bad or not effects:
+            raise ErrplanError(f"--effects {','.join(effects)}: expected effects of docs/physics.md: {', '.join(EFFECTS)}")
+    cat = catalogue(sc, effects, skip_without_gravity=effects is None)
+    skipped = [] if effects is not None or any(e.name == "gravity_sag" for e in cat) else [
+        "gravity_sag (the URDF has no inertial data, so no generalized gravity)"]
     base = declared_plant(sc)
     check_against_model(data, base)
     if validate is not None:
@@ -42,16 +58,19 @@ def calibrate(sc, data: MeasuredData, *, validate: MeasuredData | None = None, s
     nf = noise_floor(r0, x0, u)
     st0 = structure_test(r0, u, nf)
     prog(0.05, "noise floor")
+    ident, ident_text = _identifiability(sc, data, cat)
     k = min(folds, data.runs)
     fold_of_run = _folds(data.runs, k, seed) if k >= 2 else None
-    names = [c.name for c in CATALOGUE]
+    by_name = {e.name: e for e in cat}
+    names = list(by_name)
     combos: list[tuple[str, ...]] = [()] + [(a,) for a in names] + list(itertools.combinations(names, 2))
-    n_params = {c.name: len(c.params) for c in CATALOGUE}
-    fits = lambda key: sum(n_params[e] for e in key) <= 2 * data.rows - 2  # noqa: E731 (some residual dof left)
+    n_params = {e.name: sum(not f for f in e.fixed) for e in cat}
+    fits = lambda key: sum(n_params[e] for e in key) <= dim * data.rows - 2  # noqa: E731 (some residual dof left)
     combos = [c for c in combos if fits(c)]
     cands: dict[tuple[str, ...], Candidate] = {}
+    fit = lambda key: fit_candidate([by_name[e] for e in key], data, u, base, fold_of_run)  # noqa: E731
     for i, combo in enumerate(combos):
-        cands[combo] = fit_candidate(combo, data, u, base, fold_of_run)
+        cands[combo] = fit(combo)
         prog(0.05 + 0.75 * (i + 1) / len(combos), "+".join(combo) or "none")
     # triples: the best pair plus each other effect, when that pair beats its singles
     pairs = [c for key, c in cands.items() if len(key) == 2 and c.selectable]
@@ -63,7 +82,7 @@ def calibrate(sc, data: MeasuredData, *, validate: MeasuredData | None = None, s
                     continue
                 key = tuple(x for x in names if x in bp.effects or x == e)
                 if fits(key):
-                    cands[key] = fit_candidate(key, data, u, base, fold_of_run)
+                    cands[key] = fit(key)
     prog(0.85, "selection")
     chosen = select(cands)
     chosen.selected = True
@@ -93,6 +112,8 @@ def calibrate(sc, data: MeasuredData, *, validate: MeasuredData | None = None, s
         val_err = errors(validate, pose_residual(validate, base, uv), pose_residual(validate, after, uv))
     pred0, _ = replay(data, base, ctrl, xmodel)
     pred1, _ = replay(data, after, ctrl, xmodel)
+    fixed = {f"{e.name}.{p_}": e.why_fixed or "identically zero sensitivity on this robot"
+             for e in cat for p_, fx in zip(e.params, e.fixed) if fx}
     prog(1.0, "done")
     cand_list = sorted(cands.values(), key=lambda c: (len(c.effects), c.bic))
     return CalibrationReport(
@@ -100,4 +121,30 @@ def calibrate(sc, data: MeasuredData, *, validate: MeasuredData | None = None, s
         noise=nf, structure=st1, structure_before=st0, candidates=cand_list, fit_errors=fit_err,
         validation_errors=val_err, declared_effects={k2: dict(v) for k2, v in sc.effects.items()}, seed=seed, folds=k,
         points=x0, residual_before=r0, residual_after=r1, tracked=data.tip,
-        replay_before=pred0, replay_after=pred1, data=data)
+        replay_before=pred0, replay_after=pred1, data=data, fixed=fixed, skipped=skipped,
+        identifiability=ident_text, bench=ident)
+
+
+def _identifiability(sc, data: MeasuredData, cat) -> tuple[dict, str]:
+    """What the rows can tell apart: the catalogue's information on them (:mod:`.design`), the
+    effect pairs whose parameters correlate beyond :data:`.design.CONFUSED`, and a sentence."""
+    from ..effects import EffectModel
+    from .design import CONFUSED, bench_info
+
+    try:
+        info = bench_info(sc, data, EffectModel(cat))
+    except (ErrplanError, np.linalg.LinAlgError):  # pragma: no cover - a report line, never a failure
+        return {}, ""
+    pairs = info.pair_correlations()
+    conf = {f"{a}+{b}": v for (a, b), v in sorted(pairs.items(), key=lambda kv: -kv[1]) if v > CONFUSED}
+    c, la, lb = info.largest_correlation()
+    js = {"condition_number": info.condition() if np.isfinite(info.condition()) else None,
+          "largest_correlation": {"value": c, "between": [la, lb]}, "pair_correlations":
+          {f"{a}+{b}": v for (a, b), v in pairs.items()}, "confused_pairs": conf, "threshold": CONFUSED}
+    if not conf:
+        return js, (f"identifiability of the catalogue on these rows: every pair of effects separable (largest cross "
+                    f"correlation {max(pairs.values()):.3f} < {CONFUSED:g}), condition number {info.condition():.3g}")
+    listed = ", ".join(f"{k} {v:.3f}" for k, v in conf.items())
+    return js, (f"identifiability of the catalogue on these rows: {listed} correlate beyond {CONFUSED:g} "
+                f"(condition number {info.condition():.3g}); `errplan experiment --design N` chooses runs that "
+                f"separate them")

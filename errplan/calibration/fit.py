@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 
@@ -67,12 +66,15 @@ def _folds(runs: int, k: int, seed: int) -> np.ndarray:
     return fold
 
 
-def fit_candidate(effects: Sequence[str], data: MeasuredData, u: np.ndarray, base, fold_of_run: np.ndarray | None) -> Candidate:
-    from ..effects import make_effect
+def fit_candidate(effects, data: MeasuredData, u: np.ndarray, base, fold_of_run: np.ndarray | None) -> Candidate:
+    """Fit one combination (effect names, or :class:`errplan.effects.Effect` instances for the
+    scenario's dimension) on all rows, its held-out error on folds of whole runs, and its BIC."""
+    from ..effects import Effect, make_effect
 
-    m = EffectModel([make_effect(e) for e in effects]).fit(data.q, u, data.tip, base)
-    n = data.rows
-    bic = _bic(m.rss_, 2 * n, m.n_params)
+    m = EffectModel([e if isinstance(e, Effect) else make_effect(e) for e in effects]).fit(data.q, u, data.tip, base)
+    n, d = data.rows, data.dim
+    p = m.n_free
+    bic = _bic(m.rss_, d * n, p)
     ho = None
     if fold_of_run is not None:
         fold = fold_of_run[data.run]
@@ -80,18 +82,18 @@ def fit_candidate(effects: Sequence[str], data: MeasuredData, u: np.ndarray, bas
         for k in range(int(fold_of_run.max()) + 1):
             te = fold == k
             tr = ~te
-            if 2 * int(tr.sum()) < m.n_params + 2:
+            if d * int(tr.sum()) < p + 2:
                 sse = float("nan")  # too few training rows for this candidate: no held-out error
                 break
-            if m.n_params:
+            if p:
                 mk = EffectModel(m.effects).fit(data.q[tr], u[tr], data.tip[tr], base, x0=m.values_)
                 vals = mk.values_
             else:
-                vals = np.zeros(0)
+                vals = np.zeros(m.n_params)
             with np.errstate(invalid="ignore", divide="ignore"):
                 r = data.tip[te] - m.predict(base, data.q[te], u[te], vals)
             r = np.where(np.isfinite(r), r, 1.0)
             sse += float(np.sum(r * r))
-        ho = math.sqrt(sse / (2 * n)) if math.isfinite(sse) else None
+        ho = math.sqrt(sse / (d * n)) if math.isfinite(sse) else None
     note = "" if m.identifiable_ else f"not identifiable: {m.why_}"
-    return Candidate(m, math.sqrt(m.rss_ / (2 * n)), bic, ho, bool(m.identifiable_), note)
+    return Candidate(m, math.sqrt(m.rss_ / (d * n)), bic, ho, bool(m.identifiable_), note)

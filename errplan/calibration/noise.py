@@ -2,6 +2,7 @@
 :mod:`errplan.calibration`): local polynomials on k-means clusters of rows."""
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass, field
 
@@ -14,18 +15,21 @@ STRUCTURE_RATIO = 1.0       # structured RMS >= this x noise floor -> not explai
 
 
 # ----------------------------------------------------------------------------- noise floor
+def _exponents(dim: int, degree: int) -> list[tuple[int, ...]]:
+    return [e for e in itertools.product(range(degree + 1), repeat=dim) if sum(e) <= degree]
+
+
 def _legendre_total(x: np.ndarray, degree: int) -> np.ndarray:
-    """Total-degree Legendre features of 2-D points in [-1, 1]^2 (n, (d+1)(d+2)/2)."""
+    """Total-degree Legendre features of d-dimensional points in [-1, 1]^d (n, C(degree + d, d))."""
     from numpy.polynomial import legendre
 
-    V0 = legendre.legvander(x[:, 0], degree)
-    V1 = legendre.legvander(x[:, 1], degree)
-    cols = [V0[:, i] * V1[:, j] for i in range(degree + 1) for j in range(degree + 1 - i)]
+    V = [legendre.legvander(x[:, i], degree) for i in range(x.shape[1])]
+    cols = [np.prod([V[i][:, k] for i, k in enumerate(e)], axis=0) for e in _exponents(x.shape[1], degree)]
     return np.stack(cols, axis=-1)
 
 
 def _nearest(x: np.ndarray, c: np.ndarray, block: int = 2**20) -> np.ndarray:
-    """Index of the nearest centre (k, 2) for each point (n, 2), in blocks of rows so that the
+    """Index of the nearest centre (k, d) for each point (n, d), in blocks of rows so that the
     distance table never exceeds ``block`` entries (the number of clusters grows with the rows)."""
     out = np.empty(len(x), int)
     step = max(1, block // max(len(c), 1))
@@ -36,7 +40,7 @@ def _nearest(x: np.ndarray, c: np.ndarray, block: int = 2**20) -> np.ndarray:
 
 
 def kmeans_labels(x: np.ndarray, clusters: int, iters: int = 30) -> np.ndarray:
-    """Deterministic k-means of points (n, 2): farthest-point initialisation from the point
+    """Deterministic k-means of points (n, d): farthest-point initialisation from the point
     nearest the centroid, then Lloyd iterations. Returns labels (n,) in 0..clusters-1."""
     n = len(x)
     clusters = max(1, min(clusters, n))
@@ -65,7 +69,7 @@ def kmeans_labels(x: np.ndarray, clusters: int, iters: int = 30) -> np.ndarray:
 class LocalBasis:
     """The flexible smooth model: on each cluster of rows (``labels``, k-means of the model tip
     positions) a Legendre polynomial of ``degree`` in the local tip coordinates times
-    ``[1, u_y, u_z]`` (lower degree where a cluster has too few rows)."""
+    ``[1, u_1, .., u_d]`` (lower degree where a cluster has too few rows)."""
 
     labels: np.ndarray
     degree: int = 2
@@ -74,16 +78,17 @@ class LocalBasis:
         idx = np.flatnonzero(self.labels == k)
         nc = len(idx)
         d = self.degree
-        while d > 0 and 3 * (d + 1) * (d + 2) // 2 > nc / 2.5:
+        dim = x.shape[1]
+        while d > 0 and (1 + u.shape[1]) * len(_exponents(dim, d)) > nc / 2.5:
             d -= 1
         xx = x[idx]
         lo, hi = xx.min(axis=0), xx.max(axis=0)
         hi = np.where(hi > lo, hi, lo + 1e-3)
         P = _legendre_total(2 * (xx - lo) / (hi - lo) - 1, d)
-        return idx, np.concatenate([P, P * u[idx, :1], P * u[idx, 1:2]], axis=1)
+        return idx, np.concatenate([P] + [P * u[idx, i:i + 1] for i in range(u.shape[1])], axis=1)
 
     def fit(self, r: np.ndarray, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, float, int]:
-        """Fit residuals (n, 2): fitted values (n, 2), RSS (m^2), total rank per coordinate."""
+        """Fit residuals (n, d): fitted values (n, d), RSS (m^2), total rank per coordinate."""
         fit = np.zeros_like(r)
         rank = 0
         for k in range(int(self.labels.max()) + 1):
@@ -97,8 +102,10 @@ class LocalBasis:
         return fit, float(np.sum(res * res)), rank
 
 
-#: flexible-model settings tried for the noise floor: (rows per cluster, polynomial degree)
+#: flexible-model settings tried for the noise floor: (rows per cluster, polynomial degree); in 3-D
+#: a cubic times [1, u] has 80 terms per coordinate, so the clusters are larger
 FLEX_CONFIGS = ((60, 2), (90, 2), (120, 2), (90, 3), (120, 3), (180, 3), (240, 3))
+FLEX_CONFIGS_3D = ((120, 2), (180, 2), (240, 2), (240, 3), (360, 3), (480, 3))
 
 
 @dataclass
@@ -117,22 +124,24 @@ class NoiseFloor:
     def to_json(self) -> dict:
         return {"sigma": self.sigma, "clusters": self.clusters, "degree": self.degree,
                 "parameters_per_coordinate": self.features, "smooth_rms": self.smooth_rms,
-                "estimator": "dof-corrected RMS, sqrt(RSS / 2(n - m)), left by local polynomials in the tip position "
-                             "x [1, u_y, u_z] on k-means clusters of rows (cluster size and degree by AIC)"}
+                "estimator": "dof-corrected RMS, sqrt(RSS / d(n - m)), left by local polynomials in the tip position "
+                             "x [1, u] on k-means clusters of rows (cluster size and degree by AIC)"}
 
 
-def noise_floor(r: np.ndarray, x: np.ndarray, u: np.ndarray, configs=FLEX_CONFIGS) -> NoiseFloor:
-    """Estimate the measurement noise (per coordinate, m) from a pose residual ``r`` (n, 2).
+def noise_floor(r: np.ndarray, x: np.ndarray, u: np.ndarray, configs=None) -> NoiseFloor:
+    """Estimate the measurement noise (per coordinate, m) from a pose residual ``r`` (n, d).
 
-    ``x`` (n, 2) are the model tip positions (where the rows are), ``u`` (n, 2) friction's
+    ``x`` (n, d) are the model tip positions (where the rows are), ``u`` (n, d) friction's
     directions. Every catalogue effect and the usual unmodelled ones are smooth in the
     configuration (friction linear in ``u``), so a flexible local model — polynomials in ``x``
-    times ``[1, u_y, u_z]`` on compact clusters of rows — follows them, and what is left is the
-    noise: ``sigma = sqrt(RSS / (2 (n - m)))``, m the parameters per coordinate. The cluster size
-    and degree come from ``configs`` by AIC (``N ln(RSS/N) + 2 (2m)``, ``N = 2n``).
+    times ``[1, u_1, .., u_d]`` on compact clusters of rows — follows them, and what is left is the
+    noise: ``sigma = sqrt(RSS / (d (n - m)))``, m the parameters per coordinate. The cluster size
+    and degree come from ``configs`` (default :data:`FLEX_CONFIGS`, :data:`FLEX_CONFIGS_3D`) by AIC
+    (``N ln(RSS/N) + 2 (d m)``, ``N = d n``).
     """
-    n = len(r)
-    N = 2 * n
+    n, dim = r.shape
+    N = dim * n
+    configs = (FLEX_CONFIGS if dim == 2 else FLEX_CONFIGS_3D) if configs is None else configs
     best = None
     for per, deg in configs:
         labels = kmeans_labels(x, max(1, n // per))
@@ -140,14 +149,14 @@ def noise_floor(r: np.ndarray, x: np.ndarray, u: np.ndarray, configs=FLEX_CONFIG
         fit, rss, rank = basis.fit(r, x, u)
         if n - rank < max(2, n // 4):
             continue
-        aic = N * math.log(max(rss, 1e-300) / N) + 4 * rank
+        aic = N * math.log(max(rss, 1e-300) / N) + 2 * dim * rank
         if best is None or aic < best[0]:
             best = (aic, basis, fit, rss, rank, deg)
     if best is None:
         s = rms(r - r.mean(axis=0))
         return NoiseFloor(s, 1, 0, 1, 0.0, LocalBasis(np.zeros(n, int), 0), x)
     _, basis, fit, rss, rank, deg = best
-    return NoiseFloor(math.sqrt(rss / (2 * (n - rank))), int(basis.labels.max()) + 1, deg, rank, rms(fit), basis, x)
+    return NoiseFloor(math.sqrt(rss / (dim * (n - rank))), int(basis.labels.max()) + 1, deg, rank, rms(fit), basis, x)
 
 
 @dataclass
@@ -171,14 +180,14 @@ def structure_test(r: np.ndarray, u: np.ndarray, nf: NoiseFloor) -> Structure:
     smooth part beyond what fitting pure noise would absorb."""
     from scipy.stats import f as fdist
 
-    n = len(r)
+    n, dim = r.shape
     rss0 = float(np.sum(r * r))
     ratio = rms(r) / max(nf.sigma, 1e-300)
     _, rss1, rank = nf.basis.fit(r, nf.x, u)
-    df1, df2 = 2 * rank, 2 * (n - rank)
+    df1, df2 = dim * rank, dim * (n - rank)
     if df1 <= 0 or df2 <= 0:
         return Structure(rms(r), 0.0, 0.0, 1.0, ratio, False)
     fstat = ((rss0 - rss1) / df1) / max(rss1 / df2, 1e-300)
     p = float(fdist.sf(fstat, df1, df2))
-    s = math.sqrt(max(0.0, (rss0 - rss1) - df1 * nf.sigma ** 2) / (2 * n))
+    s = math.sqrt(max(0.0, (rss0 - rss1) - df1 * nf.sigma ** 2) / (dim * n))
     return Structure(rms(r), s, float(fstat), p, ratio, bool(p < STRUCTURE_P and s >= STRUCTURE_RATIO * nf.sigma))

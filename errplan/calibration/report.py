@@ -68,6 +68,13 @@ class CalibrationReport:
     replay_before: np.ndarray = field(repr=False, default=None)
     replay_after: np.ndarray = field(repr=False, default=None)
     data: MeasuredData | None = field(repr=False, default=None)
+    #: parameters held at 0 because nothing can depend on them on this robot (label -> why)
+    fixed: dict = field(default_factory=dict)
+    #: catalogue effects not tried, with the reason
+    skipped: list = field(default_factory=list)
+    #: a sentence on what these rows cannot tell apart (effect pairs confused by the bench), and the numbers
+    identifiability: str = ""
+    bench: dict = field(default_factory=dict)
 
     @property
     def errors(self) -> Errors:
@@ -86,19 +93,24 @@ class CalibrationReport:
         out = {}
         for e, ps in self.fitted.items():
             dec = self.declared_effects.get(e, {})
-            out[e] = {p: dec.get(p, 0.0) + v for p, v in ps.items()}
+            out[e] = {p: (None if f"{e}.{p}" in self.fixed else dec.get(p, 0.0) + v) for p, v in ps.items()}
         return out
 
     @property
     def uncertainty(self) -> dict[str, dict[str, float]]:
         return _finite_or_none(self.model.uncertainties())
 
+    @property
+    def not_identifiable(self) -> dict[str, str]:
+        """The selected effects' parameters reported as not identifiable (label -> why)."""
+        return {k: v for k, v in self.fixed.items() if k.split(".")[0] in self.model.names}
+
     def effects_table(self) -> dict[str, dict[str, float]]:
         """Effects for the corrected scenario: every declared effect, with the selected ones
         replaced by their values on the bench (declared + fitted)."""
         out = {k: dict(v) for k, v in self.declared_effects.items()}
         for e, ps in self.parameters.items():
-            out[e] = dict(ps)
+            out[e] = {p: v for p, v in ps.items() if v is not None}
         return out
 
     def to_json(self) -> dict:
@@ -126,7 +138,11 @@ class CalibrationReport:
                                            f"(F test p < {STRUCTURE_P:g}) and its RMS >= {STRUCTURE_RATIO:g} x noise floor"},
             "declared_effects": self.declared_effects,
             "effects": self.effects_table(),
-            "rms_convention": "per coordinate: sqrt(mean over rows and over y, z of residual^2), m",
+            "not_identifiable": self.not_identifiable,
+            "identifiability": self.bench,
+            "catalogue_fixed": self.fixed,
+            "not_tried": list(self.skipped),
+            "rms_convention": "per coordinate: sqrt(mean over rows and over the coordinates of residual^2), m",
             "selection": {"rule": "lowest BIC among identifiable candidates whose held-out pose error (folds of runs) "
                                   "beats every sub-model with one effect fewer",
                           "folds": self.folds, "seed": self.seed},
@@ -145,6 +161,10 @@ class CalibrationReport:
                      f"polynomials on {self.noise.clusters} cluster(s) of rows)")
         lines.append(f"pose residual of the declared model: RMS {self.structure_before.rms * mm:.4f} mm "
                      f"({self.structure_before.ratio:.2f} x noise floor)")
+        for why in self.skipped:
+            lines.append(f"not tried: {why}")
+        if self.identifiability:
+            lines.append(self.identifiability)
         lines.append("")
         rows = []
         order = sorted(self.candidates, key=lambda c: c.bic)
@@ -152,7 +172,7 @@ class CalibrationReport:
         shown = order[:TEXT_CANDIDATES]
         shown += [c for c in order[TEXT_CANDIDATES:] if not c.effects or not c.selectable]
         for c in shown:
-            rows.append([("* " if c.selected else "  ") + c.label, c.model.n_params, c.rms * mm,
+            rows.append([("* " if c.selected else "  ") + c.label, c.model.n_free, c.rms * mm,
                          c.heldout_rms * mm if c.heldout_rms is not None else float("nan"), c.bic - bic_none,
                          c.model.condition_, "yes" if c.selectable else "no", c.note])
         more = len(order) - len(shown)
@@ -162,13 +182,15 @@ class CalibrationReport:
         lines.append("")
         if self.selected:
             prow = []
+            units_of = {ef.name: dict(zip(ef.params, ef.units)) for ef in self.model.effects}
             for e, ps in self.parameters.items():
-                from ..effects import EFFECTS
-
-                units = dict(zip(EFFECTS[e].params, EFFECTS[e].units))
+                units = units_of[e]
                 for p, v in ps.items():
+                    f, unit = display_unit(units[p])
+                    if v is None:
+                        prow.append([e, p, "not identifiable", unit, self.fixed.get(f"{e}.{p}", "")])
+                        continue
                     s = self.uncertainty[e][p]
-                    f, unit = (mm, "mm") if units[p] == "m" else ((mm, "mrad") if units[p] == "rad" else (1.0, units[p]))
                     sig = f"{s * f:.4f}" if s is not None else "?"
                     dec = self.declared_effects.get(e)
                     note = f"declared {dec.get(p, 0.0) * f:+.4f} + fitted {self.fitted[e][p] * f:+.4f}" if dec else ""
@@ -196,3 +218,9 @@ class CalibrationReport:
                          "(see the residual map in --record);\n  the selected combination is only the catalogue's best "
                          "approximation, its parameters absorb the unmodelled effect")
         return "\n".join(lines)
+
+
+def display_unit(unit: str) -> tuple[float, str]:
+    """Factor and unit a parameter is shown in: metres as mm, radians as mrad, rad/(N m) as
+    mrad/(N m), anything else as it is."""
+    return {"m": (1e3, "mm"), "rad": (1e3, "mrad"), "rad/(N m)": (1e3, "mrad/(N m)")}.get(unit, (1.0, unit))

@@ -50,7 +50,7 @@ def check_against_model(data: MeasuredData, plant, what: str = "the declared mod
         raise DataError(f"{data.source}: row {i + 1} (run {data.run_ids[data.run[i]]!r}, step {data.step[i]}): tracked tip "
                         f"{_pt(data.tip[i])} is {_m(off[i])} from {what}'s tip {_pt(model_tip[i])} at its encoder "
                         f"angles, more than the shaft length {L:g} m (is the data from this scenario?)")
-    reach = 2.0 * (L + float(plant.arm.l1) + float(plant.arm.l2))  # a bound on the tip workspace's diameter
+    reach = 2.0 * (L + arm_reach(plant.arm))  # a bound on the tip workspace's diameter
     with np.errstate(all="ignore"):
         far = np.linalg.norm(data.target - model_tip, axis=-1)
     bad = np.flatnonzero(~(far < reach))
@@ -59,6 +59,15 @@ def check_against_model(data: MeasuredData, plant, what: str = "the declared mod
         raise DataError(f"{data.source}: row {i + 1} (run {data.run_ids[data.run[i]]!r}): target {_pt(data.target[i])} is "
                         f"{_m(far[i])} from the tip, farther than the robot can reach ({reach:g} m; is the data from "
                         f"this scenario?)")
+
+
+def arm_reach(arm) -> float:
+    """A bound on the distance from the arm's base to its wrist (m): l1 + l2 for P1's planar arm,
+    the largest wrist distance from the wrists' centre over a joint grid for a URDF arm, times 2."""
+    if hasattr(arm, "l1"):
+        return float(arm.l1) + float(arm.l2)
+    w = arm.sample_wrists(9)
+    return 2.0 * float(np.max(np.linalg.norm(w - w.mean(axis=0), axis=-1))) if len(w) else 0.0
 
 
 def _pt(x) -> str:
@@ -70,7 +79,7 @@ def _m(d: float) -> str:
 
 
 def rms(r: np.ndarray) -> float:
-    """Per-coordinate RMS of residual vectors (n, 2)."""
+    """Per-coordinate RMS of residual vectors (n, d)."""
     r = np.asarray(r, float)
     return float(np.sqrt(np.mean(r * r))) if r.size else float("nan")
 
@@ -85,7 +94,7 @@ def motion_model(sc):
 
 
 def pose_residual(data: MeasuredData, plant, u: np.ndarray | None = None) -> np.ndarray:
-    """Tracked tip minus the model's tracked tip at the encoder angles (n, 2), m. ``u`` (friction's
+    """Tracked tip minus the model's tracked tip at the encoder angles (n, d), m. ``u`` (friction's
     direction per row) defaults to :meth:`MeasuredData.commanded_directions` under
     ``plant.declared()``."""
     u = data.commanded_directions(plant.declared()) if u is None else u
@@ -93,7 +102,7 @@ def pose_residual(data: MeasuredData, plant, u: np.ndarray | None = None) -> np.
 
 
 def _controller_jacobian(ctrl, plant, q: np.ndarray) -> np.ndarray:
-    """The controller's ``Jhat`` at encoder angles ``q`` (r, 2); the flexion controller reads the
+    """The controller's ``Jhat`` at encoder angles ``q`` (r, N); the flexion controller reads the
     model's end poses there (noise-free)."""
     if ctrl.jacobian == "rigid":
         return ctrl.J_hat(q)
@@ -107,10 +116,10 @@ def replay(data: MeasuredData, plant, ctrl, model=None) -> tuple[np.ndarray, np.
     Noise-free and quasi-static, exactly the loop of :func:`errplan.simulation.simulate`, batched
     over runs; friction's direction is the motion each command produces under ``model`` (default
     ``plant.declared()``; :func:`motion_model`). Returns the predicted tracked tip for every row
-    (n, 2) and, per run, whether the replay stayed in the workspace for the whole measured length
+    (n, d) and, per run, whether the replay stayed in the workspace for the whole measured length
     (runs,). A replay that leaves the workspace holds its last state.
     """
-    from ..metrics import inv2
+    from ..experiment import _inv_batch
 
     model = plant.declared() if model is None else model
     first = data.first
@@ -124,11 +133,12 @@ def replay(data: MeasuredData, plant, ctrl, model=None) -> tuple[np.ndarray, np.
     q = data.q[first].copy()
     target = data.target[first]
     gain = data.gain[first]
-    u = np.zeros((R, 2))
+    d = data.dim
+    u = np.zeros((R, d))
     alive = np.ones(R, bool)
     pred = np.zeros_like(data.tip)
     off = np.asarray(plant.tracker_offset, float)
-    tracked = np.zeros((R, 2))
+    tracked = np.zeros((R, d))
     for t in range(T):
         with np.errstate(invalid="ignore", divide="ignore"):
             tr = plant.tip(q, u) + off
@@ -140,7 +150,7 @@ def replay(data: MeasuredData, plant, ctrl, model=None) -> tuple[np.ndarray, np.
         has = lengths > t
         err = target - tracked
         with np.errstate(invalid="ignore", divide="ignore"):
-            Jinv, singular = inv2(_controller_jacobian(ctrl, plant, q))
+            Jinv, singular = _inv_batch(_controller_jacobian(ctrl, plant, q))
             dq = gain[:, None] * np.einsum("rij,rj->ri", np.nan_to_num(Jinv), err)
         q_new = q + dq
         with np.errstate(invalid="ignore", divide="ignore"):

@@ -116,6 +116,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--export-scenario", default=None, help="write the scenario with the found effects under [effects]")
     s.add_argument("--seed", type=int, default=0, help="seed for the held-out split")
     s.add_argument("--folds", type=int, default=5, help="held-out folds of runs (default: %(default)s)")
+    s.add_argument("--effects", default=None,
+                   help="comma-separated candidate effects (default: the whole catalogue of docs/physics.md)")
 
     s = sub.add_parser("view", help="open a recording in the rerun viewer")
     s.add_argument("recording")

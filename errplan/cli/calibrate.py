@@ -26,11 +26,13 @@ def run(args) -> int:
     folds = getattr(args, "folds", 5)
     if folds < 2:
         raise ErrplanError(f"--folds {folds}: expected an integer >= 2")
-    data = read_measured_csv(args.data)
-    val = read_measured_csv(args.validate) if args.validate else None
+    data = read_measured_csv(args.data, sc)
+    val = read_measured_csv(args.validate, sc) if args.validate else None
     prog = Progress("calibrate", quiet=args.quiet)
     prog.quiet = prog.quiet or not prog.tty  # progress only on a terminal: an error stays the one line on stderr
-    report = calibrate(sc, data, validate=val, seed=args.seed, folds=folds, progress=prog)
+    effects = getattr(args, "effects", None)
+    effects = [e.strip() for e in effects.split(",")] if effects is not None else None
+    report = calibrate(sc, data, validate=val, seed=args.seed, folds=folds, progress=prog, effects=effects)
     prog.done()
     toml_text = corrected_scenario_toml(sc, report) if args.export_scenario else None
     js = report.to_json()
