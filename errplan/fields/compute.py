@@ -151,9 +151,12 @@ def _numpy_tile(ev, X: np.ndarray, k: float, samples, refine: int, want_rho: boo
     rfull, kfull = np.full(n, np.nan), np.full(n, np.nan)
     if want_rho:
         v = wc["valid"]
-        mu = wc["mu"][v].reshape(int(v.sum()), -1)
-        nu = wc["nu"][v].reshape(int(v.sum()), -1)
-        rs, ks = minimize_gain(mu, nu)
+        if wc["nu"] is None:  # motion maps: (n, m, c, d, d)
+            rs, ks = minimize_gain(wc["mu"][v], None)
+        else:
+            mu = wc["mu"][v].reshape(int(v.sum()), -1)
+            nu = wc["nu"][v].reshape(int(v.sum()), -1)
+            rs, ks = minimize_gain(mu, nu)
         # Certify at k*: the refined worst case over the continuous error set at that gain.
         rs_ref = _refined_at_gain(ev, X[v], ks, samples=samples, refine=refine)
         rs_ref = np.where(ks > 0, np.maximum(rs, rs_ref), 1.0)
@@ -297,14 +300,11 @@ def compute_fields(sc, resolution: float | None = None, rho_star: bool = False, 
     compiled = sc.controller.jacobian == "rigid" and not jac_effects
     if compiled:
         job = FieldJob(P[cand], k, want_phi, want_rho, refine, samples, _kernel_args(sc, es, samples))
-    elif sc.dim == 2:
-        from .evaluator import Evaluator
-
-        job = FieldJob(P[cand], k, want_phi, want_rho, refine, samples, None, Evaluator.from_scenario(sc))
     else:
-        raise ErrplanError(f"{sc.source}: [effects] {', '.join(jac_effects)}: fields of a spatial truth whose "
-                           "effects move the arm are not supported yet (port_offset, tracker_offset and "
-                           "port_friction are)")
+        from .evaluator import Evaluator, SpatialEffectsEvaluator
+
+        ev = Evaluator.from_scenario(sc) if sc.dim == 2 else SpatialEffectsEvaluator.from_scenario(sc)
+        job = FieldJob(P[cand], k, want_phi, want_rho, refine, samples, None, ev)
     spans = [(i, min(i + tile_points, len(cand))) for i in range(0, len(cand), tile_points)]
 
     def tick(done, total):

@@ -9,7 +9,7 @@ import numpy as np
 
 from ..kinematics.arm import Arm
 from ..kinematics.shaft import (estimate_from_ends, flexed_end_angles, flexed_jacobian, flexed_wrist,
-                                lever_jacobian, lever_parts, lever_wrist)
+                                flexed_wrist_plane, lever_jacobian, lever_parts, lever_wrist)
 from ..kinematics.truth import Plant, effect_kwargs
 from ..metrics import conformal_parts, compose_parts, inv2, inverse_parts
 from .errorset import ErrorSet
@@ -155,12 +155,124 @@ JACOBIAN_EFFECTS = ("port_offset", "joint_offset", "gravity_sag", "world_load")
 
 
 def _fd_jacobian(f, q: np.ndarray, h: float = 1e-6) -> np.ndarray:
-    """Central-difference Jacobian (..., 2, 2) of ``f: (..., 2) -> (..., 2)``."""
+    """Central-difference Jacobian (..., d, n) of ``f: (..., n) -> (..., d)``."""
     cols = []
-    for i in range(2):
-        e = np.zeros(2)
+    n = q.shape[-1]
+    for i in range(n):
+        e = np.zeros(n)
         e[i] = h
         cols.append((f(q + e) - f(q - e)) / (2 * h))
     return np.stack(cols, axis=-1)
 
 
+
+
+def _perp_basis(e1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unit vectors completing unit ``e1`` (..., 3) to a right-handed frame: the convention of the
+    compiled kernels (kernels._perp_basis), so ``psi`` means the same direction in both."""
+    a = np.abs(e1)
+    ref = np.zeros_like(e1)
+    first = (a[..., 0] <= a[..., 1]) & (a[..., 0] <= a[..., 2])
+    second = ~first & (a[..., 1] <= a[..., 2])
+    ref[first, 0] = 1.0
+    ref[second, 1] = 1.0
+    ref[~first & ~second, 2] = 1.0
+    f1 = np.cross(e1, ref)
+    f1 /= np.linalg.norm(f1, axis=-1, keepdims=True)
+    return f1, np.cross(e1, f1)
+
+
+@dataclass
+class SpatialEffectsEvaluator:
+    """3-D truth whose ``[effects]`` move the arm (``joint_offset``, ``gravity_sag``,
+    ``shaft_flexion``): ``J Jhat^-1`` no longer reduces to the wrist Jacobians. Per (tip, instance):
+    the encoder angles that put the true tip at ``x`` by Newton's method on the full forward map
+    (started from the inverse kinematics of the wrist without the arm effects), the true
+    ``J = d tip / d q_enc`` by central differences, and the controller's
+    ``Jhat = J_lever(w_model(q_enc), estimate) J_arm(q_enc)``. A load instance ``(tau, psi)`` is the
+    world vector the lever geometry gives it (as in the compiled kernels), added to the truth's
+    ``shaft_flexion`` load. The general path: numpy, much slower than the compiled kernels (and
+    slower still with ``gravity_sag``, whose generalized gravity comes from pinocchio point by point).
+
+    ``parts(x, theta)`` returns ``(M, None, ok)`` with ``M`` (n, 1, 3, 3): the numpy search
+    (:mod:`.search`) takes motion maps where the planar evaluator gives conformal parts.
+    """
+
+    plant: Plant
+    estimate: tuple[float, ...]
+    errors: ErrorSet
+    jacobian: str = "rigid"
+
+    @classmethod
+    def from_scenario(cls, sc) -> "SpatialEffectsEvaluator":
+        from .compute import error_set
+
+        es, _ = error_set(sc)  # the port_offset effect folded into the box's base port
+        effects = {name: p for name, p in sc.effects.items() if name != "port_offset"}
+        plant = Plant.from_scenario(sc.with_(effects=effects), port=es.base_port)
+        return cls(plant, tuple(sc.port.estimate), es)
+
+    @property
+    def arm(self):
+        return self.plant.arm
+
+    @property
+    def length(self) -> float:
+        return self.plant.length
+
+    def _plant(self, x: np.ndarray, theta: np.ndarray) -> tuple[Plant, np.ndarray]:
+        """The truth of instance(s) ``theta`` (n, 5) at tips ``x`` (n, 3): port and load vectors."""
+        port = np.asarray(self.errors.base_port) + theta[:, :3]
+        tau = theta[:, 3]
+        t = np.zeros_like(x)
+        bent = tau > 0
+        if np.any(bent):
+            e = x[bent] - port[bent]
+            e1 = e / np.linalg.norm(e, axis=-1, keepdims=True)
+            f1, f2 = _perp_basis(e1)
+            psi = theta[bent, 4][:, None]
+            _, t[bent] = flexed_wrist_plane(x[bent], port[bent], self.length, tau[bent], np.cos(psi) * f1 + np.sin(psi) * f2)
+        return self.plant.with_(port=port, load=t), port
+
+    def parts(self, x: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, None, np.ndarray]:
+        x = np.asarray(x, float).reshape(-1, 3)
+        theta = np.broadcast_to(np.asarray(theta, float), (len(x), 5))
+        n = len(x)
+        M = np.full((n, 1, 3, 3), np.nan)
+        plant, port = self._plant(x, theta)
+        L = self.length
+        r = np.linalg.norm(x - port, axis=-1)
+        ok = (r > 1e-9) & (r < L)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            w0 = np.where(ok[:, None], plant.true_wrist_for_tip(np.where(ok[:, None], x, port + [0, 0, 0.5 * L])), 0.0)
+            q_link, ok_ik = self.arm.inverse(w0)
+            ok &= ok_ik
+            q = np.where(ok[:, None], q_link - np.asarray(plant.joint_offset), 0.0)
+            for _ in range(EFFECT_NEWTON_ITERS):
+                f = plant.tip(q) - x
+                J = _fd_jacobian(plant.tip, q)
+                step = np.zeros_like(q)
+                good = ok & np.all(np.isfinite(J), axis=(-2, -1)) & (np.abs(np.linalg.det(np.where(
+                    np.isfinite(J), J, 0.0))) > 1e-14)
+                if np.any(good):
+                    step[good] = np.linalg.solve(J[good], f[good][..., None])[..., 0]
+                q = q - step
+            resid = np.linalg.norm(plant.tip(q) - x, axis=-1)
+            ok &= (resid < 1e-10) & self.arm.within_limits(plant.link_angles_q(q))
+            ok &= plant.shaft_reaches(plant.wrist(q))
+            if not np.any(ok):
+                return M, None, ok
+            qo = q[ok]
+            J = _fd_jacobian(plant.with_(port=port[ok], load=plant.load_vector[ok]).tip, qo)
+            wm = self.arm.forward(qo)
+            Jh = lever_jacobian(wm, np.asarray(self.estimate), L) @ self.arm.jacobian(qo)
+            det = np.linalg.det(Jh)
+            fro = np.sqrt(np.sum(Jh * Jh, axis=(-2, -1)))
+            nonsing = np.abs(det) > 1e-12 * fro**3
+            Mo = np.full((len(qo), 3, 3), np.nan)
+            Mo[nonsing] = J[nonsing] @ np.linalg.inv(Jh[nonsing])
+        idx = np.flatnonzero(ok)
+        ok[idx[~nonsing]] = False
+        M[idx, 0] = Mo
+        M[~ok] = np.nan
+        return M, None, ok

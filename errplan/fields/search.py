@@ -9,7 +9,7 @@ from typing import Callable
 
 import numpy as np
 
-from ..metrics import g_norm_from_parts, phi_max_from_parts
+from ..metrics import g_norm, g_norm_from_parts, min_over_gain, phi_max, phi_max_from_parts
 from .errorset import ErrorSet
 from .evaluator import Evaluator
 
@@ -20,17 +20,28 @@ SECOND_START = 0.002  # relative margin within which a second local maximum is r
 Progress = Callable[[float, str], None]
 
 
-def _reduce(mu: np.ndarray, nu: np.ndarray, k: float) -> tuple[np.ndarray, np.ndarray]:
+def _g_of(mu: np.ndarray, nu, k) -> np.ndarray:
+    """``||I - k M||`` from an evaluator's parts: planar conformal parts ``(mu, nu)``, or (``nu is
+    None``) the motion maps ``M`` themselves (..., d, d) of a spatial evaluator."""
+    return g_norm(mu, k) if nu is None else g_norm_from_parts(mu, nu, k)
+
+
+def _reduce(mu: np.ndarray, nu, k: float) -> tuple[np.ndarray, np.ndarray]:
     """Worst case over the noise axis (last): ``(||G||, |phi_max|)``."""
+    if nu is None:
+        return g_norm(mu, k).max(axis=-1), phi_max(mu).max(axis=-1)
     return g_norm_from_parts(mu, nu, k).max(axis=-1), phi_max_from_parts(mu, nu).max(axis=-1)
 
 
 def _far_mask(es: ErrorSet, samples: int | None) -> np.ndarray:
-    """(m, m) mask of sample pairs more than one grid step apart along some axis."""
-    n = samples or es.samples
-    shape = [n if a else 1 for a in es.active]
+    """(m, m) mask of sample pairs more than one grid step apart along some axis (a periodic axis
+    measured around the circle)."""
+    shape = [int(c) for c in es.counts(samples)]
     ij = np.stack(np.unravel_index(np.arange(int(np.prod(shape))), shape), axis=-1)
-    return np.abs(ij[:, None, :] - ij[None, :, :]).max(axis=-1) > 1
+    dd = np.abs(ij[:, None, :] - ij[None, :, :])
+    per = es.periodic
+    dd[..., per] = np.minimum(dd[..., per], np.asarray(shape)[per] - dd[..., per])
+    return dd.max(axis=-1) > 1
 
 
 def _local_max(vals: np.ndarray, shape: list[int]) -> np.ndarray:
@@ -133,11 +144,13 @@ def worst_case(ev: Evaluator, x: np.ndarray, k: float, *, samples: int | None = 
         vals_g[sub, j] = np.where(ok, g, -np.inf)
         vals_p[sub, j] = np.where(ok, p, -np.inf)
         if keep_parts:
-            full_mu = np.full((n,) + mu.shape[1:], np.nan, complex)
-            full_nu = np.full_like(full_mu, np.nan)
-            full_mu[sub], full_nu[sub] = mu, nu
+            full_mu = np.full((n,) + mu.shape[1:], np.nan, mu.dtype)
+            full_mu[sub] = mu
             mus.append(full_mu)
-            nus.append(full_nu)
+            if nu is not None:
+                full_nu = np.full_like(full_mu, np.nan)
+                full_nu[sub] = nu
+                nus.append(full_nu)
         done += 1
         if progress:
             progress(done / total, "sampling the error set")
@@ -148,7 +161,7 @@ def worst_case(ev: Evaluator, x: np.ndarray, k: float, *, samples: int | None = 
     starts_g, starts_p = [i_g], [i_p]
     if m > 1 and second_start > 0 and len(dims):
         far = _far_mask(es, samples)
-        shape = [(samples or es.samples) if a else 1 for a in es.active]
+        shape = [int(c) for c in es.counts(samples)]
         far_g = far[i_g] & _local_max(vals_g, shape)
         far_p = far[i_p] & _local_max(vals_p, shape)
         v_g = np.take_along_axis(vals_g, i_g[:, None], 1)[:, 0]
@@ -210,7 +223,11 @@ def worst_case(ev: Evaluator, x: np.ndarray, k: float, *, samples: int | None = 
                     def poll(rows, th_best, for_g):
                         # Polls clipped back onto the centre (a worst on the box face) are skipped.
                         c = th_best[rows]
-                        moved = np.clip(c[:, dmn] + sgn * h[dmn], lo[dmn], hi[dmn])
+                        moved = c[:, dmn] + sgn * h[dmn]
+                        if es.periodic[dmn]:  # the load direction wraps around
+                            moved = lo[dmn] + np.mod(moved - lo[dmn], hi[dmn] - lo[dmn])
+                        else:
+                            moved = np.clip(moved, lo[dmn], hi[dmn])
                         keep = moved != c[:, dmn]
                         if np.any(keep):
                             c = c[keep].copy()
@@ -243,16 +260,25 @@ def worst_case(ev: Evaluator, x: np.ndarray, k: float, *, samples: int | None = 
     out = {"valid": valid, "G_norm": out_g, "phi_max": out_p, "theta_G": tg, "theta_phi": tp}
     if keep_parts:
         out["mu"] = np.stack(mus, axis=1) if mus else np.zeros((n, 0, 1), complex)
-        out["nu"] = np.stack(nus, axis=1) if nus else np.zeros((n, 0, 1), complex)
+        out["nu"] = np.stack(nus, axis=1) if nus else None  # None: "mu" holds motion maps M
     return out
 
 
-def minimize_gain(mu: np.ndarray, nu: np.ndarray, iters: int = 60) -> tuple[np.ndarray, np.ndarray]:
+def minimize_gain(mu: np.ndarray, nu, iters: int = 60) -> tuple[np.ndarray, np.ndarray]:
     """``rho* = min_k max_i |1 - k mu_i| + k |nu_i|`` per row, by golden section (convex in k).
 
     ``mu``, ``nu``: (n, m) complex, NaN entries ignored. Returns ``(rho_star, k_star)``; where no
     gain contracts, ``rho* = 1`` at ``k* = 0``.
     """
+    if nu is None:  # motion maps (n, m, ..., d, d): errplan.metrics.min_over_gain
+        M = np.asarray(mu, float)
+        d = M.shape[-1]
+        M = M.reshape(len(M), -1, d, d)
+        bad = ~np.all(np.isfinite(M), axis=(-2, -1))
+        M = np.where(bad[..., None, None], 0.0, M)  # a zero map contracts nothing: never the worst
+        rho, kk = min_over_gain(M, iters)
+        none = ~(rho < 1.0)
+        return np.where(none, 1.0, rho), np.where(none, 0.0, kk)
     mu = np.asarray(mu).reshape(len(mu), -1)
     nu = np.asarray(nu).reshape(len(nu), -1)
     bad = ~np.isfinite(mu) | ~np.isfinite(nu)
@@ -288,10 +314,10 @@ def _refined_at_gain(ev: Evaluator, x: np.ndarray, k: np.ndarray, *, samples=Non
     es = ev.errors
     grid = es.sample_grid(samples)
     best = np.full(len(x), -np.inf)
-    th_best = np.zeros((len(x), 3))
+    th_best = np.zeros((len(x), len(es.lo)))
     for th in grid:
         mu, nu, ok = ev.parts(x, th)
-        g = g_norm_from_parts(mu, nu, k[:, None]).max(axis=-1)
+        g = _g_of(mu, nu, k[:, None]).max(axis=-1)
         g = np.where(ok, g, np.inf)
         upd = g > best
         best[upd] = g[upd]
@@ -302,9 +328,11 @@ def _refined_at_gain(ev: Evaluator, x: np.ndarray, k: np.ndarray, *, samples=Non
         for dmn in np.flatnonzero(es.active):
             for sgn in (-1.0, 1.0):
                 c = th_best.copy()
-                c[:, dmn] = np.clip(c[:, dmn] + sgn * h[dmn], es.lo[dmn], es.hi[dmn])
+                v = c[:, dmn] + sgn * h[dmn]
+                c[:, dmn] = (es.lo[dmn] + np.mod(v - es.lo[dmn], es.hi[dmn] - es.lo[dmn]) if es.periodic[dmn]
+                             else np.clip(v, es.lo[dmn], es.hi[dmn]))
                 mu, nu, ok = ev.parts(x, c)
-                g = np.where(ok, g_norm_from_parts(mu, nu, k[:, None]).max(axis=-1), np.inf)
+                g = np.where(ok, _g_of(mu, nu, k[:, None]).max(axis=-1), np.inf)
                 upd = g > best
                 best[upd] = g[upd]
                 th_best[upd] = c[upd]
