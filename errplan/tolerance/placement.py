@@ -8,7 +8,8 @@ it is ``c``; loads as declared). For each candidate on the candidate grid, ``rho
 the task-region grid exactly as ``errplan fields --metrics rho_star`` computes it for a scenario
 with ``[port] position = estimate = c`` and ``[fields] region`` = the task region at the query's
 resolution (the compiled kernels, worst case over the error set; P2's flexion controller and
-planar ``[effects]`` through the fields' numpy path). Then
+``[effects]`` that move the arm through the fields' numpy path, one ``compute_fields`` per
+candidate). Then
 
 - ``covered``: region grid points robustly reachable with ``rho* <= 1 - certify_margin`` (and
   ``rho* < 1``: ``rho* = 1`` means that no gain contracts, never certifiable, as in the planner);
@@ -275,11 +276,8 @@ def port_placement(sc, candidates: dict, spacing: float, region: dict, *, resolu
     compiled = sc.controller.jacobian == "rigid" and not jac_effects
     if compiled:
         job = PlacementJob(X, k, bound, evaluator=KernelEvaluator(sc))
-    elif sc.dim == 2:
+    else:  # P2's flexion controller, or [effects] that move the arm: the fields' numpy path
         job = PlacementJob(X, k, bound, scenario=sc, region={a: tuple(region[a]) for a in axes}, resolution=res)
-    else:
-        raise ErrplanError(f"{sc.source}: [effects] {', '.join(jac_effects)}: spatial fields whose effects move the "
-                           "arm are not supported yet, nor placements on them")
     items = [_candidate_item(sc, c) for c in ports]
 
     def tick(done, total, what="candidate tasks"):
