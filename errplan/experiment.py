@@ -362,10 +362,10 @@ def tip_valid(sc, x: np.ndarray, *, limit_margin: float, port_margin: float, wri
     return ok
 
 
-def tip_workspace_grid(sc, spacing: float, what: str) -> np.ndarray:
+def tip_workspace_grid(sc, spacing: float, what: str, region: bool = True) -> np.ndarray:
     """Grid points (m, d) at ``spacing`` over the bounding box of the tip workspace (a straight
-    shaft through the true port), clipped to ``[fields] region`` when the scenario has one; the
-    number of points is checked against the memory budget first."""
+    shaft through the true port), clipped to ``[fields] region`` when the scenario has one (and
+    ``region``); the number of points is checked against the memory budget first."""
     from .inputs import check_allocation
     from .kinematics import arm_for
 
@@ -380,7 +380,7 @@ def tip_workspace_grid(sc, spacing: float, what: str) -> np.ndarray:
         raise ErrplanError(f"{sc.source}: the shaft cannot reach through the port from any wrist pose")
     tips = w + L * (port - w) / np.linalg.norm(port - w, axis=-1)[:, None]
     lo, hi = tips.min(axis=0), tips.max(axis=0)
-    region = sc.fields.region
+    region = sc.fields.region if region else None
     if region:
         for i, ax in enumerate(sc.axes):
             if ax in region:

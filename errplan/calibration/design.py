@@ -223,14 +223,16 @@ def _criterion(Ms: np.ndarray, name: str) -> np.ndarray:
     if name == "E":
         return np.linalg.eigvalsh(Ms)[:, 0]
     if name in ("A", "G"):
-        ev = np.linalg.eigvalsh(Ms)
-        ok = ev[:, 0] > 1e-14 * np.maximum(ev[:, -1], 1e-300)
-        if name == "A":
-            with np.errstate(divide="ignore"):
-                return np.where(ok, -np.sum(1.0 / np.where(ok[:, None], ev, 1.0), axis=1), -np.inf)
+        # singular when the column-normalised matrix has a tiny determinant (slogdet is cheap)
+        dg = np.sqrt(np.maximum(np.abs(np.diagonal(Ms, axis1=1, axis2=2)), 1e-300))
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            sign, ld = np.linalg.slogdet(Ms / (dg[:, :, None] * dg[:, None, :]))
+        ok = (sign > 0) & (ld > math.log(1e-28))
         V = np.linalg.inv(np.where(ok[:, None, None], Ms, np.eye(Ms.shape[-1])))
         dv = np.diagonal(V, axis1=1, axis2=2)
         ok &= np.all(dv > 0, axis=1)
+        if name == "A":
+            return np.where(ok, -np.sum(np.where(ok[:, None], dv, 0.0), axis=1), -np.inf)
         return np.where(ok, -np.sum(np.log(np.where(ok[:, None], dv, 1.0)), axis=1), -np.inf)
     raise ErrplanError(f"design criterion {name!r}: expected one of {', '.join(CRITERIA)}")
 
@@ -243,10 +245,11 @@ def pair_correlations(Ms: np.ndarray, pairs: list[tuple[list[int], list[int]]]) 
     for j, (ia, ib) in enumerate(pairs):
         idx = list(ia) + list(ib)
         S = Ms[:, idx][:, :, idx]
-        dg = np.sqrt(np.abs(np.diagonal(S, axis1=1, axis2=2))) + 1e-300
+        dg = np.sqrt(np.maximum(np.abs(np.diagonal(S, axis1=1, axis2=2)), 1e-300))
         Sn = S / (dg[:, :, None] * dg[:, None, :])
-        ev = np.linalg.eigvalsh(Sn)
-        ok = ev[:, 0] > 1e-12
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            sign, ld = np.linalg.slogdet(Sn)
+        ok = (sign > 0) & (ld > math.log(1e-24))
         C = np.linalg.inv(np.where(ok[:, None, None], Sn, np.eye(len(idx))))
         dc = np.sqrt(np.abs(np.diagonal(C, axis1=1, axis2=2)))
         C = C / (dc[:, :, None] * dc[:, None, :])
@@ -286,7 +289,7 @@ class Objective:
 
 
 def select_runs(blocks: np.ndarray, rows: np.ndarray, n: int, *, max_rows: int | None = None,
-                objective: Objective | str = "G", passes: int = 8, shortlist: int = 600,
+                objective: Objective | str = "G", passes: int = 8, shortlist: int = 400,
                 seed: int = 0) -> np.ndarray:
     """Indices of ``n`` runs maximising ``objective`` of the summed blocks (runs, p, p), with at
     most ``max_rows`` rows in all: greedy D-optimal (a ridge keeps the first, still singular steps
@@ -425,7 +428,7 @@ def candidate_runs(sc, *, spacing: float | None = None, distances=CANDIDATE_DIST
     d = sc.dim
     spacing = CANDIDATE_SPACING[d] if spacing is None else spacing
     max_starts = MAX_CANDIDATE_STARTS[d] if max_starts is None else max_starts
-    grid = tip_workspace_grid(sc, spacing, "the design's candidate starts")
+    grid = tip_workspace_grid(sc, spacing, "the design's candidate starts", region=False)
     starts = grid[robust_tips(sc, grid)]
     if len(starts) == 0:
         raise ErrplanError(f"{sc.source}: no robust start tip for a designed bench")
