@@ -460,8 +460,13 @@ def predict_runs(sc, runs: np.ndarray, *, seed: int = 0, max_steps: int | None =
     are dropped). Noise-free: with the tracker's noise in the prediction, the selection would favour
     runs whose noise happened to delay their arrival (more rows, more information) and the real
     bench would be shorter than designed. ``seed`` is kept for the interface (unused)."""
-    from ..experiment import (DEFAULT_DWELL, DEFAULT_MAX_STEPS, bench_controller, simulate_bench,
-                              truth_plant)
+    from ..experiment import (
+        DEFAULT_DWELL,
+        DEFAULT_MAX_STEPS,
+        bench_controller,
+        simulate_bench,
+        truth_plant,
+    )
 
     max_steps = DEFAULT_MAX_STEPS if max_steps is None else max_steps
     dwell = DEFAULT_DWELL if dwell is None else dwell
@@ -578,7 +583,16 @@ def _si(v: float, label: str) -> str:
     return f"{v:.4g} {unit}" if unit == "1/m^2" else f"{v * 1e3:.4g} {unit}"
 
 
-def design_experiment(sc, n_runs: int | None = None, *, max_rows: int | None = None, criterion: str = "G",
+def design_experiment(sc, n_runs: int | None = None, **kw) -> Design:
+    """Choose bench runs that make the catalogue identifiable (:func:`_design_experiment`), with one
+    BLAS thread (:mod:`.blas`)."""
+    from .blas import single_threaded_blas
+
+    with single_threaded_blas():
+        return _design_experiment(sc, n_runs, **kw)
+
+
+def _design_experiment(sc, n_runs: int | None = None, *, max_rows: int | None = None, criterion: str = "G",
                       separate: float | None = SEPARATE, seed: int = 0, n_starts: int | None = None,
                       max_steps: int | None = None, dwell: int | None = None, spacing: float | None = None,
                       progress=None) -> Design:

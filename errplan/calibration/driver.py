@@ -9,11 +9,21 @@ import numpy as np
 from ..effects import EFFECTS, catalogue, predict_tracked
 from ..errors import DataError, ErrplanError
 from ..experiment import MeasuredData
+from .blas import single_threaded_blas
 from .fit import Candidate, _folds, fit_candidate
 from .noise import noise_floor, structure_test
 from .report import CalibrationReport, Errors
-from .residual import (approach_mask, arrival_tolerance, check_against_model, declared_plant, motion_model, pose_residual,
-                       replay, rms, trajectory_errors)
+from .residual import (
+    approach_mask,
+    arrival_tolerance,
+    check_against_model,
+    declared_plant,
+    motion_model,
+    pose_residual,
+    replay,
+    rms,
+    trajectory_errors,
+)
 from .selection import select
 
 DEFAULT_FOLDS = 5
@@ -27,7 +37,13 @@ def calibrate(sc, data: MeasuredData, *, validate: MeasuredData | None = None, s
 
     ``effects``: the candidate effects (default: the whole catalogue; on a URDF without inertial
     data, the catalogue without gravity sag, said in the report; asking for it there is one error).
+    Runs with one BLAS thread (:mod:`.blas`).
     """
+    with single_threaded_blas():
+        return _calibrate(sc, data, validate=validate, seed=seed, folds=folds, progress=progress, effects=effects)
+
+
+def _calibrate(sc, data: MeasuredData, *, validate, seed, folds, progress, effects) -> CalibrationReport:
     from ..experiment import bench_controller, data_shape
 
     prog = progress or (lambda f, m="": None)

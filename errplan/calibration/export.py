@@ -88,8 +88,9 @@ def to_toml(doc: dict, header: str = "") -> str:
 
 def corrected_scenario_toml(sc, report: CalibrationReport) -> str:
     """The scenario's own TOML with the found effects under ``[effects]`` (declared + fitted)."""
-    import tomllib
     from pathlib import Path
+
+    import tomllib
 
     from ..scenario import parse_scenario
 

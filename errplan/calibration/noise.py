@@ -65,6 +65,16 @@ def kmeans_labels(x: np.ndarray, clusters: int, iters: int = 30) -> np.ndarray:
     return lab
 
 
+def _lstsq(F: np.ndarray, b: np.ndarray, rcond: float = 1e-10) -> tuple[np.ndarray, int]:
+    """Least squares through the SVD (singular values below ``rcond`` times the largest dropped):
+    the solution and the rank. ``np.linalg.lstsq`` (LAPACK gelsd) gives the same answer but, with
+    a threaded OpenBLAS on a busy 2-core machine, can take 100x longer on these small matrices."""
+    U, sv, Vt = np.linalg.svd(F, full_matrices=False)
+    keep = sv > rcond * (sv[0] if len(sv) else 0.0)
+    coef = (Vt[keep].T / sv[keep]) @ (U[:, keep].T @ b)
+    return coef, int(keep.sum())
+
+
 @dataclass
 class LocalBasis:
     """The flexible smooth model: on each cluster of rows (``labels``, k-means of the model tip
@@ -95,7 +105,7 @@ class LocalBasis:
             idx, F = self._cluster(k, x, u)
             if len(idx) == 0:
                 continue
-            coef, _, rk, _ = np.linalg.lstsq(F, r[idx], rcond=1e-10)
+            coef, rk = _lstsq(F, r[idx])
             fit[idx] = F @ coef
             rank += int(rk)
         res = r - fit
