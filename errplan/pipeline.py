@@ -14,6 +14,14 @@ For every planned query (the plan JSON's ``planned``/``direct`` path objects, do
 3. **record** (:mod:`errplan.recording`, optional): one rerun recording of everything.
 
 The command calls :func:`run_pipeline` with the query JSONs and prints :func:`summary_table`.
+
+Spatial scenarios (3-D) run through the same functions: the certificate's physics is a
+:class:`errplan.gains.SpatialModel` (built once per run), the truth a :class:`Plant` on the URDF arm
+(true port, ``[effects]``, and the error set's smallest load magnitude as a world load along -y,
+none for the bundled scenarios), and the corner replays run under every corner of the 3-D port
+box (8 truths). Before any work both endpoints of every query are checked: robustly reachable
+and ``rho* <= 1 - certify_margin`` (some gain can certify convergence there), else one
+:class:`~errplan.errors.InfeasibleError` naming the query, the endpoint and the value.
 """
 from __future__ import annotations
 
@@ -23,9 +31,9 @@ from typing import Any, Callable
 
 import numpy as np
 
-from .errors import ErrplanError
+from .errors import ErrplanError, InfeasibleError
 from .fields import ErrorSet
-from .gains import GainOptions, GainSchedule, options_from_scenario, schedule_gains, single_segment
+from .gains import GainOptions, GainSchedule, SpatialModel, options_from_scenario, schedule_gains, single_segment
 from .report import format_table
 from .simulation import ControllerModel, Plant, SimResult, g_norm_along, simulate
 
@@ -63,7 +71,7 @@ class QueryRun:
     direct_gain_source: str          # "certified" | "scenario"
     sim_planned: Replay
     sim_direct: Replay
-    corners: np.ndarray              # (c, 3) error-set corners theta = (dy, dz, t)
+    corners: np.ndarray              # (c, 3) error-set corners theta = (dy, dz, t); 3-D (c, 4) (dx, dy, dz, load)
     corner_planned: list[Replay] = field(default_factory=list)
     corner_direct: list[Replay] = field(default_factory=list)
 
@@ -76,8 +84,9 @@ class QueryRun:
         if len(self.corners):
             cp = [r.to_json() for r in self.corner_planned]
             cd = [r.to_json() for r in self.corner_direct]
+            d = self.corners.shape[1] - 1
             out["corners"] = {
-                "instances": [{"port_offset": [float(t[0]), float(t[1])], "tip_force_over_ei": float(t[2])}
+                "instances": [{"port_offset": [float(v) for v in t[:d]], "tip_force_over_ei": float(t[d])}
                               for t in self.corners],
                 "planned": cp, "direct": cd,
                 "planned_all_monotonic": all(r["monotonic"] for r in cp),
@@ -95,30 +104,60 @@ class QueryRun:
 
 
 # ----------------------------------------------------------------------------- pieces
-def _path_of(p: Any, key: str) -> np.ndarray:
+def _path_of(p: Any, key: str, dim: int = 2) -> np.ndarray:
     path = np.asarray(p.get("path") if isinstance(p, dict) else getattr(p, "path"), float)
-    if path.ndim != 2 or path.shape[1] != 2 or len(path) < 2 or not np.all(np.isfinite(path)):
-        raise ErrplanError(f"{key} path of shape {path.shape}: expected (m >= 2, 2) finite [y, z] points")
+    if path.ndim != 2 or path.shape[1] != dim or len(path) < 2 or not np.all(np.isfinite(path)):
+        pts = "[x, y, z]" if dim == 3 else "[y, z]"
+        raise ErrplanError(f"{key} path of shape {path.shape}: expected (m >= 2, {dim}) finite {pts} points")
     return path
 
 
 def truth_plant(sc) -> Plant:
     """The scenario's truth: ``[port] position``, its ``[effects]``, and the tip load of the error
-    set closest to 0 (0 when the set allows it; P2's scenarios declare a fixed load there)."""
+    set closest to 0 (0 when the set allows it; P2's scenarios declare a fixed load there). In 3-D
+    that load is a magnitude: a world load of that size along -y (:class:`Plant`)."""
     tl = sc.uncertainty.tip_force_over_ei
     load = float(np.clip(0.0, tl[0], tl[1])) if tl is not None else 0.0
     return Plant.from_scenario(sc, load=load)
 
 
 def corner_instances(sc) -> np.ndarray:
-    """Corners (c, 3) of the scenario's error box as ``(dy, dz, t)`` around its base port."""
-    return ErrorSet.from_scenario(sc).corners()
+    """Corners (c, 3) of the scenario's error box as ``(dy, dz, t)`` around its base port. In 3-D:
+    the corners (c, 4) of the port box as ``(dx, dy, dz, load)`` with the truth's load magnitude
+    (:func:`truth_plant`)."""
+    es = ErrorSet.from_scenario(sc)
+    if getattr(sc, "dim", 2) == 3:
+        ports = es.port_corners() - np.asarray(es.base_port)
+        return np.hstack([ports, np.full((len(ports), 1), _truth_load(sc))])
+    return es.corners()
+
+
+def _truth_load(sc) -> float:
+    tl = sc.uncertainty.tip_force_over_ei
+    return float(np.clip(0.0, tl[0], tl[1])) if tl is not None else 0.0
 
 
 def corner_plant(sc, theta) -> Plant:
     """The truth at one error-set instance (no ``[effects]``)."""
     es = ErrorSet.from_scenario(sc)
-    return Plant.from_scenario(sc, port=tuple(es.port(np.asarray(theta, float))), load=float(theta[2]), effects=False)
+    theta = np.asarray(theta, float)
+    d = es.dim
+    return Plant.from_scenario(sc, port=tuple(es.port(theta)), load=float(theta[d]), effects=False)
+
+
+def check_query_endpoints(sc, name: str, start, goal, model: SpatialModel, margin: float) -> None:
+    """3-D: both endpoints robustly reachable and ``rho* <= 1 - margin`` (some gain can certify
+    convergence there), else one :class:`InfeasibleError` naming the query, the endpoint and the value."""
+    pts = np.array([start, goal], float)
+    wc = model.kev.worst_case(pts, float(sc.controller.gain), phi=False, rho=True)
+    for i, what in enumerate(("start", "goal")):
+        p = [round(float(v), 6) for v in pts[i]]
+        if not wc["valid"][i]:
+            raise InfeasibleError(f"query {name!r}: {what} {p} is outside the robust workspace: some instance of the "
+                                  "error set (true port in the box, tip load) cannot put the tip there")
+        if not wc["rho_star"][i] <= 1.0 - margin:
+            raise InfeasibleError(f"query {name!r}: {what} {p}: no gain can certify convergence there "
+                                  f"(rho* = {wc['rho_star'][i]:.4f} > 1 - certify_margin = {1.0 - margin:g})")
 
 
 def replay(plant: Plant, controller: ControllerModel, start, waypoints, gains, opts: GainOptions,
@@ -141,18 +180,23 @@ def replay(plant: Plant, controller: ControllerModel, start, waypoints, gains, o
 
 
 def run_query(sc, qjson: dict, *, options: GainOptions | None = None, corners: bool = True,
-              progress: Progress | None = None) -> QueryRun:
+              progress: Progress | None = None, model: SpatialModel | None = None) -> QueryRun:
     """Gains and simulations for one query JSON (``name``, ``start``, ``goal``, ``planned``, ``direct``)."""
     opts = options or options_from_scenario(sc)
+    dim = getattr(sc, "dim", 2)
     name = str(qjson.get("name", "query"))
     start = np.asarray(qjson["start"], float)
     goal = np.asarray(qjson["goal"], float)
-    ppath = _path_of(qjson["planned"], f"query {name!r}: planned")
-    dpath = _path_of(qjson["direct"], f"query {name!r}: direct") if "direct" in qjson else np.array([start, goal])
+    ppath = _path_of(qjson["planned"], f"query {name!r}: planned", dim)
+    dpath = _path_of(qjson["direct"], f"query {name!r}: direct", dim) if "direct" in qjson else np.array([start, goal])
+    src = sc
+    if dim == 3:
+        src = model if model is not None else SpatialModel(sc)
+        check_query_endpoints(sc, name, ppath[0], ppath[-1], src, opts.margin)
     if progress:
         progress(0.05, f"{name}: certifying gains")
-    sched = schedule_gains(sc, ppath, opts)
-    dsched = single_segment(sc, dpath[0], dpath[-1], opts)
+    sched = schedule_gains(src, ppath, opts)
+    dsched = single_segment(src, dpath[0], dpath[-1], opts)
     if dsched.certified:
         kd, src = float(dsched.gains[0]), "certified"
     else:
@@ -164,7 +208,7 @@ def run_query(sc, qjson: dict, *, options: GainOptions | None = None, corners: b
     seed = int(sc.planner.seed)
     sp = replay(truth, ctrl, ppath[0], sched.waypoints, sched.gains, opts, seed)
     sd = replay(truth, ctrl, dpath[0], dpath[-1:], [kd], opts, seed)
-    cs = corner_instances(sc) if corners else np.zeros((0, 3))
+    cs = corner_instances(sc) if corners else np.zeros((0, dim + 1))
     run = QueryRun(name, start, goal, ppath, dpath, dict(qjson["planned"]) if isinstance(qjson["planned"], dict) else {},
                    dict(qjson["direct"]) if isinstance(qjson.get("direct"), dict) else {}, sched, dsched, kd, src,
                    sp, sd, cs)
@@ -198,6 +242,7 @@ def run_pipeline(sc, query_plans, fields=None, *, record: str | None = None, pro
     """
     opts = options or options_from_scenario(sc)
     plans = list(query_plans)
+    model = SpatialModel(sc) if getattr(sc, "dim", 2) == 3 else None
     out, runs = [], []
     for i, q in enumerate(plans):
         qj = dict(_as_query_json(q))
@@ -206,7 +251,7 @@ def run_pipeline(sc, query_plans, fields=None, *, record: str | None = None, pro
             if progress:
                 progress((i + f) / max(len(plans), 1), msg)
 
-        run = run_query(sc, qj, options=opts, corners=corners, progress=sub)
+        run = run_query(sc, qj, options=opts, corners=corners, progress=sub, model=model)
         extra = run.extra_json()
         qj.update(extra)
         if hasattr(q, "extra") and isinstance(getattr(q, "extra"), dict):

@@ -136,9 +136,13 @@ def _merge_edges(edges: np.ndarray) -> list[np.ndarray]:
 
 
 def _markdown_summary(sc, runs) -> str:
-    lines = [f"# errplan plan: {sc.name}", "", sc.description or "", "",
-             "Tip plane: z (m) to the right, y (m) up. Field image: worst-case ||G|| at the scenario gain "
-             f"{sc.controller.gain:g} (colormap Turbo, 0 to 1.2: red where it reaches 1 or more).", ""]
+    if getattr(sc, "dim", 2) == 3:
+        head = ("World frame [x, y, z] (m), y up, z toward the patient. Field slices: worst-case ||G|| at the "
+                f"scenario gain {sc.controller.gain:g} (colormap Turbo, 0 to 1.2: red where it reaches 1 or more).")
+    else:
+        head = ("Tip plane: z (m) to the right, y (m) up. Field image: worst-case ||G|| at the scenario gain "
+                f"{sc.controller.gain:g} (colormap Turbo, 0 to 1.2: red where it reaches 1 or more).")
+    lines = [f"# errplan plan: {sc.name}", "", sc.description or "", "", head, ""]
     for r in runs:
         lines += [f"## {r.name}", "",
                   "| path | segments | gain | certified ‖G‖ | certified | steps | monotonic | corners monotonic |",
@@ -154,8 +158,9 @@ def _markdown_summary(sc, runs) -> str:
                          f"{'yes' if sim.sim.monotonic else 'no'} | {sum(x.sim.monotonic for x in reps)}/{len(reps)} |")
         lines += ["", "Segments (planned):", "", "| # | from | to | gain | certified ‖G‖ | step ratio |", "|---|---|---|---|---|---|"]
         for i, s in enumerate(r.schedule.segments):
-            lines.append(f"| {i} | ({s.start[0]:.4f}, {s.start[1]:.4f}) | ({s.end[0]:.4f}, {s.end[1]:.4f}) | "
-                         f"{s.gain:.4f} | {s.certified_G_norm:.4f} | {s.step_ratio:.4f} |")
+            a = ", ".join(f"{v:.4f}" for v in s.start)
+            b = ", ".join(f"{v:.4f}" for v in s.end)
+            lines.append(f"| {i} | ({a}) | ({b}) | {s.gain:.4f} | {s.certified_G_norm:.4f} | {s.step_ratio:.4f} |")
         lines.append("")
     return "\n".join(lines)
 
@@ -193,7 +198,8 @@ def blueprint(runs, fields_logged: list[str]):
 
 
 def record_plan(path: str | os.PathLike, sc, mf, runs, *, app_id: str = "errplan") -> None:
-    """Write one ``.rrd`` with the fields, workspace, ports, paths, gains and simulations.
+    """Write one ``.rrd`` with the fields, workspace, ports, paths, gains and simulations (planar:
+    the tip plane; spatial: the 3-D scene of :func:`_log_plan_spatial`).
 
     Written to a temporary file and renamed: nothing half-written on error.
     """
@@ -205,9 +211,18 @@ def record_plan(path: str | os.PathLike, sc, mf, runs, *, app_id: str = "errplan
     tmp = path.with_name(path.name + ".part")
     rec = rr.RecordingStream(app_id, recording_id=f"errplan-{sc.name}", send_properties=False)
     fields_logged = [n for n in ("G_norm", "phi_hat_max", "rho_star") if getattr(mf, n, None) is not None]
-    rec.save(tmp, default_blueprint=blueprint(runs, fields_logged))
+    spatial = getattr(sc, "dim", 2) == 3
+    if spatial:
+        scene = SpatialScene(sc, mf, runs)
+        bp = blueprint_spatial(runs, scene)
+    else:
+        bp = blueprint(runs, fields_logged)
+    rec.save(tmp, default_blueprint=bp)
     try:
-        _log_plan(rec, rr, sc, mf, runs, fields_logged)
+        if spatial:
+            _log_plan_spatial(rec, rr, sc, mf, runs, scene)
+        else:
+            _log_plan(rec, rr, sc, mf, runs, fields_logged)
         rec.flush()
     finally:
         rec.disconnect()
@@ -256,29 +271,388 @@ def _log_plan(rec, rr, sc, mf, runs, fields_logged) -> None:
                 rec.log(f"{base}/corners/{kind}",
                         rr.LineStrips2D([uv(x.sim.tip) for x in reps], colors=tuple(int(0.4 * c) for c in col),
                                         radii=ui(0.75), draw_order=15.0), static=True)
-        rec.log(f"gains/{q}/gain", rr.SeriesLines(colors=(90, 160, 255), names=f"{r.name}: gain k"), static=True)
-        rec.log(f"gains/{q}/certified_G_norm", rr.SeriesLines(colors=(255, 140, 0), names=f"{r.name}: certified ||G||"),
-                static=True)
-        for i, s in enumerate(segs):
-            rec.set_time("segment", sequence=i)
-            rec.log(f"gains/{q}/gain", rr.Scalars(s.gain))
-            if math.isfinite(s.certified_G_norm):  # an unbounded worst case is left out of the plot
-                rec.log(f"gains/{q}/certified_G_norm", rr.Scalars(s.certified_G_norm))
-        rec.reset_time()
-        for kind, rep, col in (("planned", r.sim_planned, PLANNED_COLOR), ("direct", r.sim_direct, DIRECT_COLOR)):
-            rec.log(f"series/{q}/{kind}/error", rr.SeriesLines(colors=col, names=f"{kind}: |x - target| (m)"), static=True)
-            rec.log(f"series/{q}/{kind}/phi", rr.SeriesLines(colors=col, names=f"{kind}: φ (rad)"), static=True)
-            sim = rep.sim
-            err = sim.errors
-            phi = np.concatenate([sim.phi, [0.0]]) if len(sim.phi) < len(sim.tip) else sim.phi
-            for i in range(len(sim.tip)):
-                rec.set_time("step", sequence=i)
-                rec.log(f"{base}/sim/{kind}/tip",
-                        rr.Points2D(uv(sim.tip[i:i + 1]), colors=col, radii=ui(5.0), draw_order=40.0))
-                rec.log(f"series/{q}/{kind}/error", rr.Scalars(float(err[i])))
-                rec.log(f"series/{q}/{kind}/phi", rr.Scalars(float(phi[i])))
-        rec.reset_time()
+        tip_of = lambda pts, col: rr.Points2D(uv(pts), colors=col, radii=ui(5.0), draw_order=40.0)  # noqa: E731
+        _log_query_series(rec, rr, r, q, base, tip_of)
     rec.log("summary", rr.TextDocument(_markdown_summary(sc, runs), media_type="text/markdown"), static=True)
+
+
+def _log_query_series(rec, rr, r, q: str, base: str, tip_of, replay: dict | None = None) -> None:
+    """Per-segment gains (``segment`` timeline) and, per step (``step`` timeline), the simulated tip
+    (``tip_of(points, colour)`` draws it: 2-D or 3-D), the error length and phi of both paths.
+    ``replay`` ({kind: first state}): the steps also go on the ``replay`` timeline (3-D)."""
+    segs = r.schedule.segments
+    rec.log(f"gains/{q}/gain", rr.SeriesLines(colors=(90, 160, 255), names=f"{r.name}: gain k"), static=True)
+    rec.log(f"gains/{q}/certified_G_norm", rr.SeriesLines(colors=(255, 140, 0), names=f"{r.name}: certified ||G||"),
+            static=True)
+    for i, s in enumerate(segs):
+        rec.set_time("segment", sequence=i)
+        rec.log(f"gains/{q}/gain", rr.Scalars(s.gain))
+        if math.isfinite(s.certified_G_norm):  # an unbounded worst case is left out of the plot
+            rec.log(f"gains/{q}/certified_G_norm", rr.Scalars(s.certified_G_norm))
+    rec.reset_time()
+    for kind, rep, col in (("planned", r.sim_planned, PLANNED_COLOR), ("direct", r.sim_direct, DIRECT_COLOR)):
+        rec.log(f"series/{q}/{kind}/error", rr.SeriesLines(colors=col, names=f"{kind}: |x - target| (m)"), static=True)
+        rec.log(f"series/{q}/{kind}/phi", rr.SeriesLines(colors=col, names=f"{kind}: φ (rad)"), static=True)
+        sim = rep.sim
+        err = sim.errors
+        phi = np.concatenate([sim.phi, [0.0]]) if len(sim.phi) < len(sim.tip) else sim.phi
+        for i in range(len(sim.tip)):
+            rec.set_time("step", sequence=i)
+            if replay is not None:
+                rec.set_time("replay", sequence=replay[kind] + i)
+            rec.log(f"{base}/sim/{kind}/tip", tip_of(sim.tip[i:i + 1], col))
+            rec.log(f"series/{q}/{kind}/error", rr.Scalars(float(err[i])))
+            rec.log(f"series/{q}/{kind}/phi", rr.Scalars(float(phi[i])))
+    rec.reset_time()
+
+
+# ============================================================================= spatial plans
+# 3-D recordings (docs/interfaces.md "3-D plan JSON, recordings"), all under ``world`` in metres,
+# world frame [x, y, z] with y up (``ViewCoordinates.RIGHT_HAND_Y_UP``):
+#
+# - ``world/<robot name>/**``: the robot from its URDF, loaded by rerun (``rerun.urdf.UrdfTree``:
+#   meshes, primitives, the URDF's static joint transforms in named frames); mesh URIs resolve
+#   through the scenario's ``package_path`` and ``$ROS_PACKAGE_PATH``. ``world/robot/placement``: the
+#   URDF root in the world (``base_position``, ``base_rpy``); ``world/robot/joints/<joint>``: every
+#   actuated joint's transform per state of the replay (``replay`` timeline, computed by
+#   ``UrdfJoint.compute_transform`` from the true link angles), held joints static at their value;
+#   ``world/robot/links``: the chain as lines (``UrdfArm.chain_points``), the robot itself when its
+#   meshes do not resolve; ``world/robot/shaft`` and ``world/robot/tip``: the instrument per state;
+# - the ``replay`` timeline plays the simulated runs under the truth one after the other (for each
+#   query: direct, then planned; the errors and angles of ``series/**`` and the tips follow it
+#   too); ``replay/run``: which run is playing (``TextLog``);
+# - ``world/fields/G_norm/{x,y,z}``: the worst-case ``||G||`` field at the scenario gain as three
+#   orthogonal slices (``Mesh3D`` with vertex colours, Turbo 0 to 1.2; no triangle outside the
+#   workspace) through the port estimate's x and y and the queries' median depth;
+#   ``world/fields/rho_star/{x,y,z}`` the same for rho*; ``world/fields/surface/G_norm_1`` and
+#   ``world/fields/surface/rho_star_margin``: the surfaces ``||G|| = 1`` and
+#   ``rho* = 1 - certify_margin`` (``skimage.measure.marching_cubes`` on the robust workspace);
+# - ``world/port/{true,estimate}`` (``Points3D``), ``world/port/error_box`` (``Boxes3D``);
+# - ``world/<query>/{planned,direct,segments}``, ``world/<query>/sim/{planned,direct}/{trajectory,tip}``,
+#   ``world/<query>/corners/{planned,direct}``: as in the plane, in 3-D;
+# - ``series/**``, ``gains/**``, ``summary``: the planar recording's time series and summary.
+TURBO_R = (0.13572138, 4.61539260, -42.66032258, 132.13108234, -152.94239396, 59.28637943)
+TURBO_G = (0.09140261, 2.19418839, 4.84296658, -14.18503333, 4.27729857, 2.82956604)
+TURBO_B = (0.10667330, 12.64194608, -60.58204836, 110.36276771, -89.90310912, 27.34824973)
+SURFACE_COLORS = {"G_norm_1": (255, 60, 40, 90), "rho_star_margin": (80, 140, 255, 90)}
+SLICE_ALPHA = 150
+
+
+def turbo(t) -> np.ndarray:
+    """Turbo colormap (polynomial fit of Google's Turbo) for ``t`` in [0, 1]: RGB uint8 (..., 3)."""
+    t = np.clip(np.asarray(t, float), 0.0, 1.0)
+    out = [sum(c * t ** i for i, c in enumerate(coef)) for coef in (TURBO_R, TURBO_G, TURBO_B)]
+    return (np.clip(np.stack(out, axis=-1), 0.0, 1.0) * 255).astype(np.uint8)
+
+
+def slice_mesh(mf, name: str, axis: int, index: int, vrange=(0.0, 1.2)):
+    """The field ``name`` on the grid plane ``axis = axes[axis][index]`` as a coloured triangle mesh:
+    ``(vertices (n, 3), triangles (t, 3), colours (n, 3))``; a grid cell gets its two triangles only
+    where its four corners are in the workspace (valid and finite)."""
+    a = np.asarray(mf.array(name), float)
+    v = np.asarray(mf.valid, bool) & np.isfinite(a)
+    axes = [np.asarray(ax, float) for ax in mf.axes]
+    sl = [slice(None)] * 3
+    sl[axis] = index
+    F, V = a[tuple(sl)], v[tuple(sl)]
+    (ia, ib) = [i for i in range(3) if i != axis]
+    A, B = np.meshgrid(axes[ia], axes[ib], indexing="ij")
+    P = np.zeros(A.shape + (3,))
+    P[..., ia], P[..., ib], P[..., axis] = A, B, axes[axis][index]
+    na, nb = F.shape
+    idx = np.arange(na * nb).reshape(na, nb)
+    cell = V[:-1, :-1] & V[1:, :-1] & V[:-1, 1:] & V[1:, 1:]
+    i00, i10, i01, i11 = idx[:-1, :-1][cell], idx[1:, :-1][cell], idx[:-1, 1:][cell], idx[1:, 1:][cell]
+    tri = np.concatenate([np.stack([i00, i10, i11], -1), np.stack([i00, i11, i01], -1)]).astype(np.uint32)
+    col = turbo((np.where(V, F, vrange[0]) - vrange[0]) / (vrange[1] - vrange[0]))
+    return P.reshape(-1, 3), tri, col.reshape(-1, 3)
+
+
+def level_surface(mf, name: str, level: float):
+    """The surface ``field = level`` inside the robust workspace (marching cubes, scikit-image):
+    ``(vertices (n, 3) in metres, triangles (t, 3), normals (n, 3))``, or None where the field does
+    not cross the level there."""
+    from skimage.measure import marching_cubes
+
+    a = getattr(mf, name, None)
+    if a is None:
+        return None
+    a = np.asarray(a, float)
+    valid = np.asarray(mf.valid, bool) & np.isfinite(a)
+    if min(a.shape) < 2 or not valid.any():
+        return None
+    vals = a[valid]
+    if not (vals.min() < level < vals.max()):
+        return None
+    vol = np.where(valid, a, level)
+    h = mf.resolution
+    try:
+        verts, faces, normals, _ = marching_cubes(vol, level, spacing=(h, h, h), mask=valid)
+    except (ValueError, RuntimeError):
+        return None
+    if not len(faces):
+        return None
+    origin = np.array([ax[0] for ax in mf.axes], float)
+    return verts + origin, faces.astype(np.uint32), normals
+
+
+def _mesh_uris(urdf_text: str) -> list[str]:
+    import xml.etree.ElementTree as ET
+
+    try:
+        root = ET.fromstring(urdf_text)
+    except ET.ParseError:
+        return []
+    return [m.get("filename", "") for m in root.iter("mesh")]
+
+
+def _rpy_matrix(rpy) -> np.ndarray:
+    r, p, y = rpy
+    cr, sr, cp, sp, cy, sy = np.cos(r), np.sin(r), np.cos(p), np.sin(p), np.cos(y), np.sin(y)
+    Rx = np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
+    Ry = np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
+    Rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]])
+    return Rz @ Ry @ Rx
+
+
+class SpatialScene:
+    """What a 3-D recording needs beyond the runs: the arm, the replayed runs (true link angles per
+    state), the slice positions and the mesh URIs with whether they resolve."""
+
+    def __init__(self, sc, mf, runs):
+        from .kinematics import arm_for
+        from .kinematics.truth import Plant
+
+        self.arm = arm_for(sc.robot)
+        truth = Plant.from_scenario(sc)
+        self.names = entity_names(runs)
+        self.replays = []  # (label, query entity, kind, link angles (n, joints), tips (n, 3), wrists (n, 3))
+        self.offsets: dict = {}  # {query entity: {kind: first state on the replay timeline}}
+        start = 0
+        for r, q in zip(runs, self.names):
+            for kind, rep in (("direct", r.sim_direct), ("planned", r.sim_planned)):
+                qa = truth.link_angles_q(rep.sim.q)
+                self.replays.append((f"{r.name} {kind}", q, kind, qa, rep.sim.tip, self.arm.forward(qa)))
+                self.offsets.setdefault(q, {})[kind] = start
+                start += len(qa)
+        self.uris = _mesh_uris(self.arm.urdf_text)
+        self.resolved = [u for u in self.uris if self.arm.resolve_uri(u) is not None]
+        self.meshes_ok = len(self.resolved) == len(self.uris)
+        axes = mf.axes
+        est = np.asarray(sc.port.estimate, float)
+        goals = [p for r in runs for p in (r.start, r.goal)]
+        depth = float(np.median([g[2] for g in goals])) if goals else float(np.mean(axes[2]))
+        target = (est[0], est[1], depth)
+        self.slice_index = [int(np.argmin(np.abs(np.asarray(ax) - t))) for ax, t in zip(axes, target)]
+        lo = np.array([ax[0] for ax in axes], float)
+        hi = np.array([ax[-1] for ax in axes], float)
+        self.centre = 0.5 * (lo + hi)
+        self.extent = float(np.max(hi - lo))
+        self.fields = [n for n in ("G_norm", "rho_star") if getattr(mf, n, None) is not None]
+        self.surfaces = {}
+        if getattr(mf, "G_norm", None) is not None:
+            self.surfaces["G_norm_1"] = level_surface(mf, "G_norm", 1.0)
+        if getattr(mf, "rho_star", None) is not None:
+            self.surfaces["rho_star_margin"] = level_surface(mf, "rho_star", 1.0 - sc.planner.certify_margin)
+
+
+def _package_env(arm) -> dict:
+    """``ROS_PACKAGE_PATH`` for rerun's URDF importer: the scenario's ``package_path`` (relative
+    entries against the URDF's folder, as :meth:`UrdfArm.resolve_uri`) then the environment's."""
+    dirs = []
+    for d in arm.package_path:
+        p = Path(d)
+        dirs.append(str(p if p.is_absolute() else arm.urdf_path.parent / p))
+    old = os.environ.get("ROS_PACKAGE_PATH", "")
+    return {"ROS_PACKAGE_PATH": os.pathsep.join(dirs + ([old] if old else []))}
+
+
+def _load_urdf_tree(arm):
+    """``rerun.urdf.UrdfTree`` of the arm's URDF under ``world/<robot name>`` (mesh URIs resolved
+    through :func:`_package_env`), or None when rerun cannot read it."""
+    import rerun.urdf as ru
+
+    env = _package_env(arm)
+    saved = {k: os.environ.get(k) for k in env}
+    try:
+        os.environ.update(env)
+        # (the prefix is one entity-path part: the robot lands under world/<robot name>/...)
+        return ru.UrdfTree.from_file_path(str(arm.urdf_path), "world", frame_prefix="robot/")
+    except Exception:  # rerun's importer refused the file: the links are drawn as lines
+        return None
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+def _log_robot(rec, rr, sc, scene) -> dict:
+    """The URDF robot, its placement, held joints, and the replay of every run (``replay`` timeline)."""
+    arm = scene.arm
+    ui = rr.Radius.ui_points
+    tree = _load_urdf_tree(arm)
+    info = {"urdf_loaded": tree is not None, "meshes": len(scene.uris), "meshes_resolved": len(scene.resolved)}
+    joints = {}
+    if tree is not None:
+        env = _package_env(arm)
+        saved = os.environ.get("ROS_PACKAGE_PATH")
+        try:
+            os.environ.update(env)
+            tree.log_urdf_to_recording(rec)
+        finally:
+            if saved is None:
+                os.environ.pop("ROS_PACKAGE_PATH", None)
+            else:
+                os.environ["ROS_PACKAGE_PATH"] = saved
+        root = tree.root_link().name
+        rec.log("world/robot/placement",
+                rr.Transform3D(translation=list(arm.base_position), mat3x3=_rpy_matrix(arm.base_rpy),
+                               parent_frame="tf#/world", child_frame=f"robot/{root}"), static=True)
+        for name, val in arm.fixed_joints.items():
+            j = tree.get_joint_by_name(name)
+            if j is not None and j.joint_type != "fixed":
+                rec.log(f"world/robot/joints/{name}", j.compute_transform(float(val), clamp=False), static=True)
+        joints = {name: tree.get_joint_by_name(name) for name in arm.joint_names}
+    # the replay: one state per row of the concatenated runs
+    offset = 0
+    link_col = (170, 170, 185) if (tree is not None and scene.meshes_ok) else (230, 230, 240)
+    link_r = ui(1.5) if (tree is not None and scene.meshes_ok) else ui(4.0)
+    for label, q, kind, qa, tips, wrists in scene.replays:
+        n = len(qa)
+        seq = np.arange(offset, offset + n)
+        tl = rr.TimeColumn("replay", sequence=seq)
+        for i, name in enumerate(arm.joint_names):
+            j = joints.get(name)
+            if j is not None:
+                rec.send_columns(f"world/robot/joints/{name}", indexes=[tl],
+                                 columns=j.compute_transform_columns(qa[:, i].tolist(), clamp=False))
+        rec.set_time("replay", sequence=offset)
+        rec.log("replay/run", rr.TextLog(f"{label}: {n - 1} steps"))
+        col = PLANNED_COLOR if kind == "planned" else DIRECT_COLOR
+        chain = arm.chain_points(qa)
+        port = np.asarray(sc.port.position, float)
+        for i in range(n):
+            rec.set_time("replay", sequence=offset + i)
+            rec.log("world/robot/links", rr.LineStrips3D([chain[i]], colors=link_col, radii=link_r))
+            rec.log("world/robot/shaft", rr.LineStrips3D([[wrists[i], port, tips[i]]], colors=(235, 235, 235),
+                                                         radii=ui(2.0)))
+            rec.log("world/robot/tip", rr.Points3D(tips[i:i + 1], colors=col, radii=ui(6.0), labels=[label],
+                                                   show_labels=i == 0))
+        offset += n
+    rec.reset_time()
+    info["replay_states"] = offset
+    return info
+
+
+def _log_plan_spatial(rec, rr, sc, mf, runs, scene) -> None:
+    ui = rr.Radius.ui_points
+    rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Y_UP, static=True)
+    info = _log_robot(rec, rr, sc, scene)
+    axes_names = ("x", "y", "z")
+    for n in scene.fields:
+        vr = FIELD_RANGES[n]
+        for axis, idx in enumerate(scene.slice_index):
+            P, T, C = slice_mesh(mf, n, axis, idx, vr)
+            if len(T):
+                rec.log(f"world/fields/{n}/{axes_names[axis]}",
+                        rr.Mesh3D(vertex_positions=P, triangle_indices=T, vertex_colors=C,
+                                  albedo_factor=(255, 255, 255, SLICE_ALPHA)), static=True)
+    for key, surf in scene.surfaces.items():
+        if surf is not None:
+            V, T, N = surf
+            rec.log(f"world/fields/surface/{key}",
+                    rr.Mesh3D(vertex_positions=V, triangle_indices=T, vertex_normals=N,
+                              albedo_factor=SURFACE_COLORS[key]), static=True)
+    rec.log("world/port/true", rr.Points3D([sc.port.position], colors=PORT_TRUE_COLOR, radii=ui(7.0),
+                                           labels=["true port"]), static=True)
+    rec.log("world/port/estimate", rr.Points3D([sc.port.estimate], colors=PORT_EST_COLOR, radii=ui(7.0),
+                                               labels=["estimated port"]), static=True)
+    u = sc.uncertainty
+    box = [u.port_x or (0.0, 0.0), u.port_y or (0.0, 0.0), u.port_z or (0.0, 0.0)]
+    if any(b != (0.0, 0.0) for b in box):
+        e = np.asarray(sc.port.estimate, float)
+        lo, hi = e + [b[0] for b in box], e + [b[1] for b in box]
+        rec.log("world/port/error_box", rr.Boxes3D(centers=[0.5 * (lo + hi)], half_sizes=[0.5 * (hi - lo)],
+                                                   colors=PORT_EST_COLOR, radii=ui(1.0)), static=True)
+    for r, q in zip(runs, scene.names):
+        base = f"world/{q}"
+        rec.log(f"{base}/planned", rr.LineStrips3D([r.planned_path], colors=PLANNED_COLOR, radii=ui(3.5)), static=True)
+        rec.log(f"{base}/direct", rr.LineStrips3D([r.direct_path], colors=DIRECT_COLOR, radii=ui(2.5)), static=True)
+        segs = r.schedule.segments
+        rec.log(f"{base}/segments", rr.Points3D(
+            np.array([s.end for s in segs]), radii=ui(3.0),
+            colors=[PLANNED_COLOR if s.certified else DIRECT_COLOR for s in segs],
+            labels=[f"k={s.gain:.3f} ‖G‖≤{s.certified_G_norm:.3f}" for s in segs], show_labels=False), static=True)
+        for kind, rep, col in (("planned", r.sim_planned, PLANNED_COLOR), ("direct", r.sim_direct, DIRECT_COLOR)):
+            rec.log(f"{base}/sim/{kind}/trajectory",
+                    rr.LineStrips3D([rep.sim.tip], colors=tuple(int(0.6 * c) for c in col), radii=ui(1.5)), static=True)
+        for kind, reps, col in (("planned", r.corner_planned, PLANNED_COLOR), ("direct", r.corner_direct, DIRECT_COLOR)):
+            if reps:
+                rec.log(f"{base}/corners/{kind}",
+                        rr.LineStrips3D([x.sim.tip for x in reps], colors=tuple(int(0.4 * c) for c in col),
+                                        radii=ui(0.75)), static=True)
+        tip_of = lambda pts, col: rr.Points3D(pts, colors=col, radii=ui(5.0))  # noqa: E731
+        _log_query_series(rec, rr, r, q, base, tip_of, scene.offsets[q])
+    text = _markdown_summary(sc, runs) + "\n" + _spatial_notes(sc, mf, scene, info)
+    rec.log("summary", rr.TextDocument(text, media_type="text/markdown"), static=True)
+
+
+def _spatial_notes(sc, mf, scene, info) -> str:
+    axes = mf.axes
+    at = ", ".join(f"{a} = {axes[i][j]:.3f} m" for i, (a, j) in enumerate(zip(("x", "y", "z"), scene.slice_index)))
+    robot = (f"robot: {scene.arm.urdf_path.name}, {info['meshes_resolved']}/{info['meshes']} mesh files resolved"
+             + ("" if info["urdf_loaded"] else " (rerun could not read the URDF: links drawn as lines)")
+             + ("" if scene.meshes_ok else "; links drawn as lines where meshes are missing"))
+    surf = "; ".join(f"{k}: {'none in the region' if v is None else f'{len(v[1])} triangles'}"
+                     for k, v in scene.surfaces.items())
+    return "\n".join([
+        "## 3-D scene", "",
+        f"- {robot}; the `replay` timeline plays every simulated run under the truth ({info['replay_states']} states).",
+        f"- field slices ({', '.join(scene.fields)}) at {at}; Turbo 0 to 1.2 for ||G||, 0 to 1 for rho*.",
+        f"- surfaces: ||G|| = 1 at gain {sc.controller.gain:g} (red), rho* = {1 - sc.planner.certify_margin:g} (blue); {surf}.",
+        "- white: true port; yellow: estimated port and the port error box.", ""])
+
+
+def blueprint_spatial(runs, scene):
+    """A 3-D view of the task region (robot, ||G|| slices and surfaces, ports, paths, trajectories)
+    looking at it obliquely from the patient's side; series, gains, summary and the other fields
+    in tabs; the time panel on the ``replay`` timeline."""
+    import rerun.blueprint as rrb
+
+    names = scene.names
+    corners = [f"- /world/{q}/corners/**" for q in names]
+    hidden_fields = [f"- /world/fields/{n}/**" for n in scene.fields if n != "G_norm"]
+    hidden_fields.append("- /world/fields/surface/rho_star_margin")
+    c = scene.centre
+    e = scene.extent
+    eye = rrb.EyeControls3D(position=[c[0] + 1.1 * e, c[1] + 0.8 * e, c[2] + 1.3 * e], look_target=list(c),
+                            eye_up=[0.0, 1.0, 0.0], kind=rrb.Eye3DKind.Orbital)
+    main = rrb.Spatial3DView(origin="/world", contents=["+ /world/**"] + hidden_fields + corners,
+                             name="3-D: robot, worst-case ||G|| slices, ||G|| = 1 surface, paths", eye_controls=eye)
+    others = [rrb.Spatial3DView(origin="/world", name=f"field {n} and the surface rho* = 1 - margin",
+                                contents=["+ /world/**", "- /world/fields/G_norm/**", "- /world/fields/surface/G_norm_1"]
+                                + [f"- /world/fields/{m}/**" for m in scene.fields if m not in (n, "G_norm")] + corners,
+                                eye_controls=eye)
+              for n in scene.fields if n != "G_norm"]
+    others.append(rrb.Spatial3DView(origin="/world", name="replays under the port-box corners", eye_controls=eye,
+                                    contents=["+ /world/**", "- /world/fields/**"] + [f"- /world/{q}/sim/**" for q in names]))
+    series = []
+    for r, q in zip(runs, names):
+        series.append(rrb.TimeSeriesView(origin=f"series/{q}",
+                                         contents=[f"+ series/{q}/planned/error", f"+ series/{q}/direct/error"],
+                                         name=f"{r.name}: error length (m) per step"))
+        series.append(rrb.TimeSeriesView(origin=f"series/{q}",
+                                         contents=[f"+ series/{q}/planned/phi", f"+ series/{q}/direct/phi"],
+                                         name=f"{r.name}: φ (rad) per step"))
+    gains = [rrb.TimeSeriesView(origin="gains", name="per-segment gain and certified ||G||")]
+    groups = [rrb.Vertical(*series[i:i + 4], name="series: " + ", ".join(r.name for r in runs[i // 2:i // 2 + 2]))
+              for i in range(0, len(series), 4)]
+    right = rrb.Tabs(*groups, *gains, rrb.TextDocumentView(origin="summary", name="summary"),
+                     rrb.TextLogView(origin="replay", name="replay: which run plays"), *others)
+    return rrb.Blueprint(rrb.Horizontal(main, right, column_shares=[3, 2]),
+                         rrb.TimePanel(timeline="replay", state="collapsed"), collapse_panels=True)
 
 
 def expected_rows(runs) -> dict[str, int]:

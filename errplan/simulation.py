@@ -6,6 +6,10 @@ step. ``Jhat`` comes from the controller's *model* (:class:`ControllerModel`: ri
 the port estimate, or P2's flexion model fed by measured end poses); the motion comes from the
 *truth* (:class:`Plant`: true port, tip load, and any effects of docs/physics.md).
 
+Planar and spatial with the same code (docs/physics.md "Spatial robots"): points, motions and
+Jacobians are ``(..., d)`` / ``(..., d, d)`` with ``d`` the plant's dimension; in 3-D the arm is
+the scenario's URDF arm and the controller the rigid lever through the port estimate.
+
 This module imports neither ompl nor casadi nor rerun.
 """
 from __future__ import annotations
@@ -24,23 +28,62 @@ __all__ = ["Plant", "effect_kwargs", "ControllerModel", "SimResult", "simulate",
 from .metrics import inv2
 
 
+def inv(A: np.ndarray, rcond: float = 1e-12) -> tuple[np.ndarray, np.ndarray]:
+    """Inverse of (..., d, d) matrices and a singular mask: the planar :func:`errplan.metrics.inv2`,
+    and in 3-D ``np.linalg.inv`` where ``|det| > rcond ||A||_F^3`` (NaN elsewhere)."""
+    A = np.asarray(A, float)
+    if A.shape[-1] == 2:
+        return inv2(A, rcond)
+    det = np.linalg.det(A)
+    scale = np.sqrt(np.einsum("...ij,...ij->...", A, A)) ** A.shape[-1]
+    singular = ~(np.abs(det) > rcond * scale)
+    safe = np.where(singular[..., None, None], np.eye(A.shape[-1]), A)
+    out = np.linalg.inv(safe)
+    return np.where(singular[..., None, None], np.nan, out), singular
+
+
+def spectral_norm(A: np.ndarray) -> np.ndarray:
+    """Largest singular value of (..., d, d) matrices (planar closed form, SVD in 3-D)."""
+    A = np.asarray(A, float)
+    if A.shape[-1] == 2:
+        from .metrics import spectral_norm as sn2
+
+        return sn2(A)
+    ok = np.all(np.isfinite(A), axis=(-2, -1))
+    s = np.linalg.svd(np.where(ok[..., None, None], A, 0.0), compute_uv=False)[..., 0]
+    return np.where(ok, s, np.nan)
+
+
 # ----------------------------------------------------------------------------- controller
 @dataclass(frozen=True)
 class ControllerModel:
     """The controller's model: the declared arm and shaft, the port estimate, and ``jacobian``
     ("rigid": lever through ``port_estimate``; "flexion": P2's model fed measured end poses)."""
 
-    arm: Arm
+    arm: Arm  # or a UrdfArm (3-D)
     length: float
-    port_estimate: tuple[float, float]
+    port_estimate: tuple[float, ...]
     jacobian: str = "rigid"
     noise: tuple[float, float] = (0.0, 0.0)  # flexion: uniform bounds on (position, angle)
 
     @classmethod
     def from_scenario(cls, sc) -> "ControllerModel":
         n = sc.uncertainty.sensor_noise
-        return cls(Arm.from_robot(sc.robot), sc.instrument.length, tuple(sc.port.estimate),
+        if getattr(sc, "dim", 2) == 3:
+            from .kinematics import arm_for
+
+            if sc.controller.jacobian != "rigid":
+                raise ErrplanError(f"{sc.source}: [controller] jacobian = {sc.controller.jacobian!r}: in 3-D errplan "
+                                   "runs the rigid controller (P2's flexion controller is planar)")
+            arm = arm_for(sc.robot)
+        else:
+            arm = Arm.from_robot(sc.robot)
+        return cls(arm, sc.instrument.length, tuple(sc.port.estimate),
                    sc.controller.jacobian, (n.position, n.angle) if n else (0.0, 0.0))
+
+    @property
+    def dim(self) -> int:
+        return len(self.port_estimate)
 
     def model_tip(self, q: np.ndarray) -> np.ndarray:
         """Tip the model predicts for encoder angles (rigid lever through the estimate)."""
@@ -49,7 +92,7 @@ class ControllerModel:
         return lever_tip(self.arm.forward(q), np.asarray(self.port_estimate), self.length)
 
     def J_hat(self, q: np.ndarray, plant: Plant | None = None, rng: np.random.Generator | None = None) -> np.ndarray:
-        """``Jhat(q)`` (..., 2, 2), tip w.r.t. joints."""
+        """``Jhat(q)`` (..., d, d), tip w.r.t. joints."""
         q = np.asarray(q, float)
         Jr = self.arm.jacobian(q)
         if self.jacobian == "rigid":
@@ -80,13 +123,13 @@ class ControllerModel:
 class SimResult:
     """One simulated run. Arrays have one row per step (step 0 is the state before the first command)."""
 
-    q: np.ndarray          # (n, 2) encoder angles
-    tip: np.ndarray        # (n, 2) true tip
-    tracked: np.ndarray    # (n, 2) tracked tip
-    target: np.ndarray     # (n, 2) active target when this state was read
+    q: np.ndarray          # (n, joints) encoder angles
+    tip: np.ndarray        # (n, d) true tip
+    tracked: np.ndarray    # (n, d) tracked tip
+    target: np.ndarray     # (n, d) active target when this state was read
     segment: np.ndarray    # (n,) index of the active segment
     gain: np.ndarray       # (n,) gain applied from this state
-    path: np.ndarray       # (m, 2) the intended path (start, segment ends...)
+    path: np.ndarray       # (m, d) the intended path (start, segment ends...)
     converged: bool
     status: str            # "converged" | "max_steps" | "left_workspace"
     tolerance: float
@@ -110,7 +153,10 @@ class SimResult:
         """Angle (rad) between each commanded (desired) motion and the actual motion, per step."""
         desired = self.target[:-1] - self.tracked[:-1]
         actual = self.tip[1:] - self.tip[:-1]
-        cross = desired[:, 0] * actual[:, 1] - desired[:, 1] * actual[:, 0]
+        if desired.shape[-1] == 2:
+            cross = desired[:, 0] * actual[:, 1] - desired[:, 1] * actual[:, 0]
+        else:
+            cross = np.linalg.norm(np.cross(desired, actual), axis=-1)
         dot = np.sum(desired * actual, axis=-1)
         moving = (np.linalg.norm(actual, axis=-1) > 1e-12) & (np.linalg.norm(desired, axis=-1) > 1e-12)
         return np.where(moving, np.abs(np.arctan2(cross, dot)), 0.0)
@@ -139,7 +185,7 @@ class SimResult:
 
 
 def distance_to_polyline(pts: np.ndarray, path: np.ndarray) -> np.ndarray:
-    """Distance (n,) from points (n, 2) to a polyline (m, 2)."""
+    """Distance (n,) from points (n, d) to a polyline (m, d)."""
     pts = np.asarray(pts, float)
     path = np.asarray(path, float)
     if len(path) == 1:
@@ -166,7 +212,7 @@ def plant_at(plant: Plant, q_true: np.ndarray):
 def simulate(plant: Plant, controller: ControllerModel, q0: np.ndarray, waypoints, gains, *,
              tolerance: float = 1e-5, max_steps: int = 2000, rng: np.random.Generator | None = None,
              path_start=None, switch_tolerance: float | None = None, model: Plant | None = None) -> SimResult:
-    """Drive the tip through ``waypoints`` (m, 2) with per-segment ``gains`` (m,).
+    """Drive the tip through ``waypoints`` (m, d) with per-segment ``gains`` (m,).
 
     The controller aims at waypoint ``i`` until the tracked tip is within ``tolerance`` of it, then
     switches to the next (``switch_tolerance``, default ``tolerance``, for the intermediate
@@ -199,7 +245,10 @@ def simulate(plant: Plant, controller: ControllerModel, q0: np.ndarray, waypoint
     q = np.asarray(q0, float).copy()
     if not plant.arm.within_limits(plant.link_angles_q(q)):
         raise ErrplanError(f"start configuration {q.tolist()} is outside the joint limits")
-    u = np.zeros(2)
+    d = len(np.asarray(plant.port))
+    if wp.shape[-1] != d:
+        raise ErrplanError(f"waypoints of shape {wp.shape}: expected (m, {d}) points of the plant's space")
+    u = np.zeros(d)
     q_true = q.copy()  # the joints' commanded (reached) angles; q holds the encoder reading
     tip = plant.tip(q_true, u)
     Q, T, X, TG, SEG, K = [], [], [], [], [], []
@@ -208,7 +257,7 @@ def simulate(plant: Plant, controller: ControllerModel, q0: np.ndarray, waypoint
     for _ in range(max_steps + 1):
         tracked = tip + np.asarray(plant.tracker_offset)
         if rng is not None and plant.tracker_sigma > 0:
-            tracked = tracked + rng.normal(0.0, plant.tracker_sigma, 2)
+            tracked = tracked + rng.normal(0.0, plant.tracker_sigma, d)
         # switch targets on convergence
         while seg < len(wp) - 1 and np.linalg.norm(wp[seg] - tracked) < switch_tol:
             seg += 1
@@ -221,14 +270,14 @@ def simulate(plant: Plant, controller: ControllerModel, q0: np.ndarray, waypoint
         if len(Q) > max_steps:
             break
         Jh = controller.J_hat(q, plant if controller.jacobian == "rigid" else plant_at(plant, q_true), rng)
-        Jinv, singular = inv2(Jh)
+        Jinv, singular = inv(Jh)
         if singular:
             status = "left_workspace"
             break
         dq = gains[seg] * (Jinv @ err)
         q_new = q + dq
         if rng is not None and plant.encoder_sigma > 0:
-            q_read = q_new + rng.normal(0.0, plant.encoder_sigma, 2)
+            q_read = q_new + rng.normal(0.0, plant.encoder_sigma, q_new.shape)
         else:
             q_read = q_new
         # the motion this command produces under the declared model (friction opposes it)
@@ -251,8 +300,6 @@ def g_norm_along(result: SimResult, plant: Plant, controller: ControllerModel) -
     controller's (flexion: noise-free end poses). Useful beside :attr:`SimResult.monotonic`:
     to first order the error length can only grow at a step where this exceeds 1.
     """
-    from .metrics import spectral_norm
-
     n = result.steps
     if n == 0:
         return np.zeros(0)
@@ -262,7 +309,8 @@ def g_norm_along(result: SimResult, plant: Plant, controller: ControllerModel) -
         Jh = controller.J_hat(q)
     else:
         Jh = np.stack([controller.J_hat(qi, plant_at(plant, qi)) for qi in q])
-    Jinv, singular = inv2(Jh)
-    G = np.eye(2) - result.gain[:n, None, None] * (J @ Jinv)
+    Jinv, singular = inv(Jh)
+    d = J.shape[-1]
+    G = np.eye(d) - result.gain[:n, None, None] * (J @ Jinv)
     g = spectral_norm(G)
     return np.where(singular | ~np.isfinite(g), np.inf, g)

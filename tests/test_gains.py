@@ -1,6 +1,8 @@
 """Certified per-segment gains (errplan.gains): the casadi optimum against a brute-force scan, the
 certificates against independent brute force, every bundled plan certified and replayed under every
-corner of the error box with a controller loop written here (not errplan.simulation)."""
+corner of the error box with a controller loop written here (not errplan.simulation). 3-D: the
+cutting-plane casadi optimum against an SVD scan, the cut rows, the kernels' motion maps against numpy,
+the 3-D balls; the spatial certificates end to end are in tests/test_pipeline_spatial.py."""
 from __future__ import annotations
 
 import math
@@ -193,8 +195,8 @@ def _bundled_plans():
     out = []
     for path in sorted((ROOT / "scenarios").glob("*.toml")):
         sc = load_scenario(path)
-        if not sc.queries:
-            continue
+        if not sc.queries or sc.dim != 2:
+            continue  # the spatial PHANToM: tests/test_pipeline_spatial.py (coarser fields, 3-D replays)
         for qp in planning.plan_scenario(sc, compute_fields(sc, rho_star=True)).queries:
             out.append((sc, qp.name, np.asarray(qp.planned.path, float)))
     return out
@@ -262,3 +264,178 @@ def test_bundled_plans_converge_monotonically_under_every_corner(bundled):
             assert ok, (sc.name, name, theta.tolist(), steps)
             n += 1
     assert n >= 9  # 8 corners of the bounded box x its queries + the port scenario
+
+
+# ----------------------------------------------------------------------------- 3-D
+PHANTOM = ROOT / "scenarios" / "phantom15_spatial.toml"
+
+
+def _svd_rho(M, k):
+    """max_i ||I - k M_i||_2 by numpy's SVD (independent of the compiled closed form)."""
+    k = np.atleast_1d(k)
+    G = np.eye(3)[None, None] - k[:, None, None, None] * M[None]
+    return np.linalg.norm(G, ord=2, axis=(-2, -1)).max(axis=1)
+
+
+def test_spatial_ball_tips_cover_the_ball():
+    from errplan.gains import sphere_points
+
+    c = np.array([0.01, -0.02, 0.35])
+    x = ball_tips(c, 0.02, 90, 40)
+    d = np.linalg.norm(x - c, axis=-1)
+    assert x.shape == (131, 3) and d.min() == 0.0 and d.max() == pytest.approx(0.02)
+    assert np.sum(np.isclose(d, 0.02)) == 40
+    # the volume points are spread evenly: mean radius of a uniform ball is 3/4 R
+    assert d[1:91].mean() == pytest.approx(0.75 * 0.02, rel=0.03)
+    u = sphere_points(400)
+    assert np.allclose(np.linalg.norm(u, axis=-1), 1.0) and np.linalg.norm(u.mean(axis=0)) < 0.01
+
+
+def test_cut_rows_are_exact_in_their_direction():
+    """||(I - kM) v||^2 = (1 - k a)^2 + (k b)^2 with v the top right singular vector: the cut equals
+    sigma_max at the gain it was taken at and never exceeds it elsewhere."""
+    from errplan.gains import cut_rows, gnorm3_grid
+
+    rng = np.random.default_rng(3)
+    M = np.eye(3) + 0.4 * rng.normal(size=(50, 3, 3))
+    for k in (0.3, 0.9, 1.4):
+        rows = cut_rows(M, k)
+        cut = np.sqrt((1 - k * rows[:, 0]) ** 2 + (k * rows[:, 1]) ** 2)
+        exact = np.linalg.norm(np.eye(3) - k * M, ord=2, axis=(-2, -1))
+        assert np.allclose(cut, exact, rtol=1e-10)
+        assert np.allclose(gnorm3_grid(M, k)[0], exact, rtol=1e-10)
+        for k2 in (0.1, 0.6, 2.0):
+            assert np.all(np.sqrt((1 - k2 * rows[:, 0]) ** 2 + (k2 * rows[:, 1]) ** 2)
+                          <= np.linalg.norm(np.eye(3) - k2 * M, ord=2, axis=(-2, -1)) + 1e-12)
+
+
+@pytest.mark.parametrize("a,b", [((0.0, 0.0, 0.40), (0.0, 0.0, 0.38)),          # on the port axis, deep
+                                 ((-0.06, 0.03, 0.36), (-0.045, 0.035, 0.37))])  # off axis
+def test_spatial_casadi_gain_matches_svd_scan(a, b):
+    """The cutting-plane casadi problem on a 3-D segment's pruned optimiser sample: the same gain and
+    worst case over the WHOLE sample as a brute-force scan of numpy SVD norms (201 gains, then 2,001
+    between the neighbours of the best)."""
+    from errplan.gains import SpatialModel, _initial_cuts, _k_upper_M, _scan_M, _solve_with_cuts
+
+    sc = load_scenario(PHANTOM)
+    ev = SpatialModel(sc)
+    opts = options_from_scenario(sc)
+    R = float(np.linalg.norm(np.subtract(b, a))) + opts.switch_tolerance
+    smp = _sample_segment(ev, np.array(a), np.array(b), R, opts)
+    M = smp["M"]
+    assert smp["singular"] == 0 and len(M) > 500
+    ku = _k_upper_M(M)
+    kg = np.linspace(ku / 201, ku, 201)
+    G = np.concatenate([np.linalg.norm(np.eye(3) - kk * M, ord=2, axis=(-2, -1))[None] for kk in kg])  # (201, p)
+    j = int(np.argmin(G.max(axis=1)))
+    lo, hi = kg[max(j - 1, 0)], kg[min(j + 1, 200)]
+    # the fine scan between the neighbours of the coarse minimum, on the pairs near the top there
+    near = np.unique(np.argsort(-G[[max(j - 1, 0), j, min(j + 1, 200)]], axis=1)[:, :40])
+    kf = np.linspace(lo, hi, 2001)
+    vals = _svd_rho(M[near], kf)
+    i = int(np.argmin(vals))
+    k_scan, rho_scan = kf[i], float(_svd_rho(M, kf[i])[0])
+    # the schedule's own pruning (top pairs on the compiled k-grid), started away from the optimum
+    idx = _scan_M(M)[3]
+    assert len(idx) < len(M) / 5
+    Mp = M[idx]
+    prob = [{"rows": _initial_cuts(Mp, 0.5 * k_scan, ku), "ku": ku, "d": R, "tol": opts.tolerance,
+             "k0": 0.5 * k_scan, "rho0": float(_svd_rho(M, 0.5 * k_scan)[0])}]
+    ks, info = _solve_with_cuts(prob, [Mp], opts, [False])
+    assert info["success"], info
+    rho_cas = float(_svd_rho(M, ks[0])[0])
+    assert abs(ks[0] - k_scan) < 2e-3 and abs(rho_cas - rho_scan) < 1e-5
+    assert rho_cas <= rho_scan + 1e-9
+    assert info["cut_rounds"] >= 1
+
+
+def test_spatial_motion_maps_match_numpy_physics():
+    """The compiled kernels' M = J Jhat^-1 at (tip, instance) pairs against the numpy shaft model at the
+    wrist and load SpatialModel.wrists derives (central differences of flexed_tip for J)."""
+    from errplan.gains import SpatialModel
+    from errplan.kinematics.shaft import flexed_tip as ftip
+
+    sc = load_scenario(PHANTOM)
+    ev = SpatialModel(sc)
+    rng = np.random.default_rng(11)
+    x = np.array([0.0, 0.0, 0.36]) + rng.uniform(-0.05, 0.05, (40, 3))
+    th = ev.instances(3)[rng.integers(0, len(ev.instances(3)), 40)]
+    M, ok = ev.maps_paired(x, th)
+    p, w, t, reach = ev.wrists(x, th)
+    assert np.array_equal(ok, reach) and ok.mean() > 0.8
+    L = ev.length
+    assert np.allclose(ftip(w, p, L, t)[ok], x[ok], atol=1e-12)
+    h = 1e-6
+    for i in np.flatnonzero(ok):
+        J = np.stack([(ftip(w[i] + h * e, p[i], L, t[i]) - ftip(w[i] - h * e, p[i], L, t[i])) / (2 * h)
+                      for e in np.eye(3)], axis=-1)
+        d = ev.estimate - w[i]
+        r = np.linalg.norm(d)
+        Jh = np.eye(3) - (L / r) * (np.eye(3) - np.outer(d, d) / r ** 2)
+        assert np.allclose(M[i], J @ np.linalg.inv(Jh), atol=2e-7)
+
+
+def test_spatial_step_ratio_matches_a_hand_step():
+    """SpatialModel.step_ratio against one controller step written with pinocchio (FK and frame Jacobian
+    of the wrist) and the straight shaft."""
+    import pinocchio as pin
+    from errplan.gains import SpatialModel
+
+    sc = load_scenario(PHANTOM)
+    ev = SpatialModel(sc)
+    arm = ev.arm
+    model = pin.buildModelFromUrdf(str(arm.urdf_path))
+    data = model.createData()
+    fid = model.getFrameId(sc.robot.wrist)
+    L = ev.length
+    b = np.array([0.01, 0.0, 0.37])
+    x = np.array([[0.02, 0.01, 0.38], [-0.005, -0.01, 0.36]])
+    th = np.array([[0.005, -0.005, 0.005, 0.0, 0.0], [-0.005, 0.0, 0.005, 0.0, 0.0]])
+    k = 0.8
+    got = ev.step_ratio(b, x, th, k)
+    R = np.eye(3)  # base_rpy = 0 for the bundled PHANToM
+    base = np.asarray(sc.robot.base_position)
+
+    def fk(q):
+        pin.framesForwardKinematics(model, data, q)
+        return base + R @ data.oMf[fid].translation
+
+    def jac(q):
+        pin.computeJointJacobians(model, data, q)
+        pin.framesForwardKinematics(model, data, q)
+        return R @ pin.getFrameJacobian(model, data, fid, pin.LOCAL_WORLD_ALIGNED)[:3, :3]
+
+    for i in range(2):
+        port = np.asarray(sc.port.estimate) + th[i, :3]
+        w = x[i] - L * (x[i] - port) / np.linalg.norm(x[i] - port)
+        q, ok = arm.inverse(w)
+        assert ok and np.allclose(fk(q), w, atol=1e-9)
+        d = np.asarray(sc.port.estimate) - w
+        r = np.linalg.norm(d)
+        Jh = (np.eye(3) - (L / r) * (np.eye(3) - np.outer(d, d) / r ** 2)) @ jac(q)
+        q2 = q + k * np.linalg.solve(Jh, b - x[i])
+        w2 = fk(q2)
+        x2 = w2 + L * (port - w2) / np.linalg.norm(port - w2)
+        assert got[i] == pytest.approx(np.linalg.norm(x2 - b) / np.linalg.norm(x[i] - b), rel=1e-8)
+
+
+def test_spatial_singular_free_balls():
+    """Near the port the controller's lever can be singular: such balls are refused (never certified)."""
+    from errplan.gains import SpatialModel
+
+    sc = load_scenario(PHANTOM)
+    ev = SpatialModel(sc)
+    est = np.asarray(sc.port.estimate)
+    assert ev.singular_free(est + [0, 0, 0.2], 0.02)
+    assert not ev.singular_free(est + [0, 0, 0.02], 0.005)
+    gs = single_segment(ev, est + [0.0, 0.0, 0.03], est + [0.0, 0.0, 0.02])
+    s = gs.segments[0]
+    assert not s.certified and "singular" in s.reason
+
+
+def test_spatial_bad_path_shape():
+    from errplan.gains import SpatialModel
+
+    ev = SpatialModel(load_scenario(PHANTOM))
+    with pytest.raises(ErrplanError, match=r"\(m >= 2, 3\)"):
+        schedule_gains(ev, np.array([[0.0, 0.35], [0.01, 0.36]]))

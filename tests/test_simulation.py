@@ -262,3 +262,111 @@ def test_simulation_size_is_checked_before_running():
     q0 = plant.configuration_for_tip(np.array([0.0, 0.36]))
     with pytest.raises(ErrplanError, match=r"max_steps = 1000000000000000: the simulated run would need .*PiB"):
         simulate(plant, ctrl, q0, [[0.0, 0.37]], [0.5], max_steps=10**15)
+
+
+# ----------------------------------------------------------------------------- 3-D (URDF arm)
+PHANTOM = ROOT / "scenarios" / "phantom15_spatial.toml"
+
+
+def _phantom(**port):
+    doc = tomllib.loads(PHANTOM.read_text())
+    doc["port"].update(port)
+    return parse_scenario(doc, str(PHANTOM))
+
+
+def _fd(f, q, h=1e-7):
+    return np.stack([(f(q + h * e) - f(q - h * e)) / (2 * h) for e in np.eye(len(q))], axis=-1)
+
+
+@pytest.mark.parametrize("x0", [(0.0, 0.0, 0.36), (0.04, -0.03, 0.40), (-0.06, 0.05, 0.33)])
+def test_spatial_exact_model_converges_quadratically(x0):
+    """The URDF arm with the port where the controller believes it (the bundled PHANToM), k = 1: one
+    step is a Newton step, the error after it shrinks like the square of the error before."""
+    sc = _phantom()
+    plant, ctrl = Plant.from_scenario(sc), ControllerModel.from_scenario(sc)
+    assert plant.dim == 3 and ctrl.dim == 3
+    q0 = plant.configuration_for_tip(np.asarray(x0))
+    assert np.allclose(plant.tip(q0), x0, atol=1e-12)
+    errs = []
+    for e0 in (1e-3, 1e-4):
+        target = np.asarray(x0) + e0 * np.array([0.48, 0.6, 0.64])
+        r = simulate(plant, ctrl, q0, [target], [1.0], max_steps=1, tolerance=1e-15)
+        errs.append(np.linalg.norm(r.tip[-1] - target) / e0)
+    assert errs[0] < 50 * 1e-3 and errs[1] < 0.2 * errs[0]
+
+
+def test_spatial_g_norm_along_matches_finite_differences():
+    """g_norm_along in 3-D: the truth's Jacobian (true port off the estimate) against central differences
+    of the plant's tip, the controller's against differences of its model tip, numpy's SVD."""
+    sc = _phantom(position=[0.004, -0.003, 0.165])
+    plant, ctrl = Plant.from_scenario(sc), ControllerModel.from_scenario(sc)
+    q0 = plant.configuration_for_tip(np.array([0.03, 0.02, 0.38]))
+    r = simulate(plant, ctrl, q0, [np.array([-0.02, -0.01, 0.36])], [0.7], tolerance=1e-6)
+    assert r.converged and r.monotonic
+    g = g_norm_along(r, plant, ctrl)
+    assert len(g) == r.steps
+    for i in (0, len(g) // 2, len(g) - 1):
+        J = _fd(plant.tip, r.q[i])
+        Jh = _fd(ctrl.model_tip, r.q[i])
+        G = np.eye(3) - r.gain[i] * J @ np.linalg.inv(Jh)
+        assert g[i] == pytest.approx(np.linalg.norm(G, 2), rel=1e-6)
+    # to first order the error shrinks by at most ||G|| per step (a 0.1 mm step: first order holds)
+    x1 = plant.tip(r.q[-1])
+    r2 = simulate(plant, ctrl, r.q[-1], [x1 + [1e-4, -5e-5, 5e-5]], [0.7], max_steps=1, tolerance=1e-12)
+    g2 = g_norm_along(r2, plant, ctrl)[0]
+    assert r2.errors[1] <= g2 * r2.errors[0] * (1 + 1e-3)
+
+
+def test_spatial_friction_holds_the_tip_back_against_the_motion():
+    """physics.md "Effects in 3-D": tip = model tip - (fa (u.s) s + fn (u - (u.s) s)), s the shaft axis
+    wrist -> tip; and the motion direction u is the declared model's tip motion of the command."""
+    sc = _phantom()
+    plant = Plant.from_scenario(sc).with_(friction=(0.002, 0.001))
+    q = plant.configuration_for_tip(np.array([0.02, -0.01, 0.37]))
+    w = plant.wrist(q)
+    free = plant.tip(q)
+    s = (free - w) / np.linalg.norm(free - w)
+    u = np.array([0.6, 0.0, -0.8])
+    want = free - (0.002 * (u @ s) * s + 0.001 * (u - (u @ s) * s))
+    assert np.allclose(plant.tip(q, u), want, atol=1e-15)
+    dq = np.array([0.01, -0.02, 0.005])
+    d = plant.declared().model_tip(q + dq) - plant.declared().model_tip(q)
+    assert np.allclose(plant.motion_direction(q, q + dq, np.zeros(3)), d / np.linalg.norm(d))
+    assert np.allclose(plant.motion_direction(q, q, u), u)  # no motion: u keeps its value
+
+
+def test_spatial_effects_and_world_load():
+    """Joint offsets and gravity sag on the URDF arm (sag = diag(c) tau_g, tau_g = dV/dq checked by central
+    differences of pinocchio's potential energy), the 3-D effect parameters, and a constant world load:
+    configuration_for_tip puts the bent shaft's tip on the request."""
+    import pinocchio as pin
+
+    from errplan.kinematics.truth import effect_kwargs
+
+    kw = effect_kwargs({"port_offset": {"dx": 1e-3, "dy": 2e-3, "dz": 3e-3}, "joint_offset": {"dq1": 0.01, "dq2": 0.02, "dq3": 0.03},
+                        "gravity_sag": {"c1": 0.0, "c2": 0.01, "c3": 0.02}, "shaft_flexion": {"fx": 0.0, "fy": -1.0, "fz": 0.0},
+                        "port_friction": {"fa": 0.001, "fn": 0.002}, "tracker_offset": {"bx": 1e-4, "by": 0.0, "bz": 0.0}})
+    assert kw == {"port_offset": (1e-3, 2e-3, 3e-3), "joint_offset": (0.01, 0.02, 0.03), "gravity_sag": (0.0, 0.01, 0.02),
+                  "world_load": (0.0, -1.0, 0.0), "friction": (0.001, 0.002), "tracker_offset": (1e-4, 0.0, 0.0)}
+    sc = _phantom()
+    base = Plant.from_scenario(sc)
+    arm = base.arm
+    q = np.array([0.2, 0.1, 0.3])
+    plant = base.with_(joint_offset=(0.01, 0.02, 0.03), gravity_sag=(0.0, 0.01, 0.02))
+    model = pin.buildModelFromUrdf(str(arm.urdf_path))
+    model.gravity.linear = np.array([0.0, -9.81, 0.0])  # base_rpy = 0: world gravity along -y
+    data = model.createData()
+
+    def V(qq):
+        return pin.computePotentialEnergy(model, data, arm.pinocchio_configuration(qq))
+
+    tau = _fd(lambda qq: np.array([V(qq)]), q, 1e-6)[0]
+    assert np.allclose(arm.gravity_torque(q), tau, atol=1e-6)
+    assert np.allclose(plant.link_angles_q(q), q + [0.01, 0.02, 0.03] - np.array([0.0, 0.01, 0.02]) * tau, atol=1e-8)
+    loaded = base.with_(world_load=(0.0, -2.0, 0.5))
+    x = np.array([0.03, -0.02, 0.39])
+    ql = loaded.configuration_for_tip(x)
+    assert np.allclose(loaded.tip(ql), x, atol=1e-12)
+    assert np.linalg.norm(base.tip(ql) - x) > 1e-4  # the load does bend the shaft
+    with pytest.raises(ErrplanError, match="3 values"):
+        Plant(arm, 0.32, (0.0, 0.0, 0.16), port_offset=(0.001, 0.0))

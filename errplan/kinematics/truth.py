@@ -1,6 +1,14 @@
 """The true robot: the declared arm and shaft plus the effects of docs/physics.md ("Effects a real
 bench shows"), each with its fixed parametrization. Used by the worst-case fields (a scenario's
 ``[effects]`` are part of its truth), the simulator, the bench-run generator and calibration.
+
+One class for both dimensions (docs/physics.md "Spatial robots"): the arm is P1's planar
+:class:`~errplan.kinematics.arm.Arm` (points ``[y, z]``, the planar closed forms, unchanged) or a
+:class:`~errplan.kinematics.urdf.UrdfArm` (points ``[x, y, z]``). In 3-D the shaft is the lever,
+bent by a constant world-frame load when there is one; the effects take their spatial
+parametrization (``port_offset`` dx, dy, dz; ``joint_offset`` dq1..dqN; ``tracker_offset`` bx, by,
+bz; ``gravity_sag`` c1..cN against the URDF's generalized gravity; ``shaft_flexion`` fx, fy, fz;
+``port_friction`` fa, fn with the whole normal part of the motion).
 """
 from __future__ import annotations
 
@@ -10,7 +18,12 @@ import numpy as np
 
 from ..errors import ErrplanError
 from .arm import Arm, angle_of, direction, direction_derivative
-from .shaft import flexed_end_angles, flexed_geometry, flexed_jacobian, flexed_wrist
+from .shaft import flexed_end_angles, flexed_geometry, flexed_jacobian, flexed_tip, flexed_wrist, lever_wrist
+
+#: a scalar tip load in 3-D is this world direction times the load (docs/pipeline.md): gravity-like
+SPATIAL_LOAD_DIRECTION = (0.0, -1.0, 0.0)
+#: Newton iterations for the 3-D wrist under a constant world load (quadratic convergence from the lever)
+WRIST_NEWTON_ITERS = 12
 
 @dataclass(frozen=True)
 class Plant:
@@ -21,6 +34,13 @@ class Plant:
     error-set instance); ``joint_offset`` [dq1, dq2]; ``tracker_offset`` [by, bz];
     ``gravity_sag`` [c1, c2, c3]; ``world_load`` [fy, fz] (shaft_flexion); ``friction`` [fa, fn]
     (port_friction); ``tracker_sigma`` / ``encoder_sigma`` measurement noise (std).
+
+    Spatial (a :class:`~errplan.kinematics.urdf.UrdfArm`): ``port`` and the offsets are 3-vectors,
+    ``joint_offset`` and ``gravity_sag`` have one value per actuated joint (the sag is
+    ``diag(c) tau_g(q_enc)``), ``world_load`` is [fx, fy, fz], and ``load`` is a world-frame load
+    vector over EI (3,) or a number ``t`` meaning ``t * SPATIAL_LOAD_DIRECTION``; the shaft bends
+    under the part of the total world load normal to the wrist->port line. Zero planar defaults
+    are resized to the arm's dimension, so ``Plant(urdf_arm, L, port)`` is a plant without effects.
     """
 
     arm: Arm
@@ -36,14 +56,46 @@ class Plant:
     tracker_sigma: float = 0.0
     encoder_sigma: float = 0.0
 
+    def __post_init__(self):
+        if isinstance(self.arm, Arm):
+            return
+        d, n = 3, int(self.arm.n)
+        for name, size in (("port_offset", d), ("tracker_offset", d), ("world_load", d), ("joint_offset", n),
+                           ("gravity_sag", n)):
+            v = tuple(float(x) for x in getattr(self, name))
+            if len(v) != size:
+                if any(v):
+                    raise ErrplanError(f"Plant {name} = {list(v)}: expected {size} values for the spatial arm")
+                object.__setattr__(self, name, (0.0,) * size)
+
     @classmethod
-    def from_scenario(cls, sc, *, port=None, load: float = 0.0, effects: bool = True, noise: bool = False) -> "Plant":
+    def from_scenario(cls, sc, *, port=None, load=0.0, effects: bool = True, noise: bool = False) -> "Plant":
         """The scenario's truth (``port.position``), optionally with its ``[effects]`` and sensor noise."""
-        kw = effect_kwargs(sc.effects) if effects else {}
-        return cls(Arm.from_robot(sc.robot), sc.instrument.length,
-                   tuple(sc.port.position if port is None else port), float(load),
+        if getattr(sc, "dim", 2) == 3:
+            from . import arm_for
+
+            arm = arm_for(sc.robot)
+            kw = effect_kwargs(sc.effects, 3, arm.n) if effects else {}
+            ld = tuple(float(v) for v in np.broadcast_to(np.asarray(load, float), (3,))) if np.ndim(load) else float(load)
+        else:
+            arm = Arm.from_robot(sc.robot)
+            kw = effect_kwargs(sc.effects) if effects else {}
+            ld = float(load)
+        return cls(arm, sc.instrument.length, tuple(sc.port.position if port is None else port), ld,
                    tracker_sigma=sc.sensors.tracker_sigma if noise else 0.0,
                    encoder_sigma=sc.sensors.encoder_sigma if noise else 0.0, **kw)
+
+    @property
+    def dim(self) -> int:
+        """2 for P1's planar arm, 3 for a URDF arm."""
+        return 2 if isinstance(self.arm, Arm) else 3
+
+    @property
+    def load_vector(self) -> np.ndarray:
+        """The instance load as a world vector (3,) (3-D only)."""
+        if np.ndim(self.load):
+            return np.asarray(self.load, float)
+        return float(self.load) * np.asarray(SPATIAL_LOAD_DIRECTION)
 
     def with_(self, **changes) -> "Plant":
         return replace(self, **changes)
@@ -55,6 +107,10 @@ class Plant:
     def link_angles_q(self, q_enc: np.ndarray) -> np.ndarray:
         """Joint angles of the links (after joint offset and gravity sag) for encoder angles."""
         q = np.asarray(q_enc, float) + np.asarray(self.joint_offset, float)
+        if self.dim == 3:
+            if any(self.gravity_sag):  # diag(c) tau_g(q_enc), the URDF's generalized gravity
+                q = q - np.asarray(self.gravity_sag, float) * self.arm.gravity_torque(np.asarray(q_enc, float))
+            return q
         c1, c2, c3 = self.gravity_sag
         if c1 or c2 or c3:
             a1, a2 = self.arm.link_angles(np.asarray(q_enc, float))
@@ -66,7 +122,11 @@ class Plant:
         return self.arm.forward(self.link_angles_q(q_enc))
 
     def shaft_load(self, w: np.ndarray) -> np.ndarray:
-        """Lateral load over EI: the instance load plus the world load's component normal to wrist->port."""
+        """Lateral load over EI: the instance load plus the world load's component normal to wrist->port.
+        In 3-D: the total world load vector (..., 3) (the shaft model takes its normal part)."""
+        if self.dim == 3:
+            t = self.load_vector + np.asarray(self.world_load, float)
+            return np.broadcast_to(t, np.shape(w)).copy()
         t = np.broadcast_to(np.asarray(self.load, float), np.shape(w)[:-1]).copy()
         if any(self.world_load):
             n = direction_derivative(angle_of(self.true_port - w))
@@ -80,7 +140,7 @@ class Plant:
     def declared(self) -> "Plant":
         """The declared model under this plant: its arm, shaft, tip load and ``port`` (the declared
         port position), without any effect and without noise."""
-        return Plant(self.arm, self.length, self.port, self.load)
+        return Plant(self.arm, self.length, tuple(self.port), self.load)
 
     def model_tip(self, q: np.ndarray) -> np.ndarray:
         """``x_model(q)`` of docs/physics.md ``port_friction``: the declared model's tip (..., 2) at
@@ -88,6 +148,8 @@ class Plant:
         direction ``u`` is the direction of ``x_model(q + dq) - x_model(q)``."""
         q = np.asarray(q, float)
         w = self.arm.forward(q)
+        if self.dim == 3:
+            return flexed_tip(w, np.asarray(self.port, float), self.length, self.load_vector)
         t = np.broadcast_to(np.asarray(self.load, float), np.shape(w)[:-1])
         return flexed_geometry(w, np.asarray(self.port, float), self.length, t)["tip"]
 
@@ -102,6 +164,16 @@ class Plant:
         last joint command produced under the declared model (:meth:`motion_direction`; port
         friction holds the tip back against it; ``u = 0`` before the first command)."""
         w = self.wrist(q_enc)
+        if self.dim == 3:
+            tip = flexed_tip(w, self.true_port, self.length, self.shaft_load(w))
+            fa, fn = self.friction
+            if (fa or fn) and u is not None:
+                # s: the shaft axis wrist -> tip (the chord); the normal part is all of u normal to s
+                s = (tip - w) / self.length
+                u = np.asarray(u, float)
+                us = np.sum(u * s, axis=-1, keepdims=True)
+                tip = tip - (fa * us * s + fn * (u - us * s))
+            return tip
         g = flexed_geometry(w, self.true_port, self.length, self.shaft_load(w))
         tip = g["tip"]
         fa, fn = self.friction
@@ -116,6 +188,9 @@ class Plant:
 
     def end_poses(self, q_enc: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """True wrist, tip and end tangent angles (what P2's flexion controller measures)."""
+        if self.dim == 3:
+            raise ErrplanError("P2's flexion controller is planar: in 3-D errplan runs the rigid controller "
+                               "(docs/physics.md \"Spatial robots\", Controller)")
         w = self.wrist(q_enc)
         tip, thw, tht = flexed_end_angles(w, self.true_port, self.length, self.shaft_load(w))
         return w, tip, thw, tht
@@ -130,12 +205,30 @@ class Plant:
     def configuration_for_tip(self, x: np.ndarray) -> np.ndarray:
         """Encoder angles putting the true tip at ``x`` (no effects other than port/load)."""
         x = np.asarray(x, float)
-        w = flexed_wrist(x, self.true_port, self.length, self.load)
+        w = self.true_wrist_for_tip(x) if self.dim == 3 else flexed_wrist(x, self.true_port, self.length, self.load)
         q, ok = self.arm.inverse(w)
         if not np.all(ok) or not np.all(self.shaft_reaches(w)):
             raise ErrplanError(f"tip {np.round(x, 5).tolist()} is not reachable by the true robot "
                                f"(port {np.round(self.true_port, 5).tolist()}, shaft {self.length} m)")
         return q - np.asarray(self.joint_offset)
+
+    def true_wrist_for_tip(self, x: np.ndarray) -> np.ndarray:
+        """3-D: the wrist (..., 3) that puts the true tip at ``x`` through the true port under the
+        plant's world load (the lever wrist without one; else Newton on ``flexed_tip(w) = x``,
+        started at the lever wrist)."""
+        x = np.asarray(x, float)
+        p = self.true_port
+        w = lever_wrist(x, p, self.length)
+        t = self.shaft_load(w)
+        if not np.any(t):
+            return w
+        for _ in range(WRIST_NEWTON_ITERS):
+            f = flexed_tip(w, p, self.length, t) - x
+            if np.all(np.abs(f) < 1e-13):
+                break
+            J = flexed_jacobian(w, p, self.length, t)
+            w = w - np.linalg.solve(J, f[..., None])[..., 0]
+        return w
 
 
 def motion_direction(x_from: np.ndarray, x_to: np.ndarray, u_prev: np.ndarray) -> np.ndarray:
@@ -149,8 +242,30 @@ def motion_direction(x_from: np.ndarray, x_to: np.ndarray, u_prev: np.ndarray) -
         return np.where(moved, d / np.where(moved, n, 1.0), np.asarray(u_prev, float))
 
 
-def effect_kwargs(effects) -> dict:
-    """Plant keyword arguments for a mapping ``{effect: {param: value}}`` (physics.md names)."""
+def effect_kwargs(effects, dim: int | None = None, n_joints: int | None = None) -> dict:
+    """Plant keyword arguments for a mapping ``{effect: {param: value}}`` (physics.md names).
+
+    ``dim`` 3 (or spatial parameter names such as ``dx``, ``bx``, ``fx``, ``dq3``): the spatial
+    parametrization, one value per axis or per actuated joint (``n_joints``, default 3)."""
+    if dim is None:
+        spatial = any(k in ("dx", "bx", "fx") or (k[:2] == "dq" and k[2:].isdigit() and int(k[2:]) > 2)
+                      for p in (effects or {}).values() for k in p)
+        dim = 3 if spatial else 2
+    if dim == 3:
+        n = int(n_joints or 3)
+        names = {"port_offset": ("port_offset", ("dx", "dy", "dz")),
+                 "joint_offset": ("joint_offset", tuple(f"dq{i + 1}" for i in range(n))),
+                 "tracker_offset": ("tracker_offset", ("bx", "by", "bz")),
+                 "gravity_sag": ("gravity_sag", tuple(f"c{i + 1}" for i in range(n))),
+                 "shaft_flexion": ("world_load", ("fx", "fy", "fz")),
+                 "port_friction": ("friction", ("fa", "fn"))}
+        out3: dict = {}
+        for name, p in (effects or {}).items():
+            if name not in names:
+                raise ErrplanError(f"effect {name!r}: not an effect of docs/physics.md")
+            fld, params = names[name]
+            out3[fld] = tuple(float(p.get(k, 0.0)) for k in params)
+        return out3
     out: dict = {}
     for name, p in (effects or {}).items():
         if name == "port_offset":
