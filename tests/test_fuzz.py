@@ -823,3 +823,52 @@ def test_read_text_accepts_utf8_and_its_bom_and_names_every_other_problem(tmp_pa
         read_text(tmp_path / "none.csv", "data file")
     with pytest.raises(DataError, match="it is a directory"):
         read_text(tmp_path, "data file")
+
+
+# ----------------------------------------------------------------------------- spatial CSV (issue 13)
+SPATIAL = SCENARIOS / "phantom15_spatial.toml"
+COLUMNS_3D = ("run", "step", "target_x", "target_y", "target_z", "gain", "q1", "q2", "q3", "tip_x", "tip_y", "tip_z")
+
+
+def spatial_csv_cases() -> dict:
+    """Bad measured data for a spatial scenario (PHANToM with a waist: 3 joints, [x, y, z]) and a 3-D
+    file for a planar one: each is one clear error naming what is wrong, before any physics."""
+    good = [f"r,{i},0.02,0,0.32,1,0,0,0,0.0001,0.0002,0.32" for i in range(6)]
+    head = ",".join(COLUMNS_3D)
+    planar_head = ",".join(COLUMNS)
+    four = head.replace("q3,", "q3,q4,")
+    return {
+        # (scenario, text, what the message must name)
+        "joints:two-for-three": (SPATIAL, head.replace(",q3", "") + "\n" + "\n".join(
+            ",".join(r.split(",")[:8] + r.split(",")[9:]) for r in good) + "\n", "q3"),
+        "joints:four-for-three": (SPATIAL, four + "\n" + "\n".join(
+            ",".join(r.split(",")[:9] + ["0"] + r.split(",")[9:]) for r in good) + "\n", "q4"),
+        "columns:planar-file": (SPATIAL, planar_head + "\n" + "\n".join(
+            f"r,{i},0,0.34,1,0,0,0,0.32" for i in range(6)) + "\n", "planar columns"),
+        "columns:spatial-file-for-planar": (PORT, head + "\n" + "\n".join(good) + "\n", "spatial columns"),
+        "columns:x-missing": (SPATIAL, head.replace("tip_x,", "") + "\n" + "\n".join(
+            ",".join(r.split(",")[:9] + r.split(",")[10:]) for r in good) + "\n", "tip_x"),
+        "cell:nan-tip": (SPATIAL, head + "\n" + "\n".join(good[:2] + [good[2].replace(",0.32", ",nan")] + good[3:])
+                         + "\n", "nan"),
+        "cell:nan-q3": (SPATIAL, head + "\n" + "\n".join(
+            good[:2] + [",".join(good[2].split(",")[:8] + ["nan"] + good[2].split(",")[9:])] + good[3:]) + "\n", "q3"),
+        "cell:inf-target-x": (SPATIAL, head + "\n" + "\n".join(
+            ",".join(["r", str(i), "inf"] + r.split(",")[3:]) for i, r in enumerate(good)) + "\n", "target_x"),
+        "cell:text-gain": (SPATIAL, head + "\n" + "\n".join(good[:1] + [good[1].replace(",1,0,0,0,", ",fast,0,0,0,")]
+                                                             + good[2:]) + "\n", "gain"),
+        "target:x-changes-in-run": (SPATIAL, head + "\n" + "\n".join(
+            good[:3] + [good[3].replace("r,3,0.02,", "r,3,0.03,")] + good[4:]) + "\n", "target_x"),
+        "row:short": (SPATIAL, head + "\n" + "\n".join(good[:3] + [good[3].rsplit(",", 1)[0]] + good[4:]) + "\n",
+                      "values"),
+    }
+
+
+@pytest.mark.parametrize("tag", list(spatial_csv_cases()))
+def test_fuzz_spatial_csv_exits_2_with_one_line(tag, tmp_path, capsys):
+    scenario, text, needle = spatial_csv_cases()[tag]
+    (tmp_path / "data.csv").write_text(text, encoding="utf-8")
+    argv = ["-q", "calibrate", str(scenario), "{d}/data.csv", "--json", "{d}/out.json", "--export-scenario",
+            "{d}/out.toml"]
+    rc, err, warns = run_in_process(_argv_in(argv, tmp_path), capsys)
+    assert_rejected(rc, err, warns, tmp_path, ["data.csv"])
+    assert needle in err, err
