@@ -1,5 +1,7 @@
-"""`errplan demo`: the bundled scenario end to end (fields, plan, gains, simulation, recording) and the
-plan JSON keys of docs/interfaces.md (`gains` S objects, `simulation` R objects)."""
+"""`errplan demo`: the bundled scenarios end to end (fields, plan, gains, simulation, recording): P1's
+planar Phantom and the spatial PHANToM 1.5 on its URDF, the plan JSON keys of docs/interfaces.md
+(`gains` S objects, `simulation` R objects) in both, every planned segment certified and every corner
+replay monotonic, both recordings verified."""
 from __future__ import annotations
 
 import json
@@ -37,16 +39,23 @@ def test_demo_runs_and_prints_the_summary(demo):
     assert rc == 0
     for h in ("query", "path", "cost", "max ||G||", "steps", "monotonic", "certified"):
         assert h in out
-    for q in doc["queries"]:
+    for q in doc["queries"] + doc["spatial"]["queries"]:
         assert q["name"] in out
     assert "planned" in out and "direct" in out and "recording:" in out
-    assert rec.exists()
+    assert "errplan demo: beasley2004-bounded" in out and "errplan demo: phantom15-spatial" in out
+    assert out.count("max ||G||: worst case along the path") == 2  # the same table twice
+    assert rec.exists() and rec.with_name("errplan-demo-3d.rrd").exists()
+    assert doc["spatial"]["dim"] == 3 and len(doc["spatial"]["queries"]) == 3
+
+
+def _all_queries(doc):
+    return doc["queries"] + doc["spatial"]["queries"]
 
 
 def test_demo_json_has_the_interface_keys(demo):
     _, _, _, doc = demo
     assert doc["queries"]
-    for q in doc["queries"]:
+    for q in _all_queries(doc):
         assert {"name", "start", "goal", "planned", "direct", "gains", "simulation"} <= set(q)
         assert P_KEYS <= set(q["planned"]) and P_KEYS <= set(q["direct"])
         assert q["gains"] and all(S_KEYS <= set(s) for s in q["gains"])
@@ -60,14 +69,17 @@ def test_demo_json_has_the_interface_keys(demo):
 
 def test_demo_plans_are_certified_and_monotonic_everywhere(demo):
     _, _, _, doc = demo
-    for q in doc["queries"]:
+    for q in _all_queries(doc):
         assert all(s["certified"] and s["certified_G_norm"] < 1 for s in q["gains"]), q["name"]
         sim = q["simulation"]
         assert sim["planned"]["monotonic"] and sim["planned"]["converged"]
         assert sim["planned"]["final_error"] < 1e-5
         c = sim["corners"]
-        assert len(c["planned"]) == 8  # every corner of the (dy, dz, t) box
+        assert len(c["planned"]) == 8  # every corner of the (dy, dz, t) box; in 3-D of the port box
         assert c["planned_all_monotonic"] and c["planned_all_converged"]
+    for q in doc["spatial"]["queries"]:
+        assert len(q["start"]) == 3 and all(len(p) == 3 for p in q["planned"]["path"])
+        assert len(q["simulation"]["corners"]["instances"][0]["port_offset"]) == 3
 
 
 def test_demo_direct_path_fails_where_its_certificate_does(demo):
@@ -83,13 +95,36 @@ def test_demo_direct_path_fails_where_its_certificate_does(demo):
     assert not q["simulation"]["corners"]["direct_all_monotonic"]
 
 
-def test_demo_recording_verifies(demo):
-    rec = demo[2]
+@pytest.mark.parametrize("name", ["errplan-demo.rrd", "errplan-demo-3d.rrd"])
+def test_demo_recording_verifies(demo, name):
+    rec = demo[2].with_name(name)
     exe = shutil.which("rerun")
     cmd = [exe] if exe else [sys.executable, "-m", "rerun_cli"]
     p = subprocess.run(cmd + ["rrd", "verify", str(rec)], env=dict(os.environ, CI="1"), capture_output=True,
                        text=True, timeout=120)
     assert p.returncode == 0, p.stdout + p.stderr
+
+
+def test_demo_with_a_spatial_scenario_runs_only_that(tmp_path, capsys):
+    """`errplan demo --scenario F` runs F alone, planar or spatial, and records it to --record."""
+    import json as _json
+
+    from test_fields_spatial import omni_scenario
+
+    p = omni_scenario(tmp_path, extra="""
+[[query]]
+name = "hop"
+start = [-0.05, 0.05, 0.38]
+goal = [-0.02, 0.05, 0.38]
+""")
+    rec, js = tmp_path / "omni.rrd", tmp_path / "omni.json"
+    assert main(["--quiet", "demo", "--scenario", str(p), "--record", str(rec), "--json", str(js)]) == 0
+    out = capsys.readouterr().out
+    assert "errplan demo: omni" in out and "beasley2004" not in out
+    doc = _json.loads(js.read_text())
+    assert "spatial" not in doc and doc["dim"] == 3
+    assert all(s["certified"] for s in doc["queries"][0]["gains"])
+    assert rec.exists() and not rec.with_name("omni-3d.rrd").exists()
 
 
 def test_demo_bad_scenario_is_one_clear_error(tmp_path, capsys):
