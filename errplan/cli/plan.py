@@ -1,6 +1,6 @@
 """``errplan plan SCENARIO [--json F] [--record F.rrd] [--query NAME] [--time T] [--planner NAME] [--seed N]``.
 
-Plans every ``[[query]]`` of the scenario on its worst-case fields (errplan.planning), prints per
+Plans every ``[[query]]`` of the scenario (planar or spatial) on its worst-case fields (errplan.planning), prints per
 query the planned and the direct (straight) path (cost, length, max ||G||, max phi_hat_max), then
 picks certified per-segment gains (errplan.gains), simulates both paths (errplan.pipeline) and
 optionally records everything to rerun. The JSON is the "plan JSON" of docs/interfaces.md
@@ -44,7 +44,8 @@ def plan_table(plan) -> str:
                      f"{q.stopped_by}) + refine {q.time_refine:.2f} s")
     lines.append("max ||G||, max phi_hat_max: worst case along the path at the scenario gain; ||G||>=1: length of "
                  "the path where the worst-case ||G|| >= 1 (monotonic convergence not guaranteed at that gain)")
-    lines.append(f"fields: {cm.ny} x {cm.nz} grid at {cm.h * 1000:g} mm, computed in {plan.field_time:.1f} s")
+    shape = " x ".join(str(len(a)) for a in cm.mf.axes)
+    lines.append(f"fields: {shape} grid at {cm.h * 1000:g} mm, computed in {plan.field_time:.1f} s")
     return "\n".join(lines)
 
 
