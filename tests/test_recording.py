@@ -164,3 +164,47 @@ def test_record_into_missing_directory_is_refused(recorded, tmp_path):
     sc, mf, res, _ = recorded
     with pytest.raises(ErrplanError, match="does not exist"):
         record_plan(tmp_path / "no" / "x.rrd", sc, mf, res["runs"])
+
+
+# ----------------------------------------------------------------------------- 3-D helpers
+def test_turbo_colormap_runs_from_blue_to_red():
+    """The polynomial fit of Turbo: dark blue at 0, cyan at 1/4, green-yellow at 1/2, orange at 3/4, dark red
+    at 1 (the dominant channel at each), clipped outside [0, 1]."""
+    from errplan.recording import turbo
+
+    c = turbo([0.0, 0.25, 0.5, 0.75, 1.0]).astype(int)
+    assert c[0].max() < 60                                           # near black (dark blue)
+    assert c[1, 2] > 200 and c[1, 1] > 150 and c[1, 0] < 80           # cyan
+    assert c[2, 1] > 230 and c[2, 2] < 120                            # green-yellow
+    assert c[3, 0] > 230 and 80 < c[3, 1] < 180 and c[3, 2] < 60      # orange
+    assert c[4, 0] > 100 and c[4, 1] < 40 and c[4, 2] < 40            # dark red
+    assert np.array_equal(turbo([-1.0, 2.0]), turbo([0.0, 1.0]))
+
+
+def test_level_surface_of_an_analytic_field():
+    """Marching cubes on |x - c| / R over a 3-D grid: the surface at level 1 is the sphere of radius R
+    (to the grid's linear interpolation), and a tip outside the workspace cuts it away."""
+    from errplan.recording import level_surface, slice_mesh
+
+    class F:
+        pass
+
+    h = 0.005
+    ax = np.arange(-0.05, 0.0501, h)
+    X, Y, Z = np.meshgrid(ax, ax, ax + 0.3, indexing="ij")
+    f = F()
+    f.axes = (ax, ax, ax + 0.3)
+    f.resolution = h
+    c, R = np.array([0.0, 0.0, 0.3]), 0.03
+    f.G_norm = np.sqrt(X ** 2 + Y ** 2 + (Z - 0.3) ** 2) / R
+    f.valid = np.ones(X.shape, bool)
+    V, T, N = level_surface(f, "G_norm", 1.0)
+    r = np.linalg.norm(V - c, axis=-1)
+    assert len(T) > 100 and np.abs(r - R).max() < 0.3 * h
+    f.valid = X < 0.0  # half the grid outside the workspace: no vertex beyond it
+    V2, _, _ = level_surface(f, "G_norm", 1.0)
+    assert V2[:, 0].max() <= 1e-12 and len(V2) < len(V)
+    f.array = lambda name: getattr(f, name)
+    P, T, C = slice_mesh(f, "G_norm", 1, 10)  # the plane y = ax[10] = 0
+    assert np.allclose(P[:, 1], ax[10]) and P.shape == (len(ax) ** 2, 3)
+    assert np.all(P[np.unique(T), 0] <= 1e-12)  # triangles only where all corners are valid
