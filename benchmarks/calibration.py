@@ -3,6 +3,7 @@
     python benchmarks/calibration.py            # timing (1k, 2k, 4k rows) + quality per effect
     python benchmarks/calibration.py --quick    # timing only
     python benchmarks/calibration.py --design   # experiment design only (planar and spatial)
+    python benchmarks/calibration.py --spatial  # spatial timing and quality only
 
 Timing: bench data on P1's scenario (beasley2004_port.toml, gain 1) with gravity sag undeclared,
 more starts for more rows; the whole `calibrate` (noise floor, 22-26 candidates each fitted on all
@@ -155,20 +156,135 @@ def design(sc, truths=DESIGN_TRUTHS, label="P1 scenario") -> None:
     print(f"mean sigma ratio designed / default over the recovered parameters: {np.mean(ratios):.2f}")
 
 
+SPATIAL = ROOT / "scenarios" / "phantom15_spatial.toml"
+SPATIAL_GRAVITY = {"gravity_sag": {"c1": 0.0, "c2": 0.05, "c3": 0.08}}
+SPATIAL_CASES = [
+    ("port_offset", {"port_offset": {"dx": 0.002, "dy": 0.003, "dz": -0.002}}),
+    ("joint_offset", {"joint_offset": {"dq1": 0.003, "dq2": -0.002, "dq3": 0.002}}),
+    ("tracker_offset", {"tracker_offset": {"bx": 0.001, "by": 0.002, "bz": -0.0015}}),
+    ("gravity_sag", SPATIAL_GRAVITY),
+    ("shaft_flexion", {"shaft_flexion": {"fx": 1.0, "fy": 2.0, "fz": 0.5}}),
+    ("port_friction", {"port_friction": {"fa": 0.0015, "fn": 0.001}}),
+    ("gravity+friction", {**SPATIAL_GRAVITY, "port_friction": {"fa": 0.001, "fn": 0.0008}}),
+    ("noise only", {}),
+    ("shaft +4 mm (outside)", None),
+]
+SPATIAL_DESIGN_TRUTHS = [
+    ("joint_offset + gravity_sag", {"joint_offset": {"dq1": 0.003, "dq2": -0.002, "dq3": 0.002}, **SPATIAL_GRAVITY}),
+    ("port_offset + shaft_flexion", {"port_offset": {"dx": 0.002, "dy": 0.003, "dz": -0.002},
+                                     "shaft_flexion": {"fx": 1.0, "fy": 2.0, "fz": 0.5}}),
+    ("gravity_sag", SPATIAL_GRAVITY),
+    ("port_offset", {"port_offset": {"dx": 0.002, "dy": 0.003, "dz": -0.002}}),
+    ("shaft_flexion", {"shaft_flexion": {"fx": 1.0, "fy": 2.0, "fz": 0.5}}),
+    ("joint_offset", {"joint_offset": {"dq1": 0.003, "dq2": -0.002, "dq3": 0.002}}),
+]
+
+
+def spatial_scenario():
+    """The spatial bench: the bundled PHANToM with a waist, its controller's port estimate
+    (8, 4, 8) mm off and gain 0.3 (so that the paths have several steps for the replay to follow)."""
+    from dataclasses import replace
+
+    sc = load_scenario(SPATIAL)
+    return sc.with_(port=replace(sc.port, estimate=(0.008, 0.004, 0.168)),
+                    controller=replace(sc.controller, gain=0.3), name="phantom15-bench")
+
+
+def spatial_timing(sc) -> None:
+    from errplan.experiment import read_measured_csv
+
+    truth = sc.with_(effects=SPATIAL_GRAVITY)
+    rows = []
+    for starts in (8, 14):
+        d = run_experiment(truth, seed=1, n_starts=starts).data
+        t0 = time.perf_counter()
+        rep = calibrate(sc, d, seed=0)
+        dt = time.perf_counter() - t0
+        rows.append([d.rows, d.runs, len(rep.candidates), ", ".join(rep.selected) or "none", dt])
+    # the whole command on a file: reading, calibrating, JSON and corrected scenario
+    import subprocess
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        toml = Path(tmp) / "declared.toml"
+        text = SPATIAL.read_text(encoding="utf-8").replace('urdf = "phantom15.urdf"', f'urdf = "{ROOT / "scenarios" / "phantom15.urdf"}"')
+        text = text.replace("estimate = [0.0, 0.0, 0.160]", "estimate = [0.008, 0.004, 0.168]").replace("gain = 1.0", "gain = 0.3")
+        toml.write_text(text, encoding="utf-8")
+        d.source = str(Path(tmp) / "bench.csv")
+        d.write_csv(d.source)
+        assert read_measured_csv(d.source, load_scenario(toml)).rows == d.rows
+        t0 = time.perf_counter()
+        subprocess.run([sys.executable, "-m", "errplan", "-q", "calibrate", str(toml), d.source, "--json",
+                        str(Path(tmp) / "c.json"), "--export-scenario", str(Path(tmp) / "c.toml")], check=True,
+                       stdout=subprocess.DEVNULL)
+        rows.append([d.rows, d.runs, "CLI", "(whole command, --json --export-scenario)", time.perf_counter() - t0])
+    print(format_table(["rows", "runs", "candidates", "selected", "calibrate s"], rows,
+                       "spatial calibrate time (PHANToM with a waist, gravity sag undeclared; target 60 s for 4,000 rows)"))
+
+
+def spatial_quality(sc) -> None:
+    rows, prow = [], []
+    for name, eff in SPATIAL_CASES:
+        if eff is None:
+            from errplan.experiment import truth_plant
+
+            plant = truth_plant(sc).with_(length=sc.instrument.length + 0.004)
+            data = run_experiment(sc, seed=11, plant=plant).data
+            val = run_experiment(sc, seed=12, plant=plant).data
+            eff = {}
+        else:
+            data = run_experiment(sc.with_(effects=eff), seed=11).data
+            val = run_experiment(sc.with_(effects=eff), seed=12).data
+        rep = calibrate(sc, data, validate=val, seed=0)
+        e = rep.errors
+        rows.append([name, ", ".join(rep.selected) or "none", "yes" if rep.explained else "NO", rep.noise.sigma * 1e3,
+                     e.pose_before * 1e3, e.pose_after * 1e3, e.trajectory_before * 1e3, e.trajectory_after * 1e3,
+                     e.trajectory_after / e.trajectory_before])
+        for ef, ps in rep.parameters.items():
+            for p, v in ps.items():
+                true = eff.get(ef, {}).get(p, 0.0)
+                if v is None:
+                    prow.append([name, f"{ef}.{p}", true, "not identifiable", "", ""])
+                    continue
+                s = rep.uncertainty[ef][p]
+                f = 1.0 if ef == "shaft_flexion" else 1e3
+                prow.append([name, f"{ef}.{p}", true * f, v * f, s * f, (v - true) / s])
+    print(format_table(["truth", "selected", "explained", "noise mm", "pose before", "pose after", "traj before",
+                        "traj after", "traj ratio"], rows,
+                       "spatial, per effect (PHANToM bench, 8 starts x 14 targets, held-out validation run; mm)"))
+    print()
+    print(format_table(["truth", "parameter", "true", "estimate", "sigma", "z"], prow,
+                       "spatial parameters (mm, mrad, mrad/(N m) or 1/m^2): estimate - true in stated sigmas"))
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="timing only")
     ap.add_argument("--design", action="store_true", help="experiment design only")
+    ap.add_argument("--spatial", action="store_true", help="spatial rows only")
     args = ap.parse_args()
     sc = load_scenario(PORT)
     if args.design:
         design(sc)
+        print()
+        design(spatial_scenario(), SPATIAL_DESIGN_TRUTHS, "PHANToM bench, 3-D")
+        return 0
+    if args.spatial:
+        sp = spatial_scenario()
+        spatial_timing(sp)
+        print()
+        spatial_quality(sp)
         return 0
     calibrate(sc, run_experiment(sc, seed=0, n_starts=2).data)  # warm-up: imports, caches
     timing(sc)
+    sp = spatial_scenario()
+    print()
+    spatial_timing(sp)
     if not args.quick:
         print()
         quality(sc)
+        print()
+        spatial_quality(sp)
     return 0
 
 

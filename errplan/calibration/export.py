@@ -98,6 +98,12 @@ def corrected_scenario_toml(sc, report: CalibrationReport) -> str:
         doc = tomllib.loads(Path(sc.source).read_text(encoding="utf-8"))
     except (OSError, tomllib.TOMLDecodeError) as e:
         raise ErrplanError(f"{sc.source}: cannot re-read the scenario to export it: {e}") from None
+    robot = doc.get("robot")
+    if getattr(sc, "dim", 2) == 3 and isinstance(robot, dict):
+        # the URDF (and package paths) as absolute paths: the corrected file may be written anywhere
+        robot["urdf"] = str(sc.robot.urdf)
+        if "package_path" in robot:
+            robot["package_path"] = [str(x) for x in sc.robot.package_path]
     effects = report.effects_table()
     if effects:
         doc["effects"] = {e: {p: float(v) for p, v in ps.items()} for e, ps in effects.items()}
