@@ -708,16 +708,17 @@ def _cal_colors(length: np.ndarray, noise: float) -> np.ndarray:
 
 
 def residual_map(points: np.ndarray, residual: np.ndarray, cell: float = CAL_CELL) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Mean residual per ``cell`` x ``cell`` square of the tip plane: centres (m, 2), mean residual
-    (m, 2), rows per cell (m,)."""
+    """Mean residual per ``cell``-sized square (cube in 3-D) of the tips: centres (m, d), mean
+    residual (m, d), rows per cell (m,)."""
     p = np.asarray(points, float)
+    d = p.shape[1]
     key = np.floor(p / cell).astype(np.int64)
     uniq, inv, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
     inv = inv.ravel()
-    mean = np.zeros((len(uniq), 2))
+    mean = np.zeros((len(uniq), d))
     np.add.at(mean, inv, residual)
     mean /= counts[:, None]
-    centre = np.zeros((len(uniq), 2))
+    centre = np.zeros((len(uniq), d))
     np.add.at(centre, inv, p)
     centre /= counts[:, None]
     return centre, mean, counts
@@ -749,10 +750,11 @@ def record_calibration(report, path: str | os.PathLike, sc=None, *, app_id: str 
     if not path.parent.exists():
         raise ErrplanError(f"--record {path}: directory {path.parent} does not exist")
     tmp = path.with_name(path.name + ".part")
+    spatial = np.asarray(report.points).shape[-1] == 3
     rec = rr.RecordingStream(app_id, recording_id=f"errplan-calibrate-{report.scenario}", send_properties=False)
-    rec.save(tmp, default_blueprint=calibration_blueprint())
+    rec.save(tmp, default_blueprint=calibration_blueprint_spatial() if spatial else calibration_blueprint())
     try:
-        _log_calibration(rec, rr, report, sc)
+        (_log_calibration_spatial if spatial else _log_calibration)(rec, rr, report, sc)
         rec.flush()
     finally:
         rec.disconnect()
@@ -792,4 +794,100 @@ def _log_calibration(rec, rr, report, sc) -> None:
     text = ("# errplan calibrate\n\nArrows: residual (tracked minus model tip) x"
             f"{CAL_ARROW_GAIN:g}; residual map: mean over {CAL_CELL * 1000:g} mm cells x{CAL_MAP_GAIN:g}; colour: "
             "green at or below the noise floor, red at 4 noise floors or more.\n\n```\n" + report.text() + "\n```\n")
+    rec.log("summary", rr.TextDocument(text, media_type="text/markdown"), static=True)
+
+
+# ----------------------------------------------------------------------------- calibration in 3-D
+# A spatial calibration (:func:`record_calibration` on a 3-D report) in one ``world`` space (y up):
+#
+# - ``world/robot/**``: the robot from its URDF (meshes when they resolve, links as lines when they
+#   do not) at the median encoder reading of the data; ``world/port/true``, ``world/port/estimate``;
+# - ``world/data/tracked``: every tracked tip (``Points3D``);
+# - ``world/residual/before``, ``world/residual/after``: every row's pose residual as a 3-D arrow
+#   from the model tip, x``CAL_ARROW_GAIN``, coloured from green (noise floor) to red (4 floors);
+# - ``world/residual_map/before|after``: the mean residual over 10 mm cubes, x``CAL_MAP_GAIN``;
+# - ``world/replay/measured|before|after``: each run's measured path and the controller replayed on
+#   the declared and on the corrected model; ``summary``: the report.
+def calibration_blueprint_spatial():
+    import rerun.blueprint as rrb
+
+    common = ["+ world/robot/**", "+ world/port/**", "+ world/data/**"]
+    views = [rrb.Spatial3DView(origin="world", name=name, contents=common + extra) for name, extra in (
+        ("residual before (declared model), x10 arrows", ["+ world/residual/before", "+ world/residual_map/before"]),
+        ("residual after (corrected model), x10 arrows", ["+ world/residual/after", "+ world/residual_map/after"]),
+        ("residual map after (10 mm cubes, x20)", ["+ world/residual_map/after"]),
+        ("paths: measured (white), replayed before (red) / after (green)", ["+ world/replay/**"]))]
+    return rrb.Blueprint(rrb.Horizontal(rrb.Tabs(*views), rrb.TextDocumentView(origin="summary", name="report"),
+                                        column_shares=[3, 2]), collapse_panels=True)
+
+
+def _log_calibration_robot(rec, rr, sc, q) -> dict:
+    """The scenario's URDF robot at encoder reading ``q`` (static): the URDF tree when rerun reads
+    it, else (and always, as a thin overlay) the chain as lines."""
+    from .kinematics import arm_for
+
+    arm = arm_for(sc.robot)
+    ui = rr.Radius.ui_points
+    tree = _load_urdf_tree(arm)
+    if tree is not None:
+        env = _package_env(arm)
+        saved = os.environ.get("ROS_PACKAGE_PATH")
+        try:
+            os.environ.update(env)
+            tree.log_urdf_to_recording(rec)
+        finally:
+            if saved is None:
+                os.environ.pop("ROS_PACKAGE_PATH", None)
+            else:
+                os.environ["ROS_PACKAGE_PATH"] = saved
+        rec.log("world/robot/placement",
+                rr.Transform3D(translation=list(arm.base_position), mat3x3=_rpy_matrix(arm.base_rpy),
+                               parent_frame="tf#/world", child_frame=f"robot/{tree.root_link().name}"), static=True)
+        values = dict(arm.fixed_joints)
+        values.update({name: float(v) for name, v in zip(arm.joint_names, q)})
+        for name, val in values.items():
+            j = tree.get_joint_by_name(name)
+            if j is not None and j.joint_type != "fixed":
+                rec.log(f"world/robot/joints/{name}", j.compute_transform(float(val), clamp=False), static=True)
+    chain = arm.chain_points(np.asarray(q, float)[None])[0]
+    rec.log("world/robot/links", rr.LineStrips3D([chain], colors=(200, 200, 215), radii=ui(2.0)), static=True)
+    return {"urdf_loaded": tree is not None}
+
+
+def _log_calibration_spatial(rec, rr, report, sc) -> None:
+    ui = rr.Radius.ui_points
+    noise = float(report.noise.sigma)
+    pts = np.asarray(report.points, float)
+    rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Y_UP, static=True)
+    d = report.data
+    if sc is not None:
+        if d is not None and d.rows:
+            _log_calibration_robot(rec, rr, sc, np.median(d.q, axis=0))
+        rec.log("world/port/true", rr.Points3D([sc.port.position], colors=PORT_TRUE_COLOR, radii=ui(6.0),
+                                               labels=["true port (declared)"]), static=True)
+        rec.log("world/port/estimate", rr.Points3D([sc.port.estimate], colors=PORT_EST_COLOR, radii=ui(6.0),
+                                                   labels=["estimated port"]), static=True)
+    rec.log("world/data/tracked", rr.Points3D(report.tracked, colors=(150, 150, 150), radii=ui(1.0)), static=True)
+    for kind, r in (("before", report.residual_before), ("after", report.residual_after)):
+        r = np.asarray(r, float)
+        length = np.linalg.norm(r, axis=-1) / math.sqrt(3.0)  # per-coordinate scale, like the noise floor
+        rec.log(f"world/residual/{kind}",
+                rr.Arrows3D(origins=pts, vectors=CAL_ARROW_GAIN * r, colors=_cal_colors(length, noise),
+                            radii=ui(0.75)), static=True)
+        centre, mean, counts = residual_map(pts, r)
+        mlen = np.linalg.norm(mean, axis=-1) / math.sqrt(3.0)
+        labels = [f"{1000 * m:.3f} mm ({n} rows)" for m, n in zip(np.linalg.norm(mean, axis=-1), counts)]
+        rec.log(f"world/residual_map/{kind}",
+                rr.Arrows3D(origins=centre, vectors=CAL_MAP_GAIN * mean, colors=_cal_colors(mlen, noise),
+                            radii=ui(2.0), labels=labels, show_labels=False), static=True)
+    if d is not None:
+        for kind, tips, col in (("measured", d.tip, (255, 255, 255)), ("before", report.replay_before, DIRECT_COLOR),
+                                ("after", report.replay_after, PLANNED_COLOR)):
+            strips = [np.asarray(tips)[d.run == r] for r in range(d.runs)]
+            rec.log(f"world/replay/{kind}", rr.LineStrips3D(strips, colors=col,
+                                                            radii=ui(1.0 if kind == "measured" else 0.75)), static=True)
+    text = ("# errplan calibrate (3-D)\n\nArrows: residual (tracked minus model tip) x"
+            f"{CAL_ARROW_GAIN:g}; residual map: mean over {CAL_CELL * 1000:g} mm cubes x{CAL_MAP_GAIN:g}; colour: "
+            "green at or below the noise floor, red at 4 noise floors or more. The robot is drawn at the median "
+            "encoder reading of the data.\n\n```\n" + report.text() + "\n```\n")
     rec.log("summary", rr.TextDocument(text, media_type="text/markdown"), static=True)

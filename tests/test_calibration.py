@@ -631,3 +631,53 @@ def test_calibrate_on_a_urdf_without_inertial_data(tmp_path, capsys):
     assert main(["-q", "calibrate", str(omni), str(p), "--effects", "gravity_sag,tracker_offset"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "inertial" in err
+
+
+def spatial_bench_files(d: Path, effects: str = "") -> tuple[Path, Path]:
+    """The spatial bench as files: the declared scenario and the bench's truth (declared + effects)."""
+    text = SPATIAL.read_text(encoding="utf-8")
+    text = text.replace('urdf = "phantom15.urdf"', f'urdf = "{ROOT / "scenarios" / "phantom15.urdf"}"')
+    text = text.replace("estimate = [0.0, 0.0, 0.160]", "estimate = [0.008, 0.004, 0.168]")
+    text = text.replace("gain = 1.0", "gain = 0.3")
+    assert "0.008, 0.004, 0.168" in text and "gain = 0.3" in text
+    declared, truth = d / "declared.toml", d / "truth.toml"
+    declared.write_text(text, encoding="utf-8")
+    # [effects] before the arrays of tables
+    i = text.index("[[query]]")
+    truth.write_text(text[:i] + effects + "\n" + text[i:], encoding="utf-8")
+    return declared, truth
+
+
+@pytest.mark.slow
+def test_cli_spatial_calibration_end_to_end(tmp_path, capsys):
+    """errplan experiment + errplan calibrate on 3-D files: the JSON, the 3-D recording (robot,
+    residual arrows before and after, replays), the corrected scenario (reads back; calibrating
+    against it selects nothing)."""
+    import rerun.chunk as rrc
+
+    declared, truth = spatial_bench_files(tmp_path, "[effects.gravity_sag]\nc2 = 0.05\nc3 = 0.08\n")
+    for name, seed in (("data.csv", "1"), ("val.csv", "2")):
+        assert main(["-q", "experiment", str(truth), "--out", str(tmp_path / name), "--seed", seed, "--starts", "3"]) == 0
+    assert (tmp_path / "data.csv").read_text().splitlines()[0].startswith("run,step,target_x,target_y,target_z,gain,q1,q2,q3")
+    capsys.readouterr()
+    assert main(["-q", "calibrate", str(declared), str(tmp_path / "data.csv"), "--validate", str(tmp_path / "val.csv"),
+                 "--json", str(tmp_path / "cal.json"), "--record", str(tmp_path / "cal.rrd"),
+                 "--export-scenario", str(tmp_path / "fixed.toml")]) == 0
+    out = capsys.readouterr().out
+    assert "not identifiable" in out and "identifiability of the catalogue on these rows" in out
+    js = json.loads((tmp_path / "cal.json").read_text())
+    assert js["selected"] == ["gravity_sag"] and js["explained"] is True
+    assert js["parameters"]["gravity_sag"]["c1"] is None
+    assert js["parameters"]["gravity_sag"]["c2"] == pytest.approx(0.05, rel=0.05)
+    assert js["trajectory_rms_after"] < 0.7 * js["trajectory_rms_before"]
+    assert js["identifiability"]["confused_pairs"]
+    ents = {c.entity_path for c in rrc.RrdReader(tmp_path / "cal.rrd").stream().to_chunks()}
+    for e in ("/world/residual/before", "/world/residual/after", "/world/residual_map/after", "/world/replay/measured",
+              "/world/replay/after", "/world/robot/links", "/world/port/true", "/summary"):
+        assert e in ents, e
+    fixed = load_scenario(tmp_path / "fixed.toml")
+    assert fixed.dim == 3 and set(fixed.effects["gravity_sag"]) == {"c1", "c2", "c3"}
+    assert fixed.effects["gravity_sag"]["c1"] == 0.0
+    assert main(["-q", "calibrate", str(tmp_path / "fixed.toml"), str(tmp_path / "val.csv"), "--json",
+                 str(tmp_path / "again.json")]) == 0
+    assert json.loads((tmp_path / "again.json").read_text())["selected"] == []
