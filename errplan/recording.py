@@ -335,7 +335,7 @@ TURBO_R = (0.13572138, 4.61539260, -42.66032258, 132.13108234, -152.94239396, 59
 TURBO_G = (0.09140261, 2.19418839, 4.84296658, -14.18503333, 4.27729857, 2.82956604)
 TURBO_B = (0.10667330, 12.64194608, -60.58204836, 110.36276771, -89.90310912, 27.34824973)
 SURFACE_COLORS = {"G_norm_1": (255, 60, 40, 90), "rho_star_margin": (80, 140, 255, 90)}
-SLICE_ALPHA = 150
+SLICE_ALPHA = 110
 
 
 def turbo(t) -> np.ndarray:
@@ -448,6 +448,10 @@ class SpatialScene:
         lo = np.array([ax[0] for ax in axes], float)
         hi = np.array([ax[-1] for ax in axes], float)
         self.centre = 0.5 * (lo + hi)
+        # what the 3-D view frames: the task region (the field's grid) and the robot's base
+        base = np.asarray(self.arm.base_position, float)
+        lo, hi = np.minimum(lo, base), np.maximum(hi, base)
+        self.look_target = self.centre + 0.15 * (base - self.centre)
         self.extent = float(np.max(hi - lo))
         self.fields = [n for n in ("G_norm", "rho_star") if getattr(mf, n, None) is not None]
         self.surfaces = {}
@@ -626,9 +630,10 @@ def blueprint_spatial(runs, scene):
     corners = [f"- /world/{q}/corners/**" for q in names]
     hidden_fields = [f"- /world/fields/{n}/**" for n in scene.fields if n != "G_norm"]
     hidden_fields.append("- /world/fields/surface/rho_star_margin")
-    c = scene.centre
+    # from the side (+x), a little above and toward the patient: the robot, the port and the task region
+    t = scene.look_target
     e = scene.extent
-    eye = rrb.EyeControls3D(position=[c[0] + 1.1 * e, c[1] + 0.8 * e, c[2] + 1.3 * e], look_target=list(c),
+    eye = rrb.EyeControls3D(position=[t[0] + 0.36 * e, t[1] + 0.31 * e, t[2] + 0.62 * e], look_target=list(t),
                             eye_up=[0.0, 1.0, 0.0], kind=rrb.Eye3DKind.Orbital)
     main = rrb.Spatial3DView(origin="/world", contents=["+ /world/**"] + hidden_fields + corners,
                              name="3-D: robot, worst-case ||G|| slices, ||G|| = 1 surface, paths", eye_controls=eye)
@@ -652,7 +657,7 @@ def blueprint_spatial(runs, scene):
               for i in range(0, len(series), 4)]
     right = rrb.Tabs(*groups, *gains, rrb.TextDocumentView(origin="summary", name="summary"),
                      rrb.TextLogView(origin="replay", name="replay: which run plays"), *others)
-    return rrb.Blueprint(rrb.Horizontal(main, right, column_shares=[3, 2]),
+    return rrb.Blueprint(rrb.Horizontal(main, right, column_shares=[2, 1]),
                          rrb.TimePanel(timeline="replay", state="collapsed"), collapse_panels=True)
 
 
