@@ -23,7 +23,7 @@ SCENARIOS = Path(__file__).resolve().parents[2] / "scenarios"
 BUNDLED = SCENARIOS / "beasley2004_bounded.toml"
 BUNDLED_SPATIAL = SCENARIOS / "phantom15_spatial.toml"
 #: grid spacing (m) of the demo's spatial fields (the scenario's [fields] resolution is 4 mm)
-SPATIAL_RESOLUTION = 0.008
+SPATIAL_RESOLUTION = 0.010
 SPATIAL_METRICS = ("G_norm", "phi_hat_max", "rho_star")
 
 
