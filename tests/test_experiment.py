@@ -312,3 +312,55 @@ def test_bench_size_is_checked_before_running(port, capsys, tmp_path):
     assert main(["experiment", str(PORT), "--out", str(out), "--max-steps", str(10**11)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "--max-steps" in err and "iB" in err and not out.exists()
+
+
+# ----------------------------------------------------------------------------- spatial (issue 13)
+SPATIAL = ROOT / "scenarios" / "phantom15_spatial.toml"
+
+
+@pytest.fixture(scope="module")
+def spatial_bench():
+    sc = load_scenario(SPATIAL).with_(effects={"joint_offset": {"dq1": 0.002, "dq2": 0.0, "dq3": -0.001}})
+    return sc, run_experiment(sc, seed=4, n_starts=3)
+
+
+def test_spatial_targets_are_the_fourteen_of_interfaces_md():
+    off = target_offsets(dim=3)
+    assert off.shape == (14, 3)
+    assert np.allclose(np.linalg.norm(off, axis=1), 0.020)
+    assert {tuple(np.sign(o).astype(int)) for o in off[6:]} == {(a, b, c) for a in (1, -1) for b in (1, -1)
+                                                               for c in (1, -1)}
+    axes = {tuple(np.round(o / 0.020).astype(int)) for o in off[:6]}
+    assert axes == {tuple(v) for v in np.vstack([np.eye(3), -np.eye(3)]).astype(int)}
+
+
+def test_spatial_bench_rows_and_noise(spatial_bench):
+    sc, ex = spatial_bench
+    d = ex.data
+    assert d.dim == 3 and d.n_joints == 3 and d.runs == 14 * len(ex.starts)
+    # P1's starts in the plane x = 0 come first
+    assert np.allclose(ex.starts[0], [0.0, 0.0, 0.320])
+    text = d.to_csv_text()
+    assert text.splitlines()[0] == "run,step,target_x,target_y,target_z,gain,q1,q2,q3,tip_x,tip_y,tip_z"
+    back = parse_measured_csv(text, dim=3, n_joints=3)
+    assert np.allclose(back.q, d.q, atol=1e-11) and np.array_equal(back.step, d.step)
+    # tracked tip = the truth's tip (with the scenario's joint offset) + the tracker's noise
+    plant = Plant.from_scenario(sc)
+    r = d.tip - plant.tip(d.q, d.commanded_directions(plant.declared()))
+    assert np.std(r) == pytest.approx(sc.sensors.tracker_sigma, rel=0.06)
+    # every run: the encoders at step t+1 read the command of step t (the 3-D controller law)
+    ctrl = ControllerModel.from_scenario(sc)
+    for rid in range(0, d.runs, 5):
+        m = d.run == rid
+        q, tip, tg = d.q[m], d.tip[m], d.target[m][0]
+        Jh = ctrl.J_hat(q[:-1])
+        dq = sc.controller.gain * np.linalg.solve(Jh, (tg - tip[:-1])[..., None])[..., 0]
+        assert np.allclose(q[1:], q[:-1] + dq, atol=1e-10)
+
+
+def test_cli_experiment_on_a_spatial_scenario(tmp_path, capsys):
+    out = tmp_path / "b.csv"
+    assert main(["experiment", str(SPATIAL), "--out", str(out), "--starts", "1", "--max-steps", "6"]) == 0
+    text = capsys.readouterr().out
+    assert "start x, y, z (mm)" in text and "14/14" in text
+    assert out.read_text().splitlines()[0].startswith("run,step,target_x")
