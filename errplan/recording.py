@@ -197,6 +197,17 @@ def blueprint(runs, fields_logged: list[str]):
     return rrb.Blueprint(rrb.Horizontal(main, right, column_shares=[3, 2]), collapse_panels=True)
 
 
+def record_placement(path: str | os.PathLike, sc, results, *, app_id: str = "errplan") -> None:
+    """Write the .rrd of port-placement results (``errplan tolerance --record``): the coverage over
+    the candidate grid as a heat map (slices in 3-D) with the best port, the task region and its
+    certified part (drawn by :mod:`errplan.placement_view`, which is handed the rerun module)."""
+    import rerun as rr
+
+    from .placement_view import write_placement
+
+    write_placement(rr, path, sc, results, app_id=app_id)
+
+
 def record_plan(path: str | os.PathLike, sc, mf, runs, *, app_id: str = "errplan") -> None:
     """Write one ``.rrd`` with the fields, workspace, ports, paths, gains and simulations (planar:
     the tip plane; spatial: the 3-D scene of :func:`_log_plan_spatial`).

@@ -63,12 +63,7 @@ def run(args) -> int:
         check_output("--record", args.record)
         if not any(t.kind == "port_placement" for t in sc.tolerances):
             raise ErrplanError(f"--record {args.record}: {sc.source} has no port_placement query to record")
-        from .. import recording
-
-        record = getattr(recording, "record_placement", None)
-        if record is None:
-            raise ErrplanError(f"--record {args.record}: this errplan's recording module has no placement "
-                               "recording (errplan.recording.record_placement)")
+        from ..recording import record_placement as record
     check_sizes(sc)
     prog = Progress("tolerance", quiet=args.quiet)
     prog.quiet = prog.quiet or not prog.tty  # progress only on a terminal: an error stays the one line on stderr
