@@ -44,8 +44,8 @@ def test_criteria_match_their_formulas():
     for i, M in enumerate(Ms):
         V = np.linalg.inv(M)
         assert _criterion(Ms, "D")[i] == pytest.approx(math.log(np.linalg.det(M)), rel=1e-10)
-        assert _criterion(Ms, "A")[i] == pytest.approx(-np.trace(V), rel=1e-10)
-        assert _criterion(Ms, "E")[i] == pytest.approx(np.min(np.linalg.eigvalsh(M)), rel=1e-10)
+        assert _criterion(Ms, "A")[i] == pytest.approx(-math.log(np.trace(V)), rel=1e-10)
+        assert _criterion(Ms, "E")[i] == pytest.approx(math.log(np.min(np.linalg.eigvalsh(M))), rel=1e-10)
         assert _criterion(Ms, "G")[i] == pytest.approx(-np.sum(np.log(np.diag(V))), rel=1e-10)
     # G is D plus the log-determinant of the estimates' correlation matrix (Hadamard: G <= D)
     for M in Ms:
@@ -55,7 +55,7 @@ def test_criteria_match_their_formulas():
         g = _criterion(M[None], "G")[0]
         assert g == pytest.approx(_criterion(M[None], "D")[0] + math.log(np.linalg.det(R)), rel=1e-10)
         assert g <= _criterion(M[None], "D")[0] + 1e-12
-    # a singular matrix scores -inf (D, A, G), 0 (E)
+    # a singular matrix scores -inf
     S = np.zeros((1, 3, 3))
     S[0, 0, 0] = 1.0
     assert _criterion(S, "D")[0] == -np.inf and _criterion(S, "G")[0] == -np.inf and _criterion(S, "A")[0] == -np.inf
@@ -199,10 +199,12 @@ def test_cli_experiment_design(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("extra,needle", [
-    (["--design", "0"], "--design 0"),
+    (["--design", "-1"], "--design -1"),
     (["--max-rows", "100"], "go with --design"),
     (["--design", "5", "--max-rows", "-1"], "--max-rows -1"),
     (["--design", "5", "--criterion", "Q"], "invalid choice"),
+    (["--design", "5", "--separate", "1.5"], "--separate 1.5"),
+    (["--design", "5", "--separate", "tight"], "--separate tight"),
 ])
 def test_cli_design_options_exit_2(tmp_path, capsys, extra, needle):
     out = tmp_path / "d.csv"

@@ -100,9 +100,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="steps recorded after a run first arrives within tolerance (default: %(default)s)")
     s.add_argument("--design", type=int, default=None, metavar="N",
                    help="choose N runs that make the catalogue's parameters identifiable (experiment design) "
-                        "instead of --starts x P1's targets; compares with the default bench")
+                        "instead of --starts x P1's targets, within the default bench's rows (0: as many runs as "
+                        "those rows hold); compares with the default bench")
     s.add_argument("--criterion", default="G", choices=("G", "D", "A", "E"),
                    help="design criterion of the parameters' information (default: %(default)s, see docs/calibration.md)")
+    s.add_argument("--separate", default="0.94", metavar="R",
+                   help="designed bench: keep every pair of effects below this cross correlation ('none': "
+                        "precision only; default: %(default)s)")
     s.add_argument("--max-rows", type=int, default=None,
                    help="designed bench: at most this many rows (default: the default bench's; 0: no limit)")
     s.add_argument("--design-json", default=None, help="also write the design (runs, correlations, sigmas) as JSON")

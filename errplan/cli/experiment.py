@@ -35,12 +35,22 @@ def run(args) -> int:
     design_n = getattr(args, "design", None)
     design_json = check_output("--design-json", getattr(args, "design_json", None))
     max_rows = getattr(args, "max_rows", None)
-    if design_n is not None and design_n < 1:
-        raise ErrplanError(f"--design {design_n}: expected a number of runs >= 1")
+    if design_n is not None and design_n < 0:
+        raise ErrplanError(f"--design {design_n}: expected a number of runs >= 1 (0: as many as the rows hold)")
     if max_rows is not None and max_rows < 0:
         raise ErrplanError(f"--max-rows {max_rows}: expected an integer >= 0 (0: no limit)")
     if design_n is None and (max_rows is not None or design_json):
         raise ErrplanError("--max-rows and --design-json go with --design N")
+    sep_text = str(getattr(args, "separate", "0.94"))
+    if sep_text.strip().lower() == "none":
+        separate = None
+    else:
+        try:
+            separate = float(sep_text)
+        except ValueError:
+            separate = float("nan")
+        if not 0.0 < separate < 1.0:
+            raise ErrplanError(f"--separate {sep_text}: expected a correlation between 0 and 1, or 'none'")
     runs = None
     if design_n is not None:
         from ..calibration.design import design_experiment
@@ -48,7 +58,8 @@ def run(args) -> int:
 
         prog = Progress("design", quiet=args.quiet)
         prog.quiet = prog.quiet or not prog.tty
-        design = design_experiment(sc, design_n, max_rows=max_rows, criterion=getattr(args, "criterion", "G"),
+        design = design_experiment(sc, design_n or None, max_rows=max_rows, criterion=getattr(args, "criterion", "G"),
+                                   separate=separate,
                                    seed=args.seed, n_starts=starts, max_steps=max_steps, dwell=dwell, progress=prog)
         prog.done()
         print(design.text())
