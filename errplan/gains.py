@@ -64,7 +64,7 @@ from .errors import ErrplanError
 from .fields import Evaluator
 from .kinematics.shaft import flexed_tip, flexed_wrist_plane, lever_jacobian
 from .linalg import g_norm3, v_sigma3
-from .metrics import inv2, inverse_parts
+from .metrics import inv, inv2, inverse_parts
 
 GOLDEN_ANGLE = math.pi * (3.0 - math.sqrt(5.0))
 
@@ -429,8 +429,6 @@ class SpatialModel:
 
     def step_ratio(self, target, x: np.ndarray, theta: np.ndarray, k) -> np.ndarray:
         """:func:`step_ratio` in 3-D: one controller step on the URDF arm per pair (n,)."""
-        from .simulation import inv
-
         x = np.asarray(x, float)
         theta = np.asarray(theta, float)
         b = np.asarray(target, float)

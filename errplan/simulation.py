@@ -25,33 +25,7 @@ from .kinematics.truth import Plant, effect_kwargs
 
 __all__ = ["Plant", "effect_kwargs", "ControllerModel", "SimResult", "simulate", "distance_to_polyline",
            "g_norm_along"]
-from .metrics import inv2
-
-
-def inv(A: np.ndarray, rcond: float = 1e-12) -> tuple[np.ndarray, np.ndarray]:
-    """Inverse of (..., d, d) matrices and a singular mask: the planar :func:`errplan.metrics.inv2`,
-    and in 3-D ``np.linalg.inv`` where ``|det| > rcond ||A||_F^3`` (NaN elsewhere)."""
-    A = np.asarray(A, float)
-    if A.shape[-1] == 2:
-        return inv2(A, rcond)
-    det = np.linalg.det(A)
-    scale = np.sqrt(np.einsum("...ij,...ij->...", A, A)) ** A.shape[-1]
-    singular = ~(np.abs(det) > rcond * scale)
-    safe = np.where(singular[..., None, None], np.eye(A.shape[-1]), A)
-    out = np.linalg.inv(safe)
-    return np.where(singular[..., None, None], np.nan, out), singular
-
-
-def spectral_norm(A: np.ndarray) -> np.ndarray:
-    """Largest singular value of (..., d, d) matrices (planar closed form, SVD in 3-D)."""
-    A = np.asarray(A, float)
-    if A.shape[-1] == 2:
-        from .metrics import spectral_norm as sn2
-
-        return sn2(A)
-    ok = np.all(np.isfinite(A), axis=(-2, -1))
-    s = np.linalg.svd(np.where(ok[..., None, None], A, 0.0), compute_uv=False)[..., 0]
-    return np.where(ok, s, np.nan)
+from .metrics import inv, spectral_norm
 
 
 # ----------------------------------------------------------------------------- controller
