@@ -23,6 +23,10 @@ class Candidate:
     selectable: bool
     note: str = ""
     selected: bool = False
+    #: not identifiable only because its parameters correlate beyond the limit (a finite condition
+    #: number, every column informed, the fit converged, finite sigmas): it may still be selected
+    #: when it predicts the data better than every identifiable candidate (:func:`.selection.select`)
+    weak: bool = False
 
     @property
     def effects(self) -> list[str]:
@@ -41,6 +45,7 @@ class Candidate:
             "delta_bic": self.bic - bic_none, "score": self.bic - bic_none,
             "identifiable": bool(m.identifiable_), "condition_number": m.condition_ if math.isfinite(m.condition_) else None,
             "max_correlation": m.max_correlation_, "selectable": self.selectable, "selected": self.selected,
+            "weakly_identifiable": self.weak,
             "note": self.note,
         }
 
@@ -96,4 +101,7 @@ def fit_candidate(effects, data: MeasuredData, u: np.ndarray, base, fold_of_run:
             sse += float(np.sum(r * r))
         ho = math.sqrt(sse / (d * n)) if math.isfinite(sse) else None
     note = "" if m.identifiable_ else f"not identifiable: {m.why_}"
-    return Candidate(m, math.sqrt(m.rss_ / (d * n)), bic, ho, bool(m.identifiable_), note)
+    free_sigma = np.asarray(m.sigma_, float)[m.free] if m.n_params else np.zeros(0)
+    weak = (not m.identifiable_ and m.success_ and math.isfinite(m.condition_) and "no data depend" not in m.why_
+            and bool(np.all(np.isfinite(free_sigma))))
+    return Candidate(m, math.sqrt(m.rss_ / (d * n)), bic, ho, bool(m.identifiable_), note, weak=weak)

@@ -196,6 +196,10 @@ class CalibrationReport:
                     note = f"declared {dec.get(p, 0.0) * f:+.4f} + fitted {self.fitted[e][p] * f:+.4f}" if dec else ""
                     prow.append([e, p, f"{v * f:+.4f} ± {sig}", unit, note])
             lines.append(format_table(["effect", "param", "value ± 1 sigma", "unit", ""], prow, "selected effects"))
+            chosen = next((c for c in self.candidates if c.selected), None)
+            if chosen is not None and not chosen.selectable:
+                lines.append(f"warning: {chosen.model.why_}: the selected effects fit and predict best, but these rows "
+                             f"separate them poorly; `errplan experiment --design N` chooses runs that do")
         else:
             lines.append("selected effects: none (the declared model explains the data down to the noise)")
         e = self.errors

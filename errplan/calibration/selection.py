@@ -7,11 +7,22 @@ from .fit import Candidate
 
 def select(cands: dict[tuple[str, ...], Candidate]) -> Candidate:
     """The first selectable candidate by BIC whose held-out error beats every sub-model with one
-    effect fewer (and whose BIC beats them too). "none" always qualifies."""
+    effect fewer (and whose BIC beats them too). "none" always qualifies.
+
+    A candidate that is not identifiable only because its parameters correlate beyond the limit
+    (:attr:`Candidate.weak`) qualifies too when both its BIC and its held-out error are below those
+    of every identifiable candidate: the data then say these effects, and reporting a worse-fitting
+    identifiable combination instead would be confidently wrong. Its stated sigmas carry the
+    correlation, and the report says that the bench separates them poorly."""
     order = sorted(cands.values(), key=lambda c: c.bic)
+    ok_cands = [c for c in cands.values() if c.selectable]
+    best_bic = min(c.bic for c in ok_cands)
+    best_ho = min((c.heldout_rms for c in ok_cands if c.heldout_rms is not None), default=None)
     for c in order:
         if not c.selectable:
-            continue
+            if not (c.weak and c.bic < best_bic and (best_ho is None or (c.heldout_rms is not None
+                                                                         and c.heldout_rms < best_ho))):
+                continue
         key = tuple(c.effects)
         ok = True
         for e in key:
@@ -29,5 +40,7 @@ def select(cands: dict[tuple[str, ...], Candidate]) -> Candidate:
                     c.note = f"held-out error not below {sub.label}"
                 break
         if ok:
+            if not c.selectable:
+                c.note = "selected though correlated: fits and predicts best (see the warning below)"
             return c
     return cands[()]  # pragma: no cover - "none" is always selectable
