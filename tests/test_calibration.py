@@ -681,3 +681,42 @@ def test_cli_spatial_calibration_end_to_end(tmp_path, capsys):
     assert main(["-q", "calibrate", str(tmp_path / "fixed.toml"), str(tmp_path / "val.csv"), "--json",
                  str(tmp_path / "again.json")]) == 0
     assert json.loads((tmp_path / "again.json").read_text())["selected"] == []
+
+
+def test_a_correlated_pair_that_fits_best_is_selected_with_a_warning():
+    """Selection: a candidate flagged only for correlation wins when both its BIC and its held-out
+    error beat every identifiable candidate; otherwise the identifiable one stays."""
+    from errplan.calibration import Candidate, select
+    from errplan.effects import EffectModel, make_effect
+
+    def cand(names, bic, ho, ok, weak=False):
+        m = EffectModel([make_effect(n) for n in names])
+        m.why_ = "" if ok else "joint_offset.dq1 and gravity_sag.c1 correlate +0.9990"
+        return Candidate(m, 0.0, bic, ho, ok, weak=weak)
+
+    def cands(pair_bic, pair_ho):
+        return {(): cand([], 0.0, 1.0, True), ("joint_offset",): cand(["joint_offset"], -100.0, 0.5, True),
+                ("gravity_sag",): cand(["gravity_sag"], -90.0, 0.6, True),
+                ("joint_offset", "tracker_offset"): cand(["joint_offset", "tracker_offset"], -150.0, 0.3, True),
+                ("joint_offset", "gravity_sag"): cand(["joint_offset", "gravity_sag"], pair_bic, pair_ho, False, True)}
+
+    c = cands(-200.0, 0.2)
+    chosen = select(c)
+    assert chosen.effects == ["joint_offset", "gravity_sag"] and "correlated" in chosen.note
+    assert select(cands(-200.0, 0.35)).effects == ["joint_offset", "tracker_offset"]  # predicts worse: no
+    assert select(cands(-120.0, 0.2)).effects == ["joint_offset", "tracker_offset"]   # BIC worse: no
+    c = cands(-200.0, 0.2)
+    c[("joint_offset", "gravity_sag")].weak = False                                   # truly singular: never
+    assert select(c).effects == ["joint_offset", "tracker_offset"]
+
+
+@pytest.mark.slow
+def test_spatial_pair_the_default_bench_confuses_is_still_found(spatial):
+    """joint offset and gravity sag correlate at 0.999 on the spatial default bench: calibrate selects
+    both (the best fit and prediction), recovers them within 2.5 sigma and 25 %, and warns."""
+    truth = {"joint_offset": SPATIAL_TRUTHS["joint_offset"], "gravity_sag": SPATIAL_TRUTHS["gravity_sag"]}
+    data = run_experiment(spatial.with_(effects=truth), seed=11).data
+    val = run_experiment(spatial.with_(effects=truth), seed=12).data
+    rep = calibrate(spatial, data, validate=val, seed=0)
+    check_done(rep, truth)
+    assert "warning" in rep.text() and "--design" in rep.text()
