@@ -13,13 +13,12 @@ tracker noise sigma, the least-squares estimate of the parameters has covariance
 ``sigma^2 (J^T J)^-1``; ``M = J^T J = sum over runs of M_r`` is the information matrix. Choose N
 runs from a candidate set to maximise a criterion of ``M``:
 
-- **D-optimal** (default): ``log det M``. The volume of the confidence ellipsoid of all
-  parameters shrinks; it is invariant to the parameters' units and to any linear
-  reparametrisation (metres, radians and 1/m^2 mix here, and ``det(S M S) = det(S)^2 det M``),
-  and ``log det`` is concave and submodular over runs, so greedy selection followed by Fedorov
-  exchange is the classical, reliable algorithm. A near-singular direction (two effects that move
-  the tip alike) has a tiny eigenvalue and drags ``log det`` down, so D-optimality separates
-  confused effects as a by-product of shrinking every variance.
+- **D-optimal**: ``log det M``. The volume of the confidence ellipsoid of all parameters
+  shrinks; it is invariant to the parameters' units and to any linear reparametrisation (metres,
+  radians and 1/m^2 mix here, and ``det(S M S) = det(S)^2 det M``), and ``log det`` is concave and
+  submodular over runs, so greedy selection followed by Fedorov exchange is the classical, reliable
+  algorithm. But D trades correlation for magnitude freely: on P1's scenario a D-optimal bench
+  confuses port offset and shaft flexion *more* than the default one (0.995 against 0.983).
 - **A-optimal**: ``-log trace(M^-1)`` in units of each parameter's typical size (the effect's
   ``default_scales``): the mean variance, which depends on those units.
 - **E-optimal**: ``log lambda_min`` of ``M`` in the same units: the worst direction only; it
@@ -37,14 +36,14 @@ every pair the default bench confuses. The price is stated, not hidden: the rows
 offset from shaft flexion are near the port, where every effect moves the tip least, so
 single-effect sigmas rise there (docs/calibration.md).
 
-Candidates: start tips on a grid over the tip workspace, each with the bench's targets (P1's 8
-directions in the plane, the 14 of interfaces.md in 3-D) at 20 and 40 mm; start and target must
+Candidates: start tips on a grid over the whole tip workspace, each with the bench's targets (P1's
+8 directions in the plane, the 14 of interfaces.md in 3-D) at 20 and 40 mm; start and target must
 be *robust*: reachable with margins (joint limits, tip and wrist away from the true and the
 estimated port, as :func:`errplan.experiment.choose_starts`) and, when the scenario has an
 ``[uncertainty]`` error set and a rigid controller, valid under every instance of it
-(:class:`errplan.fields.KernelEvaluator`). Each candidate run is predicted on the declared model
-with the scenario's sensor noise (:func:`errplan.experiment.simulate_bench`, seeded), so a run's
-rows, its length and friction's directions are those the bench will record.
+(:class:`errplan.fields.KernelEvaluator`). Each candidate run is predicted on the declared model,
+noise-free (:func:`errplan.experiment.simulate_bench`), so a run's rows, its length and friction's
+directions are those the bench will record; runs that do not arrive are dropped.
 
 What is written here (no library fits; see docs/calibration.md): the information blocks from the
 effect models' central-difference Jacobian (:class:`errplan.effects.EffectModel`), greedy
