@@ -635,11 +635,11 @@ def test_resolve_uri(monkeypatch, tmp_path):
     uri = "package://omni_description/meshes/base.stl"
     assert arm.resolve_uri(uri) is None
     with_path = load_omni(package_path=[str(ROBOTS)])
-    assert with_path.resolve_uri(uri) == ROBOTS / "omni_description" / "meshes" / "base.stl"
+    assert with_path.resolve_uri(uri).resolve() == (ROBOTS / "omni_description" / "meshes" / "base.stl").resolve()
     assert with_path.resolve_uri("package://omni_description/meshes/nope.stl") is None
     monkeypatch.setenv("ROS_PACKAGE_PATH", os.pathsep.join([str(tmp_path), str(ROBOTS)]))
-    assert arm.resolve_uri(uri) == ROBOTS / "omni_description" / "meshes" / "base.stl"
-    assert arm.resolve_uri("../meshes/base.stl") == (OMNI.parent / "../meshes/base.stl")
+    assert arm.resolve_uri(uri).resolve() == (ROBOTS / "omni_description" / "meshes" / "base.stl").resolve()
+    assert arm.resolve_uri("../meshes/base.stl").resolve() == (OMNI.parent / "../meshes/base.stl").resolve()
     assert arm.resolve_uri("http://example.invalid/x.stl") is None
 
 
