@@ -27,13 +27,13 @@ from __future__ import annotations
 
 import math
 import os
-import re
 from pathlib import Path
 from typing import Any, Iterable
 
 import numpy as np
 
 from .errors import ErrplanError
+from .recording import entity_names as _names, uv  # pure helpers; recording imports rerun only inside its functions
 
 BEST_COLOR = (255, 60, 200)
 REFINED_COLOR = (255, 255, 255)
@@ -56,17 +56,6 @@ def viridis(v) -> np.ndarray:
     return rgb.astype(np.uint8)
 
 
-def entity_part(name: str) -> str:
-    s = re.sub(r"[^A-Za-z0-9_-]+", "_", name).strip("_")
-    return s or "query"
-
-
-def uv(pts) -> np.ndarray:
-    """Tip-plane points ``[y, z]`` -> viewer 2-D coordinates ``(z, -y)`` (as errplan.recording)."""
-    p = np.asarray(pts, float)
-    return np.stack([p[..., 1], -p[..., 0]], axis=-1)
-
-
 def _results(results) -> list:
     if hasattr(results, "kind"):
         results = [results]
@@ -74,19 +63,6 @@ def _results(results) -> list:
     for r in out:
         if "_arrays" not in r.data:
             raise ErrplanError(f"{r.name}: the placement result holds no arrays to record (keep_arrays=False)")
-    return out
-
-
-def _names(results: list) -> list[str]:
-    out, seen = [], set()
-    for r in results:
-        base = entity_part(r.name)
-        q, i = base, 1
-        while q in seen:
-            i += 1
-            q = f"{base}_{i}"
-        seen.add(q)
-        out.append(q)
     return out
 
 

@@ -197,6 +197,21 @@ def blueprint(runs, fields_logged: list[str]):
     return rrb.Blueprint(rrb.Horizontal(main, right, column_shares=[3, 2]), collapse_panels=True)
 
 
+def _log_urdf(tree, rec, arm) -> None:
+    """Log the arm's URDF (meshes resolved through its package path) with rerun's URDF loader;
+    ROS_PACKAGE_PATH is set for the call and restored after."""
+    env = _package_env(arm)
+    saved = os.environ.get("ROS_PACKAGE_PATH")
+    try:
+        os.environ.update(env)
+        tree.log_urdf_to_recording(rec)
+    finally:
+        if saved is None:
+            os.environ.pop("ROS_PACKAGE_PATH", None)
+        else:
+            os.environ["ROS_PACKAGE_PATH"] = saved
+
+
 def record_placement(path: str | os.PathLike, sc, results, *, app_id: str = "errplan") -> None:
     """Write the .rrd of port-placement results (``errplan tolerance --record``): the coverage over
     the candidate grid as a heat map (slices in 3-D) with the best port, the task region and its
@@ -512,16 +527,7 @@ def _log_robot(rec, rr, sc, scene) -> dict:
     info = {"urdf_loaded": tree is not None, "meshes": len(scene.uris), "meshes_resolved": len(scene.resolved)}
     joints = {}
     if tree is not None:
-        env = _package_env(arm)
-        saved = os.environ.get("ROS_PACKAGE_PATH")
-        try:
-            os.environ.update(env)
-            tree.log_urdf_to_recording(rec)
-        finally:
-            if saved is None:
-                os.environ.pop("ROS_PACKAGE_PATH", None)
-            else:
-                os.environ["ROS_PACKAGE_PATH"] = saved
+        _log_urdf(tree, rec, arm)
         root = tree.root_link().name
         rec.log("world/robot/placement",
                 rr.Transform3D(translation=list(arm.base_position), mat3x3=_rpy_matrix(arm.base_rpy),
@@ -846,16 +852,7 @@ def _log_calibration_robot(rec, rr, sc, q) -> dict:
     ui = rr.Radius.ui_points
     tree = _load_urdf_tree(arm)
     if tree is not None:
-        env = _package_env(arm)
-        saved = os.environ.get("ROS_PACKAGE_PATH")
-        try:
-            os.environ.update(env)
-            tree.log_urdf_to_recording(rec)
-        finally:
-            if saved is None:
-                os.environ.pop("ROS_PACKAGE_PATH", None)
-            else:
-                os.environ["ROS_PACKAGE_PATH"] = saved
+        _log_urdf(tree, rec, arm)
         rec.log("world/robot/placement",
                 rr.Transform3D(translation=list(arm.base_position), mat3x3=_rpy_matrix(arm.base_rpy),
                                parent_frame="tf#/world", child_frame=f"robot/{tree.root_link().name}"), static=True)
