@@ -186,21 +186,27 @@ def _flexed_J3(w, p, L, tvec, a, J, S):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def instance(d, x, theta, base_port, est, L, arm, chain, rmap, Mb, jm, S, V, reach_known=False):
-    """``M = J Jhat^-1`` of one error instance at tip ``x`` into ``Mb[jm]`` (d x d); False where
-    the instance cannot reach the tip (shaft not through the port, wrist unreachable) or the
-    controller's Jacobian is singular there. ``S`` (8, 3, 3) and ``V`` (8, 3) are scratch.
-    ``reach_known``: the caller has certified that every wrist of the error set is reachable
-    (:func:`_tip_reach`), so the per-instance check is skipped (3-D). ``d`` is a compile-time
-    literal in the search kernels, so each specialization holds one body, inlined: a call would
-    reference-count every array argument, which costs more than the arithmetic."""
+def instance(d, x, theta, base_port, est, L, arm, Mb, jm, S, V):
+    """``M = J Jhat^-1`` of one error instance at tip ``x`` into ``Mb[jm]`` (d x d). Returns
+    ``(ok, w0, w1, w2)``: ``ok`` False where the shaft does not pass the port, the controller's
+    Jacobian is singular or (planar) the arm cannot place the wrist; in 3-D the wrist ``w`` is
+    returned and the caller checks its reachability (:func:`reach_point`) unless :func:`_tip_reach`
+    certified the tip. ``S`` (8, 3, 3) and ``V`` (8, 3) are scratch. ``d`` is a compile-time literal
+    in the search kernels, so each specialization holds one body, inlined: a call would
+    reference-count every array argument, which costs more than the arithmetic.
+
+    Why the 3-D reachability check is the caller's: an inlined function that takes the chain and
+    the reachability map (ten arrays) and uses them behind a branch keeps their reference counts
+    (atomic increments) on every call even when the branch is never taken; that doubled the cost
+    of a certified tip (benchmarks/fields.py).
+    """
     if d == 2:
-        return _instance2(x, theta, base_port, est, L, arm, chain, rmap, Mb, jm, S, V, reach_known)
-    return _instance3(x, theta, base_port, est, L, arm, chain, rmap, Mb, jm, S, V, reach_known)
+        return _instance2(x, theta, base_port, est, L, arm, Mb, jm, S, V), 0.0, 0.0, 0.0
+    return _instance3(x, theta, base_port, est, L, Mb, jm, S, V)
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _instance2(x, theta, base_port, est, L, arm, chain, rmap, Mb, jm, S, V, reach_known):
+def _instance2(x, theta, base_port, est, L, arm, Mb, jm, S, V):
     """The planar instance: conformal parts of J and Jhat in real arithmetic."""
     if True:
         # Conformal parts (errplan.metrics) in real arithmetic: mu = mr + i mi, nu = nr + i ni.
@@ -259,13 +265,13 @@ def _instance2(x, theta, base_port, est, L, arm, chain, rmap, Mb, jm, S, V, reac
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _instance3(x, theta, base_port, est, L, arm, chain, rmap, Mb, jm, S, V, reach_known):
+def _instance3(x, theta, base_port, est, L, Mb, jm, S, V):
     """The spatial instance: the 3-D lever in closed form, or the flexed shaft under a load."""
     p0, p1, p2 = base_port[0] + theta[0], base_port[1] + theta[1], base_port[2] + theta[2]
     e0, e1, e2 = x[0] - p0, x[1] - p1, x[2] - p2
     r = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
     if not (r > 1e-9 and r < L):
-        return False
+        return False, 0.0, 0.0, 0.0
     tau = theta[3]
     if tau == 0.0:
         # Straight shaft (docs/physics.md "Lever in 3-D"): J = I - s P, P = I - u u^T, u = e / r and
@@ -274,8 +280,6 @@ def _instance3(x, theta, base_port, est, L, arm, chain, rmap, Mb, jm, S, V, reac
         ir = 1.0 / r
         u0, u1, u2 = e0 * ir, e1 * ir, e2 * ir
         w0, w1, w2 = x[0] - L * u0, x[1] - L * u1, x[2] - L * u2
-        if not reach_known and not reach_point(chain, rmap, w0, w1, w2):
-            return False
         s_ = L / (L - r)
         d0, d1, d2 = est[0] - w0, est[1] - w1, est[2] - w2
         rho = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
@@ -283,7 +287,7 @@ def _instance3(x, theta, base_port, est, L, arm, chain, rmap, Mb, jm, S, V, reac
         # det(Jhat) = (1 - sh)^2: singular relative to its scale ||Jhat||_F^3 ~ (1 + 2 (1 - sh)^2)^1.5
         one = 1.0 - sh
         if not one * one > RCOND * (1.0 + 2.0 * one * one) ** 1.5:
-            return False
+            return False, 0.0, 0.0, 0.0
         c = sh / one
         v0, v1, v2 = d0 / rho, d1 / rho, d2 / rho
         # M = (I - s P)(I + c Ph) = I + c Ph - s P - s c P Ph, with P Ph = I - u u^T - v v^T + (u.v) u v^T
@@ -300,7 +304,7 @@ def _instance3(x, theta, base_port, est, L, arm, chain, rmap, Mb, jm, S, V, reac
                 Ph = dij - vi * vj
                 PPh = dij - ui * uj - vi * vj + uv * ui * vj
                 Mb[jm, i, j] = dij + c * Ph - s_ * P - sc * PPh
-        return True
+        return True, w0, w1, w2
     # A lateral load: the bending plane holds the port->tip line e1 and e2(psi); in it the planar
     # beam with load tau (docs/physics.md): chord c = cos(alpha) e1 - sin(alpha) e2, wrist x - L c.
     p = V[0]
@@ -319,8 +323,6 @@ def _instance3(x, theta, base_port, est, L, arm, chain, rmap, Mb, jm, S, V, reac
     ca, sa = math.cos(al), math.sin(al)
     for i in range(3):
         w[i] = x[i] - L * (ca * e1v[i] - sa * (cp * f1[i] + sp * f2[i]))
-    if not reach_known and not reach_point(chain, rmap, w[0], w[1], w[2]):
-        return False
     # world load: tau along the normal of the wrist->port line toward the chord
     rho = math.sqrt((p[0] - w[0]) ** 2 + (p[1] - w[1]) ** 2 + (p[2] - w[2]) ** 2)
     cu = 0.0
@@ -345,11 +347,11 @@ def _instance3(x, theta, base_port, est, L, arm, chain, rmap, Mb, jm, S, V, reac
         for j in range(3):
             scale += Jh[i, j] * Jh[i, j]
     if not abs(det) > RCOND * scale ** 1.5:
-        return False
+        return False, 0.0, 0.0, 0.0
     for i in range(3):
         for j in range(3):
             Mb[jm, i, j] = J[i, 0] * Jinv[0, j] + J[i, 1] * Jinv[1, j] + J[i, 2] * Jinv[2, j]
-    return True
+    return True, w[0], w[1], w[2]
 
 
 @njit(cache=True, error_model="numpy")
@@ -406,7 +408,7 @@ def _tip_reach(x, base_port, lo, hi, L, rmap):
 
 
 # ----------------------------------------------------------------------------- metrics of M
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def gnorm(Mb, j, k):
     """``||I - k M||_2`` of ``M = Mb[j]``: ``|1 - k mu| + k |nu|`` in the plane, the closed-form
     sigma_max in 3-D."""
@@ -457,63 +459,65 @@ def phi_bound(Mb, j):
 
 
 # ----------------------------------------------------------------------------- the search
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def _poll_value(which, Mb, j, k):
     return gnorm(Mb, j, k) if which == 0 else phimax(Mb, j)
 
 
 @njit(cache=True, error_model="numpy")
-def _grid_index(j, counts, na, out):
+def _sample_table(counts, periodic, na, m, pos, stride, nbr):
+    """Once per tile: the per-axis position ``pos[j, ax]`` of every sample (m, na), the strides of
+    the flat sample index (na,) and the flat index of each sample's neighbours ``nbr[j, 2 ax + 0/1]``
+    one step down/up axis ``ax`` (-1 outside the box or along an axis with one sample), so that the
+    tip loop finds local maxima without integer division."""
+    s = 1
     for ax in range(na - 1, -1, -1):
-        out[ax] = j % counts[ax]
-        j //= counts[ax]
+        stride[ax] = s
+        s *= counts[ax]
+    for j in range(m):
+        for ax in range(na):
+            pos[j, ax] = (j // stride[ax]) % counts[ax]
+    for j in range(m):
+        for ax in range(na):
+            for o in range(2):
+                nbr[j, 2 * ax + o] = _neighbour(j, ax, 2 * o - 1, pos, stride, counts, periodic) if counts[ax] > 1 else -1
 
 
-@njit(cache=True, error_model="numpy")
-def _neighbour(j, ax, off, counts, periodic, na):
+@njit(cache=True, error_model="numpy", inline="always")
+def _neighbour(j, ax, off, pos, stride, counts, periodic):
     """Flat index of sample ``j`` moved ``off`` steps along axis ``ax``; -1 outside the box."""
-    stride = 1
-    for a2 in range(ax + 1, na):
-        stride *= counts[a2]
-    pos = (j // stride) % counts[ax]
-    q = pos + off
+    p = pos[j, ax]
+    q = p + off
     if periodic[ax]:
         q %= counts[ax]
     elif q < 0 or q >= counts[ax]:
         return -1
-    return j + (q - pos) * stride
+    return j + (q - p) * stride[ax]
 
 
-@njit(cache=True, error_model="numpy")
-def _local_max(vals, j, counts, periodic, na):
-    for ax in range(na):
-        if counts[ax] < 2:
-            continue
-        for off in (-1, 1):
-            q = _neighbour(j, ax, off, counts, periodic, na)
-            if q >= 0 and vals[q] > vals[j]:
-                return False
+@njit(cache=True, error_model="numpy", inline="always")
+def _local_max(vals, j, nbr):
+    for c in range(nbr.shape[1]):
+        q = nbr[j, c]
+        if q >= 0 and vals[q] > vals[j]:
+            return False
     return True
 
 
-@njit(cache=True, error_model="numpy")
-def _far(j, i, counts, periodic, na):
+@njit(cache=True, error_model="numpy", inline="always")
+def _far(j, i, pos, counts, periodic, na):
     """More than one grid step apart along some axis (periodic axes measured around the circle)."""
-    stride = 1
-    for ax in range(na - 1, -1, -1):
-        pj = (j // stride) % counts[ax]
-        pi = (i // stride) % counts[ax]
-        dd = abs(pj - pi)
+    for ax in range(na):
+        dd = abs(pos[j, ax] - pos[i, ax])
         if periodic[ax]:
             dd = min(dd, counts[ax] - dd)
         if dd > 1:
             return True
-        stride *= counts[ax]
     return False
 
 
-@njit(cache=True, error_model="numpy")
-def _peak_raise(vals, j, counts, periodic, na):
+@njit(cache=True, error_model="numpy", inline="always")
+def _peak_raise(vals, j, pos, stride, counts, periodic, na):
     """Estimated gain of refining sample ``j``: per axis the parabola through it and its neighbours
     (one-sided on a face, where only a vertex inside the box counts), summed over the axes."""
     f0 = vals[j]
@@ -522,8 +526,8 @@ def _peak_raise(vals, j, counts, periodic, na):
         s = counts[ax]
         if s < 2:
             continue
-        jm = _neighbour(j, ax, -1, counts, periodic, na)
-        jp = _neighbour(j, ax, 1, counts, periodic, na)
+        jm = _neighbour(j, ax, -1, pos, stride, counts, periodic)
+        jp = _neighbour(j, ax, 1, pos, stride, counts, periodic)
         if s == 2:
             r = abs(f0 - vals[jp if jp >= 0 else jm])
         elif jm >= 0 and jp >= 0:
@@ -532,8 +536,8 @@ def _peak_raise(vals, j, counts, periodic, na):
             r = (fp - fm) ** 2 / (8 * curv) if curv > 0 else 0.0
         else:
             inward = 1 if jm < 0 else -1
-            j1 = _neighbour(j, ax, inward, counts, periodic, na)
-            j2 = _neighbour(j, ax, 2 * inward, counts, periodic, na)
+            j1 = _neighbour(j, ax, inward, pos, stride, counts, periodic)
+            j2 = _neighbour(j, ax, 2 * inward, pos, stride, counts, periodic)
             f1, f2 = vals[j1], vals[j2]
             c2 = 0.5 * (f0 - 2 * f1 + f2)
             bb = f0 - f1 + c2
@@ -573,7 +577,8 @@ def _pattern(d, which, k, x, th, best, step0, lo, hi, active, periodic, refine, 
                         if v == th[ax]:
                             continue  # clipped back onto the centre: a worst case on the box face
                     cand[ax] = v
-                    if not instance(d, x, cand, base_port, est, L, arm, chain, rmap, M, 0, S, V, known):
+                    ok, w0, w1, w2 = instance(d, x, cand, base_port, est, L, arm, M, 0, S, V)
+                    if not (ok and (d == 2 or known or reach_point(chain, rmap, w0, w1, w2))):
                         return best, False
                     if which == 1 and d == 3 and phi_bound(M, 0) <= best:
                         continue  # this instance cannot raise the worst |phi_max|
@@ -696,6 +701,10 @@ def _search(d, X, grid, counts, active, periodic, lo, hi, step0, base_port, est,
     results = np.empty(2)
     idx = np.empty(m, np.int64)
     order = np.empty(m, np.int64)
+    pos = np.empty((m, na), np.int64)
+    stride = np.empty(na, np.int64)
+    nbr = np.empty((m, 2 * na), np.int64)
+    _sample_table(counts, periodic, na, m, pos, stride, nbr)
     # 3-D with a load: samples at tau = 0 repeat along the direction axis psi (the last one)
     dup = d == 3 and na == 5 and counts[4] > 1
     for ii in range(n):
@@ -714,7 +723,8 @@ def _search(d, X, grid, counts, active, periodic, lo, hi, step0, base_port, est,
                         Ms[j, a, b] = Ms[j0, a, b]
                 vals_g[j] = vals_g[j0]
                 continue
-            if not instance(d, x, grid[j], base_port, est, L, arm, chain, rmap, Ms, j, S, V, known):
+            okj, w0, w1, w2 = instance(d, x, grid[j], base_port, est, L, arm, Ms, j, S, V)
+            if not (okj and (d == 2 or known or reach_point(chain, rmap, w0, w1, w2))):
                 ok = False
                 break
             vals_g[j] = gnorm(Ms, j, k)
@@ -754,12 +764,12 @@ def _search(d, X, grid, counts, active, periodic, lo, hi, step0, base_port, est,
             j2 = -1
             if second_start > 0 and m > 1:
                 for j in range(m):
-                    if _far(j, jbest, counts, periodic, na) and _local_max(vals, j, counts, periodic, na):
+                    if _far(j, jbest, pos, counts, periodic, na) and _local_max(vals, j, nbr):
                         if j2 < 0 or vals[j] > vals[j2]:
                             j2 = j
                 if j2 >= 0:
                     v = vals[jbest]
-                    if not (vals[j2] + 2.0 * _peak_raise(vals, j2, counts, periodic, na)
+                    if not (vals[j2] + 2.0 * _peak_raise(vals, j2, pos, stride, counts, periodic, na)
                             >= v - second_start * max(1.0, abs(v))):
                         j2 = -1
             best_all = -math.inf
@@ -829,7 +839,8 @@ def _motion_maps(d, X, TH, base_port, est, L, arm, chain, rmap, out_M, out_ok):
     S = np.zeros((8, 3, 3))
     V = np.zeros((8, 3))
     for i in range(X.shape[0]):
-        ok = instance(d, X[i], TH[i], base_port, est, L, arm, chain, rmap, out_M, i, S, V, False)
+        ok, w0, w1, w2 = instance(d, X[i], TH[i], base_port, est, L, arm, out_M, i, S, V)
+        ok = ok and (d == 2 or reach_point(chain, rmap, w0, w1, w2))
         out_ok[i] = ok
         if not ok:
             for a in range(d):

@@ -1304,12 +1304,16 @@ class UrdfArm:
     def _check_rank(self, where: str) -> None:
         """One clear error for limits that leave nothing feasible or a chain that cannot move the
         wrist in 3-D (rank-deficient Jacobian at every sampled configuration of the box)."""
-        from scipy.optimize import linprog
-
         ch = self.chain
-        res = linprog(np.zeros(self.n), A_ub=np.concatenate([ch.A, -ch.A]), b_ub=np.concatenate([ch.hi, -ch.lo]),
-                      bounds=[(None, None)] * self.n, method="highs")
-        if res.status != 0:
+        if len(ch.A) == self.n:  # the box alone (A = I): feasible iff every lower limit is below its upper one
+            feasible = bool(np.all(ch.lo <= ch.hi))
+        else:  # coupled limits: a linear program (scipy.optimize costs 0.4 s to import, so only here)
+            from scipy.optimize import linprog
+
+            res = linprog(np.zeros(self.n), A_ub=np.concatenate([ch.A, -ch.A]), b_ub=np.concatenate([ch.hi, -ch.lo]),
+                          bounds=[(None, None)] * self.n, method="highs")
+            feasible = res.status == 0
+        if not feasible:
             raise ScenarioError(f"{where}: the joint limits leave no feasible configuration "
                                 f"(box {self.limits.tolist()}, coupled limits "
                                 f"{[(list(c.joints), c.lo, c.hi) for c in self.coupled_limits]})")
