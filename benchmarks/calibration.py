@@ -4,6 +4,7 @@
     python benchmarks/calibration.py --quick    # timing only
     python benchmarks/calibration.py --design   # experiment design only (planar and spatial)
     python benchmarks/calibration.py --spatial  # spatial timing and quality only
+    python benchmarks/calibration.py --ceiling  # how far any design can lower the sigmas (planar, 3-D)
 
 Timing: bench data on P1's scenario (beasley2004_port.toml, gain 1) with gravity sag undeclared,
 more starts for more rows; the whole `calibrate` (noise floor, 22-26 candidates each fitted on all
@@ -257,13 +258,134 @@ def spatial_quality(sc) -> None:
                        "spatial parameters (mm, mrad, mrad/(N m) or 1/m^2): estimate - true in stated sigmas"))
 
 
+# ----------------------------------------------------------------------------- the design's ceiling
+def _logvars(Ms, idx):
+    """log of the marginal variances (k, len(idx)) of the parameters ``idx`` fitted together."""
+    import numpy as np
+
+    S = Ms[:, idx][:, :, idx]
+    dg = np.sqrt(np.maximum(np.abs(np.diagonal(S, axis1=1, axis2=2)), 1e-300))
+    Sn = S / (dg[:, :, None] * dg[:, None, :])
+    sign, ld = np.linalg.slogdet(Sn)
+    ok = (sign > 0) & (ld > np.log(1e-24))
+    V = np.linalg.inv(np.where(ok[:, None, None], Sn, np.eye(len(idx))))
+    dv = np.diagonal(V, axis1=1, axis2=2) / dg ** 2
+    return np.where(ok[:, None] & (dv > 0), np.log(np.maximum(dv, 1e-300)), np.inf)
+
+
+class SigmaObjective:
+    """A design objective aimed straight at the reported sigmas: minus the log of the mean, over the
+    parameters of ``models`` (each a list of parameter indices fitted together), of designed /
+    default sigma; with the design module's separation penalty. Duck-types
+    errplan.calibration.design.Objective for ``select_runs``."""
+
+    def __init__(self, models, M0, pairs, separate):
+        self.models, self.M0, self.pairs, self.separate = models, M0, tuple(pairs), separate
+        self.ref = [_logvars(M0[None], m)[0] for m in models]
+
+    def watching(self, M, margin=0.15):
+        from errplan.calibration.design import pair_correlations
+
+        if self.separate is None:
+            return self
+        rho = pair_correlations(M[None], list(self.pairs))[0]
+        out = SigmaObjective.__new__(SigmaObjective)
+        out.__dict__.update(self.__dict__, pairs=tuple(p for p, r in zip(self.pairs, rho) if r > self.separate - 0.15))
+        return out
+
+    def __call__(self, Ms):
+        import numpy as np
+
+        from errplan.calibration.design import pair_correlations
+
+        r = np.concatenate([np.exp(0.5 * (_logvars(Ms, m) - r0)) for m, r0 in zip(self.models, self.ref)], axis=1)
+        with np.errstate(invalid="ignore"):
+            s = -np.log(r.mean(axis=1))
+        s = np.where(np.isfinite(s), s, -np.inf)
+        if self.separate is not None and self.pairs:
+            rho = np.clip(pair_correlations(Ms, list(self.pairs)), 0.0, 1.0 - 1e-12)
+            s = s + 50.0 * np.minimum(np.log1p(-rho ** 2) - np.log1p(-self.separate ** 2), 0.0).sum(axis=1)
+        return s
+
+
+def ceiling(sc, label, dense=None) -> None:
+    """How far any design can lower the sigmas with the default bench's rows: per-row information
+    of the best candidate runs, and designs that optimise the reported sigmas directly."""
+    import itertools
+
+    import numpy as np
+
+    from errplan.calibration import design as D
+    from errplan.experiment import DEFAULT_STARTS, choose_starts, target_offsets
+
+    model = D.catalogue_model(sc)
+    S = choose_starts(sc, DEFAULT_STARTS)
+    offs = target_offsets(dim=sc.dim)
+    runs0 = np.stack([np.repeat(S, len(offs), axis=0), (S[:, None] + offs[None]).reshape(-1, sc.dim)], axis=1)
+    d0, _ = D.predict_runs(sc, runs0)
+    info0 = D.bench_info(sc, d0, model)
+    M0, eff = info0.M, info0.effects
+    names = list(eff)
+    pairs = [(tuple(eff[a]), tuple(eff[b])) for a, b in itertools.combinations(names, 2)]
+    rho0 = D.pair_correlations(M0[None], pairs)[0]
+    confused = [list(a) + list(b) for (a, b), r in zip(pairs, rho0) if r > D.CONFUSED]
+    singles = [list(eff[a]) for a in names]
+    every = [list(range(M0.shape[0]))]
+    sets = [("default candidates", {})] + ([("dense candidates", dense)] if dense else [])
+    for cname, kw in sets:
+        cand = D.candidate_runs(sc, **kw)
+        data, kept = D.predict_runs(sc, cand, seed=1)
+        data = data.subset(np.flatnonzero(D.arrived(data, max(5e-4, 3 * sc.sensors.tracker_sigma))))
+        blocks = D.run_blocks(D.row_jacobian(sc, data, model), data)
+        rows = data.lengths
+        if cname == "default candidates":
+            prow = []
+            for e in names:
+                i = eff[e]
+                per = np.trace(blocks[:, i][:, :, i], axis1=1, axis2=2) / rows
+                ref = np.trace(M0[np.ix_(i, i)]) / info0.rows
+                prow.append([e, f"{per.max() / ref:.2f}", f"{np.percentile(per, 90) / ref:.2f}", f"{np.median(per) / ref:.2f}"])
+            print(format_table(["effect", "best run", "90th percentile", "median"], prow,
+                               f"{label}: information per row of the candidate runs (trace of the effect's block) "
+                               "relative to the default bench's mean"))
+            print()
+        out = []
+        objectives = [("G (errplan's default)", D.Objective("G", tuple(pairs), D.SEPARATE)),
+                      ("each effect alone", SigmaObjective(singles, M0, pairs, None)),
+                      ("each effect alone", SigmaObjective(singles, M0, pairs, D.SEPARATE)),
+                      ("the confused pairs' fits", SigmaObjective(confused, M0, pairs, D.SEPARATE)),
+                      ("all parameters together", SigmaObjective(every, M0, pairs, D.SEPARATE))]
+        for oname, obj in objectives:
+            ch = D.select_runs(blocks, rows, None, max_rows=info0.rows, objective=obj)
+            M = blocks[ch].sum(axis=0)
+
+            def ratio(models):
+                return float(np.mean(np.concatenate([np.exp(0.5 * (_logvars(M[None], m)[0] - _logvars(M0[None], m)[0]))
+                                                     for m in models])))
+            rho1 = D.pair_correlations(M[None], pairs)[0]
+            worst = max(r1 for r0, r1 in zip(rho0, rho1) if r0 > D.CONFUSED)
+            out.append([oname, "-" if getattr(obj, "separate", None) is None else f"< {D.SEPARATE:g}", len(rows),
+                        int(rows[ch].sum()), ratio(singles), ratio(confused), ratio(every), worst])
+        print(format_table(["design optimises the sigma of", "pairs", "candidates", "rows", "each effect alone",
+                            "confused pairs fitted", "all fitted together", "worst confused pair after"], out,
+                           f"{label}, {cname}: mean designed / default sigma (predicted, same rows as the default "
+                           f"bench, {info0.rows})"))
+        print()
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="timing only")
     ap.add_argument("--design", action="store_true", help="experiment design only")
     ap.add_argument("--spatial", action="store_true", help="spatial rows only")
+    ap.add_argument("--ceiling", action="store_true",
+                    help="how far any design can lower the sigmas with the default bench's rows")
     args = ap.parse_args()
     sc = load_scenario(PORT)
+    if args.ceiling:
+        ceiling(sc, "P1 scenario", dense={"spacing": 0.005, "distances": (0.02, 0.04, 0.07), "max_starts": 2000})
+        ceiling(spatial_scenario(), "PHANToM bench, 3-D")
+        return 0
     if args.design:
         design(sc)
         print()
