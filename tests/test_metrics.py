@@ -163,7 +163,9 @@ def test_phi_hat_max_bounds_phi_max_where_contracting(M, k):
 @settings(max_examples=200, deadline=None)
 @given(mat2, st.floats(0.01, 100.0))
 def test_phi_max_does_not_depend_on_gain(M, k):
-    if abs(np.linalg.det(M)) > 1e-6 * float(np.sum(M * M)):  # away from rank-deficient maps
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # hypothesis draws extreme entries
+        det = np.linalg.det(M)
+    if abs(det) > 1e-6 * float(np.sum(M * M)):  # away from rank-deficient maps
         assert float(m.phi_max(k * M)) == pytest.approx(float(m.phi_max(M)), abs=1e-9)
 
 
