@@ -218,6 +218,75 @@ def test_omni_fields_match_reference_with_phi(tmp_path):
         assert p <= ref[1] + 0.05, (x, p, ref[1])
 
 
+def test_unseen_urdf_with_prismatic_and_held_joints_matches_reference(tmp_path):
+    """A URDF errplan ships nothing for (tests/test_urdf.py's toy: tilted base, a fixed joint with a
+    rotated origin, a held roll joint, a prismatic last joint, a side branch off the chain): the
+    port near the middle of its wrist cloud, a 3-D port box. ||G|| and |phi_max| are never below
+    the reference worst case over the sampled box, and validity agrees with direct inverse
+    kinematics at every sample tip."""
+    from errplan.kinematics.urdf import UrdfArm
+    from test_urdf import TOY_BASE, TOY_ROLL, TOY_RPY, toy_text
+
+    urdf = tmp_path / "toy.urdf"
+    urdf.write_text(toy_text(), encoding="utf-8")
+    arm = UrdfArm.load(urdf, ["j1", "j2", "j3"], "tool", base_position=TOY_BASE, base_rpy=TOY_RPY,
+                       fixed_joints={"roll": TOY_ROLL})
+    rng = np.random.default_rng(3)
+    lim = np.asarray(arm.limits)
+    W = arm.forward(lim[:, 0] + rng.random((4000, 3)) * (lim[:, 1] - lim[:, 0]))
+    port = W.mean(axis=0) + 0.02 * np.array([0.3, -0.5, 0.8])
+    est = port + np.array([0.004, -0.002, 0.003])
+    d = np.linalg.norm(port - W, axis=1)
+    near = (d > 0.06) & (d < 0.19)
+    tips = W[near] + 0.25 * (port - W[near]) / d[near][:, None]
+    lo, hi = np.percentile(tips, 3, axis=0), np.percentile(tips, 97, axis=0)
+    region = ", ".join(f"{a} = [{u:.4f}, {v:.4f}]" for a, u, v in zip("xyz", lo, hi))
+    toml = tmp_path / "toy.toml"
+    toml.write_text(f"""name = "toy"
+[robot]
+urdf = "toy.urdf"
+joints = ["j1", "j2", "j3"]
+wrist = "tool"
+fixed_joints = {{ roll = {TOY_ROLL} }}
+base_position = {list(TOY_BASE)}
+base_rpy = {list(TOY_RPY)}
+[instrument]
+length = 0.25
+[port]
+position = {port.tolist()}
+estimate = {est.tolist()}
+[controller]
+gain = 0.8
+[uncertainty]
+port_x = [-0.003, 0.003]
+port_y = [-0.002, 0.004]
+port_z = [-0.003, 0.002]
+samples = 3
+[fields]
+resolution = 0.006
+region = {{ {region} }}
+""", encoding="utf-8")
+    sc = load_scenario(toml)
+    mf = compute_fields(sc, metrics=("G_norm", "phi_max"))
+    assert mf.valid.sum() > 200
+    P = np.stack(np.meshgrid(*mf.axes, indexing="ij"), -1)
+    samples = [np.array([a, b, c, 0.0, 0.0]) for a in (-0.003, 0.0, 0.003) for b in (-0.002, 0.001, 0.004)
+               for c in (-0.003, -0.0005, 0.002)]
+    idx = np.argwhere(np.ones(mf.valid.shape, bool))
+    rng.shuffle(idx)
+    compared = 0
+    for ijk in map(tuple, idx[:300]):
+        Ms = [reference_M(sc, P[ijk], th) for th in samples]
+        ok = all(M is not None for M in Ms)
+        assert ok == bool(mf.valid[ijk]), (P[ijk], ok)
+        if ok:
+            g = max(g_of(M, sc.controller.gain) for M in Ms)
+            assert mf.G_norm[ijk] >= g - 1e-9 * max(1.0, g), (P[ijk], mf.G_norm[ijk], g)
+            assert mf.phi_max[ijk] >= max(phi_of(M) for M in Ms) - 1e-6, P[ijk]
+            compared += 1
+    assert compared >= 30
+
+
 def test_robust_workspace_agrees_away_from_boundary(phantom):
     """Validity against direct inverse kinematics at every instance of the reference grid."""
     sc = phantom
