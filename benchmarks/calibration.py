@@ -334,7 +334,7 @@ def ceiling(sc, label, dense=None) -> None:
     sets = [("default candidates", {})] + ([("dense candidates", dense)] if dense else [])
     for cname, kw in sets:
         cand = D.candidate_runs(sc, **kw)
-        data, kept = D.predict_runs(sc, cand, seed=1)
+        data, _ = D.predict_runs(sc, cand, seed=1)
         data = data.subset(np.flatnonzero(D.arrived(data, max(5e-4, 3 * sc.sensors.tracker_sigma))))
         blocks = D.run_blocks(D.row_jacobian(sc, data, model), data)
         rows = data.lengths
@@ -359,7 +359,7 @@ def ceiling(sc, label, dense=None) -> None:
             ch = D.select_runs(blocks, rows, None, max_rows=info0.rows, objective=obj)
             M = blocks[ch].sum(axis=0)
 
-            def ratio(models):
+            def ratio(models, M=M):
                 return float(np.mean(np.concatenate([np.exp(0.5 * (_logvars(M[None], m)[0] - _logvars(M0[None], m)[0]))
                                                      for m in models])))
             rho1 = D.pair_correlations(M[None], pairs)[0]

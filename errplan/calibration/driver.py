@@ -18,6 +18,7 @@ from .residual import (
     arrival_tolerance,
     check_against_model,
     declared_plant,
+    leave_out_degenerate,
     motion_model,
     pose_residual,
     replay,
@@ -60,8 +61,13 @@ def _calibrate(sc, data: MeasuredData, *, validate, seed, folds, progress, effec
     skipped = [] if effects is not None or any(e.name == "gravity_sag" for e in cat) else [
         "gravity_sag (the URDF has no inertial data, so no generalized gravity)"]
     base = declared_plant(sc)
+    check_against_model(data, base, offsets=False)
+    data, left_out = leave_out_degenerate(data, base)
     check_against_model(data, base)
     if validate is not None:
+        check_against_model(validate, base, offsets=False)
+        validate, left_v = leave_out_degenerate(validate, base)
+        left_out += [f"validation {s}" for s in left_v]
         check_against_model(validate, base)
     ctrl = bench_controller(sc)
     xmodel = motion_model(sc)  # friction's u: the motion each command produces under the declared model
@@ -137,7 +143,7 @@ def _calibrate(sc, data: MeasuredData, *, validate, seed, folds, progress, effec
         noise=nf, structure=st1, structure_before=st0, candidates=cand_list, fit_errors=fit_err,
         validation_errors=val_err, declared_effects={k2: dict(v) for k2, v in sc.effects.items()}, seed=seed, folds=k,
         points=x0, residual_before=r0, residual_after=r1, tracked=data.tip,
-        replay_before=pred0, replay_after=pred1, data=data, fixed=fixed, skipped=skipped,
+        replay_before=pred0, replay_after=pred1, data=data, fixed=fixed, skipped=skipped, left_out=left_out,
         identifiability=ident_text, bench=ident)
 
 

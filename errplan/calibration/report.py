@@ -72,6 +72,8 @@ class CalibrationReport:
     fixed: dict = field(default_factory=dict)
     #: catalogue effects not tried, with the reason
     skipped: list = field(default_factory=list)
+    #: runs left out of the fits, with the reason (the declared model's wrist through the port's neighbourhood)
+    left_out: list = field(default_factory=list)
     #: a sentence on what these rows cannot tell apart (effect pairs confused by the bench), and the numbers
     identifiability: str = ""
     bench: dict = field(default_factory=dict)
@@ -142,6 +144,7 @@ class CalibrationReport:
             "identifiability": self.bench,
             "catalogue_fixed": self.fixed,
             "not_tried": list(self.skipped),
+            "runs_left_out": list(self.left_out),
             "rms_convention": "per coordinate: sqrt(mean over rows and over the coordinates of residual^2), m",
             "selection": {"rule": "lowest BIC among identifiable candidates whose held-out pose error (folds of runs) "
                                   "beats every sub-model with one effect fewer",
@@ -163,6 +166,8 @@ class CalibrationReport:
                      f"({self.structure_before.ratio:.2f} x noise floor)")
         for why in self.skipped:
             lines.append(f"not tried: {why}")
+        for why in self.left_out:
+            lines.append(why)
         if self.identifiability:
             lines.append(self.identifiability)
         lines.append("")

@@ -26,8 +26,66 @@ def declared_plant(sc):
     return truth_plant(sc, effects=True, noise=False)
 
 
-def check_against_model(data: MeasuredData, plant, what: str = "the declared model") -> None:
-    """Every row's encoder angles must give a wrist from which the shaft reaches through the port."""
+#: a run in which the declared model's wrist comes this close to the port (m) is left out of the fits:
+#: there the lever's tip direction turns by L / rho per metre of wrist motion (rho the wrist-port
+#: distance), so the model's tip, and any effect's prediction of it, is undefined within the effects'
+#: own millimetres
+NEAR_PORT = 0.010
+#: a tracked tip farther than the shaft length from the model's tip is degenerate geometry (not bad
+#: data) only in a run whose model wrist comes this close to the port (m): a wrist error delta turns
+#: the tip by about L delta / rho, which exceeds L only for rho < delta, and the catalogue's effects
+#: move the wrist by millimetres to centimetres. Both tips lie within L of their ports, so such a tip
+#: is also never more than 2.5 L from the model's.
+DEGENERATE_RHO = 0.050
+#: degenerate runs are left out up to this share of the runs; beyond it the data are taken for
+#: another scenario's (one error)
+MAX_LEFT_OUT = 0.2
+
+
+def degenerate_runs(data: MeasuredData, plant) -> tuple[np.ndarray, list[str]]:
+    """Runs (indices) the lever model cannot describe, each with a sentence: the declared model's
+    wrist passes within :data:`NEAR_PORT` of the port, or a tracked tip lies farther than the shaft
+    length from the model's tip (a large effect has driven the wrist through the port's
+    neighbourhood, where the lever turns the tip by L / rho per metre of wrist error)."""
+    L = float(plant.length)
+    with np.errstate(all="ignore"):
+        rho = np.linalg.norm(plant.wrist(data.q) - np.asarray(plant.true_port, float), axis=-1)
+        off = np.linalg.norm(data.tip - plant.tip(data.q), axis=-1)
+    closest = np.full(data.runs, np.inf)
+    np.minimum.at(closest, data.run, np.where(np.isfinite(rho), rho, np.inf))
+    worst = np.zeros(data.runs)
+    np.maximum.at(worst, data.run, np.where(np.isfinite(off), off, np.inf))
+    runs, notes = [], []
+    for r in range(data.runs):
+        if closest[r] < NEAR_PORT:
+            why = f"the declared model's wrist passes {closest[r] * 1000:.1f} mm from the port"
+        elif L <= worst[r] < 2.5 * L and closest[r] < DEGENERATE_RHO:
+            why = (f"a tracked tip lies {worst[r]:.3g} m from the model's tip (more than the shaft), its wrist "
+                   f"{closest[r] * 1000:.0f} mm from the port at the closest")
+        else:
+            continue
+        runs.append(r)
+        notes.append(f"run {data.run_ids[r]!r} left out: {why}")
+    return np.array(runs, int), notes
+
+
+def leave_out_degenerate(data: MeasuredData, plant) -> tuple[MeasuredData, list[str]]:
+    """``data`` without the runs of :func:`degenerate_runs`, and a sentence per run left out. A bench
+    whose controller drove the wrist through the port's neighbourhood records real rows that the
+    lever model cannot describe; more than :data:`MAX_LEFT_OUT` of the runs so, and the data are
+    taken for another scenario's: :func:`check_against_model` then names the first bad row. Call it
+    after ``check_against_model(data, plant, offsets=False)``: rows outside the joint limits or
+    without a shaft through the port are bad data, never left out."""
+    bad, notes = degenerate_runs(data, plant)
+    if len(bad) == 0 or len(bad) > MAX_LEFT_OUT * data.runs:
+        return data, []
+    return data.subset(np.setdiff1d(np.arange(data.runs), bad)), notes
+
+
+def check_against_model(data: MeasuredData, plant, what: str = "the declared model", *, offsets: bool = True) -> None:
+    """Every row's encoder angles must give a wrist from which the shaft reaches through the port;
+    with ``offsets``, every tracked tip must lie within the shaft length of the model's tip and every
+    target within the robot's reach."""
     w = plant.wrist(data.q)
     ok = plant.shaft_reaches(w) & plant.arm.within_limits(plant.link_angles_q(data.q), tol=0.05)
     if not np.all(ok):
@@ -37,6 +95,8 @@ def check_against_model(data: MeasuredData, plant, what: str = "the declared mod
                         f"where {what} cannot hold the shaft through the port at "
                         f"{np.round(plant.true_port, 4).tolist()} or is outside the joint limits "
                         f"(is the data from this scenario?)")
+    if not offsets:
+        return
     # every effect of the catalogue moves the tip by mm to cm; a tracked tip farther from the
     # model's tip than the whole shaft, or a target outside anything the tip can reach, is not
     # measured data of this scenario (and would only overflow the fits)
