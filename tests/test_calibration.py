@@ -730,29 +730,10 @@ def test_runs_through_the_port_neighbourhood_are_left_out_not_fatal(tmp_path):
     Those runs are left out, each with its reason in the report and the JSON; the rest still finds
     the sag, within 2.5 sigma and 25 %. A corrupted tip in a run that stays away from the port is
     still one error."""
-    from test_urdf import TOY_BASE, TOY_ROLL, TOY_RPY, toy_text
+    from test_urdf import toy_scenario
 
-    (tmp_path / "toy.urdf").write_text(toy_text(), encoding="utf-8")
-    text = f"""name = "toy"
-[robot]
-urdf = "toy.urdf"
-joints = ["j1", "j2", "j3"]
-wrist = "tool"
-fixed_joints = {{ roll = {TOY_ROLL} }}
-base_position = {list(TOY_BASE)}
-base_rpy = {list(TOY_RPY)}
-[instrument]
-length = 0.25
-[port]
-position = [0.547, 0.0409, 0.6555]
-estimate = [0.547, 0.0409, 0.6555]
-[controller]
-gain = 0.5
-[sensors]
-tracker_sigma = 0.0002
-"""
-    (tmp_path / "toy.toml").write_text(text, encoding="utf-8")
-    sc = load_scenario(tmp_path / "toy.toml")
+    port = (0.547, 0.0409, 0.6555)
+    sc = load_scenario(toy_scenario(tmp_path, port, port, "[controller]\ngain = 0.5\n[sensors]\ntracker_sigma = 0.0002\n"))
     truth = {"gravity_sag": {"c1": 0.05, "c2": 0.05, "c3": 0.001}}
     data = run_experiment(sc.with_(effects=truth), seed=11).data
     rep = calibrate(sc, data, seed=0)

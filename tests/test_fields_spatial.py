@@ -225,7 +225,7 @@ def test_unseen_urdf_with_prismatic_and_held_joints_matches_reference(tmp_path):
     the reference worst case over the sampled box, and validity agrees with direct inverse
     kinematics at every sample tip."""
     from errplan.kinematics.urdf import UrdfArm
-    from test_urdf import TOY_BASE, TOY_ROLL, TOY_RPY, toy_text
+    from test_urdf import TOY_BASE, TOY_ROLL, TOY_RPY, toy_scenario, toy_text
 
     urdf = tmp_path / "toy.urdf"
     urdf.write_text(toy_text(), encoding="utf-8")
@@ -241,21 +241,7 @@ def test_unseen_urdf_with_prismatic_and_held_joints_matches_reference(tmp_path):
     tips = W[near] + 0.25 * (port - W[near]) / d[near][:, None]
     lo, hi = np.percentile(tips, 3, axis=0), np.percentile(tips, 97, axis=0)
     region = ", ".join(f"{a} = [{u:.4f}, {v:.4f}]" for a, u, v in zip("xyz", lo, hi))
-    toml = tmp_path / "toy.toml"
-    toml.write_text(f"""name = "toy"
-[robot]
-urdf = "toy.urdf"
-joints = ["j1", "j2", "j3"]
-wrist = "tool"
-fixed_joints = {{ roll = {TOY_ROLL} }}
-base_position = {list(TOY_BASE)}
-base_rpy = {list(TOY_RPY)}
-[instrument]
-length = 0.25
-[port]
-position = {port.tolist()}
-estimate = {est.tolist()}
-[controller]
+    toml = toy_scenario(tmp_path, port, est, f"""[controller]
 gain = 0.8
 [uncertainty]
 port_x = [-0.003, 0.003]
@@ -265,7 +251,7 @@ samples = 3
 [fields]
 resolution = 0.006
 region = {{ {region} }}
-""", encoding="utf-8")
+""")
     sc = load_scenario(toml)
     mf = compute_fields(sc, metrics=("G_norm", "phi_max"))
     assert mf.valid.sum() > 200

@@ -373,6 +373,29 @@ def toy_text(j2_type="revolute", j2_lo=-1.5, j2_hi=1.5):
     return TOY.replace("REVOLUTE_TYPE", j2_type).replace("J2_LO", str(j2_lo)).replace("J2_HI", str(j2_hi))
 
 
+def toy_scenario(folder, port, estimate, body: str = ""):
+    """A scenario on the toy URDF (written into ``folder`` beside it): the chain j1, j2, j3 to
+    ``tool`` with the roll joint held, a 0.25 m shaft through ``port`` (controller's ``estimate``),
+    then ``body`` (further TOML tables). Returns the scenario's path."""
+    (folder / "toy.urdf").write_text(toy_text(), encoding="utf-8")
+    path = folder / "toy.toml"
+    path.write_text(f"""name = "toy"
+[robot]
+urdf = "toy.urdf"
+joints = ["j1", "j2", "j3"]
+wrist = "tool"
+fixed_joints = {{ roll = {TOY_ROLL} }}
+base_position = {list(TOY_BASE)}
+base_rpy = {list(TOY_RPY)}
+[instrument]
+length = 0.25
+[port]
+position = {[float(v) for v in port]}
+estimate = {[float(v) for v in estimate]}
+{body}""", encoding="utf-8")
+    return path
+
+
 @pytest.fixture(scope="module")
 def toy_path(tmp_path_factory):
     p = tmp_path_factory.mktemp("toy") / "toy.urdf"
