@@ -240,6 +240,25 @@ def _qform(h00, h01, h02, h11, h12, h22, x0, x1, x2, y0, y1, y2):
 
 
 @_jit
+def _eig2(a, b, c):
+    """Eigen-decomposition of the symmetric ``[[a, b], [b, c]]``: ``(m, r, cs, sn)`` with the
+    eigenvalues ``m -+ r`` and ``(cs, sn)`` the unit eigenvector of ``m + r`` (stable closed form:
+    ``(r + d, b) ~ (b, r - d)``, ``d = (a - c) / 2``, whichever is better conditioned)."""
+    m = 0.5 * (a + c)
+    d = 0.5 * (a - c)
+    r = math.sqrt(d * d + b * b)
+    if d >= 0.0:
+        cs, sn = r + d, b
+    else:
+        cs, sn = b, r - d
+    n = cs * cs + sn * sn
+    if n > 0.0:
+        n = 1.0 / math.sqrt(n)
+        return m, r, cs * n, sn * n
+    return m, r, 1.0, 0.0
+
+
+@_jit
 def _sym2_in_plane(h00, h01, h02, h11, h12, h22, u0, u1, u2, v0, v1, v2):
     """Eigen-decomposition of the restriction of ``H`` to the orthonormal pair ``(u, v)``:
     ``(lo, hi, lo-vector (3), hi-vector (3))``, stable closed form (no trigonometry)."""
@@ -249,21 +268,7 @@ def _sym2_in_plane(h00, h01, h02, h11, h12, h22, u0, u1, u2, v0, v1, v2):
     huu = u0 * w0 + u1 * w1 + u2 * w2
     huv = v0 * w0 + v1 * w1 + v2 * w2
     hvv = _qform(h00, h01, h02, h11, h12, h22, v0, v1, v2, v0, v1, v2)
-    m = 0.5 * (huu + hvv)
-    d = 0.5 * (huu - hvv)
-    rr = math.sqrt(d * d + huv * huv)
-    # eigenvector of m + rr in (u, v) coordinates: (rr + d, huv) ~ (huv, rr - d)
-    if d >= 0.0:
-        c, s = rr + d, huv
-    else:
-        c, s = huv, rr - d
-    n = c * c + s * s
-    if n > 0.0:
-        n = 1.0 / math.sqrt(n)
-        c *= n
-        s *= n
-    else:
-        c, s = 1.0, 0.0
+    m, rr, c, s = _eig2(huu, huv, hvv)
     return (m - rr, m + rr, c * v0 - s * u0, c * v1 - s * u1, c * v2 - s * u2,
             c * u0 + s * v0, c * u1 + s * v1, c * u2 + s * v2)
 
@@ -713,20 +718,7 @@ def _acute(m00, m01, m02, m10, m11, m12, m20, m21, m22, S00, S01, S02, S11, S12,
         s00 = _qform(SN00, SN01, SN02, SN11, SN12, SN22, x0, x1, x2, x0, x1, x2)
         s01 = _qform(SN00, SN01, SN02, SN11, SN12, SN22, x0, x1, x2, y0, y1, y2)
         s11 = _qform(SN00, SN01, SN02, SN11, SN12, SN22, y0, y1, y2, y0, y1, y2)
-        mm = 0.5 * (s00 + s11)
-        dd = 0.5 * (s00 - s11)
-        rr = math.sqrt(dd * dd + s01 * s01)
-        if dd >= 0.0:
-            cs, sn = rr + dd, s01
-        else:
-            cs, sn = s01, rr - dd
-        nn = cs * cs + sn * sn
-        if nn > 0.0:
-            nn = 1.0 / math.sqrt(nn)
-            cs *= nn
-            sn *= nn
-        else:
-            cs, sn = 1.0, 0.0
+        mm, rr, cs, sn = _eig2(s00, s01, s11)
         t = (target - (mm - rr)) / (2.0 * rr) if rr > 0.0 else 0.0
         t = min(1.0, max(0.0, t))
         ca, sa = math.sqrt(1.0 - t), math.sqrt(t)

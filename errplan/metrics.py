@@ -288,6 +288,18 @@ def min_over_gain(Ms: np.ndarray, iters: int = 60) -> tuple[np.ndarray, np.ndarr
         _linalg()._min_over_gain3_many(flat, out, int(iters))
         return out[:, 0].reshape(batch), out[:, 1].reshape(batch)
     mu, nu = conformal_parts(Ms.reshape((-1, m, 2, 2)))
+    rho, k = min_over_gain_parts(mu, nu, iters)
+    return rho.reshape(batch), k.reshape(batch)
+
+
+def min_over_gain_parts(mu: np.ndarray, nu: np.ndarray, iters: int = 60) -> tuple[np.ndarray, np.ndarray]:
+    """The planar :func:`min_over_gain` from the conformal parts ``mu``, ``nu`` (n, m) complex:
+    ``max_i ||I - k M_i|| = max_i |1 - k mu_i| + k |nu_i|``, golden section on ``[0, 2 / max |mu|]``.
+    Non-finite parts count as ``M = 0``. Returns ``(rho*, k*)``, each (n,)."""
+    mu, nu = np.asarray(mu), np.asarray(nu)
+    if mu.ndim != 2:  # (n, m, ...) parts of several instances per row
+        mu, nu = mu.reshape(mu.shape[0], -1), nu.reshape(nu.shape[0], -1)
+    m = mu.shape[1]
     bad = ~np.isfinite(mu) | ~np.isfinite(nu)
     mu = np.where(bad, 0.0, mu)
     nu = np.where(bad, 0.0, nu)
@@ -315,4 +327,4 @@ def min_over_gain(Ms: np.ndarray, iters: int = 60) -> tuple[np.ndarray, np.ndarr
     k = 0.5 * (a + b)
     rho = f(k)
     none = rho >= 1.0
-    return np.where(none, 1.0, rho).reshape(batch), np.where(none, 0.0, k).reshape(batch)
+    return np.where(none, 1.0, rho), np.where(none, 0.0, k)

@@ -22,7 +22,6 @@ subprocess, to prove that no traceback reaches a user.
 from __future__ import annotations
 
 import copy
-import math
 import os
 import subprocess
 import sys

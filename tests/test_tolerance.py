@@ -133,7 +133,7 @@ def test_disk_worst_case_lies_on_its_boundary(port_sc):
     """The radial set samples the disk's interior too; on P1's geometry the boundary circle alone
     already gives the worst case (checked densely), so the interior rings are a safety margin."""
     from errplan.metrics import g_norm_from_parts
-    from errplan.tolerance import _evaluator, region_grid
+    from errplan.tolerance.region import _evaluator, region_grid
 
     ev = _evaluator(port_sc, "rigid", port_sc.port.estimate)
     x = region_grid({"y": (-0.1, 0.1), "z": (0.22, 0.44)}, 0.02)
@@ -311,7 +311,7 @@ def test_tip_load_tolerance_against_brute_force():
     r = tip_load_tolerance(sc, reg)
     assert r["binding"] == "G_norm" and r["value"] > 0
     from errplan.metrics import g_norm_from_parts
-    from errplan.tolerance import _evaluator, region_grid
+    from errplan.tolerance.region import _evaluator, region_grid
 
     ev = _evaluator(sc, "rigid", sc.port.position)
     x = region_grid(reg, 0.0005)

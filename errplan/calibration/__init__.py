@@ -73,7 +73,6 @@ from .residual import (
                     arrival_tolerance,
                     check_against_model,
                     declared_plant,
-                    leave_out_degenerate,
                     motion_model,
                     pose_residual,
                     replay,
@@ -83,8 +82,7 @@ from .residual import (
 from .selection import select
 
 __all__ = ["calibrate", "CalibrationReport", "Candidate", "Errors", "NoiseFloor", "Structure", "LocalBasis",
-           "approach_mask", "arrival_tolerance", "check_against_model", "declared_plant", "leave_out_degenerate",
-           "motion_model",
+           "approach_mask", "arrival_tolerance", "check_against_model", "declared_plant", "motion_model",
            "pose_residual", "replay", "rms", "trajectory_errors", "noise_floor", "structure_test", "kmeans_labels",
            "fit_candidate", "select", "to_toml", "corrected_scenario_toml", "DEFAULT_FOLDS", "STRUCTURE_P",
            "STRUCTURE_RATIO", "TEXT_CANDIDATES", "FLEX_CONFIGS"]

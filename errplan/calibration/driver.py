@@ -18,7 +18,6 @@ from .residual import (
     arrival_tolerance,
     check_against_model,
     declared_plant,
-    leave_out_degenerate,
     motion_model,
     pose_residual,
     replay,
@@ -61,14 +60,10 @@ def _calibrate(sc, data: MeasuredData, *, validate, seed, folds, progress, effec
     skipped = [] if effects is not None or any(e.name == "gravity_sag" for e in cat) else [
         "gravity_sag (the URDF has no inertial data, so no generalized gravity)"]
     base = declared_plant(sc)
-    check_against_model(data, base, offsets=False)
-    data, left_out = leave_out_degenerate(data, base)
-    check_against_model(data, base)
+    data, left_out = check_against_model(data, base, leave_out=True)
     if validate is not None:
-        check_against_model(validate, base, offsets=False)
-        validate, left_v = leave_out_degenerate(validate, base)
+        validate, left_v = check_against_model(validate, base, leave_out=True)
         left_out += [f"validation {s}" for s in left_v]
-        check_against_model(validate, base)
     ctrl = bench_controller(sc)
     xmodel = motion_model(sc)  # friction's u: the motion each command produces under the declared model
     u = data.commanded_directions(xmodel)

@@ -42,15 +42,12 @@ DEGENERATE_RHO = 0.050
 MAX_LEFT_OUT = 0.2
 
 
-def degenerate_runs(data: MeasuredData, plant) -> tuple[np.ndarray, list[str]]:
-    """Runs (indices) the lever model cannot describe, each with a sentence: the declared model's
-    wrist passes within :data:`NEAR_PORT` of the port, or a tracked tip lies farther than the shaft
-    length from the model's tip (a large effect has driven the wrist through the port's
+def _degenerate_runs(data: MeasuredData, rho: np.ndarray, off: np.ndarray, L: float) -> tuple[np.ndarray, list[str]]:
+    """Runs (indices) the lever model cannot describe, each with a sentence, from each row's model
+    wrist-port distance ``rho`` and tracked-to-model tip distance ``off``: the wrist passes within
+    :data:`NEAR_PORT` of the port, or a tip lies 1-2.5 shaft lengths off in a run whose wrist comes
+    within :data:`DEGENERATE_RHO` (a large effect has driven the wrist through the port's
     neighbourhood, where the lever turns the tip by L / rho per metre of wrist error)."""
-    L = float(plant.length)
-    with np.errstate(all="ignore"):
-        rho = np.linalg.norm(plant.wrist(data.q) - np.asarray(plant.true_port, float), axis=-1)
-        off = np.linalg.norm(data.tip - plant.tip(data.q), axis=-1)
     closest = np.full(data.runs, np.inf)
     np.minimum.at(closest, data.run, np.where(np.isfinite(rho), rho, np.inf))
     worst = np.zeros(data.runs)
@@ -69,23 +66,17 @@ def degenerate_runs(data: MeasuredData, plant) -> tuple[np.ndarray, list[str]]:
     return np.array(runs, int), notes
 
 
-def leave_out_degenerate(data: MeasuredData, plant) -> tuple[MeasuredData, list[str]]:
-    """``data`` without the runs of :func:`degenerate_runs`, and a sentence per run left out. A bench
-    whose controller drove the wrist through the port's neighbourhood records real rows that the
-    lever model cannot describe; more than :data:`MAX_LEFT_OUT` of the runs so, and the data are
-    taken for another scenario's: :func:`check_against_model` then names the first bad row. Call it
-    after ``check_against_model(data, plant, offsets=False)``: rows outside the joint limits or
-    without a shaft through the port are bad data, never left out."""
-    bad, notes = degenerate_runs(data, plant)
-    if len(bad) == 0 or len(bad) > MAX_LEFT_OUT * data.runs:
-        return data, []
-    return data.subset(np.setdiff1d(np.arange(data.runs), bad)), notes
+def check_against_model(data: MeasuredData, plant, what: str = "the declared model", *,
+                        leave_out: bool = False) -> tuple[MeasuredData, list[str]]:
+    """Every row's encoder angles must give a wrist from which the shaft reaches through the port,
+    every tracked tip must lie within the shaft length of the model's tip and every target within
+    the robot's reach; the first row that does not is one error (numbered as in the file).
 
-
-def check_against_model(data: MeasuredData, plant, what: str = "the declared model", *, offsets: bool = True) -> None:
-    """Every row's encoder angles must give a wrist from which the shaft reaches through the port;
-    with ``offsets``, every tracked tip must lie within the shaft length of the model's tip and every
-    target within the robot's reach."""
+    With ``leave_out``, runs that drove the model's wrist through the port's neighbourhood
+    (:func:`_degenerate_runs`) are real rows the lever model cannot describe: they are left out,
+    up to :data:`MAX_LEFT_OUT` of the runs (beyond it the data are taken for another scenario's),
+    and checked no further. Returns the data to fit and a sentence per run left out. Rows outside
+    the joint limits or without a shaft through the port are bad data, never left out."""
     w = plant.wrist(data.q)
     ok = plant.shaft_reaches(w) & plant.arm.within_limits(plant.link_angles_q(data.q), tol=0.05)
     if not np.all(ok):
@@ -95,8 +86,6 @@ def check_against_model(data: MeasuredData, plant, what: str = "the declared mod
                         f"where {what} cannot hold the shaft through the port at "
                         f"{np.round(plant.true_port, 4).tolist()} or is outside the joint limits "
                         f"(is the data from this scenario?)")
-    if not offsets:
-        return
     # every effect of the catalogue moves the tip by mm to cm; a tracked tip farther from the
     # model's tip than the whole shaft, or a target outside anything the tip can reach, is not
     # measured data of this scenario (and would only overflow the fits)
@@ -104,7 +93,15 @@ def check_against_model(data: MeasuredData, plant, what: str = "the declared mod
     with np.errstate(all="ignore"):
         model_tip = plant.tip(data.q)
         off = np.linalg.norm(data.tip - model_tip, axis=-1)
-    bad = np.flatnonzero(~(off < L))
+    kept = np.ones(data.rows, bool)
+    notes: list[str] = []
+    if leave_out:
+        rho = np.linalg.norm(w - np.asarray(plant.true_port, float), axis=-1)
+        bad_runs, notes = _degenerate_runs(data, rho, off, L)
+        if len(bad_runs) > MAX_LEFT_OUT * data.runs:
+            bad_runs, notes = bad_runs[:0], []
+        kept = ~np.isin(data.run, bad_runs)
+    bad = np.flatnonzero(kept & ~(off < L))
     if len(bad):
         i = int(bad[0])
         raise DataError(f"{data.source}: row {i + 1} (run {data.run_ids[data.run[i]]!r}, step {data.step[i]}): tracked tip "
@@ -113,12 +110,15 @@ def check_against_model(data: MeasuredData, plant, what: str = "the declared mod
     reach = 2.0 * (L + arm_reach(plant.arm))  # a bound on the tip workspace's diameter
     with np.errstate(all="ignore"):
         far = np.linalg.norm(data.target - model_tip, axis=-1)
-    bad = np.flatnonzero(~(far < reach))
+    bad = np.flatnonzero(kept & ~(far < reach))
     if len(bad):
         i = int(bad[0])
         raise DataError(f"{data.source}: row {i + 1} (run {data.run_ids[data.run[i]]!r}): target {_pt(data.target[i])} is "
                         f"{_m(far[i])} from the tip, farther than the robot can reach ({reach:g} m; is the data from "
                         f"this scenario?)")
+    if notes:
+        data = data.subset(np.setdiff1d(np.arange(data.runs), bad_runs))
+    return data, notes
 
 
 def arm_reach(arm) -> float:

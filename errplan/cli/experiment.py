@@ -5,8 +5,6 @@ A P1-style bench run (P1 Sec. III-B) on the scenario's truth: the declared model
 """
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 
 from ..errors import ErrplanError

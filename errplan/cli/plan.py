@@ -50,8 +50,6 @@ def plan_table(plan) -> str:
 
 
 def run(args) -> int:
-    from pathlib import Path
-
     from ..errors import ErrplanError
     from ..pipeline import run_pipeline, summary_table
     from ..planning import plan_scenario, select_queries

@@ -747,14 +747,7 @@ def _search(d, X, grid, counts, active, periodic, lo, hi, step0, base_port, est,
                         continue
                     vals_p[j] = phimax(Ms, j)
                     best_exact = max(best_exact, vals_p[j])
-        if not ok:
-            out_valid[ii] = False
-            out_g[ii] = np.nan
-            out_p[ii] = np.nan
-            out_rho[ii] = np.nan
-            out_k[ii] = np.nan
-            continue
-        for which in range(2 if want_phi else 1):
+        for which in range((2 if want_phi else 1) if ok else 0):
             vals = vals_g if which == 0 else vals_p
             jbest = 0
             for j in range(1, m):

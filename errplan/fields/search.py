@@ -4,12 +4,12 @@ The general path (P2's flexion controller, a truth with ``[effects]``) and the r
 implementation of the compiled kernels."""
 from __future__ import annotations
 
-import math
 from typing import Callable
 
 import numpy as np
 
-from ..metrics import g_norm, g_norm_from_parts, min_over_gain, phi_max, phi_max_from_parts
+from ..metrics import (g_norm, g_norm_from_parts, min_over_gain, min_over_gain_parts, phi_max,
+                       phi_max_from_parts)
 from .errorset import ErrorSet
 from .evaluator import Evaluator
 
@@ -279,34 +279,7 @@ def minimize_gain(mu: np.ndarray, nu, iters: int = 60) -> tuple[np.ndarray, np.n
         rho, kk = min_over_gain(M, iters)
         none = ~(rho < 1.0)
         return np.where(none, 1.0, rho), np.where(none, 0.0, kk)
-    mu = np.asarray(mu).reshape(len(mu), -1)
-    nu = np.asarray(nu).reshape(len(nu), -1)
-    bad = ~np.isfinite(mu) | ~np.isfinite(nu)
-    mu = np.where(bad, 0.0, mu)
-    nu = np.where(bad, 0.0, nu)
-    amax = np.abs(mu).max(axis=1)
-    kmax = np.where(amax > 0, 2.0 / np.where(amax > 0, amax, 1.0), 1.0)
-
-    def f(k):
-        return (np.abs(1.0 - k[:, None] * mu) + k[:, None] * np.abs(nu)).max(axis=1)
-
-    a = np.zeros(len(mu))
-    b = kmax.copy()
-    gr = (math.sqrt(5) - 1) / 2
-    c = b - gr * (b - a)
-    d = a + gr * (b - a)
-    fc, fd = f(c), f(d)
-    for _ in range(iters):
-        left = fc < fd  # the minimum lies in [a, d]
-        a, b = np.where(left, a, c), np.where(left, d, b)
-        new_x = np.where(left, b - gr * (b - a), a + gr * (b - a))
-        f_new = f(new_x)
-        c, d, fc, fd = (np.where(left, new_x, d), np.where(left, c, new_x),
-                        np.where(left, f_new, fd), np.where(left, fc, f_new))
-    k = 0.5 * (a + b)
-    rho = f(k)
-    none = rho >= 1.0
-    return np.where(none, 1.0, rho), np.where(none, 0.0, k)
+    return min_over_gain_parts(mu, nu, iters)
 
 
 def _refined_at_gain(ev: Evaluator, x: np.ndarray, k: np.ndarray, *, samples=None, refine=REFINE_LEVELS) -> np.ndarray:

@@ -76,6 +76,7 @@ import numpy as np
 from numba import njit
 
 from ..errors import ErrplanError, ScenarioError
+from ..scenario import CoupledLimit
 
 TWO_PI = 2.0 * math.pi
 IK_TOL = 1e-10          # |f(q) - w| below this counts as reached (m)
@@ -85,16 +86,6 @@ GRAVITY = 9.81          # m/s^2, along world -y
 
 
 # ============================================================================ data
-@dataclass(frozen=True)
-class CoupledLimit:
-    """``lo <= sum(coeffs[i] * q[joints[i]]) <= hi`` (P1's ``q1 + q2`` limit in 3-D)."""
-
-    joints: tuple[str, ...]
-    coeffs: tuple[float, ...]
-    lo: float
-    hi: float
-
-
 class ChainData(NamedTuple):
     """The chain for the kernels (plain arrays).
 

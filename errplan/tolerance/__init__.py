@@ -55,18 +55,15 @@ size checks done before any query runs).
 """
 from __future__ import annotations
 
-from .insertion import (EVAL_BYTES, EVAL_CHUNK, HOLDS, LIBERTY_ANGLE_RATIO, NOISE_SAMPLING, InsertionModel,
-                        flexed_jacobian_hold, insertion_band, insertion_worst, noise_half_widths, random_noise,
-                        tracker_noise)
-from .placement import (MAX_CANDIDATES, candidate_axes, candidate_fields, candidate_scenario, evaluate_candidate,
-                        port_placement, rank_key, region_axes_of, score)
-from .region import (REFINE_TOL, TIP_BYTES, _evaluator, _load_range, _OffsetSet, _set_worst, _SpatialPhysics,
-                     _SpatialSet, port_tolerance, region_grid, tip_load_tolerance)
-from .result import Progress, ToleranceResult, _jsonable
+from .insertion import (HOLDS, LIBERTY_ANGLE_RATIO, InsertionModel, flexed_jacobian_hold, insertion_band,
+                        insertion_worst, tracker_noise)
+from .placement import MAX_CANDIDATES, candidate_scenario, port_placement, rank_key, score
+from .region import port_tolerance, region_grid, tip_load_tolerance
+from .result import Progress, ToleranceResult
 from .run import PLANAR_KINDS, check_sizes, run_all, run_query
-from .search import BISECT_RTOL, _bisect_vec, box_worst
+from .search import box_worst
 
 __all__ = ["ToleranceResult", "Progress", "run_all", "run_query", "check_sizes", "port_tolerance",
            "tip_load_tolerance", "port_placement", "insertion_band", "insertion_worst", "tracker_noise",
            "InsertionModel", "flexed_jacobian_hold", "box_worst", "region_grid", "HOLDS", "LIBERTY_ANGLE_RATIO",
-           "MAX_CANDIDATES", "PLANAR_KINDS"]
+           "MAX_CANDIDATES", "PLANAR_KINDS", "candidate_scenario", "rank_key", "score"]
