@@ -32,7 +32,8 @@ sys.path.insert(0, str(ROOT))
 from errplan.calibration import calibrate  # noqa: E402
 from errplan.experiment import run_experiment  # noqa: E402
 from errplan.report import format_table  # noqa: E402
-from errplan.scenario import Robot, load_scenario  # noqa: E402
+from errplan.scenario import Robot  # noqa: E402
+from errplan.api import load_scenario
 from errplan.simulation import Plant  # noqa: E402
 
 PORT = ROOT / "scenarios" / "beasley2004_port.toml"

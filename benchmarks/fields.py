@@ -268,7 +268,7 @@ def main() -> int:
     ap.add_argument("--quick", action="store_true", help="fewer scaling points")
     a = ap.parse_args()
     from errplan.fields import MetricField, compute_fields
-    from errplan.scenario import load_scenario
+    from errplan.api import load_scenario
 
     rows = []
     with tempfile.TemporaryDirectory() as d:

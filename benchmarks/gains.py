@@ -32,7 +32,7 @@ from errplan.cli.demo import SPATIAL_METRICS, SPATIAL_RESOLUTION  # noqa: E402
 from errplan.gains import SpatialModel, _sample_segment, _scan, _scan_M, schedule_gains  # noqa: E402
 from errplan.pipeline import replay, truth_plant  # noqa: E402
 from errplan.report import format_table  # noqa: E402
-from errplan.scenario import load_scenario  # noqa: E402
+from errplan.api import load_scenario  # noqa: E402
 from errplan.simulation import ControllerModel  # noqa: E402
 
 

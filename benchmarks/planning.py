@@ -47,7 +47,7 @@ from errplan.planning import (PLANNERS, CostMap, PlannerSettings, costmap_for, f
                               plan_query)
 from errplan.planning.reference import GridGraph, grid_optimum  # noqa: E402
 from errplan.report import format_table  # noqa: E402
-from errplan.scenario import load_scenario  # noqa: E402
+from errplan.api import load_scenario  # noqa: E402
 
 COLUMNS = ["planner", "solved", "failed", "raw mean", "raw max", "final mean", "final max", "final > 1.05",
            "from OMPL", "time mean (s)", "time max (s)", "iters/s"]

@@ -30,7 +30,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from errplan.scenario import load_scenario  # noqa: E402
+from errplan.api import load_scenario  # noqa: E402
 from errplan.tolerance import port_placement  # noqa: E402
 from errplan.report import format_table  # noqa: E402
 

@@ -44,27 +44,59 @@ def _numeric(s: str) -> bool:
         return False
 
 
-def _clean(obj: Any, path: str = "") -> Any:
-    """Convert numpy values to JSON types; refuse NaN/inf (they would leak silently)."""
+NON_FINITE_KEY = "non_finite"
+"""The key under which a JSON object says which of its values were not finite numbers (written as null)."""
+
+
+def _kind(v: float) -> str:
+    if math.isnan(v):
+        return "nan"
+    return "inf" if v > 0 else "-inf"
+
+
+def _clean(obj: Any, path: str = "") -> tuple[Any, dict[str, str]]:
+    """Convert numpy values to JSON types. A non-finite number is data, not a failure: it is written
+    as ``null`` and the nearest enclosing object gets ``"non_finite": {"<key>[<index>]...": "inf" |
+    "-inf" | "nan"}`` naming it (``inf`` an unbounded value, e.g. ||G|| where the controller's Jacobian
+    is singular; ``nan`` an undefined one). Returns the value and the notes not yet attached."""
     try:
         import numpy as np
     except ImportError:  # pragma: no cover
         np = None
     if isinstance(obj, dict):
-        return {str(k): _clean(v, f"{path}.{k}") for k, v in obj.items()}
+        out: dict[str, Any] = {}
+        notes: dict[str, str] = {}
+        for k, v in obj.items():
+            cv, sub = _clean(v, f"{path}.{k}")
+            out[str(k)] = cv
+            notes.update({f"{k}{r}": kind for r, kind in sub.items()})
+        if notes:
+            if NON_FINITE_KEY in out:
+                raise ErrplanError(f"internal: {path or 'top'} has its own key {NON_FINITE_KEY!r} in the JSON output")
+            out[NON_FINITE_KEY] = notes
+        return out, {}
     if isinstance(obj, (list, tuple)):
-        return [_clean(v, f"{path}[{i}]") for i, v in enumerate(obj)]
+        items, notes = [], {}
+        for i, v in enumerate(obj):
+            cv, sub = _clean(v, f"{path}[{i}]")
+            items.append(cv)
+            notes.update({f"[{i}]{r}": kind for r, kind in sub.items()})
+        return items, notes
     if np is not None and isinstance(obj, np.ndarray):
         return _clean(obj.tolist(), path)
     if np is not None and isinstance(obj, np.generic):
         obj = obj.item()
     if isinstance(obj, float) and not math.isfinite(obj):
-        raise ErrplanError(f"internal: non-finite value {obj} at {path or 'top'} in the JSON output")
-    return obj
+        return None, {"": _kind(obj)}
+    return obj, {}
 
 
 def to_json(obj: Any) -> str:
-    return json.dumps(_clean(obj), indent=2)
+    """``obj`` as indented JSON; non-finite numbers become ``null``, named under ``non_finite``."""
+    out, notes = _clean(obj)
+    if notes:  # only a bare list at the top has nowhere to say it
+        raise ErrplanError(f"internal: non-finite values at {sorted(notes)} of a JSON list")
+    return json.dumps(out, indent=2, allow_nan=False)
 
 
 def write_atomic(path: str | Path, text: str) -> None:

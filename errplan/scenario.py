@@ -1,9 +1,11 @@
 """Scenario files: TOML -> validated, immutable :class:`Scenario`.
 
-Every table of ``docs/interfaces.md`` has a frozen dataclass here. :func:`load_scenario`
+Every table of ``docs/interfaces.md`` has a frozen dataclass here. :func:`read_scenario`
 reads a file once and validates every key; a malformed file raises one
 :class:`ScenarioError` that names the key, the value and what was expected.
-Nothing else lives in this module (no kinematics beyond the reachability check).
+Nothing else lives in this module: it builds no robot. The checks that need the robot (a URDF that
+loads, a port the shaft can reach) are :func:`errplan.kinematics.check_scenario`; :func:`errplan.load_scenario`
+does both.
 """
 from __future__ import annotations
 
@@ -631,7 +633,7 @@ _TOP = (
 )
 
 
-def parse_scenario(doc: Mapping[str, Any], source: str = "<memory>") -> Scenario:
+def scenario_from_dict(doc: Mapping[str, Any], source: str = "<memory>") -> Scenario:
     """Validate a parsed TOML document into a :class:`Scenario` (see interfaces.md).
 
     A scenario is spatial (``dim == 3``) when its ``[robot]`` names a ``urdf``; every point then has
@@ -674,33 +676,12 @@ def parse_scenario(doc: Mapping[str, Any], source: str = "<memory>") -> Scenario
         effects=_effects(ctx, _table(ctx, doc, "effects", False), d, n_joints),
         source=source,
     )
-    _check_reach(ctx, sc)
     return sc
 
 
-def _check_reach(ctx: _Ctx, sc: Scenario) -> None:
-    """The shaft must be able to reach through the port (true and estimated) from some wrist pose.
-
-    For a URDF arm this also loads the URDF (once, cached), so a missing file, a joint or link not in
-    it or an arm that cannot place the wrist in 3-D is reported here, before any work starts.
-    """
-    from .kinematics import arm_for  # local: kinematics does not import scenario
-
-    arm = arm_for(sc.robot)
-    dmin_true, dmin_est = arm.min_distance_to(sc.port.position), arm.min_distance_to(sc.port.estimate)
-    L = sc.instrument.length
-    if dmin_true >= L:
-        raise ctx.fail("[port] position", list(sc.port.position),
-                       f"a port the shaft can reach: the nearest reachable wrist is {dmin_true:.4f} m away, "
-                       f"more than the shaft length {L:.4f} m (port out of reach)")
-    if dmin_est >= L:
-        raise ctx.fail("[port] estimate", list(sc.port.estimate),
-                       f"a port the shaft can reach: the nearest reachable wrist is {dmin_est:.4f} m away, "
-                       f"more than the shaft length {L:.4f} m (port out of reach)")
-
-
-def load_scenario(path: str | Path) -> Scenario:
-    """Read and validate a scenario TOML file."""
+def read_scenario(path: str | Path) -> Scenario:
+    """Read and validate a scenario TOML file (the data only; :func:`errplan.load_scenario` also checks it
+    against the robot)."""
     from .inputs import read_text  # missing, directory, binary, not UTF-8, too large: one ScenarioError
 
     p = Path(path)
@@ -709,4 +690,4 @@ def load_scenario(path: str | Path) -> Scenario:
         doc = tomllib.loads(text)
     except (ValueError, RecursionError) as e:  # TOMLDecodeError is a ValueError; absurd nesting recurses
         raise ScenarioError(f"{p}: not valid TOML: {e}") from None
-    return parse_scenario(doc, str(p))
+    return scenario_from_dict(doc, str(p))

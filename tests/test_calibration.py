@@ -24,7 +24,8 @@ from errplan.cli import main
 from errplan.effects import predict_tracked
 from errplan.errors import DataError
 from errplan.experiment import bench_controller, parse_measured_csv, run_experiment
-from errplan.scenario import Robot, load_scenario, parse_scenario
+from errplan.scenario import Robot
+from errplan.api import load_scenario, parse_scenario
 from errplan.simulation import Plant, simulate
 
 try:

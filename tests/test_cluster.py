@@ -11,7 +11,7 @@ import pytest
 from errplan.cluster import map_tasks
 from errplan.errors import ErrplanError
 from errplan.fields import MetricField, compute_fields
-from errplan.scenario import load_scenario
+from errplan.api import load_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
 

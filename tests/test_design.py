@@ -21,7 +21,7 @@ from errplan.cli import main
 from errplan.effects import EffectModel, make_effect
 from errplan.errors import ErrplanError
 from errplan.experiment import choose_starts, run_experiment, target_offsets, truth_plant
-from errplan.scenario import load_scenario
+from errplan.api import load_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
 PORT = ROOT / "scenarios" / "beasley2004_port.toml"

@@ -13,7 +13,8 @@ from errplan.effects import (CATALOGUE, EFFECTS, EffectModel, GravitySag, JointO
                              ShaftFlexion, TrackerOffset, make_effect, predict_tracked)
 from errplan.errors import ErrplanError
 from errplan.kinematics.shaft import flexed_tip, lever_tip
-from errplan.scenario import EFFECT_PARAMS, load_scenario
+from errplan.scenario import EFFECT_PARAMS
+from errplan.api import load_scenario
 from errplan.simulation import Plant
 
 ROOT = Path(__file__).resolve().parents[1]

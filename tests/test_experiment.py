@@ -14,7 +14,7 @@ from errplan.experiment import (COLUMNS, P1_STARTS, choose_starts, parse_measure
                                 run_experiment, target_offsets)
 from errplan.kinematics.shaft import lever_tip
 from errplan.metrics import inv2
-from errplan.scenario import load_scenario, parse_scenario
+from errplan.api import load_scenario, parse_scenario
 from errplan.simulation import ControllerModel, Plant
 
 try:

@@ -22,7 +22,8 @@ from conftest import SCENARIOS, make_scenario_dict
 from errplan.errors import ErrplanError
 from errplan.fields import REFINE_LEVELS, ErrorSet, Evaluator, MetricField, compute_fields, minimize_gain, worst_case
 from errplan.metrics import g_norm_from_parts
-from errplan.scenario import Uncertainty, load_scenario, parse_scenario
+from errplan.scenario import Uncertainty
+from errplan.api import load_scenario, parse_scenario
 
 TOL_G = 1e-3      # ||G||: absolute, relative above 1 (near singular tips ||G|| reaches 1e4)
 TOL_PHI = 3e-3    # |phi_max|, rad

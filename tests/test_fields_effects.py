@@ -6,7 +6,7 @@ import pytest
 from scipy.optimize import fsolve
 
 from errplan.fields import Evaluator, compute_fields
-from errplan.scenario import load_scenario
+from errplan.api import load_scenario
 from errplan.simulation import ControllerModel, Plant
 
 SC = load_scenario("scenarios/beasley2004_port.toml")

@@ -18,7 +18,7 @@ from scipy.optimize import minimize
 from errplan.fields import compute_fields
 from errplan.kinematics import arm_for
 from errplan.kinematics.shaft import flexed_tip, flexed_wrist_plane
-from errplan.scenario import load_scenario
+from errplan.api import load_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared"

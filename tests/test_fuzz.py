@@ -641,7 +641,7 @@ def assert_rejected(rc, err: str, warns: list, d: Path, inputs: list) -> None:
 
 def _pristine_loads(src: Path, tmp: Path) -> str | None:
     """None if the bundled scenario, written back the way the mutations are, loads; else why not."""
-    from errplan.scenario import load_scenario
+    from errplan.api import load_scenario
 
     p = tmp / f"pristine-{src.stem}.toml"
     p.write_text(to_toml(_doc(src)), encoding="utf-8")

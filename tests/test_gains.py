@@ -17,7 +17,7 @@ from errplan.gains import (GainOptions, _sample_segment, ball_tips, cut_path, op
                            schedule_gains, single_segment, solve_gains, step_ratio)
 from errplan.kinematics.arm import Arm
 from errplan.kinematics.shaft import flexed_jacobian, flexed_tip, flexed_wrist, lever_jacobian
-from errplan.scenario import load_scenario
+from errplan.api import load_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
 BOUNDED = ROOT / "scenarios" / "beasley2004_bounded.toml"

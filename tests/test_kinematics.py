@@ -12,7 +12,7 @@ from errplan.kinematics import shaft
 from errplan.kinematics import symbolic as sym
 from errplan.kinematics.arm import Arm, angle_of, direction, direction_derivative
 from errplan.metrics import conformal_parts
-from errplan.scenario import load_scenario
+from errplan.api import load_scenario
 
 L = 0.320
 PORT = np.array([0.0, 0.160])

@@ -15,7 +15,7 @@ from conftest import SCENARIOS
 from errplan.fields import Evaluator, compute_fields, worst_case
 from errplan.kinematics.shaft import flexed_jacobian, flexed_tip, flexed_wrist, lever_jacobian, lever_tip, lever_wrist
 from errplan.metrics import g_norm, motion_map, phi_max, phi_of_direction
-from errplan.scenario import load_scenario
+from errplan.api import load_scenario
 
 DEG = np.pi / 180
 L_P, M_P, N_P = (0.0, 0.320), (0.0, 0.375), (0.0, 0.415)

@@ -40,7 +40,7 @@ from errplan.kinematics.shaft import flexed_tip, flexed_wrist_plane
 from errplan.pipeline import run_pipeline
 from errplan.planning import plan_scenario
 from errplan.recording import entity_names, level_surface, slice_mesh, turbo
-from errplan.scenario import load_scenario
+from errplan.api import load_scenario
 
 from test_fields_spatial import omni_scenario
 

@@ -24,7 +24,8 @@ from conftest import to_toml
 from errplan.cli import main
 from errplan.errors import ErrplanError, ScenarioError
 from errplan.fields import Evaluator, KernelEvaluator, compute_fields
-from errplan.scenario import Fields, Port, load_scenario, parse_scenario
+from errplan.scenario import Fields, Port
+from errplan.api import load_scenario, parse_scenario
 from errplan.tolerance import candidate_scenario, port_placement, rank_key, run_all, run_query
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -23,7 +23,7 @@ from errplan.fields import MetricField
 from errplan.planning import (PLANNERS, CostMap, PlannerSettings, costmap_for, fields_for_planning,
                               make_objective, make_space_information, plan_query, plan_scenario, refine_path)
 from errplan.reference import GridGraph, angular_bound, grid_optimum, moves, segment_cost
-from errplan.scenario import load_scenario
+from errplan.api import load_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
 PORT = ROOT / "scenarios" / "beasley2004_port.toml"

@@ -33,7 +33,8 @@ from errplan.fields import MetricField
 from errplan.planning import (PLANNERS, CostMap, PlannerSettings, costmap_for, make_objective, make_space_information,
                               plan_query, plan_scenario, refine_path)
 from errplan.planning.reference import GridGraph, angular_bound, grid_optimum, moves, segment_cost
-from errplan.scenario import Query, load_scenario
+from errplan.scenario import Query
+from errplan.api import load_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
 SPATIAL = ROOT / "scenarios" / "phantom15_spatial.toml"

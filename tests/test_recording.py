@@ -18,7 +18,7 @@ from errplan.errors import ErrplanError
 from errplan.fields import compute_fields
 from errplan.pipeline import run_pipeline
 from errplan.recording import entity_name, field_image, uv, workspace_edges
-from errplan.scenario import load_scenario
+from errplan.api import load_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
 PORT = ROOT / "scenarios" / "beasley2004_port.toml"

@@ -13,7 +13,8 @@ import pytest
 from conftest import SCENARIOS, make_scenario_dict, to_toml, write_scenario
 from errplan.cli import main
 from errplan.errors import ErrplanError, ScenarioError
-from errplan.scenario import Scenario, load_scenario, parse_scenario
+from errplan.scenario import Scenario
+from errplan.api import load_scenario, parse_scenario
 
 # (overrides of make_scenario_dict, substrings the message must contain: key, value, reason)
 BAD = {

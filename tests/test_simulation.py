@@ -10,7 +10,7 @@ import pytest
 
 from errplan.errors import ErrplanError
 from errplan.metrics import g_norm, motion_map, v_sigma
-from errplan.scenario import load_scenario, parse_scenario
+from errplan.api import load_scenario, parse_scenario
 from errplan.simulation import ControllerModel, Plant, g_norm_along, simulate
 
 ROOT = Path(__file__).resolve().parents[1]

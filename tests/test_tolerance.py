@@ -15,7 +15,7 @@ from errplan.cli import main
 from errplan.errors import ErrplanError, InfeasibleError, ScenarioError
 from errplan.kinematics.arm import Arm, angle_of, direction
 from errplan.kinematics.shaft import flexed_geometry, lever_jacobian, lever_wrist
-from errplan.scenario import load_scenario, parse_scenario
+from errplan.api import load_scenario, parse_scenario
 from errplan.tolerance import (HOLDS, InsertionModel, flexed_jacobian_hold, insertion_band, insertion_worst,
                                port_tolerance, run_query, tip_load_tolerance, tracker_noise)
 

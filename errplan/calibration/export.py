@@ -92,7 +92,8 @@ def corrected_scenario_toml(sc, report: CalibrationReport) -> str:
 
     import tomllib
 
-    from ..scenario import parse_scenario
+    from ..kinematics import check_scenario
+    from ..scenario import scenario_from_dict
 
     try:
         doc = tomllib.loads(Path(sc.source).read_text(encoding="utf-8"))
@@ -117,5 +118,5 @@ def corrected_scenario_toml(sc, report: CalibrationReport) -> str:
               f"noise floor {report.noise.sigma:.3e} m; pose RMS {report.fit_errors.pose_before:.3e} -> "
               f"{report.fit_errors.pose_after:.3e} m")
     text = to_toml(doc, header)
-    parse_scenario(tomllib.loads(text), "<exported scenario>")  # reads back, or raises before writing
+    check_scenario(scenario_from_dict(tomllib.loads(text), "<exported scenario>"))  # reads back, or raises before writing
     return text

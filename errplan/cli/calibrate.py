@@ -12,14 +12,14 @@ from ..report import Progress, write_atomic, write_json
 
 
 def run(args) -> int:
-    from ..calibration import calibrate, corrected_scenario_toml
+    from .. import api
+    from ..calibration import corrected_scenario_toml
     from ..experiment import read_measured_csv
-    from ..scenario import load_scenario
 
     from ..inputs import check_output
     from . import check_seed
 
-    sc = load_scenario(args.scenario)
+    sc = api.load_scenario(args.scenario)
     for opt, v in (("--json", args.json), ("--record", args.record), ("--export-scenario", args.export_scenario)):
         check_output(opt, v)
     check_seed("--seed", args.seed)
@@ -32,7 +32,7 @@ def run(args) -> int:
     prog.quiet = prog.quiet or not prog.tty  # progress only on a terminal: an error stays the one line on stderr
     effects = getattr(args, "effects", None)
     effects = [e.strip() for e in effects.split(",")] if effects is not None else None
-    report = calibrate(sc, data, validate=val, seed=args.seed, folds=folds, progress=prog, effects=effects)
+    report = api.calibrate(sc, data, validate=val, seed=args.seed, folds=folds, progress=prog, effects=effects)
     prog.done()
     toml_text = corrected_scenario_toml(sc, report) if args.export_scenario else None
     js = report.to_json()

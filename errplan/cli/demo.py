@@ -76,7 +76,7 @@ def run_scenario(sc, path: Path, rec: Path | None, quiet: bool, *, spatial_demo:
 
 def run(args) -> int:
     from ..inputs import check_output
-    from ..scenario import load_scenario
+    from ..api import load_scenario
 
     t0 = time.perf_counter()
     quiet = getattr(args, "quiet", False)

@@ -12,13 +12,12 @@ from ..report import format_table
 
 
 def run(args) -> int:
-    from ..experiment import run_experiment
-    from ..scenario import load_scenario
+    from .. import api
 
     from ..inputs import check_output
     from . import check_seed
 
-    sc = load_scenario(args.scenario)
+    sc = api.load_scenario(args.scenario)
     out = check_output("--out", args.out)
     check_seed("--seed", args.seed)
     starts = getattr(args, "starts", 8)
@@ -63,7 +62,7 @@ def run(args) -> int:
         print(design.text())
         print()
         runs = design.runs
-    ex = run_experiment(sc, args.seed, n_starts=starts, max_steps=max_steps, dwell=dwell, runs=runs)
+    ex = api.run_experiment(sc, args.seed, starts=starts, max_steps=max_steps, dwell=dwell, runs=runs)
     d = ex.data
     ex.data.source = str(out)
     d.write_csv(out)

@@ -31,13 +31,13 @@ def field_table(summary: dict, title: str) -> str:
 
 
 def run(args) -> int:
-    from ..fields import compute_fields, parse_metrics
-    from ..scenario import load_scenario
+    from .. import api
+    from ..fields import parse_metrics
 
     metrics = parse_metrics(args.metrics, args.rho_star)
     if args.workers is not None and args.workers < 1:
         raise ErrplanError(f"--workers {args.workers}: expected a number of worker processes >= 1")
-    sc = load_scenario(args.scenario)
+    sc = api.load_scenario(args.scenario)
     out = Path(args.out)
     if not out.parent.exists():
         raise ErrplanError(f"--out {args.out}: directory {out.parent} does not exist")
@@ -48,8 +48,8 @@ def run(args) -> int:
     prog = Progress("fields", quiet=args.quiet)
     prog.quiet = prog.quiet or not prog.tty
     try:
-        mf = compute_fields(sc, args.resolution, samples=args.samples, progress=prog, metrics=metrics,
-                            workers=args.workers, scheduler=args.scheduler)
+        mf = api.compute_fields(sc, args.resolution, samples=args.samples, progress=prog, metrics=metrics,
+                                workers=args.workers, scheduler=args.scheduler)
         summary = mf.summary()
         if summary["valid_points"] == 0:
             raise ErrplanError(f"{sc.source}: no tip of the grid is reachable under every instance of the error set")

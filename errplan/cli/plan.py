@@ -51,14 +51,14 @@ def plan_table(plan) -> str:
 
 def run(args) -> int:
     from ..errors import ErrplanError
-    from ..pipeline import run_pipeline, summary_table
-    from ..planning import plan_scenario, select_queries
-    from ..scenario import load_scenario
+    from .. import api
+    from ..pipeline import summary_table
+    from ..planning import select_queries
 
     from ..inputs import check_output
     from . import check_seed
 
-    sc = load_scenario(args.scenario)
+    sc = api.load_scenario(args.scenario)
     select_queries(sc, args.query)  # a bad --query fails before the fields are computed
     for opt, value in (("--json", args.json), ("--record", args.record)):
         check_output(opt, value)
@@ -67,16 +67,12 @@ def run(args) -> int:
         raise ErrplanError(f"{sc.source}: [planner] seed = {sc.planner.seed}: expected an integer from 0 to 4294967295")
     prog = Progress("plan", quiet=args.quiet)
     prog.quiet = prog.quiet or not prog.tty  # progress only on a terminal: an error stays the one line on stderr
-    plan = plan_scenario(sc, query=args.query, planner=args.planner, time=args.time, seed=args.seed,
-                         progress=prog)
+    plan = api.plan(sc, query=args.query, planner=args.planner, time=args.time, seed=args.seed,
+                    record=args.record, progress=prog)
     prog.done()
     print(plan_table(plan))
-    prog = Progress("gains+simulation", quiet=args.quiet)
-    prog.quiet = prog.quiet or not prog.tty  # progress only on a terminal: an error stays the one line on stderr
-    res = run_pipeline(sc, plan.queries, plan.costmap.mf, record=args.record, progress=prog)
-    prog.done()
     print()
-    print(summary_table(res["runs"], f"certified gains and simulation: {sc.name}"))
+    print(summary_table(plan.runs, f"certified gains and simulation: {sc.name}"))
     if args.json:
         write_json(args.json, plan.to_json())
     if args.record:

@@ -49,14 +49,14 @@ def placement_table(r, top: int = 5) -> str:
 
 def run(args) -> int:
     from ..inputs import check_output
-    from ..scenario import load_scenario
-    from ..tolerance import check_sizes, run_all
+    from .. import api
+    from ..tolerance import check_sizes
 
     if args.workers is not None and args.workers < 1:
         raise ErrplanError(f"--workers {args.workers}: expected a number of worker processes >= 1")
     if args.top < 0:
         raise ErrplanError(f"--top {args.top}: expected a number of candidates >= 0")
-    sc = load_scenario(args.scenario)
+    sc = api.load_scenario(args.scenario)
     check_output("--json", args.json)
     record = None
     if args.record:
@@ -68,7 +68,7 @@ def run(args) -> int:
     prog = Progress("tolerance", quiet=args.quiet)
     prog.quiet = prog.quiet or not prog.tty  # progress only on a terminal: an error stays the one line on stderr
     try:
-        results = run_all(sc, progress=prog, workers=args.workers, scheduler=args.scheduler)
+        results = api.tolerances(sc, progress=prog, workers=args.workers, scheduler=args.scheduler)
     except ErrplanError:
         if not prog.quiet:
             prog.stream.write("\r" + " " * 60 + "\r")

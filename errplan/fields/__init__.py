@@ -20,8 +20,8 @@ only if it is reachable under every instance evaluated (robust validity).
 """
 from __future__ import annotations
 
-from .compute import ALL_METRICS, DEFAULT_METRICS, KernelEvaluator, compute_fields, error_set, parse_metrics, tip_grid, workspace_bounds
-from .errorset import ErrorSet
+from .compute import ALL_METRICS, DEFAULT_METRICS, KernelEvaluator, compute_fields, parse_metrics, tip_grid, workspace_bounds
+from .errorset import ErrorSet, error_set
 from .evaluator import EFFECT_NEWTON_ITERS, JACOBIAN_EFFECTS, Evaluator
 from .grid import METRIC_NAMES, MetricField
 from .search import EXTRA_PASSES, REFINE_LEVELS, SECOND_START, Progress, minimize_gain, worst_case

@@ -19,7 +19,7 @@ import numpy as np
 
 from ..errors import ErrplanError
 from ..metrics import phi_hat_max
-from .errorset import ErrorSet
+from .errorset import ErrorSet, error_set
 from .grid import MetricField
 from .search import EXTRA_PASSES, REFINE_LEVELS, SECOND_START, Progress, _refined_at_gain, minimize_gain, worst_case
 
@@ -241,28 +241,6 @@ class KernelEvaluator:
         args = self._args if samples is None else _kernel_args(self.scenario, self.errors, samples)
         job = FieldJob(np.asarray(x, float).reshape(-1, self.dim), float(k), phi, rho, refine, samples, args)
         return run_tile(job, (0, len(job.X)))
-
-
-def error_set(sc) -> tuple[ErrorSet, dict]:
-    """The scenario's error set with a ``port_offset`` effect folded into the true port, and the
-    remaining effects that change the true Jacobian (Plant keyword arguments)."""
-    from dataclasses import replace
-
-    from ..kinematics.truth import effect_kwargs
-    from .evaluator import JACOBIAN_EFFECTS
-
-    es = ErrorSet.from_scenario(sc)
-    if sc.dim == 2:
-        kw = {k: v for k, v in effect_kwargs(sc.effects).items() if k in JACOBIAN_EFFECTS and any(x != 0 for x in v)}
-        off = kw.pop("port_offset", None)
-    else:
-        kw = {name: p for name, p in sc.effects.items()
-              if name in ("joint_offset", "gravity_sag", "shaft_flexion") and any(v != 0 for v in p.values())}
-        po = sc.effects.get("port_offset")
-        off = tuple(po[a] for a in ("dx", "dy", "dz")) if po else None
-    if off is not None:
-        es = replace(es, base_port=tuple(b + o for b, o in zip(es.base_port, off)))
-    return es, kw
 
 
 def compute_fields(sc, resolution: float | None = None, rho_star: bool = False, *,

@@ -118,3 +118,28 @@ class ErrorSet:
             return np.zeros((1, 6))
         axes = [(-pos, pos) if pos > 0 else (0.0,)] * 4 + [(-ang, ang) if ang > 0 else (0.0,)] * 2
         return np.array(list(itertools.product(*axes)), float)
+
+
+# The effects that change the true Jacobian at a tip (the others move the measurement only).
+JACOBIAN_EFFECTS = ("port_offset", "joint_offset", "gravity_sag", "world_load")
+
+
+def error_set(sc) -> tuple[ErrorSet, dict]:
+    """The scenario's error set with a ``port_offset`` effect folded into the true port, and the
+    remaining effects that change the true Jacobian (Plant keyword arguments)."""
+    from dataclasses import replace
+
+    from ..kinematics.truth import effect_kwargs
+
+    es = ErrorSet.from_scenario(sc)
+    if sc.dim == 2:
+        kw = {k: v for k, v in effect_kwargs(sc.effects).items() if k in JACOBIAN_EFFECTS and any(x != 0 for x in v)}
+        off = kw.pop("port_offset", None)
+    else:
+        kw = {name: p for name, p in sc.effects.items()
+              if name in ("joint_offset", "gravity_sag", "shaft_flexion") and any(v != 0 for v in p.values())}
+        po = sc.effects.get("port_offset")
+        off = tuple(po[a] for a in ("dx", "dy", "dz")) if po else None
+    if off is not None:
+        es = replace(es, base_port=tuple(b + o for b, o in zip(es.base_port, off)))
+    return es, kw

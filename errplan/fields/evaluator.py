@@ -12,7 +12,7 @@ from ..kinematics.shaft import (estimate_from_ends, flexed_end_angles, flexed_ja
                                 flexed_wrist_plane, lever_jacobian, lever_parts, lever_wrist)
 from ..kinematics.truth import Plant, effect_kwargs
 from ..metrics import conformal_parts, compose_parts, inv2, inverse_parts
-from .errorset import ErrorSet
+from .errorset import JACOBIAN_EFFECTS, ErrorSet, error_set
 
 
 # ----------------------------------------------------------------------------- evaluator
@@ -151,7 +151,6 @@ class Evaluator:
 
 
 EFFECT_NEWTON_ITERS = 8
-JACOBIAN_EFFECTS = ("port_offset", "joint_offset", "gravity_sag", "world_load")
 
 
 def _fd_jacobian(f, q: np.ndarray, h: float = 1e-6) -> np.ndarray:
@@ -205,8 +204,6 @@ class SpatialEffectsEvaluator:
 
     @classmethod
     def from_scenario(cls, sc) -> "SpatialEffectsEvaluator":
-        from .compute import error_set
-
         es, _ = error_set(sc)  # the port_offset effect folded into the box's base port
         effects = {name: p for name, p in sc.effects.items() if name != "port_offset"}
         plant = Plant.from_scenario(sc.with_(effects=effects), port=es.base_port)

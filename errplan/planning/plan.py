@@ -127,6 +127,7 @@ class ScenarioPlan:
     queries: list[QueryPlan]
     costmap: CostMap
     field_time: float = 0.0
+    runs: list = field(default_factory=list)  # simulated runs (errplan.api.plan), for the summary table
 
     def to_json(self, timing: bool = True) -> dict:
         interp = "bilinear" if self.costmap.dim == 2 else "trilinear"
