@@ -19,6 +19,7 @@ try:  # Python >= 3.11
 except ModuleNotFoundError:  # pragma: no cover
     import tomli as tomllib  # type: ignore
 
+from . import packages
 from .errors import ScenarioError
 
 METRICS = ("phi_hat_max", "G_norm", "phi_max", "rho_star")
@@ -313,13 +314,26 @@ def _urdf_robot(ctx: _Ctx, t: Mapping[str, Any], base_dir: Path) -> UrdfRobot:
                          "fixed_joints", "coupled_limits"), w)
     urdf = _get(ctx, t, "urdf", w)
     if not isinstance(urdf, str) or not urdf:
-        raise ctx.fail(w + "urdf", urdf, "the path of a URDF file (relative to the scenario file)")
-    urdf_path = (base_dir / urdf).resolve()
+        raise ctx.fail(w + "urdf", urdf, "the path of a URDF file (relative to the scenario file) or a "
+                                         "package://NAME/PATH URI")
     pkg = t.get("package_path", [])
     if isinstance(pkg, str):
         pkg = [pkg]
     if not isinstance(pkg, list) or not all(isinstance(x, str) and x for x in pkg):
         raise ctx.fail(w + "package_path", pkg, "a list of directories (relative to the scenario file)")
+    if urdf.startswith(packages.SCHEME):
+        if packages.split_uri(urdf) is None:
+            raise ctx.fail(w + "urdf", urdf, "package://NAME/PATH (a package name, then the file's path in it)")
+        dirs = packages.search_dirs(pkg, base_dir)
+        found = packages.resolve(urdf, dirs)
+        if found is None:
+            raise ctx.fail(w + "urdf", urdf, "a file of an installed robot-description package: not found in "
+                           "package_path, ROS_PACKAGE_PATH or this environment's description packages "
+                           f"({', '.join(str(d) for d in dirs) or 'none'}); for example-robot-data arms: "
+                           "pip install example-robot-data")
+        urdf_path = found
+    else:
+        urdf_path = (base_dir / urdf).resolve()
     joints = _get(ctx, t, "joints", w)
     if (not isinstance(joints, list) or not joints or not all(isinstance(j, str) and j for j in joints)
             or len(set(joints)) != len(joints)):

@@ -4,6 +4,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -110,8 +111,8 @@ def test_fields_start_up_does_not_import_ompl_casadi_rerun(tmp_path):
     assert r.stdout.strip().splitlines()[-1] == "0 []"
     assert out.exists()
     # the check can fail: importing the casadi twins does load casadi
-    r2 = subprocess.run([sys.executable, "-c", "import sys, errplan.kinematics.symbolic; print('casadi' in sys.modules)"],
-                        capture_output=True, text=True, timeout=120)
+    r2 = subprocess.run([sys.executable, "-c", "import sys, errplan.gains, casadi_twins; print('casadi' in sys.modules)"],
+                        capture_output=True, text=True, timeout=120, cwd=Path(__file__).parent)
     assert r2.stdout.strip() == "True"
 
 

@@ -20,14 +20,16 @@ from errplan.kinematics import arm_for
 from errplan.kinematics.shaft import flexed_tip, flexed_wrist_plane
 from errplan.api import load_scenario
 
+from arms import OMNI, SHARED_ROBOTS, arm_scenario, needs_omni
+
 ROOT = Path(__file__).resolve().parents[1]
-SHARED = ROOT.parent / "shared"
 PHANTOM = ROOT / "scenarios" / "phantom15_spatial.toml"
 PLANAR = ROOT / "scenarios" / "beasley2004_port.toml"
 
 
 def omni_scenario(tmp_path: Path, extra: str = "", uncertainty: str | None = None) -> Path:
-    """The Omni of ../shared/robots as a user would describe it (interfaces.md's example)."""
+    """The Omni of ../shared/robots as a user would describe it (interfaces.md's example); only where that
+    folder exists (:data:`arms.needs_omni`)."""
     unc = uncertainty if uncertainty is not None else """
 [uncertainty]
 port_x = [-0.006, 0.004]
@@ -38,8 +40,8 @@ samples = 3
     text = f"""
 name = "omni"
 [robot]
-urdf = "{SHARED / 'robots/omni_description/urdf/omni.urdf'}"
-package_path = ["{SHARED / 'robots'}"]
+urdf = "{OMNI}"
+package_path = ["{SHARED_ROBOTS}"]
 joints = ["waist", "shoulder", "elbow"]
 wrist = "tip"
 base_position = [0.0, 0.0, 0.0]
@@ -201,6 +203,7 @@ def test_spatial_worst_case_matches_independent_reference(phantom):
         assert g <= ref[0] + 1e-3 * max(1, ref[0]), (x, g, ref[0])
 
 
+@needs_omni
 def test_omni_fields_match_reference_with_phi(tmp_path):
     """The Omni of ../shared/robots, as it is: ||G|| and |phi_max| against the reference."""
     sc = load_scenario(omni_scenario(tmp_path))
@@ -218,30 +221,46 @@ def test_omni_fields_match_reference_with_phi(tmp_path):
         assert p <= ref[1] + 0.05, (x, p, ref[1])
 
 
-def test_unseen_urdf_with_prismatic_and_held_joints_matches_reference(tmp_path):
-    """A URDF errplan ships nothing for (tests/test_urdf.py's toy: tilted base, a fixed joint with a
-    rotated origin, a held roll joint, a prismatic last joint, a side branch off the chain): the
-    port near the middle of its wrist cloud, a 3-D port box. ||G|| and |phi_max| are never below
-    the reference worst case over the sampled box, and validity agrees with direct inverse
-    kinematics at every sample tip."""
-    from errplan.kinematics.urdf import UrdfArm
-    from test_urdf import TOY_BASE, TOY_ROLL, TOY_RPY, toy_scenario, toy_text
+def _unseen_arm(tmp_path, which):
+    """The arm model and a scenario writer ``write(port, estimate, body)`` for an arm errplan ships nothing
+    for: the toy URDF of tests/test_urdf.py, or a real arm of example-robot-data (tests/arms.py)."""
+    if which == "toy":
+        from errplan.kinematics.urdf import UrdfArm
+        from test_urdf import TOY_BASE, TOY_ROLL, TOY_RPY, toy_scenario, toy_text
 
-    urdf = tmp_path / "toy.urdf"
-    urdf.write_text(toy_text(), encoding="utf-8")
-    arm = UrdfArm.load(urdf, ["j1", "j2", "j3"], "tool", base_position=TOY_BASE, base_rpy=TOY_RPY,
-                       fixed_joints={"roll": TOY_ROLL})
+        urdf = tmp_path / "toy.urdf"
+        urdf.write_text(toy_text(), encoding="utf-8")
+        arm = UrdfArm.load(urdf, ["j1", "j2", "j3"], "tool", base_position=TOY_BASE, base_rpy=TOY_RPY,
+                           fixed_joints={"roll": TOY_ROLL})
+        return arm, 0.25, lambda port, est, body: toy_scenario(tmp_path, port, est, body)
+    from errplan.scenario import read_scenario
+
+    # the data only (no reach check): the port is chosen from the arm's wrist cloud below
+    arm = arm_for(read_scenario(arm_scenario(tmp_path, which, [0.0, 0.0, 0.0], [0.0, 0.0, 0.0])).robot)
+    return arm, 0.35, lambda port, est, body: arm_scenario(tmp_path, which, port, est, body, length=0.35)
+
+
+@pytest.mark.parametrize("which", ["toy", "ur5", "panda"])
+def test_unseen_urdf_matches_reference(tmp_path, which):
+    """Arms errplan ships nothing for: tests/test_urdf.py's toy (tilted base, a fixed joint with a rotated
+    origin, a held roll joint, a prismatic last joint, a side branch off the chain), and two real arms of
+    example-robot-data (the joint-limited UR5; the Panda with joint 3 held). The port near the middle of
+    the wrist cloud, a 3-D port box. ||G|| and |phi_max| are never below the reference worst case over the
+    sampled box, and validity agrees with direct inverse kinematics at every sample tip."""
+    arm, L, write = _unseen_arm(tmp_path, which)
     rng = np.random.default_rng(3)
     lim = np.asarray(arm.limits)
-    W = arm.forward(lim[:, 0] + rng.random((4000, 3)) * (lim[:, 1] - lim[:, 0]))
-    port = W.mean(axis=0) + 0.02 * np.array([0.3, -0.5, 0.8])
+    W = arm.forward(lim[:, 0] + rng.random((20000, 3)) * (lim[:, 1] - lim[:, 0]))
+    port = W.mean(axis=0) + 0.08 * L * np.array([0.3, -0.5, 0.8])
     est = port + np.array([0.004, -0.002, 0.003])
     d = np.linalg.norm(port - W, axis=1)
-    near = (d > 0.06) & (d < 0.19)
-    tips = W[near] + 0.25 * (port - W[near]) / d[near][:, None]
+    near = (d > 0.24 * L) & (d < 0.76 * L)
+    assert near.sum() > 100, near.sum()
+    tips = W[near] + L * (port - W[near]) / d[near][:, None]
     lo, hi = np.percentile(tips, 3, axis=0), np.percentile(tips, 97, axis=0)
     region = ", ".join(f"{a} = [{u:.4f}, {v:.4f}]" for a, u, v in zip("xyz", lo, hi))
-    toml = toy_scenario(tmp_path, port, est, f"""[controller]
+    res = max(0.006, float(np.max(hi - lo)) / 30)
+    toml = write(port, est, f"""[controller]
 gain = 0.8
 [uncertainty]
 port_x = [-0.003, 0.003]
@@ -249,7 +268,7 @@ port_y = [-0.002, 0.004]
 port_z = [-0.003, 0.002]
 samples = 3
 [fields]
-resolution = 0.006
+resolution = {res:.4f}
 region = {{ {region} }}
 """)
     sc = load_scenario(toml)

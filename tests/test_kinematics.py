@@ -1,5 +1,5 @@
 """Kinematics (docs/physics.md): the arm, the rigid lever and P2's flexed shaft. Every closed-form
-Jacobian is checked against casadi AD (errplan.kinematics.symbolic) and central finite
+Jacobian is checked against casadi AD (tests/casadi_twins.py) and central finite
 differences; every inverse against its forward model; P2's appendix against AD with each
 candidate quantity held constant."""
 from __future__ import annotations
@@ -9,7 +9,7 @@ import pytest
 
 from conftest import SCENARIOS
 from errplan.kinematics import shaft
-from errplan.kinematics import symbolic as sym
+import casadi_twins as sym
 from errplan.kinematics.arm import Arm, angle_of, direction, direction_derivative
 from errplan.metrics import conformal_parts
 from errplan.api import load_scenario

@@ -1,5 +1,6 @@
 """Spatial (3-D) gains, simulation and recording end to end, on the bundled PHANToM 1.5
-(scenarios/phantom15_spatial.toml) and on the Omni of ../shared/robots.
+(scenarios/phantom15_spatial.toml) and on a real arm nobody here described, example-robot-data's UR5
+(tests/arms.py; issue 22's setup, where the direct move of ``rise`` crosses a singular controller Jacobian).
 
 Every number is checked against something written here and independent of errplan's own code paths:
 
@@ -42,6 +43,7 @@ from errplan.planning import plan_scenario
 from errplan.recording import entity_names, level_surface, slice_mesh, turbo
 from errplan.api import load_scenario
 
+from arms import needs_omni, ur5_scenario
 from test_fields_spatial import omni_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -51,16 +53,23 @@ S_KEYS = {"from", "to", "gain", "certified_G_norm"}
 R_KEYS = {"steps", "final_error", "max_deviation", "max_phi", "monotonic"}
 P_KEYS = {"path", "cost", "length", "max_G_norm", "max_phi_hat_max"}
 
+UR5_QUERIES = """
+[[query]]
+name = "rise"                              # issue 22: the direct move crosses a singular controller Jacobian
+start = [0.15, -0.05, 0.72]
+goal = [0.05, 0.2, 0.75]
+
+[[query]]
+name = "across"
+start = [0.0, 0.0, 0.70]
+goal = [0.2, 0.1, 0.8]
+"""
+UR5_OUTSIDE = [-0.048, -0.096, 0.688]  # a grid tip of the task region outside the UR5's robust workspace
 OMNI_QUERIES = """
 [[query]]
 name = "omni-across"                       # crosses the port axis
 start = [-0.05, 0.05, 0.38]
 goal = [0.05, 0.05, 0.38]
-
-[[query]]
-name = "omni-around"                       # the straight line crosses an unreachable hole: a detour
-start = [-0.05, 0.03, 0.31]
-goal = [0.05, 0.03, 0.31]
 """
 
 
@@ -77,12 +86,12 @@ def phantom_run(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def omni_run(tmp_path_factory):
-    d = tmp_path_factory.mktemp("omni")
-    return _run(load_scenario(omni_scenario(d, extra=OMNI_QUERIES)), 0.01, d / "omni.rrd")
+def ur5_run(tmp_path_factory):
+    d = tmp_path_factory.mktemp("ur5")
+    return _run(load_scenario(ur5_scenario(d, UR5_QUERIES)), 0.008, d / "ur5.rrd")
 
 
-@pytest.fixture(params=["phantom", "omni"])
+@pytest.fixture(params=["phantom", "ur5"])
 def run(request):
     return request.getfixturevalue(f"{request.param}_run")
 
@@ -300,12 +309,13 @@ def test_long_direct_moves_are_not_certified(phantom_run):
 
 
 # ----------------------------------------------------------------------------- bad input
-def test_endpoint_outside_the_robust_workspace_is_one_clear_error(omni_run):
-    sc, mf, _, _ = omni_run
-    bad = [0.0, 0.03, 0.31]  # in the Omni's unreachable hole
-    q = {"name": "into-the-hole", "start": bad, "goal": [0.05, 0.03, 0.31],
-         "planned": {"path": [bad, [0.05, 0.03, 0.31]]}, "direct": {"path": [bad, [0.05, 0.03, 0.31]]}}
-    with pytest.raises(InfeasibleError, match=r"query 'into-the-hole': start \[0\.0, 0\.03, 0\.31\] is outside "
+def test_endpoint_outside_the_robust_workspace_is_one_clear_error(ur5_run):
+    sc, mf, _, _ = ur5_run
+    bad, goal = UR5_OUTSIDE, [0.05, 0.2, 0.75]
+    i = tuple(int(np.argmin(np.abs(a - v))) for a, v in zip(mf.axes, bad))
+    assert not mf.valid[i] and np.allclose([a[j] for a, j in zip(mf.axes, i)], bad)
+    q = {"name": "outside", "start": bad, "goal": goal, "planned": {"path": [bad, goal]}, "direct": {"path": [bad, goal]}}
+    with pytest.raises(InfeasibleError, match=r"query 'outside': start \[-0\.048, -0\.096, 0\.688\] is outside "
                                               r"the robust workspace"):
         run_pipeline(sc, [q], mf)
 
@@ -323,12 +333,49 @@ def test_endpoint_where_no_gain_certifies_is_one_clear_error(phantom_run):
 
 
 def test_cli_plan_refuses_a_bad_spatial_query(tmp_path, capsys):
-    p = omni_scenario(tmp_path, extra=OMNI_QUERIES.replace("start = [-0.05, 0.03, 0.31]", "start = [0.0, 0.03, 0.31]"))
-    rec = tmp_path / "x.rrd"
-    assert main(["plan", str(p), "--record", str(rec)]) == 2
+    p = ur5_scenario(tmp_path, UR5_QUERIES.replace("start = [0.0, 0.0, 0.70]", f"start = {UR5_OUTSIDE}"))
+    rec, js = tmp_path / "x.rrd", tmp_path / "x.json"
+    assert main(["plan", str(p), "--record", str(rec), "--json", str(js)]) == 2
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "omni-around" in err and "0.03" in err
-    assert not rec.exists()
+    assert err.count("\n") == 1 and "across" in err and "-0.096" in err
+    assert not rec.exists() and not js.exists()
+
+
+def test_a_direct_move_through_a_singularity_is_data_not_a_failure(tmp_path, capsys):
+    """Issue 22 as a user ran it: the UR5 scenario's JSON is written (exit 0); the planned path certifies
+    and replays as in the table; the direct move is reported not certified with its reason, in the
+    table and in the JSON, where its unbounded ||G|| is null and named under ``non_finite``."""
+    import json
+
+    p = ur5_scenario(tmp_path, UR5_QUERIES.split("[[query]]\nname = \"across\"")[0])
+    js = tmp_path / "plan.json"
+    assert main(["plan", str(p), "--json", str(js)]) == 0
+    out = capsys.readouterr().out
+    assert "rise direct: 1 of 1 segment(s) not certified: the controller's Jacobian is singular" in out
+    q = json.loads(js.read_text())["queries"][0]
+    assert q["name"] == "rise"
+    assert q["gains"] and all(g["certified"] and g["certified_G_norm"] < 1 for g in q["gains"])
+    assert q["simulation"]["planned"]["monotonic"] is True
+    assert q["simulation"]["corners"]["planned_all_monotonic"] is True
+    d = q["direct_gains"][0]
+    assert d["certified"] is False and d["certified_G_norm"] is None and "singular" in d["reason"]
+    text = js.read_text()
+    assert "Infinity" not in text and "NaN" not in text
+    notes = []
+
+    def walk(o):
+        if isinstance(o, dict):
+            if "non_finite" in o:
+                notes.append(o["non_finite"])
+                assert all(o[k] is None for k in o["non_finite"] if "[" not in k)
+            for v in o.values():
+                walk(v)
+        elif isinstance(o, list):
+            for v in o:
+                walk(v)
+
+    walk(q["direct_gains"])
+    assert any(v == "inf" for n in notes for v in n.values())
 
 
 # ----------------------------------------------------------------------------- recordings
@@ -446,6 +493,13 @@ def test_recorded_robot_puts_the_wrist_where_the_simulation_had_it(run):
     assert checked >= 6
 
 
+@pytest.fixture(scope="module")
+def omni_run(tmp_path_factory):
+    d = tmp_path_factory.mktemp("omni")
+    return _run(load_scenario(omni_scenario(d, extra=OMNI_QUERIES)), 0.01, d / "omni.rrd")
+
+
+@needs_omni
 def test_omni_meshes_resolve_and_missing_meshes_fall_back_to_lines(omni_run, tmp_path):
     """The Omni's seven STL meshes resolve through package_path and are in the recording; with a URDF
     whose meshes cannot be found the links are drawn as lines and the summary says so."""

@@ -1,10 +1,10 @@
 """Planning on the worst-case fields (errplan.planning) against independent references.
 
 - the exact per-cell integral of CostMap.segment against dense quadrature of MetricField.sample and
-  against errplan.reference's Simpson integrator (a separate implementation);
+  against errplan.planning.reference's Simpson integrator (a separate implementation);
 - motion validity against dense point checks of the fields' own arrays;
 - every bundled query and seeded random queries: planned cost <= 1.05 x the grid optimum
-  (errplan.reference.grid_optimum, Dijkstra with 48-connected long moves), never more than 5 %
+  (errplan.planning.reference.grid_optimum, Dijkstra with 48-connected long moves), never more than 5 %
   above a valid direct path, paths inside the usable region between vertices;
 - the detour queries of beasley2004_port.toml, errors, JSON keys, determinism.
 """
@@ -22,7 +22,7 @@ from errplan.errors import ErrplanError, InfeasibleError
 from errplan.fields import MetricField
 from errplan.planning import (PLANNERS, CostMap, PlannerSettings, costmap_for, fields_for_planning,
                               make_objective, make_space_information, plan_query, plan_scenario, refine_path)
-from errplan.reference import GridGraph, angular_bound, grid_optimum, moves, segment_cost
+from errplan.planning.reference import GridGraph, angular_bound, grid_optimum, moves, segment_cost
 from errplan.api import load_scenario
 
 ROOT = Path(__file__).resolve().parents[1]

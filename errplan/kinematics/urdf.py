@@ -76,6 +76,7 @@ import numpy as np
 from numba import njit
 
 from ..errors import ErrplanError, ScenarioError
+from .. import packages
 from ..scenario import CoupledLimit
 
 TWO_PI = 2.0 * math.pi
@@ -1660,21 +1661,11 @@ class UrdfArm:
 
     # ------------------------------------------------------------------ meshes
     def resolve_uri(self, uri: str) -> Path | None:
-        """File for a URDF mesh URI, or None. ``package://NAME/rest`` is looked up in
-        ``package_path`` then ``$ROS_PACKAGE_PATH`` (as ``DIR/NAME/rest``, or ``DIR/rest`` when DIR
-        is the package itself); ``file://`` and plain paths are relative to the URDF's folder."""
-        if uri.startswith("package://"):
-            name, _, rest = uri[len("package://"):].partition("/")
-            dirs = list(self.package_path)
-            dirs += [d for d in os.environ.get("ROS_PACKAGE_PATH", "").split(os.pathsep) if d]
-            for d in dirs:
-                base = Path(d)
-                if not base.is_absolute():
-                    base = self.urdf_path.parent / base
-                for cand in (base / name / rest, base / rest if base.name == name else None):
-                    if cand is not None and cand.is_file():
-                        return cand
-            return None
+        """File for a URDF mesh URI, or None. ``package://NAME/rest`` is looked up in ``package_path``,
+        ``$ROS_PACKAGE_PATH`` and the environment's description packages (:mod:`errplan.packages`;
+        relative folders against the URDF's); ``file://`` and plain paths are relative to the URDF's folder."""
+        if uri.startswith(packages.SCHEME):
+            return packages.resolve(uri, packages.search_dirs(self.package_path, self.urdf_path.parent))
         if uri.startswith("file://"):
             uri = uri[len("file://"):]
         if "://" in uri:

@@ -1,4 +1,6 @@
-"""casadi twins of the kinematics: Jacobians by automatic differentiation.
+"""casadi twins of errplan's kinematics, the tests' independent reference: Jacobians by automatic
+differentiation (it lives with the tests: errplan itself imports casadi in one module only, the gain
+schedule).
 
 The numpy models of :mod:`errplan.kinematics.arm` and :mod:`errplan.kinematics.shaft` use closed
 forms for speed; the functions here build the same forward models as casadi expressions and let
@@ -17,8 +19,7 @@ wrist->tip chord, ``|p - w|^2 = a^2 + y_m(a)^2`` (eq. 18), chord angle
 
 The load is what stays constant when the Jacobian ``d tip / d w`` is taken (the port is fixed
 too). The implicit equation (18) for ``a`` is solved inside casadi by a Newton rootfinder, so the
-derivative is the exact implicit one. This module imports casadi: the fields command never
-imports it (checked in the tests).
+derivative is the exact implicit one.
 """
 from __future__ import annotations
 
