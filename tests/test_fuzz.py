@@ -473,6 +473,46 @@ _PLANAR_3R = """<?xml version="1.0"?>
 """
 
 
+_BOMB = """<?xml version="1.0"?>
+<!DOCTYPE robot [
+  <!ENTITY a "aaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaa">
+  <!ENTITY b "&a;&a;&a;&a;&a;&a;&a;&a;&a;&a;"><!ENTITY c "&b;&b;&b;&b;&b;&b;&b;&b;&b;&b;">
+  <!ENTITY d "&c;&c;&c;&c;&c;&c;&c;&c;&c;&c;"><!ENTITY e "&d;&d;&d;&d;&d;&d;&d;&d;&d;&d;">
+  <!ENTITY f "&e;&e;&e;&e;&e;&e;&e;&e;&e;&e;"><!ENTITY g "&f;&f;&f;&f;&f;&f;&f;&f;&f;&f;">
+  <!ENTITY h "&g;&g;&g;&g;&g;&g;&g;&g;&g;&g;"><!ENTITY i "&h;&h;&h;&h;&h;&h;&h;&h;&h;&h;">
+]>
+<robot name="&i;"><link name="base"/></robot>
+"""
+
+
+def _bad_urdfs(src: str) -> list[tuple[str, str, dict]]:
+    """The bundled PHANToM's URDF broken one way at a time: (tag, text, scenario changes)."""
+    shoulder_axis = '<axis xyz="-1 0 0"/>'
+    elbow_origin = '<origin xyz="0 0 0.21" rpy="1.5707963267948966 0 0"/>'
+    assert shoulder_axis in src and elbow_origin in src
+    two_parents = '<joint name="extra" type="fixed"><parent link="base"/><child link="lower_arm"/></joint>\n</robot>'
+    return [
+        ("zero-axis", src.replace(shoulder_axis, '<axis xyz="0 0 0"/>', 1), {}),
+        ("nan-axis", src.replace(shoulder_axis, '<axis xyz="nan 0 0"/>', 1), {}),
+        ("nan-origin", src.replace(elbow_origin, '<origin xyz="0 nan 0.21" rpy="0 0 0"/>'), {}),
+        ("inf-origin", src.replace(elbow_origin, '<origin xyz="0 0 inf" rpy="0 0 0"/>'), {}),
+        ("origin-two-numbers", src.replace(elbow_origin, '<origin xyz="0 0.21" rpy="0 0 0"/>'), {}),
+        ("origin-not-a-number", src.replace(elbow_origin, '<origin xyz="0 zero 0.21" rpy="0 0 0"/>'), {}),
+        ("rpy-missing-number", src.replace(elbow_origin, '<origin xyz="0 0 0.21" rpy="1.57 0"/>'), {}),
+        ("reversed-limits", src.replace('lower="-1.9" upper="1.2"', 'lower="1.2" upper="-1.9"'),
+         {"robot.joint_limits": None, "robot.coupled_limits": None}),
+        ("nan-limit", src.replace('lower="-1.9" upper="1.2"', 'lower="nan" upper="1.2"'),
+         {"robot.joint_limits": None, "robot.coupled_limits": None}),
+        ("floating-joint-in-chain", src.replace('<joint name="shoulder" type="revolute">',
+                                                '<joint name="shoulder" type="floating">'), {}),
+        ("missing-parent-link", src.replace('<parent link="torso"/>', '<parent link="nowhere"/>', 1), {}),
+        ("link-with-two-parents", src.replace("</robot>", two_parents), {}),
+        ("empty-robot", '<?xml version="1.0"?>\n<robot name="empty"/>\n', {}),
+        ("entity-bomb", _BOMB, {}),
+        ("binary-bytes-in-xml", src.replace('<robot name="phantom15">', '<robot name="phantom15\x00\x01\x02">'), {}),
+    ]
+
+
 def spatial_robot_cases() -> list[Case]:
     """Bad spatial robots and points (issue 10): each one clear error from ``errplan fields``."""
     urdf_src = (SCENARIOS / "phantom15.urdf").read_text(encoding="utf-8")
@@ -521,6 +561,8 @@ def spatial_robot_cases() -> list[Case]:
              **{"uncertainty.sensor_noise": {"position": 0.001, "angle": 0.002}}),
         case("joint-limits-2-pairs", {"arm.urdf": urdf_src}, **{"robot.joint_limits": [[-1, 1], [-1, 1]]}),
         case("base-rpy-2", {"arm.urdf": urdf_src}, **{"robot.base_rpy": [0.0, 0.0]}),
+        # malformed URDFs (issue 17): each one line naming what is wrong
+        *[case(f"urdf-{tag}", {"arm.urdf": text}, **changes) for tag, text, changes in _bad_urdfs(urdf_src)],
     ]
     out = []
     for cid, d, files in raw:

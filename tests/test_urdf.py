@@ -9,6 +9,7 @@ The Omni is read from ../shared/robots, never copied into the repository.
 from __future__ import annotations
 
 import math
+import re
 import os
 from pathlib import Path
 
@@ -23,9 +24,10 @@ from errplan.kinematics import urdf as U
 from errplan.kinematics.arm import Arm
 from errplan.kinematics.urdf import CoupledLimit, UrdfArm, phantom_urdf
 
+from arms import ARMS, OMNI, SHARED_ROBOTS as ROBOTS, needs_omni
+from errplan import packages
+
 REPO = Path(__file__).resolve().parents[1]
-ROBOTS = Path(__file__).resolve().parents[2] / "shared" / "robots"
-OMNI = ROBOTS / "omni_description" / "urdf" / "omni.urdf"
 PHANTOM = REPO / "scenarios" / "phantom15.urdf"
 JOINTS = ["waist", "shoulder", "elbow"]
 OMNI_RPY = (math.pi / 2, 0.0, math.pi)
@@ -49,8 +51,22 @@ def cache_dir(tmp_path_factory):
 
 
 def load_omni(**kw):
-    assert OMNI.is_file(), f"the Omni URDF is expected at {OMNI} (shared/ beside the repository)"
+    if not OMNI.is_file():
+        pytest.skip(needs_omni.kwargs["reason"])
     return UrdfArm.load(OMNI, JOINTS, "tip", base_rpy=OMNI_RPY, **kw)
+
+
+def erd_path(which: str) -> Path:
+    """The installed example-robot-data URDF of tests/arms.py's arm ``which``."""
+    path = packages.resolve_package_uri(ARMS[which]["urdf"])
+    assert path is not None, f"{ARMS[which]['urdf']}: example-robot-data is a test dependency"
+    return path
+
+
+def load_erd(which: str, **kw):
+    a = ARMS[which]
+    return UrdfArm.load(erd_path(which), a["joints"], a["wrist"], base_rpy=a["base_rpy"],
+                        fixed_joints=a["fixed_joints"], **kw)
 
 
 def load_phantom(**kw):
@@ -65,6 +81,16 @@ def omni():
 @pytest.fixture(scope="module")
 def phantom():
     return load_phantom()
+
+
+@pytest.fixture(scope="module")
+def ur5():
+    return load_erd("ur5")
+
+
+@pytest.fixture(scope="module")
+def panda():
+    return load_erd("panda")
 
 
 def random_q(arm, n, seed, feasible=True):
@@ -108,22 +134,30 @@ def tf(R=np.eye(3), p=(0.0, 0.0, 0.0)):
     return T
 
 
-def pin_world(arm_path, frame, base_position, base_rpy, q):
-    """Wrist position and world Jacobian columns from pinocchio (actuated joints = first 3 q)."""
+def pin_world(arm_path, frame, base_position, base_rpy, q, joints=None, held=None):
+    """Wrist position and world Jacobian columns from pinocchio: the actuated ``joints`` (default: the
+    first 3 of q) at ``q``, the ``held`` joints at their values, every other joint at pinocchio's neutral."""
     model = pin.buildModelFromUrdf(str(arm_path))
     data = model.createData()
     fid = model.getFrameId(frame)
     R = rpy(*base_rpy)
+    if joints is None:
+        iq = iv = [0, 1, 2]
+    else:
+        js = [model.joints[model.getJointId(n)] for n in joints]
+        iq, iv = [j.idx_q for j in js], [j.idx_v for j in js]
     W, J = [], []
     for qk in q:
         qq = pin.neutral(model)
-        qq[:3] = qk
+        for name, v in (held or {}).items():
+            qq[model.joints[model.getJointId(name)].idx_q] = v
+        qq[iq] = qk
         pin.forwardKinematics(model, data, qq)
         pin.updateFramePlacements(model, data)
         pin.computeJointJacobians(model, data, qq)
         W.append(np.asarray(base_position) + R @ data.oMf[fid].translation)
         Jf = pin.getFrameJacobian(model, data, fid, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED)
-        J.append(R @ np.asarray(Jf)[:3, :3])
+        J.append(R @ np.asarray(Jf)[:3, iv])
     return np.array(W), np.array(J)
 
 
@@ -297,12 +331,19 @@ def test_phantom_gravity_torque(phantom):
 
 
 # ============================================================================ FK and Jacobian
-@pytest.mark.parametrize("which", ["omni", "phantom"])
-def test_kernel_fk_and_jacobian_vs_pinocchio_and_fd(which, omni, phantom):
-    arm = omni if which == "omni" else phantom
-    path, frame = (OMNI, "tip") if which == "omni" else (PHANTOM, "wrist")
+@pytest.mark.parametrize("which", ["omni", "phantom", "ur5", "panda"])
+def test_kernel_fk_and_jacobian_vs_pinocchio_and_fd(which, request):
+    """errplan's compiled chain against pinocchio on the same file and against central differences: the
+    Omni as it is, the PHANToM errplan writes, and two real arms of example-robot-data (the UR5; the Panda
+    with joint 3 held, so the actuated joints are not the first three)."""
+    arm = request.getfixturevalue(which)
+    if which in ARMS:
+        path, frame, joints, held = erd_path(which), ARMS[which]["wrist"], ARMS[which]["joints"], ARMS[which]["fixed_joints"]
+    else:
+        path, frame = (OMNI, "tip") if which == "omni" else (PHANTOM, "wrist")
+        joints, held = None, None
     q = random_q(arm, 200, 2, feasible=False)
-    W, J = pin_world(path, frame, arm.base_position, arm.base_rpy, q)
+    W, J = pin_world(path, frame, arm.base_position, arm.base_rpy, q, joints, held)
     assert np.allclose(arm.forward(q), W, rtol=0, atol=1e-14)
     assert np.allclose(arm.jacobian(q), J, rtol=0, atol=1e-14)
     assert np.allclose(arm.jacobian(q), fd_jacobian(arm.forward, q), rtol=0, atol=1e-9)
@@ -480,9 +521,9 @@ def test_continuous_joint_wraps(tmp_path):
 
 
 # ============================================================================ inverse
-@pytest.mark.parametrize("which", ["omni", "phantom"])
-def test_inverse_round_trip(which, omni, phantom):
-    arm = omni if which == "omni" else phantom
+@pytest.mark.parametrize("which", ["omni", "phantom", "ur5", "panda"])
+def test_inverse_round_trip(which, request):
+    arm = request.getfixturevalue(which)
     q = random_q(arm, 5000, 11)
     W = arm.forward(q)
     qi, ok = arm.inverse(W)
@@ -553,9 +594,9 @@ def test_kernels_from_compiled_code(omni):
 
 # ============================================================================ reachability
 @pytest.mark.parametrize("which", ["omni", "phantom"])
-def test_reach_map_guarantees(which, omni, phantom, capsys):
+def test_reach_map_guarantees(which, request, capsys):
     """In/out voxels agree with closed-form IK everywhere; boundary voxels (exact IK) too."""
-    arm = omni if which == "omni" else phantom
+    arm = request.getfixturevalue(which)
     exact = omni_exact if which == "omni" else phantom_exact
     chain, rmap = arm.kernel()
     assert arm.map_info.get("conflicts", 0) == 0
@@ -590,8 +631,8 @@ def test_reach_map_guarantees(which, omni, phantom, capsys):
 
 @pytest.mark.slow
 @pytest.mark.parametrize("which", ["omni", "phantom"])
-def test_reachable_vs_brute_force_ik(which, omni, phantom, capsys):
-    arm = omni if which == "omni" else phantom
+def test_reachable_vs_brute_force_ik(which, request, capsys):
+    arm = request.getfixturevalue(which)
     exact = omni_exact if which == "omni" else phantom_exact
     _, rmap = arm.kernel()
     rng = np.random.default_rng(31)
@@ -653,17 +694,61 @@ def test_sampling_and_distance(phantom):
 
 
 def test_resolve_uri(monkeypatch, tmp_path):
+    """package:// mesh URIs: package_path (relative to the URDF), then ROS_PACKAGE_PATH, then the
+    description packages installed in the environment (example-robot-data's own meshes); a miss is None."""
     monkeypatch.delenv("ROS_PACKAGE_PATH", raising=False)
-    arm = load_omni()
-    uri = "package://omni_description/meshes/base.stl"
+    pkgs = tmp_path / "pkgs"
+    mesh = pkgs / "my_description" / "meshes" / "base.stl"
+    mesh.parent.mkdir(parents=True)
+    mesh.write_bytes(b"solid x\nendsolid x\n")
+    (tmp_path / "toy.urdf").write_text(toy_text(), encoding="utf-8")
+    kw = dict(base_position=TOY_BASE, base_rpy=TOY_RPY, fixed_joints={"roll": TOY_ROLL})
+    arm = UrdfArm.load(tmp_path / "toy.urdf", ["j1", "j2", "j3"], "tool", **kw)
+    uri = "package://my_description/meshes/base.stl"
     assert arm.resolve_uri(uri) is None
-    with_path = load_omni(package_path=[str(ROBOTS)])
-    assert with_path.resolve_uri(uri).resolve() == (ROBOTS / "omni_description" / "meshes" / "base.stl").resolve()
-    assert with_path.resolve_uri("package://omni_description/meshes/nope.stl") is None
-    monkeypatch.setenv("ROS_PACKAGE_PATH", os.pathsep.join([str(tmp_path), str(ROBOTS)]))
-    assert arm.resolve_uri(uri).resolve() == (ROBOTS / "omni_description" / "meshes" / "base.stl").resolve()
-    assert arm.resolve_uri("../meshes/base.stl").resolve() == (OMNI.parent / "../meshes/base.stl").resolve()
+    with_path = UrdfArm.load(tmp_path / "toy.urdf", ["j1", "j2", "j3"], "tool", package_path=["pkgs"], **kw)
+    assert with_path.resolve_uri(uri) == mesh.resolve()
+    assert with_path.resolve_uri("package://my_description/meshes/nope.stl") is None
+    # a package_path entry may be the package itself
+    itself = UrdfArm.load(tmp_path / "toy.urdf", ["j1", "j2", "j3"], "tool",
+                          package_path=[str(pkgs / "my_description")], **kw)
+    assert itself.resolve_uri(uri) == mesh.resolve()
+    monkeypatch.setenv("ROS_PACKAGE_PATH", os.pathsep.join([str(tmp_path / "nowhere"), str(pkgs)]))
+    assert arm.resolve_uri(uri) == mesh.resolve()
+    assert arm.resolve_uri("pkgs/my_description/meshes/base.stl") == mesh.resolve()  # relative to the URDF
+    assert arm.resolve_uri("file://" + str(mesh)) == mesh.resolve()
     assert arm.resolve_uri("http://example.invalid/x.stl") is None
+    # installed packages: example-robot-data's UR5 names its meshes package://example-robot-data/robots/...
+    ur5 = load_erd("ur5")
+    text = erd_path("ur5").read_text(encoding="utf-8")
+    uris = sorted(set(re.findall(r'filename="(package://[^"]+)"', text)))
+    assert uris and all(ur5.resolve_uri(u) is not None and ur5.resolve_uri(u).is_file() for u in uris)
+    assert ur5.resolve_uri("package://example-robot-data/robots/ur_description/meshes/none.dae") is None
+    assert ur5.resolve_uri("package://no_such_description/x.stl") is None
+
+
+def test_package_uri_in_a_scenario(tmp_path, monkeypatch):
+    """A scenario's urdf as package://: found among the installed packages (no path of the machine in the
+    file), or in its package_path; a package nowhere is one error naming the URI and where errplan looked."""
+    from errplan.api import load_scenario
+    monkeypatch.delenv("ROS_PACKAGE_PATH", raising=False)
+    sc = load_scenario(REPO / "scenarios" / "ur5_port.toml")
+    assert Path(sc.robot.urdf) == erd_path("ur5")
+    (tmp_path / "pkgs" / "toy_description" / "urdf").mkdir(parents=True)
+    (tmp_path / "pkgs" / "toy_description" / "urdf" / "toy.urdf").write_text(toy_text(), encoding="utf-8")
+    text = toy_scenario(tmp_path, [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]).read_text(encoding="utf-8")
+    text = text.replace('urdf = "toy.urdf"', 'urdf = "package://toy_description/urdf/toy.urdf"\npackage_path = ["pkgs"]')
+    (tmp_path / "pkg.toml").write_text(text, encoding="utf-8")
+    from errplan.scenario import read_scenario
+
+    assert Path(read_scenario(tmp_path / "pkg.toml").robot.urdf) == (tmp_path / "pkgs/toy_description/urdf/toy.urdf").resolve()
+    (tmp_path / "miss.toml").write_text(text.replace("toy_description/urdf", "missing_description/urdf"),
+                                        encoding="utf-8")
+    with pytest.raises(ErrplanError) as e:
+        read_scenario(tmp_path / "miss.toml")
+    msg = str(e.value)
+    assert "[robot] urdf" in msg and "package://missing_description/urdf/toy.urdf" in msg and "pkgs" in msg
+    assert "\n" not in msg
 
 
 # ============================================================================ bad input

@@ -1006,6 +1006,31 @@ def cache_dir() -> Path:
 
 
 # ============================================================================ the arm
+def _check_tree(root, where: str) -> None:
+    """What urdfdom and pinocchio let through or report misleadingly: a link with two parent joints (a URDF
+    is a tree) and a movable joint whose axis is not a direction. One :class:`ScenarioError` each."""
+    parents: dict[str, list[str]] = {}
+    for j in root.iter("joint"):
+        name = j.get("name", "?")
+        child = j.find("child")
+        if child is not None and child.get("link"):
+            parents.setdefault(child.get("link"), []).append(name)
+        axis = j.find("axis")
+        if axis is None or j.get("type") in ("fixed", "floating"):
+            continue
+        try:
+            xyz = [float(v) for v in (axis.get("xyz") or "1 0 0").split()]
+        except ValueError:
+            continue  # urdfdom names the bad number
+        if len(xyz) == 3 and all(math.isfinite(v) for v in xyz) and math.hypot(*xyz) < 1e-12:
+            raise ScenarioError(f"{where}: joint '{name}' has a zero axis (xyz = \"{axis.get('xyz')}\"): "
+                                "expected a direction")
+    for link, js in parents.items():
+        if len(js) > 1:
+            raise ScenarioError(f"{where}: link '{link}' has {len(js)} parent joints ({', '.join(js)}): a URDF is a "
+                                "tree, each link the child of one joint")
+
+
 class UrdfArm:
     """A serial arm from a URDF whose three actuated joints place the wrist (module docstring).
 
@@ -1080,6 +1105,7 @@ class UrdfArm:
             raise ScenarioError(f"URDF {where} is not XML ({exc})") from None
         if root.tag != "robot":
             raise ScenarioError(f"URDF {where} is not a URDF: its root element is <{root.tag}>, expected <robot>")
+        _check_tree(root, where)
         try:
             text = raw.decode("utf-8")
         except UnicodeDecodeError:
