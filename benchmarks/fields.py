@@ -14,7 +14,7 @@ Each row is measured in this one run, side by side, on this machine:
     issue 2's baseline with the SVD replaced) and written out elementwise (the strongest plain
     peer). Target: (a) <= (b) / 2.
 (c) spatial: the whole ``errplan fields --metrics G_norm`` process for a 4 mm grid of a task region of
-    the PHANToM Omni (../shared/robots) with a 3 x 3 x 3 port sample; against (d) plain numpy
+    the bundled PHANToM 1.5 (scenarios/phantom15_spatial.toml) with a 3 x 3 x 3 port sample; against (d) plain numpy
     worst-case sigma_max over the same grid and sample, skipping arm reachability: stacked 3 x 3
     lever Jacobians, ``np.linalg.inv``, ``G = I - k J Jhat^-1`` and sigma_max from the closed-form
     (trigonometric) largest eigenvalue of G^T G; and the same written out elementwise (cofactor
@@ -26,6 +26,7 @@ Also: the first run's compile cost (empty kernel cache) against a warm run.
 from __future__ import annotations
 
 import argparse
+import re
 import os
 import statistics
 import subprocess
@@ -37,10 +38,9 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-SHARED = REPO.parent / "shared"
 PLANAR = REPO / "scenarios" / "beasley2004_port.toml"
 BOX = 0.010
-OMNI_REGION = {"x": (-0.08, 0.08), "y": (-0.04, 0.14), "z": (0.27, 0.43)}
+SPATIAL = REPO / "scenarios" / "phantom15_spatial.toml"
 
 
 def planar_scenario(tmp: Path) -> Path:
@@ -51,30 +51,15 @@ def planar_scenario(tmp: Path) -> Path:
     return path
 
 
-def omni_scenario(tmp: Path, res: float = 0.004, samples: int = 3) -> Path:
-    reg = ", ".join(f"{a} = [{lo}, {hi}]" for a, (lo, hi) in OMNI_REGION.items())
-    text = f"""name = "omni-bench"
-[robot]
-urdf = "{SHARED / 'robots/omni_description/urdf/omni.urdf'}"
-package_path = ["{SHARED / 'robots'}"]
-joints = ["waist", "shoulder", "elbow"]
-wrist = "tip"
-base_rpy = [1.5707963267948966, 0.0, 3.141592653589793]
-[instrument]
-length = 0.25
-[port]
-position = [0.004, 0.052, 0.218]
-estimate = [0.0, 0.050, 0.220]
-[uncertainty]
-port_x = [-0.006, 0.004]
-port_y = [-0.005, 0.005]
-port_z = [-0.004, 0.006]
-samples = {samples}
-[fields]
-resolution = {res}
-region = {{ {reg} }}
-"""
-    path = tmp / f"omni_{res}_{samples}.toml"
+def spatial_scenario(tmp: Path, res: float = 0.004, samples: int = 3) -> Path:
+    """The bundled PHANToM 1.5 in 3-D (scenarios/phantom15_spatial.toml) with a pure port box (no tip load:
+    the numpy peers model none), ``samples`` per axis, at ``res`` over its task region."""
+    text = SPATIAL.read_text(encoding="utf-8")
+    text = text.replace('urdf = "phantom15.urdf"', f'urdf = "{SPATIAL.parent / "phantom15.urdf"}"')
+    text = re.sub(r"^tip_force_over_ei = .*$", "", text, flags=re.M)
+    text = re.sub(r"^samples = .*$", f"samples = {samples}", text, flags=re.M)
+    text = re.sub(r"^resolution = .*$", f"resolution = {res}", text, count=1, flags=re.M)
+    path = tmp / f"spatial_{res}_{samples}.toml"
     path.write_text(text, encoding="utf-8")
     return path
 
@@ -295,7 +280,7 @@ def main() -> int:
         rows.append(("planar ratio to it", ta / tb))
         n_planar = (len(mf.y) * len(mf.z), int(mf.valid.sum()))
         # ---------------------------------------------------------------- spatial
-        so = omni_scenario(tmp)
+        so = spatial_scenario(tmp)
         sco = load_scenario(so)
         run_cli([str(so), "--out", str(tmp / "warm3.npz"), "--metrics", "G_norm", "--resolution", "0.01"])
         t_c = [run_cli([str(so), "--out", str(tmp / "o.npz"), "--metrics", "G_norm"]) for _ in range(a.repeat)]
@@ -313,7 +298,7 @@ def main() -> int:
         both = mo.valid & np.isfinite(worst3)
         below_s = float(np.max((worst3[both] - mo.G_norm[both]) / np.maximum(1, worst3[both])))
         tc, td, td2 = statistics.median(t_c), statistics.median(t_d), statistics.median(t_d2)
-        rows.append(("spatial: `errplan fields --metrics G_norm` process, Omni, 4 mm region, 3 x 3 x 3", tc))
+        rows.append(("spatial: `errplan fields --metrics G_norm` process, PHANToM 1.5, 4 mm region, 3 x 3 x 3", tc))
         rows.append(("spatial: plain numpy worst sigma_max, stacked 3 x 3 (inv, matmul; no refinement/reach)", td))
         rows.append(("spatial ratio to it (target <= 0.25)", tc / td))
         rows.append(("spatial: plain numpy written out elementwise (the strongest peer)", td2))
@@ -323,18 +308,18 @@ def main() -> int:
         env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp / "cold-cache"))
         t_cold = run_cli([str(so), "--out", str(tmp / "c.npz"), "--metrics", "G_norm", "--resolution", "0.01"], env)
         t_warm = run_cli([str(so), "--out", str(tmp / "c.npz"), "--metrics", "G_norm", "--resolution", "0.01"], env)
-        rows.append(("first run, empty kernel cache (compile), Omni 10 mm", t_cold))
-        rows.append(("second run, same cache, Omni 10 mm", t_warm))
+        rows.append(("first run, empty kernel cache (compile), PHANToM 1.5 10 mm", t_cold))
+        rows.append(("second run, same cache, PHANToM 1.5 10 mm", t_warm))
         # ---------------------------------------------------------------- scaling
         scale = []
         resolutions = (0.008, 0.006, 0.004) if not a.quick else (0.008, 0.004)
         for res in resolutions:
-            s = load_scenario(omni_scenario(tmp, res))
+            s = load_scenario(spatial_scenario(tmp, res))
             t0 = time.perf_counter()
             m = compute_fields(s, metrics=("G_norm",), workers=1)
             scale.append(("grid", f"{res * 1000:g} mm", m.valid.size, int(m.valid.sum()), 27, time.perf_counter() - t0))
         for n in ((2, 3, 4, 5) if not a.quick else (2, 4)):
-            s = load_scenario(omni_scenario(tmp, 0.006, n))
+            s = load_scenario(spatial_scenario(tmp, 0.006, n))
             t0 = time.perf_counter()
             m = compute_fields(s, metrics=("G_norm",), workers=1)
             scale.append(("instances", f"{n} per axis", m.valid.size, int(m.valid.sum()), n ** 3,
@@ -354,12 +339,12 @@ def main() -> int:
     for name, v in rows:
         print(f"| {name} | {v:.2f} |")
     print()
-    print("| scaling (spatial, Omni, in-process, 1 worker) | setting | grid points | valid | instances sampled | time (s) |")
+    print("| scaling (spatial, PHANToM 1.5, in-process, 1 worker) | setting | grid points | valid | instances sampled | time (s) |")
     print("|---|---|---|---|---|---|")
     for kind, setting, n, nv, m, t in scale:
         print(f"| {kind} | {setting} | {n} | {nv} | {m} | {t:.2f} |")
     print()
-    print(f"workers (Omni 4 mm, G_norm, in-process): 1 worker {wt[1]:.2f} s, 2 workers {wt[2]:.2f} s, "
+    print(f"workers (PHANToM 1.5 4 mm, G_norm, in-process): 1 worker {wt[1]:.2f} s, 2 workers {wt[2]:.2f} s, "
           f"speed-up {wt[1] / wt[2]:.2f}")
     print(f"errplan never below numpy's sampled worst case: planar by at most {below_p:.1e}, spatial {below_s:.1e} "
           "(relative; errplan's refinement only adds)")
