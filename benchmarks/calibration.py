@@ -64,14 +64,28 @@ def timing(sc) -> None:
                        "calibrate time against data size (P1 scenario, gravity sag undeclared)"))
 
 
-def quality(sc) -> None:
+def _wrong_link(sc):
+    """A plant whose second link is 4 mm longer than declared: an effect in no catalogue (planar)."""
+    r = sc.robot
+    wrong = sc.with_(robot=Robot(r.base, (r.link_lengths[0], r.link_lengths[1] + 0.004), r.home_angles,
+                                 r.joint_limits, r.joint_sum_limits))
+    return Plant.from_scenario(wrong, noise=True)
+
+
+def _long_shaft(sc):
+    """A plant whose shaft is 4 mm longer than declared: an effect in no catalogue (3-D)."""
+    from errplan.experiment import truth_plant
+
+    return truth_plant(sc).with_(length=sc.instrument.length + 0.004)
+
+
+def quality(sc, cases, unmodelled, label: str, units: str) -> None:
+    """Per effect of ``cases`` (None: ``unmodelled(sc)``'s plant, an effect in no catalogue): what
+    calibrate selects, the errors before and after on a held-out run, and every parameter's z-score."""
     rows, prow = [], []
-    for name, eff in CASES:
+    for name, eff in cases:
         if eff is None:
-            r = sc.robot
-            wrong = sc.with_(robot=Robot(r.base, (r.link_lengths[0], r.link_lengths[1] + 0.004), r.home_angles,
-                                         r.joint_limits, r.joint_sum_limits))
-            plant = Plant.from_scenario(wrong, noise=True)
+            plant = unmodelled(sc)
             data = run_experiment(sc, seed=11, plant=plant).data
             val = run_experiment(sc, seed=12, plant=plant).data
             eff = {}
@@ -81,19 +95,23 @@ def quality(sc) -> None:
         rep = calibrate(sc, data, validate=val, seed=0)
         e = rep.errors
         rows.append([name, ", ".join(rep.selected) or "none", "yes" if rep.explained else "NO", rep.noise.sigma * 1e3,
-                     e.pose_before * 1e3, e.pose_after * 1e3, e.trajectory_before * 1e3, e.trajectory_after * 1e3])
+                     e.pose_before * 1e3, e.pose_after * 1e3, e.trajectory_before * 1e3, e.trajectory_after * 1e3,
+                     e.trajectory_after / e.trajectory_before])
         for ef, ps in rep.parameters.items():
             for p, v in ps.items():
                 true = eff.get(ef, {}).get(p, 0.0)
+                if v is None:
+                    prow.append([name, f"{ef}.{p}", true, "not identifiable", "", ""])
+                    continue
                 s = rep.uncertainty[ef][p]
                 f = 1.0 if ef == "shaft_flexion" else 1e3
                 prow.append([name, f"{ef}.{p}", true * f, v * f, s * f, (v - true) / s])
     print(format_table(["truth", "selected", "explained", "noise mm", "pose before", "pose after", "traj before",
-                        "traj after"], rows,
-                       "per effect (P1 scenario, 8 starts, held-out validation run; errors in mm, RMS per coordinate)"))
+                        "traj after", "traj ratio"], rows,
+                       f"{label}, per effect (held-out validation run; errors in mm, RMS per coordinate)"))
     print()
     print(format_table(["truth", "parameter", "true", "estimate", "sigma", "z"], prow,
-                       "parameters (mm, mrad or 1/m^2): estimate - true in stated sigmas"))
+                       f"{label}, parameters ({units}): estimate - true in stated sigmas"))
 
 
 DESIGN_TRUTHS = [
@@ -222,41 +240,6 @@ def spatial_timing(sc) -> None:
         rows.append([d.rows, d.runs, "CLI", "(whole command, --json --export-scenario)", time.perf_counter() - t0])
     print(format_table(["rows", "runs", "candidates", "selected", "calibrate s"], rows,
                        "spatial calibrate time (PHANToM with a waist, gravity sag undeclared; target 60 s for 4,000 rows)"))
-
-
-def spatial_quality(sc) -> None:
-    rows, prow = [], []
-    for name, eff in SPATIAL_CASES:
-        if eff is None:
-            from errplan.experiment import truth_plant
-
-            plant = truth_plant(sc).with_(length=sc.instrument.length + 0.004)
-            data = run_experiment(sc, seed=11, plant=plant).data
-            val = run_experiment(sc, seed=12, plant=plant).data
-            eff = {}
-        else:
-            data = run_experiment(sc.with_(effects=eff), seed=11).data
-            val = run_experiment(sc.with_(effects=eff), seed=12).data
-        rep = calibrate(sc, data, validate=val, seed=0)
-        e = rep.errors
-        rows.append([name, ", ".join(rep.selected) or "none", "yes" if rep.explained else "NO", rep.noise.sigma * 1e3,
-                     e.pose_before * 1e3, e.pose_after * 1e3, e.trajectory_before * 1e3, e.trajectory_after * 1e3,
-                     e.trajectory_after / e.trajectory_before])
-        for ef, ps in rep.parameters.items():
-            for p, v in ps.items():
-                true = eff.get(ef, {}).get(p, 0.0)
-                if v is None:
-                    prow.append([name, f"{ef}.{p}", true, "not identifiable", "", ""])
-                    continue
-                s = rep.uncertainty[ef][p]
-                f = 1.0 if ef == "shaft_flexion" else 1e3
-                prow.append([name, f"{ef}.{p}", true * f, v * f, s * f, (v - true) / s])
-    print(format_table(["truth", "selected", "explained", "noise mm", "pose before", "pose after", "traj before",
-                        "traj after", "traj ratio"], rows,
-                       "spatial, per effect (PHANToM bench, 8 starts x 14 targets, held-out validation run; mm)"))
-    print()
-    print(format_table(["truth", "parameter", "true", "estimate", "sigma", "z"], prow,
-                       "spatial parameters (mm, mrad, mrad/(N m) or 1/m^2): estimate - true in stated sigmas"))
 
 
 # ----------------------------------------------------------------------------- the design's ceiling
@@ -396,7 +379,8 @@ def main() -> int:
         sp = spatial_scenario()
         spatial_timing(sp)
         print()
-        spatial_quality(sp)
+        quality(sp, SPATIAL_CASES, _long_shaft, "spatial (PHANToM bench, 8 starts x 14 targets)",
+                "mm, mrad, mrad/(N m) or 1/m^2")
         return 0
     calibrate(sc, run_experiment(sc, seed=0, n_starts=2).data)  # warm-up: imports, caches
     timing(sc)
@@ -405,9 +389,10 @@ def main() -> int:
     spatial_timing(sp)
     if not args.quick:
         print()
-        quality(sc)
+        quality(sc, CASES, _wrong_link, "P1 scenario, 8 starts", "mm, mrad or 1/m^2")
         print()
-        spatial_quality(sp)
+        quality(sp, SPATIAL_CASES, _long_shaft, "spatial (PHANToM bench, 8 starts x 14 targets)",
+                "mm, mrad, mrad/(N m) or 1/m^2")
     return 0
 
 

@@ -99,67 +99,41 @@ class Effect:
         return self
 
 
-class PortOffset(Effect):
-    name = "port_offset"
-    params = ("dy", "dz")
-    units = ("m", "m")
-    default_scales = (1e-3, 1e-3)
-    plant_field = "port_offset"
-    description = "the true port is the declared port + [dy, dz]"
+def _declare(cls_name: str, name: str, params: tuple[str, ...], units: str, scale: float, plant_field: str,
+             description: str, **methods) -> type[Effect]:
+    """One catalogue entry of physics.md's table as an :class:`Effect` subclass (every parameter in the
+    same unit and default scale)."""
+    return type(cls_name, (Effect,), {"name": name, "params": params, "units": (units,) * len(params),
+                                      "default_scales": (scale,) * len(params), "plant_field": plant_field,
+                                      "description": description, "__module__": __name__,
+                                      "__doc__": f"``{name}``: {description}.", **methods})
 
 
-class JointOffset(Effect):
-    name = "joint_offset"
-    params = ("dq1", "dq2")
-    units = ("rad", "rad")
-    default_scales = (1e-3, 1e-3)
-    plant_field = "joint_offset"
-    description = "link angles = encoder angles + [dq1, dq2]"
+def _gravity_spatial_units_scales(self):
+    # c_i in rad per N m: scaled so that one unit is about 1 mrad of sag (set per arm by
+    # :func:`catalogue` from the arm's generalized gravity)
+    return ("rad/(N m)",) * len(self.params), (1e-2,) * len(self.params)
 
 
-class TrackerOffset(Effect):
-    name = "tracker_offset"
-    params = ("by", "bz")
-    units = ("m", "m")
-    default_scales = (1e-3, 1e-3)
-    plant_field = "tracker_offset"
-    description = "tracked tip = true tip + [by, bz]"
+def _friction_spatial_units_scales(self):
+    return tuple(self.units), tuple(self.default_scales)  # fa, fn in 3-D too
 
 
-class GravitySag(Effect):
-    name = "gravity_sag"
-    params = ("c1", "c2", "c3")
-    units = ("rad", "rad", "rad")
-    default_scales = (1e-3, 1e-3, 1e-3)
-    plant_field = "gravity_sag"
-    description = "link angles = encoder angles - [c1 cos a1 + c2 cos a2, c3 cos a2]"
-
-    def spatial_units_scales(self):
-        # c_i in rad per N m: scaled so that one unit is about 1 mrad of sag (set per arm by
-        # :func:`catalogue` from the arm's generalized gravity)
-        return ("rad/(N m)",) * len(self.params), (1e-2,) * len(self.params)
-
-
-class ShaftFlexion(Effect):
-    name = "shaft_flexion"
-    params = ("fy", "fz")
-    units = ("1/m^2", "1/m^2")
-    default_scales = (1.0, 1.0)
-    plant_field = "world_load"
-    description = "a constant world-frame tip load over EI bends the shaft (P2 beam)"
-
-
-class PortFriction(Effect):
-    name = "port_friction"
-    params = ("fa", "fn")
-    units = ("m", "m")
-    default_scales = (1e-3, 1e-3)
-    plant_field = "friction"
-    description = ("the port holds the tip back against the motion the last command produced under the declared "
-                   "model (axial fa, normal fn)")
-
-    def spatial_units_scales(self):
-        return tuple(self.units), tuple(self.default_scales)  # fa, fn in 3-D too
+PortOffset = _declare("PortOffset", "port_offset", ("dy", "dz"), "m", 1e-3, "port_offset",
+                      "the true port is the declared port + [dy, dz]")
+JointOffset = _declare("JointOffset", "joint_offset", ("dq1", "dq2"), "rad", 1e-3, "joint_offset",
+                       "link angles = encoder angles + [dq1, dq2]")
+TrackerOffset = _declare("TrackerOffset", "tracker_offset", ("by", "bz"), "m", 1e-3, "tracker_offset",
+                         "tracked tip = true tip + [by, bz]")
+GravitySag = _declare("GravitySag", "gravity_sag", ("c1", "c2", "c3"), "rad", 1e-3, "gravity_sag",
+                      "link angles = encoder angles - [c1 cos a1 + c2 cos a2, c3 cos a2]",
+                      spatial_units_scales=_gravity_spatial_units_scales)
+ShaftFlexion = _declare("ShaftFlexion", "shaft_flexion", ("fy", "fz"), "1/m^2", 1.0, "world_load",
+                        "a constant world-frame tip load over EI bends the shaft (P2 beam)")
+PortFriction = _declare("PortFriction", "port_friction", ("fa", "fn"), "m", 1e-3, "friction",
+                        "the port holds the tip back against the motion the last command produced under the "
+                        "declared model (axial fa, normal fn)",
+                        spatial_units_scales=_friction_spatial_units_scales)
 
 
 #: the catalogue, in physics.md order

@@ -218,7 +218,13 @@ def read_text(path, what: str = "scenario file") -> str:
     """Read a text file as UTF-8; missing file, directory, unreadable, too large for memory, or not
     UTF-8 (binary, UTF-16 ...) -> :class:`ScenarioError` / :class:`DataError` / :class:`ErrplanError`
     (by ``what``) with one line naming the file and the problem."""
-    cls = _error_class(what)
+    return decode_text(read_bytes(path, what), str(path), what)
+
+
+def read_bytes(path, what: str = "scenario file", cls: type[ErrplanError] | None = None) -> bytes:
+    """The bytes of a regular file, or one error (``cls``, default by ``what``) naming the file and the
+    problem: missing, a directory, a device, unreadable, too large for this machine's memory."""
+    cls = cls or _error_class(what)
     p = Path(path)
     try:
         st = p.stat()
@@ -249,7 +255,7 @@ def read_text(path, what: str = "scenario file") -> str:
         raise cls(f"{p}: cannot read the {what}: {e.strerror or e}") from None
     if len(raw) > limit:
         check_allocation(str(p), "a stream longer than the budget", len(raw), TEXT_BYTES_PER_BYTE, f"reading the {what}")
-    return decode_text(raw, str(p), what)
+    return raw
 
 
 def check_output(option: str, value) -> Path | None:

@@ -59,6 +59,15 @@ def _flat(A: np.ndarray, tail: tuple[int, ...]) -> np.ndarray:
     return np.ascontiguousarray(np.asarray(A, dtype=float).reshape((-1,) + tail))
 
 
+def _per_matrix3(kernel_name: str, A: np.ndarray, out_tail: tuple[int, ...] = ()) -> np.ndarray:
+    """Apply the compiled ``linalg`` kernel ``kernel_name(flat (n, 3, 3), out (n, *out_tail))`` to every
+    3 x 3 matrix of ``A`` (..., 3, 3); returns (..., *out_tail)."""
+    flat = _flat(A, (3, 3))
+    out = np.empty((len(flat),) + out_tail)
+    getattr(_linalg(), kernel_name)(flat, out)
+    return out.reshape(A.shape[:-2] + out_tail)
+
+
 def conformal_parts(M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(mu, nu)`` complex arrays of shape ``M.shape[:-2]`` (2x2 matrices only)."""
     M = np.asarray(M, dtype=float)
@@ -171,10 +180,7 @@ def spectral_norm(A: np.ndarray) -> np.ndarray:
     if _dim(A) == 2:
         mu, nu = conformal_parts(A)
         return np.abs(mu) + np.abs(nu)
-    flat = _flat(A, (3, 3))
-    out = np.empty(len(flat))
-    _linalg()._sigma_max3_many(flat, out)
-    return out.reshape(A.shape[:-2])
+    return _per_matrix3("_sigma_max3_many", A)
 
 
 def phi_hat_max(gn) -> np.ndarray:
@@ -207,10 +213,7 @@ def phi_max(M: np.ndarray) -> np.ndarray:
     M = np.asarray(M, float)
     if _dim(M) == 2:
         return phi_max_from_parts(*conformal_parts(M))
-    flat = _flat(M, (3, 3))
-    out = np.empty(len(flat))
-    _linalg()._phi_max3_many(flat, out)
-    return out.reshape(M.shape[:-2])
+    return _per_matrix3("_phi_max3_many", M)
 
 
 def phi_of_direction(M: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -232,10 +235,7 @@ def p_phi(M: np.ndarray) -> np.ndarray:
     """Unit desired direction (..., d) that attains ``|phi_max|`` (defined up to sign)."""
     M = np.asarray(M, float)
     if _dim(M) == 3:
-        flat = _flat(M, (3, 3))
-        out = np.empty((len(flat), 3))
-        _linalg()._p_phi3_many(flat, out)
-        return out.reshape(M.shape[:-2] + (3,))
+        return _per_matrix3("_p_phi3_many", M, (3,))
     mu, nu = conformal_parts(M)
     amu, anu = np.abs(mu), np.abs(nu)
     sgn = np.where(np.angle(mu) >= 0, 1.0, -1.0)
@@ -256,10 +256,7 @@ def v_sigma(G: np.ndarray) -> np.ndarray:
     """Right singular vector (..., d) of ``G`` for its largest singular value (up to sign)."""
     G = np.asarray(G, float)
     if _dim(G) == 3:
-        flat = _flat(G, (3, 3))
-        out = np.empty((len(flat), 3))
-        _linalg()._v_sigma3_many(flat, out)
-        return out.reshape(G.shape[:-2] + (3,))
+        return _per_matrix3("_v_sigma3_many", G, (3,))
     mu, nu = conformal_parts(G)
     s = 0.5 * (np.angle(nu) - np.angle(mu))
     return np.stack([np.cos(s), np.sin(s)], axis=-1)

@@ -1,6 +1,7 @@
 """Output helpers shared by the commands: readable tables, atomic JSON, progress lines."""
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -132,6 +133,18 @@ class Progress:
         elif pct >= self._last_pct + 25 or pct == 100 and self._last_pct != 100:
             self._last_pct = pct
             self.stream.write(f"{self.label}: {pct:3d}% {message} ({time.perf_counter() - self.t0:.1f} s)\n")
+
+    @contextlib.contextmanager
+    def cleared_on_error(self):
+        """Run the block; on an :class:`ErrplanError` clear the progress line first, so that the error is
+        the one line on stderr."""
+        try:
+            yield self
+        except ErrplanError:
+            if not self.quiet:
+                self.stream.write("\r" + " " * 60 + "\r")
+                self.stream.flush()
+            raise
 
     def done(self) -> None:
         if not self.quiet and self.tty:

@@ -61,7 +61,7 @@ def _abs_paths(doc: dict, src: Path) -> dict:
     written elsewhere still finds them."""
     robot = doc.get("robot")
     if isinstance(robot, dict):
-        if isinstance(robot.get("urdf"), str):
+        if isinstance(robot.get("urdf"), str) and not robot["urdf"].startswith("package://"):
             robot["urdf"] = str((src.parent / robot["urdf"]).resolve())
         if isinstance(robot.get("package_path"), list):
             robot["package_path"] = [str((src.parent / p).resolve()) if isinstance(p, str) else p

@@ -767,7 +767,7 @@ PLANAR3 = f"""<robot name="planar3"><link name="a"/><link name="b"/><link name="
 
 
 @pytest.mark.parametrize("case, pattern", [
-    ("missing", r"URDF file .*nope\.urdf not found"),
+    ("missing", r".*nope\.urdf: URDF file not found"),
     ("directory", r"is a directory"),
     ("not_xml", r"r\.urdf is not XML"),
     ("not_urdf", r"r\.urdf is not a URDF: its root element is <foo>"),

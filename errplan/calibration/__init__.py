@@ -56,29 +56,11 @@ from __future__ import annotations
 from .driver import DEFAULT_FOLDS, calibrate
 from .export import corrected_scenario_toml, to_toml
 from .fit import Candidate, fit_candidate
-from .noise import (
-                    FLEX_CONFIGS,
-                    STRUCTURE_P,
-                    STRUCTURE_RATIO,
-                    LocalBasis,
-                    NoiseFloor,
-                    Structure,
-                    kmeans_labels,
-                    noise_floor,
-                    structure_test,
-)
+from .noise import (FLEX_CONFIGS, STRUCTURE_P, STRUCTURE_RATIO, LocalBasis, NoiseFloor, Structure,
+    kmeans_labels, noise_floor, structure_test)
 from .report import TEXT_CANDIDATES, CalibrationReport, Errors
-from .residual import (
-                    approach_mask,
-                    arrival_tolerance,
-                    check_against_model,
-                    declared_plant,
-                    motion_model,
-                    pose_residual,
-                    replay,
-                    rms,
-                    trajectory_errors,
-)
+from .residual import (approach_mask, arrival_tolerance, check_against_model, declared_plant, motion_model,
+    pose_residual, replay, rms, trajectory_errors)
 from .selection import select
 
 __all__ = ["calibrate", "CalibrationReport", "Candidate", "Errors", "NoiseFloor", "Structure", "LocalBasis",

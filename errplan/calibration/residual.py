@@ -101,21 +101,16 @@ def check_against_model(data: MeasuredData, plant, what: str = "the declared mod
         if len(bad_runs) > MAX_LEFT_OUT * data.runs:
             bad_runs, notes = bad_runs[:0], []
         kept = ~np.isin(data.run, bad_runs)
-    bad = np.flatnonzero(kept & ~(off < L))
-    if len(bad):
-        i = int(bad[0])
-        raise DataError(f"{data.source}: row {i + 1} (run {data.run_ids[data.run[i]]!r}, step {data.step[i]}): tracked tip "
-                        f"{_pt(data.tip[i])} is {_m(off[i])} from {what}'s tip {_pt(model_tip[i])} at its encoder "
-                        f"angles, more than the shaft length {L:g} m (is the data from this scenario?)")
+    for i in np.flatnonzero(kept & ~(off < L))[:1]:
+        raise DataError(f"{_row(data, i)}, step {data.step[i]}): tracked tip {_pt(data.tip[i])} is {_m(off[i])} "
+                        f"from {what}'s tip {_pt(model_tip[i])} at its encoder angles, more than the shaft length "
+                        f"{L:g} m (is the data from this scenario?)")
     reach = 2.0 * (L + arm_reach(plant.arm))  # a bound on the tip workspace's diameter
     with np.errstate(all="ignore"):
         far = np.linalg.norm(data.target - model_tip, axis=-1)
-    bad = np.flatnonzero(kept & ~(far < reach))
-    if len(bad):
-        i = int(bad[0])
-        raise DataError(f"{data.source}: row {i + 1} (run {data.run_ids[data.run[i]]!r}): target {_pt(data.target[i])} is "
-                        f"{_m(far[i])} from the tip, farther than the robot can reach ({reach:g} m; is the data from "
-                        f"this scenario?)")
+    for i in np.flatnonzero(kept & ~(far < reach))[:1]:
+        raise DataError(f"{_row(data, i)}): target {_pt(data.target[i])} is {_m(far[i])} from the tip, farther than "
+                        f"the robot can reach ({reach:g} m; is the data from this scenario?)")
     if notes:
         data = data.subset(np.setdiff1d(np.arange(data.runs), bad_runs))
     return data, notes
@@ -128,6 +123,12 @@ def arm_reach(arm) -> float:
         return float(arm.l1) + float(arm.l2)
     w = arm.sample_wrists(9)
     return 2.0 * float(np.max(np.linalg.norm(w - w.mean(axis=0), axis=-1))) if len(w) else 0.0
+
+
+def _row(data, i) -> str:
+    """``"<file>: row N (run 'id'"``: the start of an error about row ``i`` (0-based) of measured data."""
+    i = int(i)
+    return f"{data.source}: row {i + 1} (run {data.run_ids[data.run[i]]!r}"
 
 
 def _pt(x) -> str:

@@ -47,17 +47,12 @@ def run(args) -> int:
     # the one line on stderr, also in logs and pipes.
     prog = Progress("fields", quiet=args.quiet)
     prog.quiet = prog.quiet or not prog.tty
-    try:
+    with prog.cleared_on_error():
         mf = api.compute_fields(sc, args.resolution, samples=args.samples, progress=prog, metrics=metrics,
                                 workers=args.workers, scheduler=args.scheduler)
         summary = mf.summary()
         if summary["valid_points"] == 0:
             raise ErrplanError(f"{sc.source}: no tip of the grid is reachable under every instance of the error set")
-    except ErrplanError:
-        if not prog.quiet:
-            prog.stream.write("\r" + " " * 60 + "\r")
-            prog.stream.flush()
-        raise
     prog.done()
     mf.save(out)
     if args.json:

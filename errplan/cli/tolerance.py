@@ -67,13 +67,8 @@ def run(args) -> int:
     check_sizes(sc)
     prog = Progress("tolerance", quiet=args.quiet)
     prog.quiet = prog.quiet or not prog.tty  # progress only on a terminal: an error stays the one line on stderr
-    try:
+    with prog.cleared_on_error():
         results = api.tolerances(sc, progress=prog, workers=args.workers, scheduler=args.scheduler)
-    except ErrplanError:
-        if not prog.quiet:
-            prog.stream.write("\r" + " " * 60 + "\r")
-            prog.stream.flush()
-        raise
     prog.done()
     rows = [r.summary_row() + [r.seconds] for r in results]
     print(format_table(["query", "kind", "tolerable", "binding at / best", "note", "s"], rows,

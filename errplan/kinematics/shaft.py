@@ -84,30 +84,25 @@ def lever_wrist(x: np.ndarray, p: np.ndarray, L: float) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------- flexed beam
-def _solve_a(rho: np.ndarray, L: float, t: np.ndarray) -> np.ndarray:
-    """Port position ``a`` along the chord from ``rho^2 = a^2 (1 + (t b^2/3)^2)`` (P2 eq. 18)."""
-    a = np.array(rho, dtype=float, copy=True)
+def _solve_length(d: np.ndarray, s_of) -> np.ndarray:
+    """``x`` with ``x^2 (1 + s(x)^2) = d^2`` by Newton's method from ``x = d``; ``s_of(x)`` returns
+    ``s`` and ``ds/dx`` (P2 eq. 18 and its tip-side twin)."""
+    x = np.array(d, dtype=float, copy=True)
     for _ in range(_NEWTON_ITERS):
-        b = L - a
-        s = t * b * b / 3.0
+        s, ds = s_of(x)
         g = 1.0 + s * s
-        dg = -(4.0 * t * b / 3.0) * s
-        f = a * a * g - rho * rho
-        a = a - f / (2.0 * a * g + a * a * dg)
-    return a
+        x = x - (x * x * g - d * d) / (2.0 * x * g + 2.0 * x * x * s * ds)
+    return x
+
+
+def _solve_a(rho: np.ndarray, L: float, t: np.ndarray) -> np.ndarray:
+    """Port position ``a`` along the chord from ``rho^2 = a^2 (1 + (t b^2/3)^2)``, b = L - a (P2 eq. 18)."""
+    return _solve_length(rho, lambda a: (t * (L - a) ** 2 / 3.0, -2.0 * t * (L - a) / 3.0))
 
 
 def _solve_b(r: np.ndarray, L: float, t: np.ndarray) -> np.ndarray:
     """Tip-side length ``b = L - a`` from the tip->port distance ``r^2 = b^2 (1 + (t a b/3)^2)``."""
-    b = np.array(r, dtype=float, copy=True)
-    for _ in range(_NEWTON_ITERS):
-        a = L - b
-        c = t * a * b / 3.0
-        h = 1.0 + c * c
-        dc = t * (a - b) / 3.0  # d(t a b / 3)/db with a = L - b
-        f = b * b * h - r * r
-        b = b - f / (2.0 * b * h + b * b * 2.0 * c * dc)
-    return b
+    return _solve_length(r, lambda b: (t * (L - b) * b / 3.0, t * (L - 2.0 * b) / 3.0))
 
 
 def flexed_geometry(w: np.ndarray, p: np.ndarray, L: float, t) -> dict[str, np.ndarray]:

@@ -77,6 +77,7 @@ from numba import njit
 
 from ..errors import ErrplanError, ScenarioError
 from .. import packages
+from ..inputs import read_bytes
 from ..scenario import CoupledLimit
 
 TWO_PI = 2.0 * math.pi
@@ -1091,14 +1092,7 @@ class UrdfArm:
 
         path = Path(urdf)
         where = str(path)
-        try:
-            raw = path.read_bytes()
-        except FileNotFoundError:
-            raise ScenarioError(f"URDF file {where} not found") from None
-        except IsADirectoryError:
-            raise ScenarioError(f"URDF {where} is a directory, not a file") from None
-        except OSError as exc:
-            raise ScenarioError(f"cannot read URDF {where}: {exc.strerror or exc}") from None
+        raw = read_bytes(path, "URDF file", ScenarioError)
         try:
             root = ET.fromstring(raw)
         except ET.ParseError as exc:
