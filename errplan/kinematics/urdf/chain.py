@@ -1,0 +1,353 @@
+"""The compiled chain: forward kinematics, Jacobians and inverse kinematics of the wrist (numba kernels
+on :class:`~.model.ChainData`), and the reachability answer at a point (:func:`reach_point`: the map,
+exact IK in its boundary voxels). Scalar kernels for other compiled code, ``*_many`` loops for arrays."""
+from __future__ import annotations
+
+import math
+import numpy as np
+from numba import njit
+
+from .model import IK_TOL, LIMIT_TOL, TWO_PI
+
+
+@njit(cache=True, inline="always")
+def _mm(A, B):
+    return (A[0] * B[0] + A[1] * B[3] + A[2] * B[6], A[0] * B[1] + A[1] * B[4] + A[2] * B[7],
+            A[0] * B[2] + A[1] * B[5] + A[2] * B[8],
+            A[3] * B[0] + A[4] * B[3] + A[5] * B[6], A[3] * B[1] + A[4] * B[4] + A[5] * B[7],
+            A[3] * B[2] + A[4] * B[5] + A[5] * B[8],
+            A[6] * B[0] + A[7] * B[3] + A[8] * B[6], A[6] * B[1] + A[7] * B[4] + A[8] * B[7],
+            A[6] * B[2] + A[7] * B[5] + A[8] * B[8])
+
+
+@njit(cache=True, inline="always")
+def _start(chain):
+    T = chain.T
+    R = (T[0, 0, 0], T[0, 0, 1], T[0, 0, 2], T[0, 1, 0], T[0, 1, 1], T[0, 1, 2],
+         T[0, 2, 0], T[0, 2, 1], T[0, 2, 2])
+    p = (T[0, 0, 3], T[0, 1, 3], T[0, 2, 3])
+    return R, p
+
+
+@njit(cache=True, inline="always")
+def _advance(chain, i, qi, R, p):
+    """Frame (R, p) of joint i (before its motion) -> frame of joint i+1 (or the wrist)."""
+    ax, ay, az = chain.axis[i, 0], chain.axis[i, 1], chain.axis[i, 2]
+    if chain.jtype[i] == 0:
+        c = math.cos(qi)
+        s = math.sin(qi)
+        v = 1.0 - c
+        M = (c + ax * ax * v, ax * ay * v - az * s, ax * az * v + ay * s,
+             ay * ax * v + az * s, c + ay * ay * v, ay * az * v - ax * s,
+             az * ax * v - ay * s, az * ay * v + ax * s, c + az * az * v)
+        R = _mm(R, M)
+    else:
+        p = (p[0] + (R[0] * ax + R[1] * ay + R[2] * az) * qi,
+             p[1] + (R[3] * ax + R[4] * ay + R[5] * az) * qi,
+             p[2] + (R[6] * ax + R[7] * ay + R[8] * az) * qi)
+    T = chain.T
+    k = i + 1
+    t0, t1, t2 = T[k, 0, 3], T[k, 1, 3], T[k, 2, 3]
+    p = (p[0] + R[0] * t0 + R[1] * t1 + R[2] * t2,
+         p[1] + R[3] * t0 + R[4] * t1 + R[5] * t2,
+         p[2] + R[6] * t0 + R[7] * t1 + R[8] * t2)
+    B = (T[k, 0, 0], T[k, 0, 1], T[k, 0, 2], T[k, 1, 0], T[k, 1, 1], T[k, 1, 2],
+         T[k, 2, 0], T[k, 2, 1], T[k, 2, 2])
+    return _mm(R, B), p
+
+
+@njit(cache=True, inline="always")
+def _zaxis(chain, i, R):
+    ax, ay, az = chain.axis[i, 0], chain.axis[i, 1], chain.axis[i, 2]
+    return (R[0] * ax + R[1] * ay + R[2] * az, R[3] * ax + R[4] * ay + R[5] * az,
+            R[6] * ax + R[7] * ay + R[8] * az)
+
+
+@njit(cache=True, inline="always")
+def _column(jt, z, o, w):
+    if jt == 0:
+        d0, d1, d2 = w[0] - o[0], w[1] - o[1], w[2] - o[2]
+        return (z[1] * d2 - z[2] * d1, z[2] * d0 - z[0] * d2, z[0] * d1 - z[1] * d0)
+    return z
+
+
+@njit(cache=True)
+def _fkjacz3(chain, q0, q1, q2):
+    """Wrist, the three Jacobian columns and the three world joint axes of a 3-joint chain
+    (tuples: no allocation)."""
+    R, p = _start(chain)
+    z0, o0 = _zaxis(chain, 0, R), p
+    R, p = _advance(chain, 0, q0, R, p)
+    z1, o1 = _zaxis(chain, 1, R), p
+    R, p = _advance(chain, 1, q1, R, p)
+    z2, o2 = _zaxis(chain, 2, R), p
+    R, p = _advance(chain, 2, q2, R, p)
+    return (p, _column(chain.jtype[0], z0, o0, p), _column(chain.jtype[1], z1, o1, p),
+            _column(chain.jtype[2], z2, o2, p), z0, z1, z2)
+
+
+@njit(cache=True)
+def _fkjac3(chain, q0, q1, q2):
+    """Wrist and the three Jacobian columns of a 3-joint chain."""
+    w, c0, c1, c2, z0, z1, z2 = _fkjacz3(chain, q0, q1, q2)
+    return w, c0, c1, c2
+
+
+@njit(cache=True)
+def fk_point(chain, q, out3):
+    """Wrist position of one configuration ``q`` (n,) into ``out3`` (3,)."""
+    R, p = _start(chain)
+    for i in range(chain.axis.shape[0]):
+        R, p = _advance(chain, i, q[i], R, p)
+    out3[0] = p[0]
+    out3[1] = p[1]
+    out3[2] = p[2]
+
+
+@njit(cache=True)
+def jac_point(chain, q, outJ33):
+    """``d wrist / d q`` (3, 3) of one configuration of a 3-joint chain into ``outJ33``."""
+    w, c0, c1, c2 = _fkjac3(chain, q[0], q[1], q[2])
+    for r in range(3):
+        outJ33[r, 0] = c0[r]
+        outJ33[r, 1] = c1[r]
+        outJ33[r, 2] = c2[r]
+
+
+@njit(cache=True, inline="always")
+def _dot(a, b):
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+@njit(cache=True, inline="always")
+def _box(chain, i, x):
+    """Project joint value x into joint i's box (wrap a revolute joint whose range spans 2 pi)."""
+    lo = chain.lo[i]
+    hi = chain.hi[i]
+    if chain.jtype[i] == 0 and hi - lo >= TWO_PI - 1e-9:
+        return lo + ((x - lo) % TWO_PI)
+    return min(max(x, lo), hi)
+
+
+@njit(cache=True)
+def _rows_ok(chain, q0, q1, q2, tol):
+    A = chain.A
+    for r in range(A.shape[0]):
+        v = A[r, 0] * q0 + A[r, 1] * q1 + A[r, 2] * q2
+        if not (v >= chain.lo[r] - tol and v <= chain.hi[r] + tol):
+            return False
+    return True
+
+
+@njit(cache=True, inline="always")
+def _active(chain, i, qi, gi):
+    """Is joint i held at a box limit that the descent direction gi pushes against?"""
+    lo = chain.lo[i]
+    hi = chain.hi[i]
+    if chain.jtype[i] == 0 and hi - lo >= TWO_PI - 1e-9:
+        return False
+    return (qi <= lo and gi < 0.0) or (qi >= hi and gi > 0.0)
+
+
+@njit(cache=True)
+def _solve(chain, w0, w1, w2, s0, s1, s2, maxit):
+    """Projected Gauss-Newton / Levenberg-Marquardt from seed s within the joint box.
+
+    Joints held at a box limit that the descent pushes against are frozen for the step (active
+    set), so a target beyond a limit ends at a stationary point quickly. Returns
+    (reached, q0, q1, q2): reached when |f(q) - w| < IK_TOL and every limit row holds. Stops early
+    when the residual stops shrinking fast (no solution on this branch).
+    """
+    q0 = _box(chain, 0, s0)
+    q1 = _box(chain, 1, s1)
+    q2 = _box(chain, 2, s2)
+    w, c0, c1, c2 = _fkjac3(chain, q0, q1, q2)
+    r0, r1, r2 = w0 - w[0], w1 - w[1], w2 - w[2]
+    e = r0 * r0 + r1 * r1 + r2 * r2
+    tol2 = IK_TOL * IK_TOL
+    polish2 = 1e-6 * tol2   # keep going below the tolerance while Newton still improves
+    lam = 0.0
+    slow = 0
+    for _ in range(maxit):
+        if e < polish2:
+            break
+        r = (r0, r1, r2)
+        g0, g1, g2 = _dot(c0, r), _dot(c1, r), _dot(c2, r)
+        a00, a01, a02 = _dot(c0, c0), _dot(c0, c1), _dot(c0, c2)
+        a11, a12, a22 = _dot(c1, c1), _dot(c1, c2), _dot(c2, c2)
+        mu = lam * (a00 + a11 + a22) + 1e-30
+        b00, b11, b22 = a00 + mu, a11 + mu, a22 + mu
+        if _active(chain, 0, q0, g0):
+            b00, a01, a02, g0 = 1.0, 0.0, 0.0, 0.0
+        if _active(chain, 1, q1, g1):
+            b11, a01, a12, g1 = 1.0, 0.0, 0.0, 0.0
+        if _active(chain, 2, q2, g2):
+            b22, a02, a12, g2 = 1.0, 0.0, 0.0, 0.0
+        m00 = b11 * b22 - a12 * a12
+        m01 = a02 * a12 - a01 * b22
+        m02 = a01 * a12 - a02 * b11
+        m11 = b00 * b22 - a02 * a02
+        m12 = a01 * a02 - b00 * a12
+        m22 = b00 * b11 - a01 * a01
+        det = b00 * m00 + a01 * m01 + a02 * m02
+        if not (det > 1e-300):
+            if e < tol2:
+                break
+            lam = max(10.0 * lam, 1e-9)
+            if lam > 1e4:
+                break
+            continue
+        d0 = (m00 * g0 + m01 * g1 + m02 * g2) / det
+        d1 = (m01 * g0 + m11 * g1 + m12 * g2) / det
+        d2 = (m02 * g0 + m12 * g1 + m22 * g2) / det
+        n0 = _box(chain, 0, q0 + d0)
+        n1 = _box(chain, 1, q1 + d1)
+        n2 = _box(chain, 2, q2 + d2)
+        if n0 == q0 and n1 == q1 and n2 == q2:
+            break                               # stationary
+        wn, e0, e1, e2 = _fkjac3(chain, n0, n1, n2)
+        t0, t1, t2 = w0 - wn[0], w1 - wn[1], w2 - wn[2]
+        en = t0 * t0 + t1 * t1 + t2 * t2
+        if en < e:
+            if en > 0.5 * e and en >= tol2:
+                slow += 1
+            else:
+                slow = 0
+            q0, q1, q2 = n0, n1, n2
+            c0, c1, c2 = e0, e1, e2
+            r0, r1, r2, e = t0, t1, t2, en
+            lam = 0.1 * lam if lam > 1e-9 else 0.0
+            if slow >= 3:
+                break
+        else:
+            if e < tol2:
+                break
+            lam = max(10.0 * lam, 1e-9)
+            if lam > 1e4:
+                break
+    ok = e < tol2 and _rows_ok(chain, q0, q1, q2, LIMIT_TOL)
+    return ok, q0, q1, q2
+
+
+@njit(cache=True, inline="always")
+def _locate(rmap, w0, w1, w2):
+    """Voxel (ix, iy, iz) of w; ix = -1 outside the map (NaN is outside)."""
+    h = rmap.h
+    fx = (w0 - rmap.origin[0]) / h
+    fy = (w1 - rmap.origin[1]) / h
+    fz = (w2 - rmap.origin[2]) / h
+    if not (fx >= 0.0 and fx < rmap.shape[0] and fy >= 0.0 and fy < rmap.shape[1]
+            and fz >= 0.0 and fz < rmap.shape[2]):
+        return -1, 0, 0
+    return int(fx), int(fy), int(fz)
+
+
+@njit(cache=True)
+def _ik_seeds(chain, rmap, c, w0, w1, w2):
+    S = rmap.seeds
+    for k in range(rmap.seed_ptr[c], rmap.seed_ptr[c + 1]):
+        ok, q0, q1, q2 = _solve(chain, w0, w1, w2, S[k, 0], S[k, 1], S[k, 2], 60)
+        if ok:
+            return True, q0, q1, q2
+    return False, 0.0, 0.0, 0.0
+
+
+@njit(cache=True)
+def _ik_voxel(chain, rmap, ix, iy, iz, w0, w1, w2):
+    """IK from the seed cell's seeds; in a certified-in voxel also from the neighbour cells'."""
+    sub = rmap.sub
+    cx, cy, cz = rmap.shape[0] // sub, rmap.shape[1] // sub, rmap.shape[2] // sub
+    jx, jy, jz = ix // sub, iy // sub, iz // sub
+    ok, q0, q1, q2 = _ik_seeds(chain, rmap, (jx * cy + jy) * cz + jz, w0, w1, w2)
+    if ok or rmap.state[ix, iy, iz] != 1:
+        return ok, q0, q1, q2
+    for dx in range(-1, 2):
+        for dy in range(-1, 2):
+            for dz in range(-1, 2):
+                kx, ky, kz = jx + dx, jy + dy, jz + dz
+                if (dx == 0 and dy == 0 and dz == 0) or kx < 0 or ky < 0 or kz < 0 \
+                        or kx >= cx or ky >= cy or kz >= cz:
+                    continue
+                ok, q0, q1, q2 = _ik_seeds(chain, rmap, (kx * cy + ky) * cz + kz, w0, w1, w2)
+                if ok:
+                    return ok, q0, q1, q2
+    return False, 0.0, 0.0, 0.0
+
+
+@njit(cache=True)
+def ik_point(chain, rmap, w0, w1, w2, qout):
+    """Exact IK within all limits for wrist (w0, w1, w2) into ``qout`` (3,); returns success.
+
+    Damped Newton from the seeds of the wrist's seed cell (any branch); success only if
+    ``|f(q) - w| < 1e-10`` and every limit row holds. ``qout`` is NaN on failure. A point in a
+    certified-out voxel fails at once.
+    """
+    ix, iy, iz = _locate(rmap, w0, w1, w2)
+    ok = False
+    q0 = q1 = q2 = 0.0
+    if ix >= 0 and rmap.state[ix, iy, iz] != 0:
+        ok, q0, q1, q2 = _ik_voxel(chain, rmap, ix, iy, iz, w0, w1, w2)
+    if ok:
+        qout[0], qout[1], qout[2] = q0, q1, q2
+    else:
+        qout[0] = qout[1] = qout[2] = np.nan
+    return ok
+
+
+@njit(cache=True)
+def ik_near(chain, rmap, w0, w1, w2, near, qout):
+    """:func:`ik_point` trying the configuration ``near`` (3,) first (stays on its branch)."""
+    if near[0] == near[0] and near[1] == near[1] and near[2] == near[2]:
+        ok, q0, q1, q2 = _solve(chain, w0, w1, w2, near[0], near[1], near[2], 60)
+        if ok:
+            qout[0], qout[1], qout[2] = q0, q1, q2
+            return True
+    return ik_point(chain, rmap, w0, w1, w2, qout)
+
+
+@njit(cache=True)
+def reach_point(chain, rmap, w0, w1, w2):
+    """Is wrist (w0, w1, w2) reachable within all limits? O(1) in certified voxels, exact IK
+    (:func:`ik_point`'s criterion) in boundary voxels. NaN is not reachable."""
+    ix, iy, iz = _locate(rmap, w0, w1, w2)
+    if ix < 0:
+        return False
+    s = rmap.state[ix, iy, iz]
+    if s == 0:
+        return False
+    if s == 1:
+        return True
+    sub = rmap.sub
+    c = ((ix // sub) * (rmap.shape[1] // sub) + iy // sub) * (rmap.shape[2] // sub) + iz // sub
+    return _ik_seeds(chain, rmap, c, w0, w1, w2)[0]
+
+
+# ---------------------------------------------------------------------------- vectorised loops
+@njit(cache=True)
+def _fk_many(chain, Q, out):
+    for k in range(Q.shape[0]):
+        fk_point(chain, Q[k], out[k])
+
+
+@njit(cache=True)
+def _jac_many(chain, Q, out):
+    for k in range(Q.shape[0]):
+        jac_point(chain, Q[k], out[k])
+
+
+@njit(cache=True)
+def _reach_many(chain, rmap, Wp, out):
+    for k in range(Wp.shape[0]):
+        out[k] = reach_point(chain, rmap, Wp[k, 0], Wp[k, 1], Wp[k, 2])
+
+
+@njit(cache=True)
+def _ik_many(chain, rmap, Wp, near, use_near, Q, ok):
+    for k in range(Wp.shape[0]):
+        if use_near:
+            ok[k] = ik_near(chain, rmap, Wp[k, 0], Wp[k, 1], Wp[k, 2], near[k], Q[k])
+        else:
+            ok[k] = ik_point(chain, rmap, Wp[k, 0], Wp[k, 1], Wp[k, 2], Q[k])
+
+
+# ---------------------------------------------------------------------------- map build

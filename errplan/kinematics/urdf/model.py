@@ -1,0 +1,82 @@
+"""The plain data of a URDF chain for the compiled kernels: :class:`ChainData` (the chain as fixed
+transforms between the actuated joints), :class:`ReachMap` (the voxel map of the wrist workspace),
+:class:`MapParams` (how the map is built), the constants they share and where maps are cached."""
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+
+TWO_PI = 2.0 * math.pi
+IK_TOL = 1e-10          # |f(q) - w| below this counts as reached (m)
+LIMIT_TOL = 1e-12       # slack on the limit rows, as within_limits' default
+MAP_VERSION = "reachmap-2"
+GRAVITY = 9.81          # m/s^2, along world -y
+
+
+# ============================================================================ data
+class ChainData(NamedTuple):
+    """The chain for the kernels (plain arrays).
+
+    ``T`` (n+1, 4, 4): ``T[0]`` world -> frame of joint 0 (base pose and fixed joints folded in),
+    ``T[i]`` child frame of joint i-1 -> frame of joint i, ``T[n]`` child frame of joint n-1 ->
+    wrist link origin. ``axis`` (n, 3) unit joint axes in their joint frames; ``jtype`` (n,) int64,
+    0 revolute, 1 prismatic. Limit rows ``lo <= A q <= hi``: ``A`` (m, n), the first n rows are the
+    box limits (identity), then the coupled limits.
+    """
+
+    T: np.ndarray
+    axis: np.ndarray
+    jtype: np.ndarray
+    A: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+
+
+class ReachMap(NamedTuple):
+    """Voxel map of the wrist workspace (see the module docstring for what each state guarantees).
+
+    Voxel ``(i, j, k)`` is the box ``origin + h * [i, j, k] .. origin + h * [i+1, j+1, k+1]``;
+    ``shape`` (3,) int64 the counts, ``state`` (nx, ny, nz) uint8: 0 out, 1 in, 2 boundary.
+    IK seeds live on a coarser grid of ``sub``^3 voxels per seed cell: the seeds of the cell
+    ``c = ((i // sub) * cy + j // sub) * cz + k // sub`` (``cy, cz = shape[1:] // sub``) are
+    ``seeds[seed_ptr[c]:seed_ptr[c + 1]]`` (rows of n joint values), nearest first; cells with only
+    out voxels have none.
+    """
+
+    origin: np.ndarray
+    h: float
+    shape: np.ndarray
+    state: np.ndarray
+    sub: int
+    seed_ptr: np.ndarray
+    seeds: np.ndarray
+
+
+@dataclass(frozen=True)
+class MapParams:
+    """Reachability-map resolution. ``voxels``: seed cells along the workspace's longest extent;
+    ``sub``: voxels per seed-cell edge (voxel edge h = extent / (voxels * sub)); ``coarse``: the
+    coarse joint cells move the wrist by at most about ``coarse`` seed cells; ``beta``: critical
+    cells are refined until their image ball has radius ``<= beta * h``; ``max_depth``: refinement
+    levels; ``seeds``: IK seeds kept per seed cell; ``tau``: joint distance (rad or m, max norm)
+    under which two seeds count as one branch."""
+
+    voxels: int = 64
+    sub: int = 2
+    coarse: float = 2.0
+    beta: float = 0.5
+    max_depth: int = 12
+    seeds: int = 6
+    tau: float = 0.3
+
+
+
+def cache_dir() -> Path:
+    """Where reachability maps are cached: ``$ERRPLAN_CACHE_DIR``, else ``~/.cache/errplan``."""
+    env = os.environ.get("ERRPLAN_CACHE_DIR")
+    return Path(env) if env else Path.home() / ".cache" / "errplan"
