@@ -406,7 +406,7 @@ def test_recording_shows_coverage_best_port_region_and_certified_points(planar, 
     import rerun as rr
     import rerun.chunk as rrc
 
-    from errplan.placement_view import write_placement
+    from errplan.recording import write_placement
 
     for sc, r in (planar, spatial):
         path = tmp_path / f"{sc.name}.rrd"
@@ -454,7 +454,7 @@ def test_cli_record_goes_through_the_recording_module(tmp_path, capsys, monkeypa
 def test_heat_image_is_placed_in_metres():
     """Pixel (row i, col j) of a coverage heat map covers the candidate (y[ny-1-i], z[j]) in the
     viewer's (u, v) = (z, -y) frame, as errplan.recording places the fields."""
-    from errplan.placement_view import heat_image, viridis
+    from errplan.recording import heat_image, viridis
 
     ya, za = np.array([0.0, 0.01, 0.02]), np.array([0.17, 0.18, 0.19, 0.20])
     vals = np.arange(12, dtype=float).reshape(3, 4) / 11

@@ -66,11 +66,12 @@ from __future__ import annotations
 
 from ...scenario import CoupledLimit
 from .arm import UrdfArm
+from .description import rpy_matrix
 from .chain import fk_point, ik_near, ik_point, jac_point, reach_point
 from .model import GRAVITY, IK_TOL, LIMIT_TOL, MAP_VERSION, ChainData, MapParams, ReachMap, cache_dir
 from .phantom import ALUMINIUM_DENSITY, PHANTOM_HOME, PHANTOM_LIMITS, PHANTOM_LINKS, PHANTOM_SHOULDER, PHANTOM_SUM_LIMITS, ROD_RADIUS, phantom_urdf
 
 __all__ = ["UrdfArm", "ChainData", "ReachMap", "MapParams", "CoupledLimit", "cache_dir", "fk_point", "jac_point",
-           "ik_point", "ik_near", "reach_point", "phantom_urdf", "GRAVITY", "IK_TOL", "LIMIT_TOL", "MAP_VERSION",
+           "ik_point", "ik_near", "reach_point", "phantom_urdf", "rpy_matrix", "GRAVITY", "IK_TOL", "LIMIT_TOL", "MAP_VERSION",
            "ALUMINIUM_DENSITY", "ROD_RADIUS", "PHANTOM_HOME", "PHANTOM_LIMITS", "PHANTOM_LINKS", "PHANTOM_SHOULDER",
            "PHANTOM_SUM_LIMITS"]

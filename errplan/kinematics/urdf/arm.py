@@ -12,7 +12,7 @@ from ... import packages
 from ...errors import ErrplanError, ScenarioError
 from ...scenario import CoupledLimit
 from .chain import _fk_many, _ik_many, _jac_many, _reach_many
-from .description import _rpy_matrix, read_chain
+from .description import read_chain, rpy_matrix
 from .model import GRAVITY, ChainData, MapParams, ReachMap
 from .reachmap import reach_map_of
 
@@ -235,7 +235,7 @@ class UrdfArm:
             import pinocchio as pin
             model = pin.Model(self.model)
             g_world = np.array([0.0, -GRAVITY, 0.0])
-            model.gravity.linear = _rpy_matrix(self.base_rpy).T @ g_world
+            model.gravity.linear = rpy_matrix(self.base_rpy).T @ g_world
             data = model.createData()
             pin.computeSubtreeMasses(model, data)
             for name, jid in zip(self.joint_names, self._act_ids):

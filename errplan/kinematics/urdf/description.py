@@ -21,7 +21,7 @@ from ...scenario import CoupledLimit
 from .model import ChainData, MapParams
 
 
-def _rpy_matrix(rpy) -> np.ndarray:
+def rpy_matrix(rpy) -> np.ndarray:
     r, p, y = (float(v) for v in rpy)
     cr, sr, cp, sp, cy, sy = math.cos(r), math.sin(r), math.cos(p), math.sin(p), math.cos(y), math.sin(y)
     Rx = np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
@@ -301,7 +301,7 @@ def read_chain(urdf: str | Path, joints: Sequence[str], wrist: str, base_positio
     pin.updateFramePlacements(model, data)
     pin.computeJointJacobians(model, data, qref)
     B = np.eye(4)
-    B[:3, :3] = _rpy_matrix(base_rpy)
+    B[:3, :3] = rpy_matrix(base_rpy)
     B[:3, 3] = base_position
     oMi = [_se3(data.oMi[i]) for i in act_ids]
     T = np.empty((4, 4, 4))

@@ -1,6 +1,6 @@
 """What a port-placement recording shows (``errplan tolerance --record``), for planar and spatial
-``port_placement`` results. This module does not import rerun: the caller (errplan.recording, the
-only module that does) passes the ``rerun`` module ``rr`` and a recording stream ``rec``.
+``port_placement`` results.
+rerun comes from :mod:`.sdk`.
 
 Per query ``q`` (its name as one entity-path part):
 
@@ -32,28 +32,9 @@ from typing import Any, Iterable
 
 import numpy as np
 
-from .errors import ErrplanError
-from .recording import entity_names as _names, uv  # pure helpers; recording imports rerun only inside its functions
-
-BEST_COLOR = (255, 60, 200)
-REFINED_COLOR = (255, 255, 255)
-CERTIFIED_COLOR = (40, 220, 90)
-NOT_CERTIFIED_COLOR = (240, 60, 60)
-UNREACHABLE_COLOR = (110, 110, 110)
-REGION_COLOR = (255, 200, 0)
-#: viridis anchors (0, 0.25, 0.5, 0.75, 1) for the 3-D cubes (the 2-D heat maps use rerun's colormap)
-_VIRIDIS = np.array([[68, 1, 84], [59, 82, 139], [33, 145, 140], [94, 201, 98], [253, 231, 37]], float)
-
-
-def viridis(v) -> np.ndarray:
-    """RGB (n, 3) uint8 of values in [0, 1] (NaN: grey)."""
-    v = np.asarray(v, float)
-    t = np.clip(np.nan_to_num(v, nan=0.0), 0.0, 1.0) * (len(_VIRIDIS) - 1)
-    i = np.minimum(np.floor(t).astype(int), len(_VIRIDIS) - 2)
-    f = (t - i)[..., None]
-    rgb = (1 - f) * _VIRIDIS[i] + f * _VIRIDIS[i + 1]
-    rgb[~np.isfinite(v)] = 110
-    return rgb.astype(np.uint8)
+from ..errors import ErrplanError
+from . import sdk
+from .style import BEST_COLOR, CERTIFIED_COLOR, NOT_CERTIFIED_COLOR, REFINED_COLOR, REGION_COLOR, UNREACHABLE_COLOR, entity_names as _names, uv, viridis
 
 
 def _results(results) -> list:
@@ -247,3 +228,12 @@ def write_placement(rr, path, sc, results: Iterable, *, app_id: str = "errplan")
     finally:
         rec.disconnect()
     os.replace(tmp, path)
+
+
+def record_placement(path: str | os.PathLike, sc, results, *, app_id: str = "errplan") -> None:
+    """Write the .rrd of port-placement results (``errplan tolerance --record``): the coverage over
+    the candidate grid as a heat map (slices in 3-D) with the best port, the task region and its
+    certified part (drawn by :mod:`errplan.placement_view`, which is handed the rerun module)."""
+    rr = sdk.rerun()
+
+    write_placement(rr, path, sc, results, app_id=app_id)
