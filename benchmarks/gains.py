@@ -29,7 +29,8 @@ sys.path.insert(0, str(ROOT))
 from errplan import planning  # noqa: E402
 from errplan.fields import Evaluator, compute_fields  # noqa: E402
 from errplan.cli.demo import SPATIAL_METRICS, SPATIAL_RESOLUTION  # noqa: E402
-from errplan.gains import SpatialModel, _sample_segment, _scan, _scan_M, schedule_gains  # noqa: E402
+from errplan.gains import SpatialModel, schedule_gains  # noqa: E402
+from errplan.gains.certificate import _sample_segment, _scan, _scan_M  # noqa: E402
 from errplan.pipeline import replay, truth_plant  # noqa: E402
 from errplan.report import format_table  # noqa: E402
 from errplan.api import load_scenario  # noqa: E402

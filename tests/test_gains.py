@@ -13,7 +13,8 @@ import pytest
 
 from errplan.errors import ErrplanError
 from errplan.fields import ErrorSet, Evaluator, compute_fields
-from errplan.gains import (GainOptions, _sample_segment, ball_tips, cut_path, options_from_scenario, rho_of_k,
+from errplan.gains.certificate import _sample_segment
+from errplan.gains import (GainOptions, ball_tips, cut_path, options_from_scenario, rho_of_k,
                            schedule_gains, single_segment, solve_gains, step_ratio)
 from errplan.kinematics.arm import Arm
 from errplan.kinematics.shaft import flexed_jacobian, flexed_tip, flexed_wrist, lever_jacobian
@@ -315,7 +316,9 @@ def test_spatial_casadi_gain_matches_svd_scan(a, b):
     """The cutting-plane casadi problem on a 3-D segment's pruned optimiser sample: the same gain and
     worst case over the WHOLE sample as a brute-force scan of numpy SVD norms (201 gains, then 2,001
     between the neighbours of the best)."""
-    from errplan.gains import SpatialModel, _initial_cuts, _k_upper_M, _scan_M, _solve_with_cuts
+    from errplan.gains import SpatialModel
+    from errplan.gains.certificate import _k_upper_M, _scan_M
+    from errplan.gains.solve import _initial_cuts, _solve_with_cuts
 
     sc = load_scenario(PHANTOM)
     ev = SpatialModel(sc)

@@ -1,0 +1,315 @@
+"""The physics a certificate samples: tips of a convergence ball (:func:`ball_tips`), the worst ``||G||``
+of (tip, error instance) pairs, the 3-D model (:class:`SpatialModel`: motion maps ``M = J Jhat^-1`` on the
+URDF arm from the compiled kernels) and one nonlinear controller step (:func:`step_ratio`)."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from ..errors import ErrplanError
+from ..fields import Evaluator
+from ..kinematics.shaft import flexed_tip, flexed_wrist_plane, lever_jacobian
+from ..linalg import g_norm3, v_sigma3
+from ..metrics import inv, inv2, inverse_parts
+
+GOLDEN_ANGLE = math.pi * (3.0 - math.sqrt(5.0))
+
+
+def ball_tips(center, radius: float, n_disk: int, n_ring: int) -> np.ndarray:
+    """Tips covering the closed disc: the centre, a sunflower (Vogel) disc and the boundary ring.
+    In 3-D (a 3-vector ``center``): the centre, a Fibonacci-spiral volume sample (radius
+    ``R ((i + 1/2)/n)^(1/3)``) and a Fibonacci sphere of ``n_ring`` points on the boundary."""
+    c = np.asarray(center, float)
+    if c.shape[-1] == 3:
+        vol = sphere_points(n_disk) * (radius * np.cbrt((np.arange(n_disk) + 0.5) / max(n_disk, 1)))[:, None]
+        return np.vstack([c[None], c + vol, c + radius * sphere_points(n_ring)])
+    i = np.arange(n_disk)
+    r = radius * np.sqrt((i + 0.5) / max(n_disk, 1))
+    a = i * GOLDEN_ANGLE
+    disk = np.stack([r * np.cos(a), r * np.sin(a)], axis=-1)
+    b = 2 * np.pi * np.arange(n_ring) / max(n_ring, 1)
+    ring = radius * np.stack([np.cos(b), np.sin(b)], axis=-1)
+    return np.vstack([c[None], c + disk, c + ring])
+
+
+def sphere_points(n: int) -> np.ndarray:
+    """``n`` unit vectors (n, 3) spread evenly over the sphere (spherical Fibonacci lattice)."""
+    i = np.arange(n) + 0.5
+    z = 1.0 - 2.0 * i / max(n, 1)
+    r = np.sqrt(np.maximum(1.0 - z * z, 0.0))
+    a = i * GOLDEN_ANGLE
+    return np.stack([r * np.cos(a), r * np.sin(a), z], axis=-1)
+
+
+def _pairs(ev: Evaluator, x: np.ndarray, th: np.ndarray):
+    """Parts over every (tip, instance) pair: mu, nu (n, m, c), reach (n, m), ok (n, m)."""
+    n, m = len(x), len(th)
+    X = np.repeat(x, m, axis=0)
+    TH = np.tile(th, (n, 1))
+    _, reach = ev.true_wrist(X, TH)
+    mu, nu, ok = ev.parts(X, TH)
+    c = mu.shape[-1]
+    return mu.reshape(n, m, c), nu.reshape(n, m, c), reach.reshape(n, m), ok.reshape(n, m)
+
+
+def _worst_g(mu, nu, reach, ok, k) -> np.ndarray:
+    """Worst ||G|| per pair (n, m): -inf where the truth cannot reach the tip, +inf where it can
+    but the controller's Jacobian is singular there (an unbounded error, never certified)."""
+    g = np.abs(1.0 - k * mu) + k * np.abs(nu)
+    g = np.where(np.isfinite(g), g, np.inf).max(axis=-1)
+    g = np.where(ok, g, np.inf)
+    return np.where(reach, g, -np.inf)
+
+
+# ----------------------------------------------------------------------------- 3-D physics
+@njit(cache=True, error_model="numpy")
+def _gnorm_grid(Ms, ks, out):
+    """``out[j, i] = ||I - ks[j] Ms[i]||_2`` (3 x 3; NaN for a non-finite ``Ms[i]``)."""
+    for j in range(ks.shape[0]):
+        for i in range(Ms.shape[0]):
+            out[j, i] = g_norm3(Ms[i], ks[j])
+
+
+@njit(cache=True, error_model="numpy")
+def _vsigma_rows(Ms, k, out):
+    """Cut rows ``(a, b)`` (n, 2) of the right singular vector ``v`` of ``I - k Ms[i]``:
+    ``a = v.Mv``, ``b = |Mv - a v|``, so that ``||(I - kM) v||^2 = (1 - k a)^2 + (k b)^2``."""
+    G = np.empty((3, 3))
+    v = np.empty(3)
+    for i in range(Ms.shape[0]):
+        for r in range(3):
+            for c in range(3):
+                G[r, c] = (1.0 if r == c else 0.0) - k * Ms[i, r, c]
+        v_sigma3(G, v)
+        a = 0.0
+        for r in range(3):
+            a += v[r] * (Ms[i, r, 0] * v[0] + Ms[i, r, 1] * v[1] + Ms[i, r, 2] * v[2])
+        b2 = 0.0
+        for r in range(3):
+            m = Ms[i, r, 0] * v[0] + Ms[i, r, 1] * v[1] + Ms[i, r, 2] * v[2] - a * v[r]
+            b2 += m * m
+        out[i, 0] = a
+        out[i, 1] = math.sqrt(b2)
+
+
+def gnorm3_grid(M: np.ndarray, k) -> np.ndarray:
+    """``||I - k_j M_i||_2`` (len(k), n) for 3 x 3 matrices ``M`` (n, 3, 3), compiled."""
+    k = np.atleast_1d(np.asarray(k, float))
+    M = np.ascontiguousarray(np.asarray(M, float).reshape(-1, 3, 3))
+    out = np.empty((len(k), len(M)))
+    _gnorm_grid(M, np.ascontiguousarray(k), out)
+    return out
+
+
+def cut_rows(M: np.ndarray, k: float) -> np.ndarray:
+    """Rows (n, 2) ``(a, b)`` of the cuts at gain ``k`` (see :func:`_vsigma_rows`)."""
+    M = np.ascontiguousarray(np.asarray(M, float).reshape(-1, 3, 3))
+    out = np.empty((len(M), 2))
+    _vsigma_rows(M, float(k), out)
+    return out
+
+
+def perp_basis(e: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The field kernels' frame around unit vectors ``e`` (..., 3): ``f1 = e x r / |e x r|`` with
+    ``r`` the axis of the smallest ``|e_i|`` (first of equals), ``f2 = e x f1``. The load direction
+    ``psi`` of an error instance is the angle of ``e2 = cos(psi) f1 + sin(psi) f2``."""
+    e = np.asarray(e, float)
+    a = np.abs(e)
+    axis = np.where((a[..., 0] <= a[..., 1]) & (a[..., 0] <= a[..., 2]), 0, np.where(a[..., 1] <= a[..., 2], 1, 2))
+    r = np.eye(3)[axis]
+    c = np.cross(e, r)
+    f1 = c / np.linalg.norm(c, axis=-1, keepdims=True)
+    return f1, np.cross(e, f1)
+
+
+class SpatialModel:
+    """The certificate's physics in 3-D: the scenario's rigid controller and error set through the
+    compiled kernels (``M`` and validity per (tip, instance) pair), the true wrist and world load
+    of an instance, and the nonlinear one-step replay on the URDF arm.
+
+    Error instances are ``theta = (dx, dy, dz, tau, psi)`` (:class:`errplan.fields.ErrorSet`); at
+    ``tau = 0`` the direction is irrelevant and :meth:`instances` keeps one.
+    """
+
+    dim = 3
+
+    def __init__(self, sc):
+        from ..fields import KernelEvaluator
+        from ..kinematics import arm_for
+
+        if sc.controller.jacobian != "rigid":
+            raise ErrplanError(f"{sc.source}: [controller] jacobian = {sc.controller.jacobian!r}: in 3-D gains are "
+                               "certified for the rigid controller only (P2's flexion controller is planar)")
+        try:
+            self.kev = KernelEvaluator(sc)
+        except ErrplanError:
+            raise ErrplanError(f"{sc.source}: [effects] {', '.join(sorted(sc.effects))}: gain certificates of a "
+                               "spatial truth whose effects move the arm (joint_offset, gravity_sag, shaft_flexion) "
+                               "are not supported yet") from None
+        self.scenario = sc
+        self.errors = self.kev.errors
+        self.arm = arm_for(sc.robot)
+        self.length = float(sc.instrument.length)
+        self.estimate = np.asarray(sc.port.estimate, float)
+        es = self.errors
+        self.delta = float(np.max(np.linalg.norm(es.port_corners() - self.estimate, axis=-1)))
+        tmax = float(max(abs(es.lo[3]), abs(es.hi[3])))
+        self.deviation = self.length * math.atan(tmax * self.length ** 2 / 12.0)
+
+    @classmethod
+    def from_scenario(cls, sc) -> "SpatialModel":
+        return cls(sc)
+
+    def instances(self, samples: int) -> np.ndarray:
+        """The error set's grid with ``samples`` per axis (8 load directions), one row per distinct
+        instance (a zero load keeps one direction)."""
+        th = self.errors.sample_grid(samples)
+        keep = (th[:, 3] != 0.0) | (th[:, 4] == self.errors.lo[4])
+        return th[keep]
+
+    def corner_instances(self) -> np.ndarray:
+        """Port-box corners x {no (smallest) load, the largest load in 4 directions}."""
+        es = self.errors
+        ports = es.port_corners() - np.asarray(es.base_port)
+        rows = [[*p, es.lo[3], es.lo[4]] for p in ports]
+        if es.hi[3] > es.lo[3]:
+            rows += [[*p, es.hi[3], psi] for p in ports for psi in (0.0, 0.5 * math.pi, math.pi, 1.5 * math.pi)]
+        return np.array(rows, float)
+
+    def singular_free(self, center, radius: float) -> bool:
+        """True when the controller's lever Jacobian cannot be singular at any tip of the ball.
+
+        ``Jhat`` is singular where the wrist is ``L`` from the estimate. For a tip ``x`` with true
+        port ``p`` (``|p - e| <= delta``) the wrist is within ``L - |x - p| + deviation`` of ``p``
+        (lever wrist ``L - r`` from the port; a load moves it by at most ``deviation``), so
+        ``|w - e| < L`` whenever ``|x - e| > 2 delta + deviation``.
+        """
+        c = np.asarray(center, float)
+        return bool(np.linalg.norm(c - self.estimate) - radius > 2.0 * self.delta + self.deviation + 1e-6)
+
+    def maps(self, x: np.ndarray, th: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``M`` (n, m, 3, 3) and validity (n, m) of every (tip, instance) pair."""
+        return self.kev.motion_maps(np.asarray(x, float)[:, None, :], np.asarray(th, float)[None, :, :])
+
+    def maps_paired(self, x: np.ndarray, th: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``M`` (n, 3, 3) and validity (n,) of pairs ``(x[i], th[i])``."""
+        return self.kev.motion_maps(np.asarray(x, float), np.asarray(th, float))
+
+    def wrists(self, x: np.ndarray, th: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """True port, wrist, world load (each (n, 3)) and reach (n,) of pairs ``(x[i], th[i])``: the
+        lever wrist, or the bent shaft's (``kinematics.shaft.flexed_wrist_plane`` with the kernels'
+        load direction, :func:`perp_basis`); reach = shaft through the port and wrist reachable."""
+        x = np.asarray(x, float)
+        th = np.asarray(th, float)
+        L = self.length
+        p = self.errors.port(th)
+        e = x - p
+        r = np.linalg.norm(e, axis=-1)
+        ok = (r > 1e-9) & (r < L)
+        e1 = np.where(ok[:, None], e, [0.0, 0.0, 1.0]) / np.where(ok, r, 1.0)[:, None]
+        tau = th[:, 3]
+        w = x - L * e1
+        t = np.zeros_like(x)
+        bent = ok & (tau != 0.0)
+        if np.any(bent):
+            f1, f2 = perp_basis(e1[bent])
+            ps = th[bent, 4]
+            e2 = np.cos(ps)[:, None] * f1 + np.sin(ps)[:, None] * f2
+            wb, tb = flexed_wrist_plane(x[bent], p[bent], L, tau[bent], e2)
+            w[bent], t[bent] = wb, tb
+        reach = ok.copy()
+        if np.any(ok):
+            reach[ok] = self.arm.reachable(w[ok])
+        return p, w, t, reach
+
+    def step_ratio(self, target, x: np.ndarray, theta: np.ndarray, k) -> np.ndarray:
+        """:func:`step_ratio` in 3-D: one controller step on the URDF arm per pair (n,)."""
+        x = np.asarray(x, float)
+        theta = np.asarray(theta, float)
+        b = np.asarray(target, float)
+        k = np.broadcast_to(np.asarray(k, float), x.shape[:-1])
+        out = np.full(len(x), np.nan)
+        if not len(x):
+            return out
+        p, w, t, reach = self.wrists(x, theta)
+        q, okq = self.arm.inverse(np.where(reach[:, None], w, w[reach][0] if reach.any() else 0.0))
+        reach &= okq
+        idx = np.flatnonzero(reach)
+        if not len(idx):
+            return out
+        w, p, t, q, xx, kk = w[idx], p[idx], t[idx], q[idx], x[idx], k[idx]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            Jh_inv, sing = inv(lever_jacobian(w, self.estimate, self.length))
+            Ja_inv, sing_arm = inv(self.arm.jacobian(q))
+            e = b - xx
+            dw = kk[:, None] * np.einsum("nij,nj->ni", np.nan_to_num(Jh_inv), e)
+            q2 = q + np.einsum("nij,nj->ni", np.nan_to_num(Ja_inv), dw)
+            ok_lim = self.arm.within_limits(q2)
+            w2 = self.arm.forward(q2)
+            r2 = np.linalg.norm(w2 - p, axis=-1)
+            ok_shaft = (r2 > 1e-9) & (r2 < self.length)
+            w2s = np.where(ok_shaft[:, None], w2, p - 0.5 * self.length * (xx - p) / np.linalg.norm(xx - p, axis=-1)[:, None])
+            x2 = flexed_tip(w2s, p, self.length, t)
+            e0 = np.linalg.norm(e, axis=-1)
+            ratio = np.linalg.norm(x2 - b, axis=-1) / np.where(e0 > 0, e0, np.nan)
+        good = ok_lim & ok_shaft & ~sing & ~sing_arm & np.isfinite(ratio)
+        out[idx] = np.where(good, ratio, np.inf)
+        return out
+
+
+def _is_spatial(ev) -> bool:
+    return isinstance(ev, SpatialModel)
+
+
+def _instance_grid(ev, samples: int) -> np.ndarray:
+    return ev.instances(samples) if _is_spatial(ev) else ev.errors.sample_grid(samples)
+
+
+# ----------------------------------------------------------------------------- nonlinear step
+def step_ratio(ev: Evaluator, target, x: np.ndarray, theta: np.ndarray, k) -> np.ndarray:
+    """One quasi-static controller step with the full nonlinear kinematics, per pair.
+
+    The truth ``theta`` puts the tip at ``x`` (the configuration is the arm's inverse of the true
+    wrist, as :meth:`errplan.simulation.Plant.configuration_for_tip`); the controller commands
+    ``dq = k Jarm^-1 Jhat_tw^-1 (b - x)`` and the true tip moves to ``x'`` (flexed shaft, true
+    port and load). Returns ``|x' - b| / |x - b|`` (n,) worst over the controller's noise corners;
+    ``nan`` where the truth cannot reach ``x`` and ``inf`` where the step leaves the joint limits,
+    pulls the shaft out of the port or the controller's Jacobian is singular. In 3-D
+    (:class:`SpatialModel`) the same step on the URDF arm.
+    """
+    if _is_spatial(ev):
+        return ev.step_ratio(target, x, theta, k)
+    x = np.asarray(x, float)
+    theta = np.asarray(theta, float)
+    b = np.asarray(target, float)
+    k = np.broadcast_to(np.asarray(k, float), x.shape[:-1])
+    w, reach = ev.true_wrist(x, theta)
+    q, okq = ev.arm.inverse(np.where(reach[..., None], w, 0.0))
+    reach = reach & okq
+    wsafe = np.where(reach[..., None], w, np.asarray(ev.arm.base))
+    qsafe = np.where(reach[..., None], q, 0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mu_h, nu_h = ev.controller_parts(wsafe, theta)        # (n, c)
+        imu, inu, sing = inverse_parts(mu_h, nu_h)
+        e = b - x
+        z = e[..., 0] + 1j * e[..., 1]
+        dwc = k[..., None] * (imu * z[..., None] + inu * np.conj(z[..., None]))  # (n, c)
+        dw = np.stack([dwc.real, dwc.imag], axis=-1)          # (n, c, 2)
+        Jinv, sing_arm = inv2(ev.arm.jacobian(qsafe))
+        dq = np.einsum("nij,ncj->nci", Jinv, dw)
+        q2 = qsafe[:, None, :] + dq
+        ok_lim = ev.arm.within_limits(q2)
+        w2 = ev.arm.forward(q2)
+        port = ev.errors.port(theta)[:, None, :]
+        r = np.linalg.norm(w2 - port, axis=-1)
+        ok_shaft = (r > 1e-9) & (r < ev.length)
+        t = np.broadcast_to(theta[:, None, 2], r.shape)
+        w2s = np.where(ok_shaft[..., None], w2, port + [0.0, -0.5 * ev.length])
+        x2 = flexed_tip(w2s, np.broadcast_to(port, w2s.shape), ev.length, t)
+        e0 = np.linalg.norm(e, axis=-1)
+        ratio = np.linalg.norm(x2 - b, axis=-1) / np.where(e0 > 0, e0, np.nan)[:, None]
+    good = ok_lim & ok_shaft & ~sing & ~sing_arm[:, None] & np.isfinite(ratio)
+    ratio = np.where(good, ratio, np.inf).max(axis=-1)
+    return np.where(reach, ratio, np.nan)
