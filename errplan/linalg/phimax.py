@@ -1,429 +1,12 @@
-"""Compiled small-matrix kernels (numba) for the metrics of 2x2 and 3x3 motion maps.
-
-Every kernel is ``@njit(cache=True, fastmath=False, error_model="numpy")`` and allocates nothing:
-it takes matrices (2-D arrays or views such as ``M[i]``) and either returns scalars or writes into
-a caller-provided output array, so field kernels can call them from their own compiled loops
-hundreds of millions of times. Results are floats; a non-finite input matrix gives NaN (never an
-exception, never inf), except where a docstring says otherwise.
-
-Public kernels (shapes in brackets):
-
-- ``inv2(A[2,2], out[2,2]) -> det``, ``inv3(A[3,3], out[3,3]) -> det``: adjugate / cofactor
-  inverse. ``out`` is NaN where ``det == 0``; the caller decides singularity with
-  ``singular2(A, det, rcond)`` / ``singular3(A, det, rcond)``: True when
-  ``|det| <= rcond * ||A||_F^d`` (or ``det`` is not finite), the test ``metrics.inv`` uses.
-- ``matmul3(A, B, out)``: ``out = A @ B`` (``out`` must not alias ``A`` or ``B``).
-- ``sigma_max2(A)``, ``sigma_max3(A)``: largest singular value; ``g_norm2(M, k)``,
-  ``g_norm3(M, k)``: ``||I - k M||_2``.
-- ``phi_max2(M)``, ``phi_max3(M)``: exact ``|phi_max| = max over unit v of angle(v, M v)`` (rad),
-  ``pi`` when ``M`` has a real eigenvalue ``<= 0`` (a direction reversed or annihilated).
-- ``p_phi3(M, out3)``: a unit direction attaining ``phi_max3`` (up to sign); returns its angle.
-- ``v_sigma3(G, out3)``: right singular vector of the largest singular value; returns sigma_max.
-- ``min_over_gain3(Ms[m',3,3], m, out[2])``: ``rho* = min over k > 0 of max_i ||I - k Ms[i]||``
-  over the first ``m`` matrices, ``out = [rho*, k*]``.
-
-How ``phi_max3`` is exact (docs/fields.md, "Exact |phi_max| in 3-D"): with ``S = (M + M^T)/2``,
-``A = M^T M``, the cosine of the angle of ``v`` is ``a / sqrt(b)``, ``(a, b) = (v^T S v, v^T A v)``
-on the unit sphere, and the set ``W`` of such pairs is convex (Brickman). If ``S >= 0`` every
-angle is acute and ``cos phi_max = 2 sqrt(max_{s>0} s lambda_min(S - s A))``, a concave 1-D
-maximisation (strong duality). Otherwise ``cos phi_max = -2 max_y psi(y)`` with
-``psi(y) = tau lambda_max(-S, tau^2 I + A)``, ``tau = e^y``: a 1-D search over
-``y in [ln sigma_min, ln sigma_max]`` whose stationary points are the roots of
-``F(y) = ln |M x(y)| - y`` (``x(y)`` the generalised eigenvector); ``F`` falls with slope at most
-1, which bounds where the maxima can hide.
-
-Symmetric 3x3 eigenproblems use the trigonometric closed form, then deflate: the eigenvector of
-the best-separated eigenvalue from cross products, the other two from the 2x2 restriction to its
-orthogonal complement (a stable closed form). This keeps eigenvalues accurate to rounding
-of ``||H||`` where the bare trigonometric formula loses half the digits (near-double eigenvalues).
-"""
+"""The exact ``|phi_max|`` (the largest angle between a desired and the actual motion) of 2x2 and 3x3 motion
+maps, and a direction attaining it (the package docstring says how the 3-D value is exact)."""
 from __future__ import annotations
 
 import math
 
-from numba import njit
-
-PI = math.pi
-NAN = math.nan
-
-
-def _jit(f):
-    return njit(cache=True, fastmath=False, error_model="numpy")(f)
-
-
-@_jit
-def _maxabs9(a0, a1, a2, a3, a4, a5, a6, a7, a8):
-    """max |a_i|, NaN if any entry is NaN or infinite."""
-    s = 0.0
-    bad = False
-    for a in (a0, a1, a2, a3, a4, a5, a6, a7, a8):
-        a = abs(a)
-        if not a < math.inf:
-            bad = True
-        elif a > s:
-            s = a
-    return NAN if bad else s
-
-
-@_jit
-def _maxabs3x3(M):
-    return _maxabs9(M[0, 0], M[0, 1], M[0, 2], M[1, 0], M[1, 1], M[1, 2], M[2, 0], M[2, 1], M[2, 2])
-
-
-# ============================================================================ 2x2 and 3x3 basics
-@_jit
-def inv2(A, out):
-    """``out = A^-1`` of a 2x2 matrix (adjugate / det); returns ``det``. NaN entries if det == 0."""
-    a, b, c, d = A[0, 0], A[0, 1], A[1, 0], A[1, 1]
-    det = a * d - b * c
-    if det == 0.0:
-        r = NAN
-    else:
-        r = 1.0 / det
-    out[0, 0] = d * r
-    out[0, 1] = -b * r
-    out[1, 0] = -c * r
-    out[1, 1] = a * r
-    return det
-
-
-@_jit
-def inv3(A, out):
-    """``out = A^-1`` of a 3x3 matrix (cofactors / det); returns ``det``. NaN entries if det == 0."""
-    a00, a01, a02 = A[0, 0], A[0, 1], A[0, 2]
-    a10, a11, a12 = A[1, 0], A[1, 1], A[1, 2]
-    a20, a21, a22 = A[2, 0], A[2, 1], A[2, 2]
-    c00 = a11 * a22 - a12 * a21
-    c01 = a12 * a20 - a10 * a22
-    c02 = a10 * a21 - a11 * a20
-    det = a00 * c00 + a01 * c01 + a02 * c02
-    if det == 0.0:
-        r = NAN
-    else:
-        r = 1.0 / det
-    out[0, 0] = c00 * r
-    out[1, 0] = c01 * r
-    out[2, 0] = c02 * r
-    out[0, 1] = (a02 * a21 - a01 * a22) * r
-    out[1, 1] = (a00 * a22 - a02 * a20) * r
-    out[2, 1] = (a01 * a20 - a00 * a21) * r
-    out[0, 2] = (a01 * a12 - a02 * a11) * r
-    out[1, 2] = (a02 * a10 - a00 * a12) * r
-    out[2, 2] = (a00 * a11 - a01 * a10) * r
-    return det
-
-
-@_jit
-def singular2(A, det, rcond):
-    """True when ``|det| <= rcond * ||A||_F^2`` or ``det`` is not finite (``metrics.inv2``'s test)."""
-    f = A[0, 0] * A[0, 0] + A[0, 1] * A[0, 1] + A[1, 0] * A[1, 0] + A[1, 1] * A[1, 1]
-    return not abs(det) > rcond * f
-
-
-@_jit
-def singular3(A, det, rcond):
-    """True when ``|det| <= rcond * ||A||_F^3`` or ``det`` is not finite.
-
-    ``|det| / ||A||_F^3 = s1 s2 s3 / (s1^2 + s2^2 + s3^2)^1.5`` is at most ``3^-1.5`` and of the
-    order of ``s3 s2 / s1^2`` (singular values s1 >= s2 >= s3): a scale-free measure of how close
-    ``A`` is to singular, the 3-D analogue of the planar test.
-    """
-    f = 0.0
-    for i in range(3):
-        for j in range(3):
-            f += A[i, j] * A[i, j]
-    return not abs(det) > rcond * f * math.sqrt(f)
-
-
-@_jit
-def matmul3(A, B, out):
-    """``out = A @ B`` for 3x3 matrices (``out`` must not alias ``A`` or ``B``)."""
-    for i in range(3):
-        a0, a1, a2 = A[i, 0], A[i, 1], A[i, 2]
-        for j in range(3):
-            out[i, j] = a0 * B[0, j] + a1 * B[1, j] + a2 * B[2, j]
-
-
-# ============================================================================ symmetric 3x3 eigen
-SQRT3 = math.sqrt(3.0)
-
-
-@_jit
-def _sym3_trig(h00, h01, h02, h11, h12, h22):
-    """Trigonometric eigenvalues ``l0 <= l1 <= l2`` of a symmetric 3x3 matrix and
-    ``r = det((H - qI)/p) / 2 = cos(3 phi)``: the top eigenvalue is the isolated one (the
-    closer pair is the bottom one) when ``r >= 0``."""
-    q = (h00 + h11 + h22) / 3.0
-    b00 = h00 - q
-    b11 = h11 - q
-    b22 = h22 - q
-    p2 = (b00 * b00 + b11 * b11 + b22 * b22 + 2.0 * (h01 * h01 + h02 * h02 + h12 * h12)) / 6.0
-    if not p2 > 0.0:
-        return q, q, q, 1.0
-    p = math.sqrt(p2)
-    detb = (b00 * (b11 * b22 - h12 * h12) - h01 * (h01 * b22 - h12 * h02)
-            + h02 * (h01 * h12 - b11 * h02))
-    r = detb / (2.0 * p2 * p)
-    if r > 1.0:
-        r = 1.0
-    elif r < -1.0:
-        r = -1.0
-    cp = math.cos(math.acos(r) / 3.0)          # phi in [0, pi/3]
-    sp = math.sqrt(max(0.0, 1.0 - cp * cp))
-    l2 = q + 2.0 * p * cp
-    l0 = q - p * (cp + SQRT3 * sp)             # 2 cos(phi + 2pi/3)
-    l1 = q - p * (cp - SQRT3 * sp)             # 2 cos(phi - 2pi/3)
-    return l0, l1, l2, r
-
-
-@_jit
-def _sym3_eigvals(h00, h01, h02, h11, h12, h22):
-    """Eigenvalues ``l0 <= l1 <= l2`` of a symmetric 3x3 matrix, trigonometric closed form
-    (accurate to ~1e-8 of the spread at a near-double eigenvalue; see ``_sym3_eigh``)."""
-    l0, l1, l2, _r = _sym3_trig(h00, h01, h02, h11, h12, h22)
-    return l0, l1, l2
-
-
-@_jit
-def _cross_null(r00, r01, r02, r10, r11, r12, r20, r21, r22):
-    """Unit vector orthogonal to the rows (a null vector of a rank-2 matrix): the largest of the
-    three row cross products. ``(0, 0, 0)`` if all rows are zero-ish (rank < 2)."""
-    x0 = r01 * r12 - r02 * r11
-    x1 = r02 * r10 - r00 * r12
-    x2 = r00 * r11 - r01 * r10
-    n0 = x0 * x0 + x1 * x1 + x2 * x2
-    y0 = r01 * r22 - r02 * r21
-    y1 = r02 * r20 - r00 * r22
-    y2 = r00 * r21 - r01 * r20
-    n1 = y0 * y0 + y1 * y1 + y2 * y2
-    z0 = r11 * r22 - r12 * r21
-    z1 = r12 * r20 - r10 * r22
-    z2 = r10 * r21 - r11 * r20
-    n2 = z0 * z0 + z1 * z1 + z2 * z2
-    if n0 >= n1 and n0 >= n2:
-        n = n0
-    elif n1 >= n2:
-        x0, x1, x2, n = y0, y1, y2, n1
-    else:
-        x0, x1, x2, n = z0, z1, z2, n2
-    if not n > 0.0:
-        return 0.0, 0.0, 0.0
-    n = 1.0 / math.sqrt(n)
-    return x0 * n, x1 * n, x2 * n
-
-
-@_jit
-def _complement(e0, e1, e2):
-    """Orthonormal ``u, v`` spanning the plane orthogonal to the unit vector ``e`` (u x v = e)."""
-    a0, a1, a2 = abs(e0), abs(e1), abs(e2)
-    if a0 <= a1 and a0 <= a2:      # u = e x (1, 0, 0)
-        u0, u1, u2 = 0.0, e2, -e1
-    elif a1 <= a2:                 # u = e x (0, 1, 0)
-        u0, u1, u2 = -e2, 0.0, e0
-    else:                          # u = e x (0, 0, 1)
-        u0, u1, u2 = e1, -e0, 0.0
-    n = 1.0 / math.sqrt(u0 * u0 + u1 * u1 + u2 * u2)
-    u0 *= n
-    u1 *= n
-    u2 *= n
-    v0 = e1 * u2 - e2 * u1
-    v1 = e2 * u0 - e0 * u2
-    v2 = e0 * u1 - e1 * u0
-    return u0, u1, u2, v0, v1, v2
-
-
-@_jit
-def _qform(h00, h01, h02, h11, h12, h22, x0, x1, x2, y0, y1, y2):
-    """``x^T H y`` for symmetric ``H``."""
-    return (x0 * (h00 * y0 + h01 * y1 + h02 * y2) + x1 * (h01 * y0 + h11 * y1 + h12 * y2)
-            + x2 * (h02 * y0 + h12 * y1 + h22 * y2))
-
-
-@_jit
-def _eig2(a, b, c):
-    """Eigen-decomposition of the symmetric ``[[a, b], [b, c]]``: ``(m, r, cs, sn)`` with the
-    eigenvalues ``m -+ r`` and ``(cs, sn)`` the unit eigenvector of ``m + r`` (stable closed form:
-    ``(r + d, b) ~ (b, r - d)``, ``d = (a - c) / 2``, whichever is better conditioned)."""
-    m = 0.5 * (a + c)
-    d = 0.5 * (a - c)
-    r = math.sqrt(d * d + b * b)
-    if d >= 0.0:
-        cs, sn = r + d, b
-    else:
-        cs, sn = b, r - d
-    n = cs * cs + sn * sn
-    if n > 0.0:
-        n = 1.0 / math.sqrt(n)
-        return m, r, cs * n, sn * n
-    return m, r, 1.0, 0.0
-
-
-@_jit
-def _sym2_in_plane(h00, h01, h02, h11, h12, h22, u0, u1, u2, v0, v1, v2):
-    """Eigen-decomposition of the restriction of ``H`` to the orthonormal pair ``(u, v)``:
-    ``(lo, hi, lo-vector (3), hi-vector (3))``, stable closed form (no trigonometry)."""
-    w0 = h00 * u0 + h01 * u1 + h02 * u2
-    w1 = h01 * u0 + h11 * u1 + h12 * u2
-    w2 = h02 * u0 + h12 * u1 + h22 * u2
-    huu = u0 * w0 + u1 * w1 + u2 * w2
-    huv = v0 * w0 + v1 * w1 + v2 * w2
-    hvv = _qform(h00, h01, h02, h11, h12, h22, v0, v1, v2, v0, v1, v2)
-    m, rr, c, s = _eig2(huu, huv, hvv)
-    return (m - rr, m + rr, c * v0 - s * u0, c * v1 - s * u1, c * v2 - s * u2,
-            c * u0 + s * v0, c * u1 + s * v1, c * u2 + s * v2)
-
-
-@_jit
-def _sym3_eigh(h00, h01, h02, h11, h12, h22):
-    """Eigen-decomposition of a symmetric 3x3 matrix: ``(l0, l1, l2, x0 (3), x1 (3), x2 (3))``,
-    ``l0 <= l1 <= l2`` and orthonormal eigenvectors.
-
-    Trigonometric eigenvalues, then the eigenvector of the isolated end eigenvalue (the top one if
-    ``r >= 0``, else the bottom one; its gap is at least half the spread) from cross products, its
-    Rayleigh quotient, and the other two from the 2x2 restriction to the orthogonal complement.
-    Eigenvalue errors are a few ulps of ``||H||`` also for (near-)double eigenvalues, where the
-    bare trigonometric formula loses half the digits.
-    """
-    l0, l1, l2, r = _sym3_trig(h00, h01, h02, h11, h12, h22)
-    if not l2 - l0 > 0.0:
-        return l0, l1, l2, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0
-    top = r >= 0.0
-    lam = l2 if top else l0
-    e0, e1, e2 = _cross_null(h00 - lam, h01, h02, h01, h11 - lam, h12, h02, h12, h22 - lam)
-    if e0 == 0.0 and e1 == 0.0 and e2 == 0.0:
-        return l0, l1, l2, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0
-    le = _qform(h00, h01, h02, h11, h12, h22, e0, e1, e2, e0, e1, e2)
-    u0, u1, u2, v0, v1, v2 = _complement(e0, e1, e2)
-    a, b, lo0, lo1, lo2, hi0, hi1, hi2 = _sym2_in_plane(h00, h01, h02, h11, h12, h22,
-                                                        u0, u1, u2, v0, v1, v2)
-    if top:
-        if b > le:  # rounding only (near-triple eigenvalue): keep the order
-            b, le = le, b
-            hi0, hi1, hi2, e0, e1, e2 = e0, e1, e2, hi0, hi1, hi2
-        return a, b, le, lo0, lo1, lo2, hi0, hi1, hi2, e0, e1, e2
-    if a < le:
-        a, le = le, a
-        lo0, lo1, lo2, e0, e1, e2 = e0, e1, e2, lo0, lo1, lo2
-    return le, a, b, e0, e1, e2, lo0, lo1, lo2, hi0, hi1, hi2
-
-
-@_jit
-def _sym3_top(h00, h01, h02, h11, h12, h22):
-    """Largest eigenvalue and a unit eigenvector ``(l2, x0, x1, x2)`` of a symmetric 3x3 matrix:
-    cross products when the top eigenvalue is the isolated one (``r >= 0``), ``_sym3_eigh``
-    otherwise."""
-    l0, _l1, l2, r = _sym3_trig(h00, h01, h02, h11, h12, h22)
-    if r >= 0.0 and l2 - l0 > 0.0:
-        e0, e1, e2 = _cross_null(h00 - l2, h01, h02, h01, h11 - l2, h12, h02, h12, h22 - l2)
-        if not (e0 == 0.0 and e1 == 0.0 and e2 == 0.0):
-            return _qform(h00, h01, h02, h11, h12, h22, e0, e1, e2, e0, e1, e2), e0, e1, e2
-    e = _sym3_eigh(h00, h01, h02, h11, h12, h22)
-    return e[2], e[9], e[10], e[11]
-
-
-@_jit
-def _sym3_max(h00, h01, h02, h11, h12, h22):
-    """Largest eigenvalue of a symmetric 3x3 matrix to a few ulps of ``||H||``."""
-    l0, _l1, l2, r = _sym3_trig(h00, h01, h02, h11, h12, h22)
-    if r > -0.99:
-        return l2  # the trigonometric top eigenvalue is accurate unless the top pair is double
-    # near-double top pair: deflate the isolated smallest eigenvalue, 2x2 closed form for the rest
-    e0, e1, e2 = _cross_null(h00 - l0, h01, h02, h01, h11 - l0, h12, h02, h12, h22 - l0)
-    if e0 == 0.0 and e1 == 0.0 and e2 == 0.0:
-        return l2
-    u0, u1, u2, v0, v1, v2 = _complement(e0, e1, e2)
-    return _sym2_in_plane(h00, h01, h02, h11, h12, h22, u0, u1, u2, v0, v1, v2)[1]
-
-
-# ============================================================================ singular values
-@_jit
-def _smax2(a, b, c, d):
-    """Largest singular value of [[a, b], [c, d]]: |mu| + |nu| (conformal parts)."""
-    return math.hypot(0.5 * (a + d), 0.5 * (c - b)) + math.hypot(0.5 * (a - d), 0.5 * (b + c))
-
-
-@_jit
-def sigma_max2(A):
-    """Largest singular value of a 2x2 matrix.
-
-    Closed form ``sqrt((f + sqrt(f^2 - 4 det^2)) / 2)``, ``f = ||A||_F^2``, evaluated as
-    ``|mu| + |nu|`` (the same number: ``|mu|^2 + |nu|^2 = f / 2``, ``|mu|^2 - |nu|^2 = det``)
-    because ``f^2 - 4 det^2`` cancels catastrophically when the singular values are close.
-    """
-    return _smax2(A[0, 0], A[0, 1], A[1, 0], A[1, 1])
-
-
-@_jit
-def _smax3(g00, g01, g02, g10, g11, g12, g20, g21, g22):
-    s = _maxabs9(g00, g01, g02, g10, g11, g12, g20, g21, g22)
-    if not s > 0.0:
-        return 0.0 if s == 0.0 else NAN
-    r = 1.0 / s
-    g00 *= r
-    g01 *= r
-    g02 *= r
-    g10 *= r
-    g11 *= r
-    g12 *= r
-    g20 *= r
-    g21 *= r
-    g22 *= r
-    a00 = g00 * g00 + g10 * g10 + g20 * g20
-    a01 = g00 * g01 + g10 * g11 + g20 * g21
-    a02 = g00 * g02 + g10 * g12 + g20 * g22
-    a11 = g01 * g01 + g11 * g11 + g21 * g21
-    a12 = g01 * g02 + g11 * g12 + g21 * g22
-    a22 = g02 * g02 + g12 * g12 + g22 * g22
-    lam = _sym3_max(a00, a01, a02, a11, a12, a22)
-    return s * math.sqrt(max(lam, 0.0))
-
-
-@_jit
-def sigma_max3(A):
-    """Largest singular value of a 3x3 matrix: ``sqrt(lambda_max(A^T A))`` in closed form
-    (trigonometric eigenvalues of the characteristic cubic of ``A^T A``, deflation when the top
-    two are close). Relative error ~1e-15; NaN for a non-finite input."""
-    return _smax3(A[0, 0], A[0, 1], A[0, 2], A[1, 0], A[1, 1], A[1, 2], A[2, 0], A[2, 1], A[2, 2])
-
-
-@_jit
-def g_norm2(M, k):
-    """``||I - k M||_2`` of a 2x2 ``M`` (``|1 - k mu| + k |nu|`` for ``k >= 0``)."""
-    return _smax2(1.0 - k * M[0, 0], -k * M[0, 1], -k * M[1, 0], 1.0 - k * M[1, 1])
-
-
-@_jit
-def g_norm3(M, k):
-    """``||I - k M||_2`` of a 3x3 ``M``, formed in registers."""
-    return _smax3(1.0 - k * M[0, 0], -k * M[0, 1], -k * M[0, 2],
-                  -k * M[1, 0], 1.0 - k * M[1, 1], -k * M[1, 2],
-                  -k * M[2, 0], -k * M[2, 1], 1.0 - k * M[2, 2])
-
-
-@_jit
-def v_sigma3(G, out3):
-    """Right singular vector (unit, up to sign) of ``G`` for its largest singular value, written
-    into ``out3``; returns that singular value. NaN vector and value for a non-finite ``G``."""
-    s = _maxabs3x3(G)
-    if math.isnan(s):
-        out3[0] = out3[1] = out3[2] = NAN
-        return NAN
-    if s == 0.0:
-        out3[0], out3[1], out3[2] = 1.0, 0.0, 0.0
-        return 0.0
-    r = 1.0 / s
-    g00, g01, g02 = G[0, 0] * r, G[0, 1] * r, G[0, 2] * r
-    g10, g11, g12 = G[1, 0] * r, G[1, 1] * r, G[1, 2] * r
-    g20, g21, g22 = G[2, 0] * r, G[2, 1] * r, G[2, 2] * r
-    a00 = g00 * g00 + g10 * g10 + g20 * g20
-    a01 = g00 * g01 + g10 * g11 + g20 * g21
-    a02 = g00 * g02 + g10 * g12 + g20 * g22
-    a11 = g01 * g01 + g11 * g11 + g21 * g21
-    a12 = g01 * g02 + g11 * g12 + g21 * g22
-    a22 = g02 * g02 + g12 * g12 + g22 * g22
-    e = _sym3_eigh(a00, a01, a02, a11, a12, a22)
-    out3[0], out3[1], out3[2] = e[9], e[10], e[11]
-    return s * math.sqrt(max(e[2], 0.0))
+from .basics import NAN, PI, _jit, _maxabs3x3
+from .eigen import _cross_null, _eig2, _qform, _sym3_eigh, _sym3_eigvals, _sym3_top
+from .singular import _gram
 
 
 # ============================================================================ |phi_max| in the plane
@@ -644,12 +227,7 @@ def _acute(m00, m01, m02, m10, m11, m12, m20, m21, m22, S00, S01, S02, S11, S12,
     n00, n11, n22 = m00 - c, m11 - c, m22 - c
     SN00, SN11, SN22 = n00, n11, n22
     SN01, SN02, SN12 = S01, S02, S12
-    AN00 = n00 * n00 + m10 * m10 + m20 * m20
-    AN01 = n00 * m01 + m10 * n11 + m20 * m21
-    AN02 = n00 * m02 + m10 * m12 + m20 * n22
-    AN11 = m01 * m01 + n11 * n11 + m21 * m21
-    AN12 = m01 * m02 + n11 * m12 + m21 * n22
-    AN22 = m02 * m02 + m12 * m12 + n22 * n22
+    AN00, AN01, AN02, AN11, AN12, AN22 = _gram(n00, m01, m02, m10, n11, m12, m20, m21, n22)  # N^T N, N = M - c I
     # sigma = 0 is s = 1 / 2c, exact for M = c I. R'(1) >= 0 (slope lambda_min(S) >= 0 at s = 0).
     sig = 0.0
     R, dR, d2R, aN, bN, e = _acute_eval(SN00, SN01, SN02, SN11, SN12, SN22,
@@ -791,6 +369,18 @@ OBTUSE_STEP = 0.25  # the walk's step in y = ln tau where no bound allows a long
 
 
 @_jit
+def _look(m00, m01, m02, m10, m11, m12, m20, m21, m22, S00, S01, S02, S11, S12, S22,
+          A00, A01, A02, A11, A12, A22, y, best, bang, bx0, bx1, bx2):
+    """``psi`` and ``F`` at ``y``, with the largest ``psi`` and the largest angle (and its direction) seen
+    so far updated: ``(P, F, best, bang, bx0, bx1, bx2)``."""
+    P, F, x0, x1, x2 = _psi_eval(m00, m01, m02, m10, m11, m12, m20, m21, m22, S00, S01, S02, S11, S12, S22, A00, A01, A02, A11, A12, A22, y)
+    a = _angle(m00, m01, m02, m10, m11, m12, m20, m21, m22, x0, x1, x2)
+    if a > bang:
+        bang, bx0, bx1, bx2 = a, x0, x1, x2
+    return P, F, max(best, P), bang, bx0, bx1, bx2
+
+
+@_jit
 def _skip(best, P):
     """Distance from a point with ``psi = P`` within which no local maximum of ``psi`` can exceed
     ``best``: ``psi(y) >= psi(y_m) sech(y - y_m)`` at every local maximum ``y_m``."""
@@ -867,24 +457,15 @@ def _obtuse(m00, m01, m02, m10, m11, m12, m20, m21, m22, S00, S01, S02, S11, S12
     bang = -1.0                # largest angle seen and its direction (the value)
     bx0 = bx1 = bx2 = 0.0
     yr = y_hi
-    Pr, Fr, r0, r1, r2 = _psi_eval(m00, m01, m02, m10, m11, m12, m20, m21, m22,
-                                   S00, S01, S02, S11, S12, S22, A00, A01, A02, A11, A12, A22, yr)
-    best = max(best, Pr)
-    a = _angle(m00, m01, m02, m10, m11, m12, m20, m21, m22, r0, r1, r2)
-    if a > bang:
-        bang, bx0, bx1, bx2 = a, r0, r1, r2
+    Pr, Fr, best, bang, bx0, bx1, bx2 = _look(m00, m01, m02, m10, m11, m12, m20, m21, m22, S00, S01, S02, S11, S12, S22,
+                                              A00, A01, A02, A11, A12, A22, yr, best, bang, bx0, bx1, bx2)
     for _ in range(1000):
         if not Fr < 0.0 or yr <= y_lo:
             break
         step = max(-Fr, _skip(best, Pr), OBTUSE_STEP)
         yn = max(yr - step, y_lo)
-        Pn, Fn, n0, n1, n2 = _psi_eval(m00, m01, m02, m10, m11, m12, m20, m21, m22,
-                                       S00, S01, S02, S11, S12, S22,
-                                       A00, A01, A02, A11, A12, A22, yn)
-        best = max(best, Pn)
-        a = _angle(m00, m01, m02, m10, m11, m12, m20, m21, m22, n0, n1, n2)
-        if a > bang:
-            bang, bx0, bx1, bx2 = a, n0, n1, n2
+        Pn, Fn, best, bang, bx0, bx1, bx2 = _look(m00, m01, m02, m10, m11, m12, m20, m21, m22, S00, S01, S02, S11, S12, S22,
+                                                  A00, A01, A02, A11, A12, A22, yn, best, bang, bx0, bx1, bx2)
         if Fn > 0.0:
             best, bang, bx0, bx1, bx2 = _refine(m00, m01, m02, m10, m11, m12, m20, m21, m22,
                                                 S00, S01, S02, S11, S12, S22, A00, A01, A02, A11,
@@ -893,12 +474,8 @@ def _obtuse(m00, m01, m02, m10, m11, m12, m20, m21, m22, S00, S01, S02, S11, S12
     # walk from the left end up to yr (where F(yr) >= 0, or yr = y_lo)
     y = y_lo
     if y < yr:
-        P, F, x0, x1, x2 = _psi_eval(m00, m01, m02, m10, m11, m12, m20, m21, m22,
-                                     S00, S01, S02, S11, S12, S22, A00, A01, A02, A11, A12, A22, y)
-        best = max(best, P)
-        a = _angle(m00, m01, m02, m10, m11, m12, m20, m21, m22, x0, x1, x2)
-        if a > bang:
-            bang, bx0, bx1, bx2 = a, x0, x1, x2
+        P, F, best, bang, bx0, bx1, bx2 = _look(m00, m01, m02, m10, m11, m12, m20, m21, m22, S00, S01, S02, S11, S12, S22,
+                                                A00, A01, A02, A11, A12, A22, y, best, bang, bx0, bx1, bx2)
         for _ in range(4000):
             step = max(F, _skip(best, P), OBTUSE_STEP)
             yn = y + step
@@ -954,12 +531,7 @@ def _phi_max3(M, want_dir):
     smin_S = _sym3_eigvals(S00, S01, S02, S11, S12, S22)[0]
     if smin_S >= 0.0:
         return _acute(m00, m01, m02, m10, m11, m12, m20, m21, m22, S00, S01, S02, S11, S12, S22)
-    A00 = m00 * m00 + m10 * m10 + m20 * m20
-    A01 = m00 * m01 + m10 * m11 + m20 * m21
-    A02 = m00 * m02 + m10 * m12 + m20 * m22
-    A11 = m01 * m01 + m11 * m11 + m21 * m21
-    A12 = m01 * m02 + m11 * m12 + m21 * m22
-    A22 = m02 * m02 + m12 * m12 + m22 * m22
+    A00, A01, A02, A11, A12, A22 = _gram(m00, m01, m02, m10, m11, m12, m20, m21, m22)  # M^T M
     det = (m00 * (m11 * m22 - m12 * m21) - m01 * (m10 * m22 - m12 * m20)
            + m02 * (m10 * m21 - m11 * m20))
     # every local maximum of psi lies at y = ln|M x| in [ln sigma_min, ln sigma_max]: bounds from
@@ -997,122 +569,3 @@ def p_phi3(M, out3):
     r = 1.0 / _maxabs3x3(M)
     return _angle(M[0, 0] * r, M[0, 1] * r, M[0, 2] * r, M[1, 0] * r, M[1, 1] * r, M[1, 2] * r,
                   M[2, 0] * r, M[2, 1] * r, M[2, 2] * r, x0, x1, x2)
-
-
-# ============================================================================ best gain
-@_jit
-def _max_gnorm3(Ms, m, k):
-    worst = -1.0
-    for i in range(m):
-        g = g_norm3(Ms[i], k)
-        if g > worst:
-            worst = g
-    return worst
-
-
-@_jit
-def min_over_gain3(Ms, m, out, iters=60):
-    """``rho* = min over k > 0 of max_i ||I - k Ms[i]||_2`` over ``Ms[:m]`` (3x3 each), by golden
-    section on the convex ``f(k)`` (``iters`` steps, as the planar ``minimize_gain`` of the
-    fields). Writes ``out[0] = rho*``, ``out[1] = k*`` and returns ``rho*``.
-
-    Conventions of the planar search: where no gain contracts (``rho* >= 1``) the result is
-    ``rho* = 1`` at ``k* = 0``; this is known up front when some ``M`` turns a motion by more than
-    90 deg (``||I - k M|| >= |1 - k v^T M v| > 1`` for every ``k > 0``), and when some ``M`` has a
-    non-finite entry: it counts as ``M = 0`` (no motion, ``||I - k 0|| = 1``), as the planar search
-    replaces non-finite parts by 0. ``m = 0`` gives ``rho* = 1``, ``k* = 0``.
-
-    The bracket is ``[0, 2 / max_i lambda_max(S_i)]``: beyond it ``||I - k M_i|| >=
-    |1 - k v^T M_i v| >= 1`` for the ``v`` maximising ``v^T M_i v``.
-    """
-    smax = 0.0
-    smin = math.inf
-    for i in range(m):
-        M = Ms[i]
-        if math.isnan(_maxabs3x3(M)):
-            smin = -1.0  # a non-finite matrix counts as M = 0: f(k) >= 1 for every k
-            break
-        l0, _l1, l2 = _sym3_eigvals(M[0, 0], 0.5 * (M[0, 1] + M[1, 0]), 0.5 * (M[0, 2] + M[2, 0]),
-                                    M[1, 1], 0.5 * (M[1, 2] + M[2, 1]), M[2, 2])
-        smax = max(smax, l2)
-        smin = min(smin, l0)
-    if not (smax > 0.0) or smin < 0.0:
-        out[0] = 1.0
-        out[1] = 0.0
-        return 1.0
-    gr = (math.sqrt(5.0) - 1.0) / 2.0
-    a = 0.0
-    b = 2.0 / smax
-    c = b - gr * (b - a)
-    d = a + gr * (b - a)
-    fc = _max_gnorm3(Ms, m, c)
-    fd = _max_gnorm3(Ms, m, d)
-    for _ in range(iters):
-        if fc < fd:
-            b, d, fd = d, c, fc
-            c = b - gr * (b - a)
-            fc = _max_gnorm3(Ms, m, c)
-        else:
-            a, c, fc = c, d, fd
-            d = a + gr * (b - a)
-            fd = _max_gnorm3(Ms, m, d)
-    k = 0.5 * (a + b)
-    rho = _max_gnorm3(Ms, m, k)
-    if not rho < 1.0:
-        out[0] = 1.0
-        out[1] = 0.0
-        return 1.0
-    out[0] = rho
-    out[1] = k
-    return rho
-
-
-# ============================================================================ batch loops
-# Flat loops used by errplan.metrics (one call per array; the scalar kernels above are the API for
-# compiled callers).
-@_jit
-def _inv3_many(A, out, rcond, singular):
-    for i in range(A.shape[0]):
-        det = inv3(A[i], out[i])
-        s = singular3(A[i], det, rcond)
-        singular[i] = s
-        if s:
-            for a in range(3):
-                for b in range(3):
-                    out[i, a, b] = NAN
-
-
-@_jit
-def _g_norm3_many(M, k, out):
-    for i in range(M.shape[0]):
-        out[i] = g_norm3(M[i], k[i])
-
-
-@_jit
-def _sigma_max3_many(A, out):
-    for i in range(A.shape[0]):
-        out[i] = sigma_max3(A[i])
-
-
-@_jit
-def _phi_max3_many(M, out):
-    for i in range(M.shape[0]):
-        out[i] = phi_max3(M[i])
-
-
-@_jit
-def _p_phi3_many(M, out):
-    for i in range(M.shape[0]):
-        p_phi3(M[i], out[i])
-
-
-@_jit
-def _v_sigma3_many(G, out):
-    for i in range(G.shape[0]):
-        v_sigma3(G[i], out[i])
-
-
-@_jit
-def _min_over_gain3_many(Ms, out, iters):
-    for i in range(Ms.shape[0]):
-        min_over_gain3(Ms[i], Ms.shape[1], out[i], iters)
