@@ -66,8 +66,8 @@ def _k_upper_M(M: np.ndarray) -> float:
 
 def _scan_M(M: np.ndarray, n: int = 81, top: int = 3):
     """3-D :func:`_scan` and :func:`_prune` in one pass: ``(rho*, k*, kg, pruned indices)``. The
-    grid's top pairs are kept; the golden-section polish runs on them (the maximum near the grid's
-    best gain is theirs), the value at the result on every pair."""
+    grid's top pairs are kept; the golden-section polish (:func:`_golden`) runs on them (the maximum
+    near the grid's best gain is theirs), the value at the result on every pair."""
     ku = _k_upper_M(M)
     kg = np.linspace(ku / n, ku, n)
     G = gnorm3_grid(M, kg)                                   # (n, p)
@@ -77,16 +77,7 @@ def _scan_M(M: np.ndarray, n: int = 81, top: int = 3):
     else:
         idx = np.unique(np.argpartition(-G, top, axis=1)[:, :top].ravel())
     Mp = M[idx]
-    j = int(np.argmin(vals))
-    lo, hi = kg[max(j - 1, 0)], kg[min(j + 1, n - 1)]
-    gr = (math.sqrt(5) - 1) / 2
-    for _ in range(40):
-        c, d = hi - gr * (hi - lo), lo + gr * (hi - lo)
-        if rho_of_k_M(Mp, c)[0] < rho_of_k_M(Mp, d)[0]:
-            hi = d
-        else:
-            lo = c
-    k = 0.5 * (lo + hi)
+    k = _golden(lambda q: rho_of_k_M(Mp, q)[0], kg, vals)
     return float(rho_of_k_M(M, k)[0]), float(k), kg, idx
 
 
@@ -97,21 +88,27 @@ def _k_upper(mu: np.ndarray) -> float:
 
 
 def _scan(mu, nu, n: int = 401) -> tuple[float, float, np.ndarray, np.ndarray]:
-    """Best gain on a numpy grid then golden-section polish: (rho*, k*, grid, values)."""
+    """Best gain on a numpy grid then golden-section polish (:func:`_golden`): (rho*, k*, grid, values)."""
     ku = _k_upper(mu)
     kg = np.linspace(ku / n, ku, n)
     vals = rho_of_k(mu, nu, kg)
+    k = _golden(lambda q: rho_of_k(mu, nu, q)[0], kg, vals)
+    return float(rho_of_k(mu, nu, k)[0]), float(k), kg, vals
+
+
+def _golden(rho, kg: np.ndarray, vals: np.ndarray) -> float:
+    """The scans' polish (plane and 3-D): golden-section search of the convex ``rho(k)`` (a scalar
+    function) between the neighbours of the grid's best gain ``kg[argmin vals]``."""
     j = int(np.argmin(vals))
-    lo, hi = kg[max(j - 1, 0)], kg[min(j + 1, n - 1)]
+    lo, hi = kg[max(j - 1, 0)], kg[min(j + 1, len(kg) - 1)]
     gr = (math.sqrt(5) - 1) / 2
     for _ in range(40):
         c, d = hi - gr * (hi - lo), lo + gr * (hi - lo)
-        if rho_of_k(mu, nu, c)[0] < rho_of_k(mu, nu, d)[0]:
+        if rho(c) < rho(d):
             hi = d
         else:
             lo = c
-    k = 0.5 * (lo + hi)
-    return float(rho_of_k(mu, nu, k)[0]), float(k), kg, vals
+    return 0.5 * (lo + hi)
 
 
 def _prune(mu, nu, kg, top: int = 3) -> np.ndarray:

@@ -133,17 +133,16 @@ def schedule_gains(src, path, options: GainOptions | None = None, *, progress=No
                               "tol": opts.switch_tolerance, "k0": 1.0, "rho0": 1.0})
                 fixed[i] = True
                 continue
-            if "M" in s:
+            prob = {"d": s["d"], "k0": s["k0"], "rho0": min(s["rho0"], 10.0),
+                    "tol": opts.tolerance if i == len(smps) - 1 else opts.switch_tolerance}
+            if "M" in s:  # 3-D: the pruned maps and their first cuts
                 M = s["M"][s["prune"]]
                 Ms[-1] = M
-                probs.append({"rows": _initial_cuts(M, s["k0"], s["ku"]), "ku": s["ku"], "d": s["d"], "k0": s["k0"],
-                              "rho0": min(s["rho0"], 10.0),
-                              "tol": opts.tolerance if i == len(smps) - 1 else opts.switch_tolerance})
-                continue
-            idx = _prune(s["mu"], s["nu"], s["kg"])
-            probs.append({"mu": s["mu"][idx], "nu": s["nu"][idx], "d": s["d"], "k0": s["k0"],
-                          "rho0": min(s["rho0"], 10.0),
-                          "tol": opts.tolerance if i == len(smps) - 1 else opts.switch_tolerance})
+                prob.update(rows=_initial_cuts(M, s["k0"], s["ku"]), ku=s["ku"])
+            else:
+                idx = _prune(s["mu"], s["nu"], s["kg"])
+                prob.update(mu=s["mu"][idx], nu=s["nu"][idx])
+            probs.append(prob)
         if dim == 3:
             ks, info = _solve_with_cuts(probs, Ms, opts, fixed)
         else:

@@ -28,10 +28,13 @@ def _pair_g(ev, k: float, singular: bool):
     return g
 
 
-def _replay_instances(ev, opts: GainOptions) -> np.ndarray:
-    """The instances the nonlinear one-step replay runs under: the verification grid in the plane, the
-    corner instances in 3-D (port corners x {no load, the largest load in 4 directions})."""
-    return ev.corner_instances() if _is_spatial(ev) else ev.errors.sample_grid(opts.verify_samples)
+def _replay_pairs(ev, b: np.ndarray, x: np.ndarray, opts: GainOptions) -> tuple[np.ndarray, np.ndarray]:
+    """The (tip, instance) pairs ``(X, TH)`` of the nonlinear one-step replay: every tip of ``x`` but
+    the centre ``b`` under every replay instance, the verification grid in the plane, the corner
+    instances in 3-D (port corners x {no load, the largest load in 4 directions})."""
+    tr = ev.corner_instances() if _is_spatial(ev) else ev.errors.sample_grid(opts.verify_samples)
+    x = x[np.linalg.norm(x - b, axis=-1) > 1e-9]
+    return np.repeat(x, len(tr), axis=0), np.tile(tr, (len(x), 1))
 
 
 def verify_segment(ev: Evaluator, start, end, k: float, radius: float, opts: GainOptions) -> dict:
@@ -41,8 +44,8 @@ def verify_segment(ev: Evaluator, start, end, k: float, radius: float, opts: Gai
     Tips: centre + ``verify_disk`` sunflower (3-D: volume spiral) + ``verify_ring`` boundary points;
     instances: ``verify_samples`` per uncertain axis (3-D: 8 load directions), then a pattern search
     over each tip's worst instance (periodic in the load direction) and over the position of the 8
-    worst tips (kept in the ball); the nonlinear step from every tip under :func:`_replay_instances`
-    and at the refined worst pairs.
+    worst tips (kept in the ball); the nonlinear step from every tip under the replay instances
+    (:func:`_replay_pairs`) and at the refined worst pairs.
     """
     es = ev.errors
     spatial = _is_spatial(ev)
@@ -54,11 +57,7 @@ def verify_segment(ev: Evaluator, start, end, k: float, radius: float, opts: Gai
     n, m = len(x), len(th)
     if spatial:
         M, ok = ev.maps(x, th)
-        G = gnorm3_grid(M.reshape(-1, 3, 3), k)[0].reshape(n, m)
-        G = np.where(np.isfinite(G), G, np.inf)
-        if singular:
-            G = np.where(ok, np.inf, G)
-        G = np.where(ok, G, -np.inf)
+        G = _mask3(gnorm3_grid(M.reshape(-1, 3, 3), k)[0].reshape(n, m), ok, singular)
         reach, corners, n_singular = ok, 1, int(ok.sum()) if singular else 0
     else:
         mu, nu, reach, ok = _pairs(ev, x, th)
@@ -70,10 +69,7 @@ def verify_segment(ev: Evaluator, start, end, k: float, radius: float, opts: Gai
     best = G[np.arange(n), j]
     th_best = th[j].copy()
     # Nonlinear one-step replay from every tip (but the centre) under every replay instance.
-    tr = _replay_instances(ev, opts)
-    far = np.linalg.norm(x - b, axis=-1) > 1e-9
-    X = np.repeat(x[far], len(tr), axis=0)
-    TH = np.tile(tr, (int(far.sum()), 1))
+    X, TH = _replay_pairs(ev, b, x, opts)
     sr = step_ratio(ev, b, X, TH, k)
     step_max = float(np.nanmax(sr)) if np.any(~np.isnan(sr)) else float("nan")
     # Refine the worst instance of every tip (pattern search over the active axes); in 3-D only from
@@ -137,7 +133,13 @@ def _g3(ev: SpatialModel, x: np.ndarray, th: np.ndarray, k: float, singular: boo
     """Worst ||G|| per pair (n,) in 3-D: -inf where the truth cannot reach the tip, +inf where it can
     and the ball is not singular-free."""
     M, ok = ev.maps_paired(x, th)
-    g = gnorm3_grid(M, k)[0]
+    return _mask3(gnorm3_grid(M, k)[0], ok, singular)
+
+
+def _mask3(g: np.ndarray, ok: np.ndarray, singular: bool) -> np.ndarray:
+    """3-D ``||G||`` values ``g`` of pairs (any shape, as ``ok``) for the verification: +inf where not
+    finite or (``singular``: the ball is not singular-free) wherever the pair is valid, -inf where the
+    truth cannot reach the tip."""
     g = np.where(np.isfinite(g), g, np.inf)
     if singular:
         g = np.where(ok, np.inf, g)
@@ -161,11 +163,7 @@ def _lower_gain(ev: Evaluator, a, b, k: float, radius: float, opts: GainOptions,
     re-verified in full; None if none is found. Smaller steps make the quasi-static step closer to
     its linearisation, at the price of a larger ``||G||`` (closer to 1)."""
     bb = np.asarray(b, float)
-    x = ball_tips(bb, radius, opts.verify_disk, opts.verify_ring)
-    x = x[np.linalg.norm(x - bb, axis=-1) > 1e-9]
-    th = _replay_instances(ev, opts)
-    X = np.repeat(x, len(th), axis=0)
-    TH = np.tile(th, (len(x), 1))
+    X, TH = _replay_pairs(ev, bb, ball_tips(bb, radius, opts.verify_disk, opts.verify_ring), opts)
     for j in range(1, tries + 1):
         kj = k * factor ** j
         sr = step_ratio(ev, bb, X, TH, kj)
