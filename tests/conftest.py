@@ -9,9 +9,14 @@ from __future__ import annotations
 
 import copy
 import math
+import os
 from pathlib import Path
 
 import pytest
+
+# The first-run compile notice (errplan.jit) is a line on stderr; tests that count stderr lines see only
+# errors. tests/test_jit.py turns it back on in its own processes.
+os.environ["ERRPLAN_COMPILE_NOTICE"] = "0"
 
 BASE_DOC = {
     "name": "test-p1",

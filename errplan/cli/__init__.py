@@ -145,6 +145,10 @@ def main(argv: list[str] | None = None) -> int:
     cmd = args.command
     try:
         mod = importlib.import_module(f"errplan.cli.{cmd}")
+        if cmd != "view":  # the first run's compile notice names the command (errplan.jit)
+            from ..jit import set_label
+
+            set_label(f"errplan {cmd}")
         return int(mod.run(args) or 0)
     except ErrplanError as e:
         _fail(cmd, str(e))

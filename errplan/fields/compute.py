@@ -289,6 +289,10 @@ def compute_fields(sc, resolution: float | None = None, rho_star: bool = False, 
         if progress:
             progress(done / total, f"tile {done}/{total}")
 
+    if compiled and len(cand) and (workers != 1 or scheduler):
+        # the kernel compiled (or loaded from the disk cache) once here, before the workers fork: one
+        # compile for all of them and one first-run notice (errplan.jit), not one per worker
+        run_tile(job, (0, 1))
     parts = map_tasks(run_tile, job, spans, workers=workers, scheduler=scheduler, progress=tick)
     shape = tuple(len(a) for a in axes)
 

@@ -19,7 +19,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import literally, njit
+from numba import literally
+
+from ..jit import njit
 
 from ..kinematics.urdf import reach_point
 from ..linalg import _smax3, inv3, phi_max3
@@ -185,15 +187,16 @@ def _flexed_J3(w, p, L, tvec, a, J, S):
             J[i, j] = (1.0 if i == j else 0.0) + L * (v * dbeta + cb * S[1, i, j] + sb * S[3, i, j])
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@njit(cache=True, error_model="numpy")
 def instance(d, x, theta, base_port, est, L, arm, Mb, jm, S, V):
     """``M = J Jhat^-1`` of one error instance at tip ``x`` into ``Mb[jm]`` (d x d). Returns
     ``(ok, w0, w1, w2)``: ``ok`` False where the shaft does not pass the port, the controller's
     Jacobian is singular or (planar) the arm cannot place the wrist; in 3-D the wrist ``w`` is
     returned and the caller checks its reachability (:func:`reach_point`) unless :func:`_tip_reach`
-    certified the tip. ``S`` (8, 3, 3) and ``V`` (8, 3) are scratch. ``d`` is a compile-time literal
-    in the search kernels, so each specialization holds one body, inlined: a call would
-    reference-count every array argument, which costs more than the arithmetic.
+    certified the tip. ``S`` (8, 3, 3) and ``V`` (8, 3) are scratch. Not forced inline (``inline="always"``
+    was, with most small kernels here): inlining doubled the first run's compile time (105 s -> 51 s for
+    the planar fields with the split dispatch below) and the fields' run time did not change measurably
+    (benchmarks/fields.py).
 
     Why the 3-D reachability check is the caller's: an inlined function that takes the chain and
     the reachability map (ten arrays) and uses them behind a branch keeps their reference counts
@@ -205,7 +208,7 @@ def instance(d, x, theta, base_port, est, L, arm, Mb, jm, S, V):
     return _instance3(x, theta, base_port, est, L, Mb, jm, S, V)
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@njit(cache=True, error_model="numpy")
 def _instance2(x, theta, base_port, est, L, arm, Mb, jm, S, V):
     """The planar instance: conformal parts of J and Jhat in real arithmetic."""
     if True:
@@ -264,7 +267,7 @@ def _instance2(x, theta, base_port, est, L, arm, Mb, jm, S, V):
     return False
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@njit(cache=True, error_model="numpy")
 def _instance3(x, theta, base_port, est, L, Mb, jm, S, V):
     """The spatial instance: the 3-D lever in closed form, or the flexed shaft under a load."""
     p0, p1, p2 = base_port[0] + theta[0], base_port[1] + theta[1], base_port[2] + theta[2]
@@ -408,7 +411,7 @@ def _tip_reach(x, base_port, lo, hi, L, rmap):
 
 
 # ----------------------------------------------------------------------------- metrics of M
-@njit(cache=True, error_model="numpy", inline="always")
+@njit(cache=True, error_model="numpy")
 def gnorm(Mb, j, k):
     """``||I - k M||_2`` of ``M = Mb[j]``: ``|1 - k mu| + k |nu|`` in the plane, the closed-form
     sigma_max in 3-D."""
@@ -459,7 +462,7 @@ def phi_bound(Mb, j):
 
 
 # ----------------------------------------------------------------------------- the search
-@njit(cache=True, error_model="numpy", inline="always")
+@njit(cache=True, error_model="numpy")
 def _poll_value(which, Mb, j, k):
     return gnorm(Mb, j, k) if which == 0 else phimax(Mb, j)
 
@@ -483,7 +486,7 @@ def _sample_table(counts, periodic, na, m, pos, stride, nbr):
                 nbr[j, 2 * ax + o] = _neighbour(j, ax, 2 * o - 1, pos, stride, counts, periodic) if counts[ax] > 1 else -1
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@njit(cache=True, error_model="numpy")
 def _neighbour(j, ax, off, pos, stride, counts, periodic):
     """Flat index of sample ``j`` moved ``off`` steps along axis ``ax``; -1 outside the box."""
     p = pos[j, ax]
@@ -495,7 +498,7 @@ def _neighbour(j, ax, off, pos, stride, counts, periodic):
     return j + (q - p) * stride[ax]
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@njit(cache=True, error_model="numpy")
 def _local_max(vals, j, nbr):
     for c in range(nbr.shape[1]):
         q = nbr[j, c]
@@ -504,7 +507,7 @@ def _local_max(vals, j, nbr):
     return True
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@njit(cache=True, error_model="numpy")
 def _far(j, i, pos, counts, periodic, na):
     """More than one grid step apart along some axis (periodic axes measured around the circle)."""
     for ax in range(na):
@@ -516,7 +519,7 @@ def _far(j, i, pos, counts, periodic, na):
     return False
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@njit(cache=True, error_model="numpy")
 def _peak_raise(vals, j, pos, stride, counts, periodic, na):
     """Estimated gain of refining sample ``j``: per axis the parabola through it and its neighbours
     (one-sided on a face, where only a vertex inside the box counts), summed over the axes."""
@@ -666,23 +669,31 @@ def _golden_gain(Ms, m, iters, k0, idx):
     return rho, kk
 
 
-@njit(cache=True, error_model="numpy")
-def worst_case_tile(X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L, k, arm, chain, rmap,
-                    refine, extra, second_start, want_phi, want_rho,
-                    out_valid, out_g, out_p, out_rho, out_k):
-    """Worst case at every tip ``X[i]`` (n, d) over the error set sampled at ``grid`` (m, na).
+def worst_case_tile(X, *args) -> None:
+    """Worst case at every tip ``X[i]`` (n, d) over the error set sampled at ``grid`` (m, na); the other
+    arguments as :func:`_search`'s.
 
     Writes ``out_valid`` (robustly reachable), ``out_g`` (worst ||G|| at gain ``k``), ``out_p``
     (worst |phi_max|, if ``want_phi``), ``out_rho``/``out_k`` (rho*, k*, if ``want_rho``; rho*
     certified by a refined worst case at k*, the scenario gain used where it does better).
-    One search for both dimensions; only :func:`instance` branches on d, a compile-time literal.
+    One search for both dimensions; the dimension is picked here, in Python, so that a command
+    compiles the search of its own dimension only (a compiled dispatch typed both).
     """
-    if X.shape[1] == 2:
-        _search(literally(2), X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L, k, arm, chain, rmap,
-                refine, extra, second_start, want_phi, want_rho, out_valid, out_g, out_p, out_rho, out_k)
-    else:
-        _search(literally(3), X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L, k, arm, chain, rmap,
-                refine, extra, second_start, want_phi, want_rho, out_valid, out_g, out_p, out_rho, out_k)
+    (_tile2 if X.shape[1] == 2 else _tile3)(X, *args)
+
+
+@njit(cache=True, error_model="numpy")
+def _tile2(X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L, k, arm, chain, rmap,
+            refine, extra, second_start, want_phi, want_rho, out_valid, out_g, out_p, out_rho, out_k):
+    _search(literally(2), X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L, k, arm, chain, rmap,
+            refine, extra, second_start, want_phi, want_rho, out_valid, out_g, out_p, out_rho, out_k)
+
+
+@njit(cache=True, error_model="numpy")
+def _tile3(X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L, k, arm, chain, rmap,
+            refine, extra, second_start, want_phi, want_rho, out_valid, out_g, out_p, out_rho, out_k):
+    _search(literally(3), X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L, k, arm, chain, rmap,
+            refine, extra, second_start, want_phi, want_rho, out_valid, out_g, out_p, out_rho, out_k)
 
 
 @njit(cache=True, error_model="numpy")
@@ -817,14 +828,20 @@ def _search(d, X, grid, counts, active, periodic, lo, hi, step0, base_port, est,
             out_k[ii] = np.nan
 
 
-@njit(cache=True, error_model="numpy")
-def motion_maps(X, TH, base_port, est, L, arm, chain, rmap, out_M, out_ok):
+def motion_maps(X, TH, base_port, est, L, arm, chain, rmap, out_M, out_ok) -> None:
     """``M = J Jhat^-1`` (into ``out_M`` (n, d, d)) and validity (``out_ok`` (n,)) of instance
-    ``TH[i]`` at tip ``X[i]``; invalid rows of ``out_M`` are NaN."""
-    if X.shape[1] == 2:
-        _motion_maps(literally(2), X, TH, base_port, est, L, arm, chain, rmap, out_M, out_ok)
-    else:
-        _motion_maps(literally(3), X, TH, base_port, est, L, arm, chain, rmap, out_M, out_ok)
+    ``TH[i]`` at tip ``X[i]``; invalid rows of ``out_M`` are NaN. The dimension is picked in Python."""
+    (_maps2 if X.shape[1] == 2 else _maps3)(X, TH, base_port, est, L, arm, chain, rmap, out_M, out_ok)
+
+
+@njit(cache=True, error_model="numpy")
+def _maps2(X, TH, base_port, est, L, arm, chain, rmap, out_M, out_ok):
+    _motion_maps(literally(2), X, TH, base_port, est, L, arm, chain, rmap, out_M, out_ok)
+
+
+@njit(cache=True, error_model="numpy")
+def _maps3(X, TH, base_port, est, L, arm, chain, rmap, out_M, out_ok):
+    _motion_maps(literally(3), X, TH, base_port, est, L, arm, chain, rmap, out_M, out_ok)
 
 
 @njit(cache=True, error_model="numpy")

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 import numpy as np
-from numba import njit
+from ...jit import njit
 
 from .model import IK_TOL, LIMIT_TOL, TWO_PI
 

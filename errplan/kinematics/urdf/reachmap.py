@@ -12,7 +12,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from numba import njit
+from ...jit import njit
 
 from .chain import _box, _dot, _fkjac3, _fkjacz3, _rows_ok
 from .model import MAP_VERSION, TWO_PI, ReachMap, cache_dir
