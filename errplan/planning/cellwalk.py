@@ -57,14 +57,18 @@ def pack(origin, h: float, cell_shape, coefs: list[np.ndarray], cell_ok: np.ndar
 @njit(cache=True, inline="always", error_model="numpy")
 def _axis(u, du):
     """Amanatides-Woo set-up on one axis: starting cell (ties on a grid line go in the motion
-    direction), step sign, parameter step per cell, parameter of the first cell boundary."""
+    direction), step sign, parameter step per cell, parameter of the first cell boundary, and whether
+    the segment runs along a grid line of this axis (no motion on it, on the line: the cell index is
+    then the line's)."""
     if du > 0:
         i = math.floor(u + 1e-12)
-        return i, 1, 1.0 / du, (i + 1 - u) / du
+        return i, 1, 1.0 / du, (i + 1 - u) / du, False
     if du < 0:
         i = math.ceil(u - 1e-12) - 1
-        return i, -1, -1.0 / du, (i - u) / du
-    return math.floor(u), 0, math.inf, math.inf
+        return i, -1, -1.0 / du, (i - u) / du, False
+    if abs(u - round(u)) < 1e-9:
+        return int(round(u)), 0, math.inf, math.inf, True
+    return math.floor(u), 0, math.inf, math.inf, False
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -130,14 +134,8 @@ def walk2(D, ya, za, yb, zb, check, cost):
     du = (yb - ya) / h
     dv = (zb - za) / h
     length = math.hypot(yb - ya, zb - za)
-    i, su, tdu, tu = _axis(u, du)
-    j, sv, tdv, tv = _axis(v, dv)
-    on_u = du == 0 and abs(u - round(u)) < 1e-9
-    on_v = dv == 0 and abs(v - round(v)) < 1e-9
-    if on_u:
-        i = int(round(u))
-    if on_v:
-        j = int(round(v))
+    i, su, tdu, tu, on_u = _axis(u, du)
+    j, sv, tdv, tv, on_v = _axis(v, dv)
     t0 = 0.0
     total = 0.0
     ok = True
@@ -209,18 +207,9 @@ def walk3(D, xa, ya, za, xb, yb, zb, check, cost):
     dv = (yb - ya) / h
     dw = (zb - za) / h
     length = math.sqrt((xb - xa) ** 2 + (yb - ya) ** 2 + (zb - za) ** 2)
-    i, si, tdi, ti = _axis(u, du)
-    j, sj, tdj, tj = _axis(v, dv)
-    k, sk, tdk, tk = _axis(w, dw)
-    on_i = du == 0 and abs(u - round(u)) < 1e-9
-    on_j = dv == 0 and abs(v - round(v)) < 1e-9
-    on_k = dw == 0 and abs(w - round(w)) < 1e-9
-    if on_i:
-        i = int(round(u))
-    if on_j:
-        j = int(round(v))
-    if on_k:
-        k = int(round(w))
+    i, si, tdi, ti, on_i = _axis(u, du)
+    j, sj, tdj, tj, on_j = _axis(v, dv)
+    k, sk, tdk, tk, on_k = _axis(w, dw)
     t0 = 0.0
     total = 0.0
     ok = True
