@@ -607,14 +607,23 @@ def test_spatial_batched_replay_equals_simulate(spatial):
 
 
 def test_calibrate_on_a_urdf_without_inertial_data(tmp_path, capsys):
-    """The Omni's URDF has no inertial data: no generalized gravity. The default catalogue leaves
-    gravity sag out and says so; asking for it is one clear error."""
+    """A URDF without inertial data (the UR5 of example-robot-data with its inertial elements removed, as
+    many a user's description is, the Omni's for one): no generalized gravity. The default catalogue
+    leaves gravity sag out and says so; asking for it is one clear error."""
+    import re
     import sys
 
     sys.path.insert(0, str(Path(__file__).parent))
-    from test_fields_spatial import omni_scenario
+    from arms import UR5_ESTIMATE, UR5_PORT, arm_scenario
+    from errplan.packages import resolve_package_uri
 
-    omni = omni_scenario(tmp_path, uncertainty="")
+    text = resolve_package_uri("package://ur_description/urdf/ur5_joint_limited_robot.urdf").read_text()
+    bare = re.sub(r"<inertial>.*?</inertial>", "", text, flags=re.S)
+    assert "<inertial>" in text and "<inertial>" not in bare
+    (tmp_path / "ur5_bare.urdf").write_text(bare, encoding="utf-8")
+    omni = arm_scenario(tmp_path, "ur5", UR5_PORT, UR5_ESTIMATE, "[controller]\ngain = 0.5\n", name="bare")
+    omni.write_text(omni.read_text().replace("package://ur_description/urdf/ur5_joint_limited_robot.urdf",
+                                             "ur5_bare.urdf"), encoding="utf-8")
     sc = load_scenario(omni)
     sc = sc.with_(controller=replace(sc.controller, gain=0.5))
     data = run_experiment(sc.with_(effects={"tracker_offset": {"bx": 0.001, "by": 0.0, "bz": 0.0}}), seed=1,

@@ -109,22 +109,22 @@ def test_demo_with_a_spatial_scenario_runs_only_that(tmp_path, capsys):
     """`errplan demo --scenario F` runs F alone, planar or spatial, and records it to --record."""
     import json as _json
 
-    from test_fields_spatial import omni_scenario
+    from arms import ur5_scenario
 
-    p = omni_scenario(tmp_path, extra="""
+    p = ur5_scenario(tmp_path, """
 [[query]]
 name = "hop"
-start = [-0.05, 0.05, 0.38]
-goal = [-0.02, 0.05, 0.38]
-""")
-    rec, js = tmp_path / "omni.rrd", tmp_path / "omni.json"
+start = [0.0, 0.0, 0.70]
+goal = [0.03, 0.0, 0.70]
+""", name="ur5")
+    rec, js = tmp_path / "ur5.rrd", tmp_path / "ur5.json"
     assert main(["--quiet", "demo", "--scenario", str(p), "--record", str(rec), "--json", str(js)]) == 0
     out = capsys.readouterr().out
-    assert "errplan demo: omni" in out and "beasley2004" not in out
+    assert "errplan demo: ur5" in out and "beasley2004" not in out
     doc = _json.loads(js.read_text())
     assert "spatial" not in doc and doc["dim"] == 3
     assert all(s["certified"] for s in doc["queries"][0]["gains"])
-    assert rec.exists() and not rec.with_name("omni-3d.rrd").exists()
+    assert rec.exists() and not rec.with_name("ur5-3d.rrd").exists()
 
 
 def test_demo_bad_scenario_is_one_clear_error(tmp_path, capsys):

@@ -187,16 +187,17 @@ def _flexed_J3(w, p, L, tvec, a, J, S):
             J[i, j] = (1.0 if i == j else 0.0) + L * (v * dbeta + cb * S[1, i, j] + sb * S[3, i, j])
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def instance(d, x, theta, base_port, est, L, arm, Mb, jm, S, V):
     """``M = J Jhat^-1`` of one error instance at tip ``x`` into ``Mb[jm]`` (d x d). Returns
     ``(ok, w0, w1, w2)``: ``ok`` False where the shaft does not pass the port, the controller's
     Jacobian is singular or (planar) the arm cannot place the wrist; in 3-D the wrist ``w`` is
     returned and the caller checks its reachability (:func:`reach_point`) unless :func:`_tip_reach`
-    certified the tip. ``S`` (8, 3, 3) and ``V`` (8, 3) are scratch. Not forced inline (``inline="always"``
-    was, with most small kernels here): inlining doubled the first run's compile time (105 s -> 51 s for
-    the planar fields with the split dispatch below) and the fields' run time did not change measurably
-    (benchmarks/fields.py).
+    certified the tip. ``S`` (8, 3, 3) and ``V`` (8, 3) are scratch. This and :func:`_instance3` are the
+    only kernels forced inline: a call would reference-count every array argument, which costs more
+    than the arithmetic in the 3-D search (about 10 % of a spatial field without it). Every other kernel
+    here was inline too; that doubled the first run's compile for no measurable run time (the planar
+    fields' first run: 105 s before, about 60 s now with the split dispatch of :func:`worst_case_tile`).
 
     Why the 3-D reachability check is the caller's: an inlined function that takes the chain and
     the reachability map (ten arrays) and uses them behind a branch keeps their reference counts
@@ -267,7 +268,7 @@ def _instance2(x, theta, base_port, est, L, arm, Mb, jm, S, V):
     return False
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def _instance3(x, theta, base_port, est, L, Mb, jm, S, V):
     """The spatial instance: the 3-D lever in closed form, or the flexed shaft under a load."""
     p0, p1, p2 = base_port[0] + theta[0], base_port[1] + theta[1], base_port[2] + theta[2]
