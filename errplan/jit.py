@@ -7,8 +7,15 @@ kernel up in that cache and misses, i.e. just before it compiles, errplan prints
 (once per process): what is compiled, that it happens once, about how long it takes. A first run never
 sits silent; a warm run says nothing. ``ERRPLAN_COMPILE_NOTICE=0`` silences it.
 
-How: numba's ``FunctionCache.load_overload`` is wrapped here (the one place errplan touches numba's
-internals); a ``None`` result for a function of errplan is a compile about to start.
+How: numba's ``FunctionCache.load_overload`` is wrapped here; a ``None`` result for a function of errplan
+is a compile about to start.
+
+Constant arguments are compile-time constants. numba compiles a kernel once per distinct argument types,
+and a constant passed from compiled code (``instance(d, ...)`` with ``d`` the literal ``2``) is a type of
+its own, ``Literal[int](2)``; but numba prunes a branch only on constants it can see, not on such an
+argument, so ``if d == 2: planar else: spatial`` compiled both. errplan's kernels run a pass of their own
+(:class:`LiteralArgsAreConstants`, through numba's ``pipeline_class`` option) that turns an integer or
+boolean literal argument into a constant before numba prunes: the planar search compiles no 3-D code.
 
 The lowest layer: numba and the standard library only.
 """
@@ -16,10 +23,14 @@ from __future__ import annotations
 
 import os
 import sys
-from typing import Callable
+from typing import Callable, Iterable
 
 import numba
-from numba.core import caching
+from numba.core import caching, ir, types
+from numba.core.compiler import CompilerBase, DefaultPassBuilder
+from numba.core.compiler_machinery import FunctionPass, register_pass
+from numba.core.registry import CPUDispatcher
+from numba.core.untyped_passes import IRProcessing
 
 #: what a first run took to compile on the reference machine (2 cores), for the notice
 COMPILE_ESTIMATE = "about 1 to 2 minutes on 2 cores for the planar and spatial kernels together"
@@ -27,12 +38,85 @@ COMPILE_ESTIMATE = "about 1 to 2 minutes on 2 cores for the planar and spatial k
 _STATE = {"announced": False, "label": "errplan"}
 
 
-def njit(*args, **options) -> Callable:
-    """``numba.njit`` with ``cache=True`` unless given. Used as ``@njit``, ``@njit(...)`` or ``njit(f, ...)``."""
-    options.setdefault("cache", True)
+@register_pass(mutates_CFG=True, analysis_only=False)
+class LiteralArgsAreConstants(FunctionPass):
+    """An integer or boolean argument whose type is a literal (a constant at the call site) becomes that
+    constant in the function's IR, before numba's dead-branch pruning: a branch on it is compiled only
+    the way it goes."""
+
+    _name = "errplan_literal_args_are_constants"
+
+    def __init__(self):
+        FunctionPass.__init__(self)
+
+    def run_pass(self, state):
+        changed = False
+        for block in state.func_ir.blocks.values():
+            for stmt in block.body:
+                if isinstance(stmt, ir.Assign) and isinstance(stmt.value, ir.Arg):
+                    ty = state.args[stmt.value.index]
+                    if isinstance(ty, (types.IntegerLiteral, types.BooleanLiteral)):
+                        stmt.value = ir.Const(ty.literal_value, stmt.value.loc)
+                        changed = True
+        return changed
+
+
+class Compiler(CompilerBase):
+    """numba's nopython pipeline with :class:`LiteralArgsAreConstants` before the branch pruning."""
+
+    def define_pipelines(self):
+        pm = DefaultPassBuilder.define_nopython_pipeline(self.state)
+        pm.add_pass_after(LiteralArgsAreConstants, IRProcessing)
+        pm.finalize()
+        return [pm]
+
+
+class Dispatcher(CPUDispatcher):
+    """numba's CPU dispatcher, except that a call from compiled code with a constant argument (``f(x, 0)``,
+    ``f(x, True)``) reuses the specialization for the argument's plain type: a constant is a new
+    specialization (and a compile) only for the parameters named in :attr:`literal_args`."""
+
+    literal_args: frozenset = frozenset()
+
+    def get_call_template(self, args, kws):
+        keep = self.literal_args
+        names = self.py_func.__code__.co_varnames[:self.py_func.__code__.co_argcount]
+        args = tuple(a if i < len(names) and names[i] in keep else types.unliteral(a) for i, a in enumerate(args))
+        kws = {k: (v if k in keep else types.unliteral(v)) for k, v in kws.items()}
+        return super().get_call_template(args, kws)
+
+
+def njit(*args, literal_args: Iterable[str] = (), **options) -> Callable:
+    """``numba.njit`` with ``cache=True`` unless given, errplan's :class:`Compiler` and :class:`Dispatcher`.
+    Used as ``@njit``, ``@njit(...)`` or ``njit(f, ...)``. ``literal_args``: the parameters that are
+    compile-time constants when a caller passes a constant (the dimension ``d`` of the field kernels)."""
+    cache = options.pop("cache", True)
+    pipeline_class = options.pop("pipeline_class", Compiler)
+    locals_ = options.pop("locals", {})
+    targetoptions = dict(options, nopython=True, boundscheck=options.get("boundscheck"))
+    keep = frozenset([literal_args] if isinstance(literal_args, str) else literal_args)
+
+    def wrap(f):
+        disp = Dispatcher(py_func=f, locals=locals_, targetoptions=targetoptions, pipeline_class=pipeline_class)
+        disp.literal_args = keep
+        if cache:
+            disp.enable_caching()
+        return disp
+
     if len(args) == 1 and callable(args[0]):
-        return numba.njit(**options)(args[0])
-    return numba.njit(**options)
+        return wrap(args[0])
+    return wrap
+
+
+def cached(dispatcher) -> bool:
+    """Whether the disk cache holds a kernel compiled from the current source (some specialization)."""
+    cache_file = getattr(getattr(dispatcher, "_cache", None), "_cache_file", None)
+    if cache_file is None:
+        return True  # not cached on disk: nothing to compile ahead
+    try:
+        return bool(cache_file._load_index())
+    except Exception:  # an unreadable index is a compile too
+        return False
 
 
 def set_label(label: str) -> None:

@@ -499,6 +499,8 @@ def _bad_urdfs(src: str) -> list[tuple[str, str, dict]]:
         ("origin-two-numbers", src.replace(elbow_origin, '<origin xyz="0 0.21" rpy="0 0 0"/>'), {}),
         ("origin-not-a-number", src.replace(elbow_origin, '<origin xyz="0 zero 0.21" rpy="0 0 0"/>'), {}),
         ("rpy-missing-number", src.replace(elbow_origin, '<origin xyz="0 0 0.21" rpy="1.57 0"/>'), {}),
+        ("origin-overflow", src.replace(elbow_origin, '<origin xyz="0 0 1e400" rpy="0 0 0"/>'), {}),
+        ("link-origin-nan", src.replace('<origin xyz="0 -0.105 0" rpy="0 0 0"/>', '<origin xyz="0 nan 0" rpy="0 0 0"/>', 1), {}),
         ("reversed-limits", src.replace('lower="-1.9" upper="1.2"', 'lower="1.2" upper="-1.9"'),
          {"robot.joint_limits": None, "robot.coupled_limits": None}),
         ("nan-limit", src.replace('lower="-1.9" upper="1.2"', 'lower="nan" upper="1.2"'),

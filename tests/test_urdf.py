@@ -24,7 +24,7 @@ from errplan.kinematics import urdf as U
 from errplan.kinematics.arm import Arm
 from errplan.kinematics.urdf import CoupledLimit, UrdfArm, phantom_urdf
 
-from arms import ARMS, OMNI, SHARED_ROBOTS as ROBOTS, needs_omni
+from arms import ARMS, OMNI, SHARED_ROBOTS as ROBOTS, arm_scenario, needs_omni
 from errplan import packages
 
 REPO = Path(__file__).resolve().parents[1]
@@ -749,6 +749,68 @@ def test_package_uri_in_a_scenario(tmp_path, monkeypatch):
     msg = str(e.value)
     assert "[robot] urdf" in msg and "package://missing_description/urdf/toy.urdf" in msg and "pkgs" in msg
     assert "\n" not in msg
+
+
+def test_package_uri_search_order(tmp_path, monkeypatch):
+    """package://NAME/PATH in a scenario: the scenario's package_path first, then ROS_PACKAGE_PATH, then the
+    installed description packages; a package in none of them is one line naming the URI and every folder
+    looked in (all three kinds)."""
+    from errplan.scenario import read_scenario
+
+    rel = "ur_description/urdf/ur5_joint_limited_robot.urdf"
+    copies = {}
+    for where in ("mine", "ros"):
+        f = tmp_path / where / rel
+        f.parent.mkdir(parents=True)
+        f.write_bytes(erd_path("ur5").read_bytes())
+        copies[where] = f.resolve()
+    plain = arm_scenario(tmp_path, "ur5", [0.1, 0.2, 0.6], [0.1, 0.2, 0.6]).read_text(encoding="utf-8")
+    assert f'urdf = "package://{rel}"' in plain
+    own = tmp_path / "own.toml"
+    own.write_text(plain.replace(f'urdf = "package://{rel}"', f'urdf = "package://{rel}"\npackage_path = ["mine"]'),
+                   encoding="utf-8")
+    plain_path = tmp_path / "ur5.toml"
+    monkeypatch.setenv("ROS_PACKAGE_PATH", os.pathsep.join([str(tmp_path / "nowhere"), str(tmp_path / "ros")]))
+    assert Path(read_scenario(own).robot.urdf) == copies["mine"]          # package_path before ROS_PACKAGE_PATH
+    assert Path(read_scenario(plain_path).robot.urdf) == copies["ros"]    # ROS_PACKAGE_PATH before installed
+    monkeypatch.delenv("ROS_PACKAGE_PATH")
+    assert Path(read_scenario(plain_path).robot.urdf) == erd_path("ur5")  # installed (example-robot-data)
+    assert Path(read_scenario(own).robot.urdf) == copies["mine"]
+    monkeypatch.setenv("ROS_PACKAGE_PATH", str(tmp_path / "ros"))
+    miss = tmp_path / "miss.toml"
+    miss.write_text(own.read_text(encoding="utf-8").replace("package://ur_description/", "package://nobody_description/"),
+                    encoding="utf-8")
+    with pytest.raises(ErrplanError) as e:
+        read_scenario(miss)
+    msg = str(e.value)
+    assert "\n" not in msg and e.value.__cause__ is None
+    assert f"package://nobody_description/{rel.partition('/')[2]}" in msg
+    assert str((tmp_path / "mine").resolve()) in msg or str(tmp_path / "mine") in msg
+    assert str(tmp_path / "ros") in msg
+    assert str(packages.installed_roots()[0]) in msg
+
+
+@pytest.mark.parametrize("which", sorted(ARMS))
+def test_example_robot_data_scenarios(which, tmp_path, monkeypatch):
+    """The example-robot-data arms as a user names them, in a scenario (urdf = "package://...", nothing of
+    this machine in the file): the scenario's arm against pinocchio's FK on the same file, with the held
+    joints at their values, and its Jacobian against central differences."""
+    from errplan.kinematics import arm_for
+    from errplan.scenario import read_scenario
+
+    monkeypatch.delenv("ROS_PACKAGE_PATH", raising=False)
+    path = arm_scenario(tmp_path, which, [0.1, 0.2, 0.6], [0.1, 0.2, 0.6])
+    assert "package://" in path.read_text(encoding="utf-8")
+    sc = read_scenario(path)
+    assert Path(sc.robot.urdf) == erd_path(which)
+    arm = arm_for(sc.robot)
+    a = ARMS[which]
+    assert arm.joint_names == tuple(a["joints"])
+    q = random_q(arm, 100, 7, feasible=False)
+    W, J = pin_world(erd_path(which), a["wrist"], arm.base_position, arm.base_rpy, q, a["joints"], a["fixed_joints"])
+    assert np.allclose(arm.forward(q), W, rtol=0, atol=1e-14)
+    assert np.allclose(arm.jacobian(q), J, rtol=0, atol=1e-14)
+    assert np.allclose(arm.jacobian(q), fd_jacobian(arm.forward, q), rtol=0, atol=1e-9)
 
 
 # ============================================================================ bad input

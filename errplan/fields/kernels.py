@@ -187,7 +187,7 @@ def _flexed_J3(w, p, L, tvec, a, J, S):
             J[i, j] = (1.0 if i == j else 0.0) + L * (v * dbeta + cb * S[1, i, j] + sb * S[3, i, j])
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@njit(cache=True, error_model="numpy", inline="always", literal_args="d")
 def instance(d, x, theta, base_port, est, L, arm, Mb, jm, S, V):
     """``M = J Jhat^-1`` of one error instance at tip ``x`` into ``Mb[jm]`` (d x d). Returns
     ``(ok, w0, w1, w2)``: ``ok`` False where the shaft does not pass the port, the controller's
@@ -412,11 +412,11 @@ def _tip_reach(x, base_port, lo, hi, L, rmap):
 
 
 # ----------------------------------------------------------------------------- metrics of M
-@njit(cache=True, error_model="numpy")
-def gnorm(Mb, j, k):
+@njit(cache=True, error_model="numpy", literal_args="d")
+def gnorm(d, Mb, j, k):
     """``||I - k M||_2`` of ``M = Mb[j]``: ``|1 - k mu| + k |nu|`` in the plane, the closed-form
-    sigma_max in 3-D."""
-    if Mb.shape[1] == 2:
+    sigma_max in 3-D. ``d`` (2 or 3) is a compile-time constant in the search: one branch is compiled."""
+    if d == 2:
         mr = 0.5 * (Mb[j, 0, 0] + Mb[j, 1, 1])
         mi = 0.5 * (Mb[j, 1, 0] - Mb[j, 0, 1])
         nr = 0.5 * (Mb[j, 0, 0] - Mb[j, 1, 1])
@@ -429,9 +429,17 @@ def gnorm(Mb, j, k):
 
 @njit(cache=True, error_model="numpy")
 def phimax(Mb, j):
-    """Exact ``|phi_max|`` of ``M = Mb[j]``: the conformal closed form in the plane, the S^2 method
-    of errplan.linalg in 3-D."""
+    """Exact ``|phi_max|`` of ``M = Mb[j]`` (d x d, either d); the search calls :func:`_phimax`."""
     if Mb.shape[1] == 2:
+        return _phimax(2, Mb, j)
+    return _phimax(3, Mb, j)
+
+
+@njit(cache=True, error_model="numpy", literal_args="d")
+def _phimax(d, Mb, j):
+    """Exact ``|phi_max|`` of ``M = Mb[j]``: the conformal closed form in the plane, the S^2 method
+    of errplan.linalg in 3-D (``d`` as :func:`gnorm`'s)."""
+    if d == 2:
         mr = 0.5 * (Mb[j, 0, 0] + Mb[j, 1, 1])
         mi = 0.5 * (Mb[j, 1, 0] - Mb[j, 0, 1])
         amu = math.sqrt(mr * mr + mi * mi)
@@ -458,14 +466,14 @@ def phi_bound(Mb, j):
             f += Mb[j, a, b] * Mb[j, a, b]
     if not (tr > 0.0 and f > 0.0):
         return math.pi
-    g = gnorm(Mb, j, tr / f)
+    g = gnorm(3, Mb, j, tr / f)
     return math.asin(g) if g < 1.0 else math.pi
 
 
 # ----------------------------------------------------------------------------- the search
-@njit(cache=True, error_model="numpy")
-def _poll_value(which, Mb, j, k):
-    return gnorm(Mb, j, k) if which == 0 else phimax(Mb, j)
+@njit(cache=True, error_model="numpy", literal_args="d")
+def _poll_value(d, which, Mb, j, k):
+    return gnorm(d, Mb, j, k) if which == 0 else _phimax(d, Mb, j)
 
 
 @njit(cache=True, error_model="numpy")
@@ -556,7 +564,7 @@ def _peak_raise(vals, j, pos, stride, counts, periodic, na):
     return out
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", literal_args="d")
 def _pattern(d, which, k, x, th, best, step0, lo, hi, active, periodic, refine, extra, base_port, est, L, arm,
              chain, rmap, M, S, V, cand, known):
     """Coordinate pattern search for the maximum of metric ``which`` (0: ||G|| at gain k, 1: |phi_max|)
@@ -586,7 +594,7 @@ def _pattern(d, which, k, x, th, best, step0, lo, hi, active, periodic, refine, 
                         return best, False
                     if which == 1 and d == 3 and phi_bound(M, 0) <= best:
                         continue  # this instance cannot raise the worst |phi_max|
-                    f = _poll_value(which, M, 0, k)
+                    f = _poll_value(d, which, M, 0, k)
                     if f > best:
                         best = f
                         for i in range(na):
@@ -596,35 +604,35 @@ def _pattern(d, which, k, x, th, best, step0, lo, hi, active, periodic, refine, 
     return best, True
 
 
-@njit(cache=True, error_model="numpy")
-def _golden(Ms, idx, na_, kmax, iters):
+@njit(cache=True, error_model="numpy", literal_args="d")
+def _golden(d, Ms, idx, na_, kmax, iters):
     """``min over k in [0, kmax] of max_{i in idx[:na_]} ||I - k Ms[i]||`` by golden section (convex in k)."""
     gr = (math.sqrt(5.0) - 1.0) / 2.0
     a, b = 0.0, kmax
-    c, d = b - gr * (b - a), a + gr * (b - a)
+    c, e = b - gr * (b - a), a + gr * (b - a)
     fc = 0.0
     fd = 0.0
     for q in range(na_):
-        fc = max(fc, gnorm(Ms, idx[q], c))
-        fd = max(fd, gnorm(Ms, idx[q], d))
+        fc = max(fc, gnorm(d, Ms, idx[q], c))
+        fd = max(fd, gnorm(d, Ms, idx[q], e))
     for _ in range(iters):
         if fc < fd:
-            b, d, fd = d, c, fc
+            b, e, fd = e, c, fc
             c = b - gr * (b - a)
             fc = 0.0
             for q in range(na_):
-                fc = max(fc, gnorm(Ms, idx[q], c))
+                fc = max(fc, gnorm(d, Ms, idx[q], c))
         else:
-            a, c, fc = c, d, fd
-            d = a + gr * (b - a)
+            a, c, fc = c, e, fd
+            e = a + gr * (b - a)
             fd = 0.0
             for q in range(na_):
-                fd = max(fd, gnorm(Ms, idx[q], d))
+                fd = max(fd, gnorm(d, Ms, idx[q], e))
     return 0.5 * (a + b)
 
 
-@njit(cache=True, error_model="numpy")
-def _golden_gain(Ms, m, iters, k0, idx):
+@njit(cache=True, error_model="numpy", literal_args="d")
+def _golden_gain(d, Ms, m, iters, k0, idx):
     """``min over k > 0 of max_i ||I - k M_i||`` over the m sampled instances; ``(rho, k)``,
     ``(1, 0)`` where no gain contracts.
 
@@ -643,7 +651,7 @@ def _golden_gain(Ms, m, iters, k0, idx):
     kmax = 2.0 / amax if amax > 0 else 1.0
     jw, vw = 0, -1.0
     for i in range(m):
-        v = gnorm(Ms, i, k0)
+        v = gnorm(d, Ms, i, k0)
         if v > vw:
             jw, vw = i, v
     idx[0] = jw
@@ -651,13 +659,13 @@ def _golden_gain(Ms, m, iters, k0, idx):
     kk = 0.0
     rho = 1.0
     while True:
-        kk = _golden(Ms, idx, n_act, kmax, iters)
+        kk = _golden(d, Ms, idx, n_act, kmax, iters)
         act = 0.0
         for q in range(n_act):
-            act = max(act, gnorm(Ms, idx[q], kk))
+            act = max(act, gnorm(d, Ms, idx[q], kk))
         jw, vw = -1, act
         for i in range(m):
-            v = gnorm(Ms, i, kk)
+            v = gnorm(d, Ms, i, kk)
             if v > vw * (1.0 + 1e-13) + 1e-15:
                 jw, vw = i, v
         rho = vw
@@ -697,7 +705,7 @@ def _tile3(X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L, 
             refine, extra, second_start, want_phi, want_rho, out_valid, out_g, out_p, out_rho, out_k)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", literal_args="d")
 def _search(d, X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L, k, arm, chain, rmap,
             refine, extra, second_start, want_phi, want_rho, out_valid, out_g, out_p, out_rho, out_k):
     n = X.shape[0]
@@ -712,7 +720,6 @@ def _search(d, X, grid, counts, active, periodic, lo, hi, step0, base_port, est,
     cand = np.empty(na)
     results = np.empty(2)
     idx = np.empty(m, np.int64)
-    order = np.empty(m, np.int64)
     pos = np.empty((m, na), np.int64)
     stride = np.empty(na, np.int64)
     nbr = np.empty((m, 2 * na), np.int64)
@@ -739,25 +746,24 @@ def _search(d, X, grid, counts, active, periodic, lo, hi, step0, base_port, est,
             if not (okj and (d == 2 or known or reach_point(chain, rmap, w0, w1, w2))):
                 ok = False
                 break
-            vals_g[j] = gnorm(Ms, j, k)
+            vals_g[j] = gnorm(d, Ms, j, k)
         if ok and want_phi:
             if d == 2:
                 for j in range(m):
-                    vals_p[j] = phimax(Ms, j)
+                    vals_p[j] = _phimax(d, Ms, j)
             else:
                 # branch and bound: exact |phi_max| only where the cheap bound could beat the best
                 # exact value so far; elsewhere the bound stands in (never above the best exact)
                 for j in range(m):
                     vals_p[j] = phi_bound(Ms, j)
-                    order[j] = j
-                order[:] = np.argsort(-vals_p)
+                order = np.argsort(-vals_p)
                 best_exact = -1.0
                 for q in range(m):
                     j = order[q]
                     if vals_p[j] <= best_exact:
                         vals_p[j] = min(vals_p[j], best_exact)
                         continue
-                    vals_p[j] = phimax(Ms, j)
+                    vals_p[j] = _phimax(d, Ms, j)
                     best_exact = max(best_exact, vals_p[j])
         for which in range((2 if want_phi else 1) if ok else 0):
             vals = vals_g if which == 0 else vals_p
@@ -802,13 +808,13 @@ def _search(d, X, grid, counts, active, periodic, lo, hi, step0, base_port, est,
         out_g[ii] = results[0]
         out_p[ii] = results[1] if want_phi else np.nan
         if want_rho:
-            rs, ks = _golden_gain(Ms, m, 60, k, idx)
+            rs, ks = _golden_gain(d, Ms, m, 60, k, idx)
             if ks > 0:
                 # certify at k*: the refined worst case over the continuous set at that gain
                 jbest = 0
                 vbest = -1.0
                 for j in range(m):
-                    v = gnorm(Ms, j, ks)
+                    v = gnorm(d, Ms, j, ks)
                     if v > vbest:
                         vbest, jbest = v, j
                 for i in range(na):
@@ -831,7 +837,11 @@ def _search(d, X, grid, counts, active, periodic, lo, hi, step0, base_port, est,
 
 def motion_maps(X, TH, base_port, est, L, arm, chain, rmap, out_M, out_ok) -> None:
     """``M = J Jhat^-1`` (into ``out_M`` (n, d, d)) and validity (``out_ok`` (n,)) of instance
-    ``TH[i]`` at tip ``X[i]``; invalid rows of ``out_M`` are NaN. The dimension is picked in Python."""
+    ``TH[i]`` at tip ``X[i]``; invalid rows of ``out_M`` are NaN. The dimension is picked in Python.
+    Read-only inputs (broadcast views) are copied: numba types a read-only array apart, and one
+    specialization (one compile) serves every caller."""
+    X = X if X.flags.writeable else X.copy()
+    TH = TH if TH.flags.writeable else TH.copy()
     (_maps2 if X.shape[1] == 2 else _maps3)(X, TH, base_port, est, L, arm, chain, rmap, out_M, out_ok)
 
 
@@ -845,7 +855,7 @@ def _maps3(X, TH, base_port, est, L, arm, chain, rmap, out_M, out_ok):
     _motion_maps(literally(3), X, TH, base_port, est, L, arm, chain, rmap, out_M, out_ok)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", literal_args="d")
 def _motion_maps(d, X, TH, base_port, est, L, arm, chain, rmap, out_M, out_ok):
     S = np.zeros((8, 3, 3))
     V = np.zeros((8, 3))

@@ -302,15 +302,23 @@ def path_cost3(D, pts):
     return ok, total
 
 
-@njit(cache=True, error_model="numpy")
 def walk_many(D, A, B, check):
     """Costs of the motions ``A[i] -> B[i]`` (arrays (n, d)); with ``check``, ``inf`` for the
-    invalid ones."""
-    n, d = A.shape
-    out = np.empty(n)
-    for m in range(n):
-        if d == 2:
-            out[m] = walk2(D, A[m, 0], A[m, 1], B[m, 0], B[m, 1], check, True)[1]
-        else:
-            out[m] = walk3(D, A[m, 0], A[m, 1], A[m, 2], B[m, 0], B[m, 1], B[m, 2], check, True)[1]
+    invalid ones. The dimension is picked here: a command compiles the walk of its own dimension."""
+    return (_walk_many2 if A.shape[1] == 2 else _walk_many3)(D, A, B, check)
+
+
+@njit(cache=True, error_model="numpy")
+def _walk_many2(D, A, B, check):
+    out = np.empty(A.shape[0])
+    for m in range(A.shape[0]):
+        out[m] = walk2(D, A[m, 0], A[m, 1], B[m, 0], B[m, 1], check, True)[1]
+    return out
+
+
+@njit(cache=True, error_model="numpy")
+def _walk_many3(D, A, B, check):
+    out = np.empty(A.shape[0])
+    for m in range(A.shape[0]):
+        out[m] = walk3(D, A[m, 0], A[m, 1], A[m, 2], B[m, 0], B[m, 1], B[m, 2], check, True)[1]
     return out

@@ -10,6 +10,7 @@ import re
 import sys
 import tempfile
 import xml.etree.ElementTree as ET
+from xml.parsers import expat
 from pathlib import Path
 from typing import Mapping, Sequence
 
@@ -75,6 +76,8 @@ def _joint_kind(shortname: str) -> str:
         return "revolute"
     if re.search(r"Prismatic|JointModelP[XYZ]$", shortname):
         return "prismatic"
+    if re.search(r"FreeFlyer", shortname):
+        return "floating"   # the URDF's name for it
     return re.sub(r"^JointModel", "", shortname).lower()
 
 
@@ -88,9 +91,57 @@ def _finite_tuple(value, n: int, what: str, where: str) -> tuple[float, ...]:
     return tuple(float(v) for v in arr)
 
 
+def _refuse_entities(raw: bytes, where: str) -> None:
+    """A URDF declares no XML entities: a file that does is refused at the first declaration, before
+    anything is expanded (an entity-expansion bomb never grows, whatever expat's own limits)."""
+    parser = expat.ParserCreate()
+
+    def declared(name, *_):
+        raise ScenarioError(f"URDF {where} declares the XML entity '{name}' (<!ENTITY>): a URDF uses none; "
+                            "refused, entities can expand without bound")
+
+    parser.EntityDeclHandler = declared
+    try:
+        parser.Parse(raw, True)
+    except expat.ExpatError:
+        pass  # not XML: ElementTree names the error
+
+
+def _three_numbers(text: str) -> list[float] | None:
+    """The 3 finite numbers of a URDF vector attribute (``xyz``, ``rpy``), or None."""
+    try:
+        v = [float(t) for t in text.split()]
+    except ValueError:
+        return None
+    return v if len(v) == 3 and all(math.isfinite(x) for x in v) else None
+
+
+def _check_vectors(root, where: str) -> None:
+    """Every ``origin`` (xyz, rpy) of a joint or link and every joint ``axis`` (xyz): 3 finite numbers. urdfdom
+    rejects most bad ones without naming the joint or link; this names it."""
+    for kind in ("joint", "link"):
+        for el in root.iter(kind):
+            for sub in el.iter():
+                attrs = {"origin": ("xyz", "rpy"), "axis": ("xyz",)}.get(sub.tag, ()) if sub is not el else ()
+                for attr in attrs:
+                    text = sub.get(attr)
+                    if text is not None and _three_numbers(text) is None:
+                        raise ScenarioError(f"{where}: {kind} '{el.get('name', '?')}' has <{sub.tag} {attr}=\"{text}\">: "
+                                            "expected 3 finite numbers")
+
+
 def _check_tree(root, where: str) -> None:
-    """What urdfdom and pinocchio let through or report misleadingly: a link with two parent joints (a URDF
-    is a tree) and a movable joint whose axis is not a direction. One :class:`ScenarioError` each."""
+    """What urdfdom and pinocchio let through or report misleadingly: origins and axes that are not 3 finite
+    numbers (:func:`_check_vectors`), a joint naming a link that is not declared, a link with two parent
+    joints (a URDF is a tree) and a movable joint whose axis is not a direction. One :class:`ScenarioError` each, naming the joint or link."""
+    _check_vectors(root, where)
+    links = {link.get("name") for link in root.findall("link")}
+    for j in root.findall("joint"):
+        for end in ("parent", "child"):
+            el = j.find(end)
+            if el is not None and el.get("link") is not None and el.get("link") not in links:
+                raise ScenarioError(f"{where}: joint '{j.get('name', '?')}' names the {end} link '{el.get('link')}', "
+                                    "which is not a <link> of the URDF")
     parents: dict[str, list[str]] = {}
     for j in root.iter("joint"):
         name = j.get("name", "?")
@@ -100,11 +151,8 @@ def _check_tree(root, where: str) -> None:
         axis = j.find("axis")
         if axis is None or j.get("type") in ("fixed", "floating"):
             continue
-        try:
-            xyz = [float(v) for v in (axis.get("xyz") or "1 0 0").split()]
-        except ValueError:
-            continue  # urdfdom names the bad number
-        if len(xyz) == 3 and all(math.isfinite(v) for v in xyz) and math.hypot(*xyz) < 1e-12:
+        xyz = _three_numbers(axis.get("xyz") or "1 0 0")
+        if xyz is not None and math.hypot(*xyz) < 1e-12:
             raise ScenarioError(f"{where}: joint '{name}' has a zero axis (xyz = \"{axis.get('xyz')}\"): "
                                 "expected a direction")
     for link, js in parents.items():
@@ -137,6 +185,7 @@ def read_chain(urdf: str | Path, joints: Sequence[str], wrist: str, base_positio
     path = Path(urdf)
     where = str(path)
     raw = read_bytes(path, "URDF file", ScenarioError)
+    _refuse_entities(raw, where)
     try:
         root = ET.fromstring(raw)
     except ET.ParseError as exc:

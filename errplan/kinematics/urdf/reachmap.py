@@ -1,6 +1,7 @@
 """The reachability map of a URDF arm's wrist workspace (the package docstring states its guarantees):
-the compiled build (face patches and joint cells bounded by image balls, one flood fill labelling
-out / in / boundary voxels, IK seeds), the bounds it rests on, and its on-disk cache."""
+the compiled build (face patches and joint cells bounded by image balls; one flood fill, :func:`_flood`,
+that labels the out and in voxels and hands IK seeds on to the seed cells without), the bounds it rests
+on, and its on-disk cache."""
 from __future__ import annotations
 
 import math
@@ -165,11 +166,34 @@ def _neighbour6(ix, iy, iz, d):
 @njit(cache=True, inline="always")
 def _step6(v, nx, ny, nz, d):
     """Linear index of the ``d``-th face neighbour (0..5) of cell ``v`` of an (nx, ny, nz) grid, or -1 off
-    the grid: the one neighbourhood of both flood fills (voxel labels, cell seeds)."""
+    the grid: the neighbourhood of :func:`_flood`."""
     jx, jy, jz = _neighbour6(v // (ny * nz), (v // nz) % ny, v % nz, d)
     if jx < 0 or jy < 0 or jz < 0 or jx >= nx or jy >= ny or jz >= nz:
         return -1
     return (jx * ny + jy) * nz + jz
+
+
+@njit(cache=True)
+def _flood(free, queue, qt, nx, ny, nz, parent):
+    """The one flood fill of the map (voxel labels, seed cells): breadth first over the face neighbours
+    of an (nx, ny, nz) grid, from the sources ``queue[:qt]`` into every ``free`` cell connected to them
+    through free cells. Each cell entered is no longer free, joins the queue and, if ``parent`` has
+    room, records the cell it was entered from. Returns the queue's length: ``queue[:qt]`` the sources,
+    then the cells entered, in order (a cell after the one it was entered from)."""
+    qh = 0
+    while qh < qt:
+        v = queue[qh]
+        qh += 1
+        for d in range(6):
+            u = _step6(v, nx, ny, nz, d)
+            if u < 0 or not free[u]:
+                continue
+            free[u] = False
+            if parent.size > 0:
+                parent[u] = v
+            queue[qt] = u
+            qt += 1
+    return qt
 
 
 @njit(cache=True, inline="always")
@@ -345,12 +369,13 @@ def _build_map(chain, K, M2, jlo, djoint, ncell, faces, origin, h, shape, sub, b
     # ---- flood fill of the non-boundary voxels: out from the border layer, in from the hits
     lab = np.zeros(nvox, np.uint8)   # 0 unknown, 1 out, 2 in
     queue = np.empty(nvox, np.int64)
+    no_parent = np.empty(0, np.int64)
     conflicts = 0
     for pas in range(2):
-        qh = 0
+        free = (bnd == 0) & (lab == 0)
         qt = 0
         for v in range(nvox):
-            if bnd[v] or lab[v]:
+            if not free[v]:
                 continue
             iz = v % nz
             iy = (v // nz) % ny
@@ -360,21 +385,15 @@ def _build_map(chain, K, M2, jlo, djoint, ncell, faces, origin, h, shape, sub, b
             else:
                 start = hit[v] == 1
             if start:
-                lab[v] = 1 + pas
+                free[v] = False
                 queue[qt] = v
                 qt += 1
-        while qh < qt:
-            v = queue[qh]
-            qh += 1
+        qt = _flood(free, queue, qt, nx, ny, nz, no_parent)
+        for k in range(qt):
+            v = queue[k]
+            lab[v] = 1 + pas
             if pas == 0 and hit[v]:
                 conflicts += 1
-            for d in range(6):
-                u = _step6(v, nx, ny, nz, d)
-                if u < 0 or bnd[u] or lab[u]:
-                    continue
-                lab[u] = 1 + pas
-                queue[qt] = u
-                qt += 1
     state = np.empty(nvox, np.uint8)
     cflag = np.zeros(ncel, np.uint8)   # 0 only out voxels, 1 some in, 2 some boundary
     for v in range(nvox):
@@ -423,26 +442,24 @@ def _build_map(chain, K, M2, jlo, djoint, ncell, faces, origin, h, shape, sub, b
                     for k in range(scnt[u]):
                         _add_seed(fd, fdist, fcnt, c, sd[u, k, 0], sd[u, k, 1], sd[u, k, 2],
                                   sdist[u, k] + off, tau)
-    qh = 0
-    qt = 0
+    # cells with seeds hand them on (one more cell away each step) to the cells still without
+    free = (cflag != 0) & (fcnt == 0)
     cq = np.empty(ncel, np.int64)
+    parent = np.empty(ncel, np.int64)
+    qt = 0
     for c in range(ncel):
         if cflag[c] != 0 and fcnt[c] > 0:
             cq[qt] = c
             qt += 1
-    while qh < qt:
-        c = cq[qh]
-        qh += 1
-        for d in range(6):
-            u = _step6(c, cx, cy, cz, d)
-            if u < 0 or cflag[u] == 0 or fcnt[u] > 0:
-                continue
-            for k in range(fcnt[c]):
-                fd[u, k] = fd[c, k]
-                fdist[u, k] = fdist[c, k] + 1.0
-            fcnt[u] = fcnt[c]
-            cq[qt] = u
-            qt += 1
+    q0 = qt
+    qt = _flood(free, cq, qt, cx, cy, cz, parent)
+    for k in range(q0, qt):
+        u = cq[k]
+        c = parent[u]
+        for j in range(fcnt[c]):
+            fd[u, j] = fd[c, j]
+            fdist[u, j] = fdist[c, j] + 1.0
+        fcnt[u] = fcnt[c]
     seedless = 0
     total = 0
     for c in range(ncel):

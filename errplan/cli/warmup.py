@@ -1,0 +1,212 @@
+"""Compile in a second process what a command needs later (issue 17).
+
+A first run compiles errplan's kernels (numba, cached on disk: :mod:`errplan.jit`), and ``errplan demo``
+needs the planar and the spatial ones while most of its own work (the URDF arm's reachability map, the
+gains, the simulation) runs on one core. So when the cache is cold, :func:`start` launches
+``python -m errplan.cli.warmup`` beside the command: a process that compiles the kernels of given parts, in
+order, into the same disk cache and reports each part done. Before a step the command calls
+:func:`wait` for that step's part, then loads the kernels from the cache instead of compiling them, and
+it plans (a planner with a time budget) with the warm-up :func:`paused`, so that the plans of a first
+run are those of any later one. A warm cache starts nothing; a failed or killed warm-up only means the
+command compiles that part itself. ``ERRPLAN_WARMUP=0`` turns it off; it needs 2 cores.
+
+Parts (each compiles, or loads, the kernels of one step at the argument types the step passes):
+``fields2``/``fields3`` (the worst-case search and the motion maps), ``plan2``/``plan3`` (the planner's
+cell walks), ``gains3`` (the 3-D gains: ``||I - k M||`` grids, cuts, inverses, inverse kinematics).
+"""
+from __future__ import annotations
+
+import atexit
+import contextlib
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from typing import Sequence
+
+ENV = "ERRPLAN_WARMUP"
+
+_STATE: dict = {"proc": None, "status": None, "parts": ()}
+
+
+def _fields(d: int) -> None:
+    """The search and the motion maps of dimension ``d``, each run once on no tips with arguments of the
+    types :mod:`errplan.fields.compute` passes (a URDF arm's chain and reachability map are placeholders
+    of the same numba types, so no scenario is needed)."""
+    import numpy as np
+
+    from ..fields.compute import EXTRA_PASSES, SECOND_START, _no_chain
+    from ..fields.kernels import motion_maps, worst_case_tile
+
+    na = 3 if d == 2 else 5
+    chain, rmap = _no_chain()
+    f, b, v, X = np.zeros(na), np.zeros(na, bool), np.zeros(d), np.zeros((0, d))
+    out = [np.zeros(0, bool)] + [np.zeros(0) for _ in range(4)]
+    worst_case_tile(X, np.zeros((1, na)), np.ones(na, np.int64), b, b.copy(), f, f.copy(), f.copy(), v, v.copy(),
+                    1.0, 1.0, np.zeros(16), chain, rmap, 1, EXTRA_PASSES, SECOND_START, True, True, *out)
+    motion_maps(X, np.zeros((0, na)), v, v.copy(), 1.0, np.zeros(16), chain, rmap, np.zeros((0, d, d)),
+                np.zeros(0, bool))
+
+
+def _plan(d: int) -> None:
+    """The planner's cell walks of dimension ``d``, each run once on a one-cell map with arguments of
+    the types :mod:`errplan.planning` passes."""
+    import numpy as np
+
+    from ..planning import cellwalk as cw
+
+    D = cw.pack(np.zeros(d), 1.0, (1,) * d, [np.zeros((1,) * d)] * 2 ** d, np.ones((1,) * d, bool), 1.0)
+    o, P = [0.0] * d, np.zeros((1, d))
+    walk, point, path = (cw.walk2, cw.point_ok2, cw.path_cost2) if d == 2 else (cw.walk3, cw.point_ok3, cw.path_cost3)
+    walk(D, *o, *o, True, True)
+    point(D, *o)
+    path(D, P)
+    cw.walk_many(D, P, P.copy(), True)
+
+
+def _gains3() -> None:
+    import numpy as np
+
+    from .. import metrics
+    from ..gains import physics
+
+    M = np.zeros((0, 3, 3))
+    physics.gnorm3_grid(M, [0.5])
+    physics.cut_rows(M, 0.5)
+    metrics.inv(M)
+    metrics.spectral_norm(M)
+    from ..fields.compute import _no_chain
+    from ..kinematics.urdf.chain import _ik_many
+
+    chain, rmap = _no_chain()
+    W = np.zeros((0, 3))
+    _ik_many(chain, rmap, W, np.zeros((0, 1)), False, np.zeros((0, 1)), np.zeros(0, np.bool_))
+
+
+_PARTS = {"fields2": lambda: _fields(2), "fields3": lambda: _fields(3), "plan2": lambda: _plan(2),
+          "plan3": lambda: _plan(3), "gains3": _gains3}
+
+
+def _cold(parts: Sequence[str]) -> bool:
+    """Whether some entry kernel of ``parts`` has no entry in the disk cache (a first run)."""
+    from ..jit import cached
+
+    entries = []
+    for p in parts:
+        d = p[-1]
+        if p.startswith("fields"):
+            from ..fields import kernels
+
+            entries += [getattr(kernels, f"_tile{d}")]
+        elif p.startswith("plan"):
+            from ..planning import cellwalk
+
+            entries += [getattr(cellwalk, f"walk{d}")]
+        else:
+            from ..gains import physics
+
+            entries += [physics._vsigma_rows]
+    return not all(cached(e) for e in entries)
+
+
+def _cores() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not Linux
+        return os.cpu_count() or 1
+
+
+def start(parts: Sequence[str]) -> bool:
+    """Start the warm-up of ``parts`` (in this order) if the cache is cold; True if it started."""
+    if os.environ.get(ENV, "1") == "0" or _STATE["proc"] is not None or _cores() < 2 or not _cold(parts):
+        return False
+    fd, status = tempfile.mkstemp(prefix="errplan-warmup-", suffix=".txt")
+    os.close(fd)
+    env = dict(os.environ, **{ENV: "0", "ERRPLAN_COMPILE_NOTICE": "0"})
+    try:
+        proc = subprocess.Popen([sys.executable, "-m", "errplan.cli.warmup", status, *parts], env=env,
+                                stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    except OSError:
+        os.unlink(status)
+        return False
+    _STATE.update(proc=proc, status=status, parts=tuple(parts))
+    atexit.register(stop)
+    return True
+
+
+def _done() -> set[str]:
+    try:
+        with open(_STATE["status"], encoding="utf-8") as f:
+            return {line.split()[0] for line in f if line.endswith("\n") and line.strip()}
+    except OSError:
+        return set()
+
+
+def wait(part: str, timeout: float = 900.0) -> None:
+    """Block until the warm-up has done ``part`` (returns at once without a warm-up, for a part it does
+    not do, or once it has exited)."""
+    proc = _STATE["proc"]
+    if proc is None or part not in _STATE["parts"]:
+        return
+    t_end = time.monotonic() + timeout
+    while part not in _done() and proc.poll() is None and time.monotonic() < t_end:
+        time.sleep(0.05)
+
+
+@contextlib.contextmanager
+def paused():
+    """The warm-up stopped meanwhile (SIGSTOP/SIGCONT): for a step whose result depends on the CPU time
+    it gets (the planner runs for a time budget), so that a first run plans exactly like a later one."""
+    proc = _STATE["proc"]
+    stop_sig = getattr(signal, "SIGSTOP", None)
+    if proc is None or stop_sig is None or proc.poll() is not None:
+        yield
+        return
+    proc.send_signal(stop_sig)
+    try:
+        yield
+    finally:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGCONT)
+
+
+def stop() -> None:
+    """End the warm-up (at exit: a command that failed early leaves no process behind)."""
+    proc, status = _STATE["proc"], _STATE["status"]
+    if proc is not None and proc.poll() is None:
+        proc.send_signal(getattr(signal, "SIGCONT", signal.SIGTERM))
+        proc.terminate()
+        try:
+            proc.wait(5)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+    if status:
+        try:
+            os.unlink(status)
+        except OSError:
+            pass
+    _STATE.update(proc=None, status=None, parts=())
+
+
+def main(argv: Sequence[str]) -> int:
+    """``python -m errplan.cli.warmup STATUS PART...``: do the parts in order, appending each name to STATUS
+    when done (a failed part is reported done too: the command then compiles it itself)."""
+    status, parts = argv[0], argv[1:]
+    parent = os.getppid()
+    t0 = time.perf_counter()
+    for p in parts:
+        if os.getppid() != parent:  # the command is gone
+            return 0
+        try:
+            _PARTS[p]()
+        except Exception:  # best effort: the command compiles what is missing
+            pass
+        with open(status, "a", encoding="utf-8") as f:
+            f.write(f"{p} {time.perf_counter() - t0:.1f}\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
