@@ -408,9 +408,6 @@ def _uncertainty(ctx: _Ctx, t: Mapping[str, Any], d: int = 2) -> Uncertainty:
     w = "[uncertainty] "
     allowed = ("port_y", "port_z", "tip_force_over_ei", "sensor_noise", "samples")
     _check_keys(ctx, t, allowed + (("port_x",) if d == 3 else ()), w)
-    if d == 3 and "sensor_noise" in t:
-        raise ctx.fail(w + "sensor_noise", t["sensor_noise"],
-                       "no sensor noise in a spatial scenario (P2's flexion controller is planar only)")
     px = _pair(ctx, t["port_x"], w + "port_x", ordered=True) if "port_x" in t else None
     py = _pair(ctx, t["port_y"], w + "port_y", ordered=True) if "port_y" in t else None
     pz = _pair(ctx, t["port_z"], w + "port_z", ordered=True) if "port_z" in t else None
@@ -667,9 +664,6 @@ def scenario_from_dict(doc: Mapping[str, Any], source: str = "<memory>") -> Scen
     if "urdf" in robot_t:
         d = 3
         robot: Robot | UrdfRobot = _urdf_robot(ctx, robot_t, base_dir)
-        if controller.jacobian != "rigid":
-            raise ctx.fail("[controller] jacobian", controller.jacobian,
-                           '"rigid" in a spatial scenario (P2\'s flexion controller is planar only)')
     else:
         d = 2
         robot = _robot(ctx, robot_t)

@@ -273,3 +273,136 @@ class SpatialEffectsEvaluator:
         M[idx, 0] = Mo
         M[~ok] = np.nan
         return M, None, ok
+
+
+def bending_frame(w: np.ndarray, port: np.ndarray, L: float, t: np.ndarray) -> np.ndarray:
+    """Unit normal (..., 3) of the true shaft's bending plane (wrist->port line and the load's
+    normal part); for an unbent shaft the second vector of :func:`_perp_basis` of the chord (in the
+    plane x = 0 that is the x axis, so "in-plane" keeps its meaning)."""
+    from ..kinematics.shaft import _spatial_geometry
+
+    g = _spatial_geometry(w, port, L, t)
+    m = np.cross(g["u"], g["n"])
+    mn = np.linalg.norm(m, axis=-1)
+    chord = (g["tip"] - w) / L
+    _, f2 = _perp_basis(np.where(np.isfinite(chord), chord, [0.0, 0.0, 1.0]))
+    bent = mn > 1e-12
+    return np.where(bent[..., None], m / np.where(bent, mn, 1.0)[..., None], f2)
+
+
+def noisy_end_poses(w: np.ndarray, tip: np.ndarray, dw: np.ndarray, dt: np.ndarray, m: np.ndarray,
+                    noise: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The 3-D flexion controller's measurements (..., c, 3) under noise vectors ``noise`` (c, 7)
+    (:func:`errplan.fields.errorset.spatial_noise_corners`): the chord difference ``delta`` on the
+    tip position, each end direction tilted in its frame ``(m x d, m)``, ``m`` the true bending
+    plane's normal (..., 3)."""
+    from ..kinematics.shaft import tilt
+
+    pw = np.broadcast_to(w[..., None, :], w.shape[:-1] + (len(noise), 3))
+    pt = tip[..., None, :] + noise[:, 0:3]
+    out = []
+    for d, sl in ((dw, slice(3, 5)), (dt, slice(5, 7))):
+        e1 = np.cross(m, d)
+        e1 = e1 / np.linalg.norm(e1, axis=-1, keepdims=True)
+        out.append(tilt(d[..., None, :], noise[:, sl], e1[..., None, :], m[..., None, :]))
+    return pw, pt, out[0], out[1]
+
+
+@dataclass
+class SpatialFlexionEvaluator:
+    """P2's flexion controller in 3-D (docs/physics.md "P2's flexion controller in 3-D") without
+    [effects] that move the arm: ``M = J Jhat^-1 = J_tw Jhat_tw^-1`` (the arm Jacobian cancels, as
+    for the rigid controller), per (tip, instance, noise corner).
+
+    Per instance ``theta = (dx, dy, dz, tau, psi)`` the true wrist and world load come from
+    :func:`flexed_wrist_plane` (the load direction ``psi`` around the port->tip line, the convention
+    of the compiled kernels), the true end poses from :func:`flexed_end_directions`; the controller
+    sees them with each noise vector of ``noise`` (c, 7) and builds ``Jhat_tw`` by
+    :func:`flexion_controller_jacobian`. Where the estimate is unidentifiable (an unbent shaft, no
+    noise) it falls back to the lever through ``estimate``, as the planar controller does.
+
+    ``parts(x, theta)`` returns ``(M, None, ok)``, ``M`` (n, c, 3, 3): the numpy search
+    (:mod:`.search`) takes motion maps.
+    """
+
+    arm: object
+    length: float
+    estimate: tuple[float, ...]
+    errors: ErrorSet
+    noise: np.ndarray = None  # (c, 7); default: errors.noise_corners()
+    jacobian: str = "flexion"
+
+    def __post_init__(self):
+        if self.noise is None:
+            self.noise = self.errors.noise_corners()
+
+    @classmethod
+    def from_scenario(cls, sc, noise: np.ndarray | None = None) -> "SpatialFlexionEvaluator":
+        from ..errors import ErrplanError
+        from ..kinematics import arm_for
+
+        es, kw = error_set(sc)
+        if kw:
+            raise ErrplanError(f"{sc.source}: [effects] {sorted(kw)} with P2's flexion controller in 3-D: not "
+                               "supported yet (the 3-D flexion controller runs with a truth whose effects do not "
+                               "move the arm)")
+        return cls(arm_for(sc.robot), float(sc.instrument.length), tuple(sc.port.estimate), es, noise)
+
+    def truth(self, x: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """True wrist, world load, port (n, 3) and validity (n,) putting the true tip at ``x``."""
+        x = np.asarray(x, float).reshape(-1, 3)
+        theta = np.broadcast_to(np.asarray(theta, float), (len(x), 5))
+        L = self.length
+        port = np.asarray(self.errors.base_port, float) + theta[:, :3]
+        e = x - port
+        r = np.linalg.norm(e, axis=-1)
+        ok = (r > 1e-9) & (r < L)
+        xs = np.where(ok[:, None], x, port + [0.0, 0.0, 0.5 * L])
+        e1 = (xs - port) / np.linalg.norm(xs - port, axis=-1, keepdims=True)
+        tau = np.where(ok, theta[:, 3], 0.0)
+        w = xs - L * e1
+        t = np.zeros_like(x)
+        bent = tau > 0
+        if np.any(bent):
+            f1, f2 = _perp_basis(e1[bent])
+            psi = theta[bent, 4][:, None]
+            w[bent], t[bent] = flexed_wrist_plane(xs[bent], port[bent], L, tau[bent], np.cos(psi) * f1 + np.sin(psi) * f2)
+        ok &= self.arm.reachable(np.where(ok[:, None], w, self.arm.forward(np.zeros(self.arm.n))))
+        return w, t, port, ok
+
+    def controller_jacobian(self, w: np.ndarray, t: np.ndarray, port: np.ndarray) -> np.ndarray:
+        """``Jhat_tw`` (n, c, 3, 3) from the true shaft's end poses under every noise vector."""
+        from ..kinematics.shaft import flexed_end_directions, flexion_controller_jacobian
+
+        L = self.length
+        tip, dw, dt = flexed_end_directions(w, port, L, t)
+        m = bending_frame(w, port, L, t)
+        pw, pt, mw, mt = noisy_end_poses(w, tip, dw, dt, m, self.noise)
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            Jh = flexion_controller_jacobian(pw, pt, mw, mt, L)
+        rigid = ~np.all(np.isfinite(Jh), axis=(-2, -1))
+        if np.any(rigid):
+            lever = lever_jacobian(w, np.asarray(self.estimate, float), L)
+            Jh = np.where(rigid[..., None, None], lever[:, None], Jh)
+        return Jh
+
+    def parts(self, x: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, None, np.ndarray]:
+        from ..kinematics.shaft import flexed_jacobian
+        from ..metrics import inv
+
+        x = np.asarray(x, float).reshape(-1, 3)
+        n, c = len(x), len(self.noise)
+        M = np.full((n, c, 3, 3), np.nan)
+        w, t, port, ok = self.truth(x, theta)
+        if not np.any(ok):
+            return M, None, ok
+        i = np.flatnonzero(ok)
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            J = flexed_jacobian(w[i], port[i], self.length, t[i])
+            Jh_inv, singular = inv(self.controller_jacobian(w[i], t[i], port[i]))
+            Mi = J[:, None] @ Jh_inv
+        bad = np.any(singular | ~np.all(np.isfinite(Mi), axis=(-2, -1)), axis=-1)
+        M[i] = Mi
+        ok[i[bad]] = False
+        M[~ok] = np.nan
+        return M, None, ok

@@ -1,0 +1,164 @@
+"""P2's flexion controller in 3-D (issue 20; docs/physics.md "P2's flexion controller in 3-D").
+
+Checked against independent things: P2's planar controller (errplan's planar fields and
+insertion model) on the plane x = 0 and, for a load in a diagonal direction, the planar controller
+with the noise box seen along that direction; finite differences of the flexed shaft for the
+out-of-plane entry of the motion map.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from errplan.api import load_scenario
+from errplan.fields import ErrorSet, Evaluator, SpatialFlexionEvaluator, compute_fields, worst_case
+from errplan.fields.errorset import spatial_noise_corners
+from errplan.kinematics import shaft
+from errplan.metrics import g_norm
+from errplan.tolerance.insertion import InsertionModel, insertion_worst
+
+ROOT = Path(__file__).resolve().parents[1]
+FLEX2 = ROOT / "scenarios" / "beasley_howe_flexion.toml"
+L = 0.355
+POS, ANG = 0.000746, 0.0026  # P2's Liberty tracker
+
+
+def spatial_flexion_scenario(tmp_path: Path, extra: str = "", unc: str | None = None) -> Path:
+    """P2's shaft and tracker on the PHANToM with a waist (scenarios/phantom15.urdf)."""
+    unc = unc if unc is not None else """
+[uncertainty]
+tip_force_over_ei = [3.0, 3.0]
+sensor_noise = { position = 0.000746, angle = 0.0026 }
+samples = 3
+"""
+    text = f"""
+name = "flex3d"
+[robot]
+urdf = "{ROOT / 'scenarios' / 'phantom15.urdf'}"
+joints = ["waist", "shoulder", "elbow"]
+wrist = "wrist"
+base_position = [0.0, 0.210, -0.210]
+base_rpy = [0.0, 0.0, 0.0]
+joint_limits = [[-1.0, 1.0], [-1.9, 1.2], [-0.7, 1.0]]
+coupled_limits = [{{ joints = ["shoulder", "elbow"], coeffs = [1.0, 1.0], range = [-0.3, 2.8] }}]
+[instrument]
+length = 0.355
+[port]
+position = [0.0, 0.0, 0.160]
+estimate = [0.0, 0.0, 0.160]
+[controller]
+gain = 1.0
+jacobian = "flexion"
+{unc}
+[fields]
+resolution = 0.01
+region = {{ x = [-0.01, 0.01], y = [-0.01, 0.01], z = [0.40, 0.42] }}
+{extra}
+"""
+    p = tmp_path / "flex3d.toml"
+    p.write_text(text, encoding="utf-8")
+    return p
+
+
+def fd_out_of_plane(w, p, t):
+    """d tip_x / d w_x of the flexed shaft by central differences (w, p in the plane x = 0)."""
+    h = 1e-6
+    e = np.array([h, 0.0, 0.0])
+    return (shaft.flexed_tip(w + e, p, L, t)[..., 0] - shaft.flexed_tip(w - e, p, L, t)[..., 0]) / (2 * h)
+
+
+def test_x0_plane_fields_equal_the_planar_controller(tmp_path):
+    """Motion in the plane x = 0, an in-plane load, in-plane noise: the 3-D worst case over the
+    noise set is the planar one composed with the out-of-plane entry. In x = 0 the motion map is
+    block diagonal (the planar 2 x 2 block and ``m_xx = J_xx / Jhat_xx``), so the 3-D ||G|| is
+    max(planar ||G||, max over corners of |1 - k m_xx|) to 1e-9 relative, and the planar block is
+    P2's planar controller itself."""
+    sc2 = load_scenario(FLEX2)
+    sc3 = load_scenario(spatial_flexion_scenario(tmp_path))
+    ev2 = Evaluator.from_scenario(sc2)
+    k = 0.8
+    # psi = 0 is the in-plane load direction of positive planar t (f1 = e1 x x_hat = dir'(theta))
+    es3 = ErrorSet((0.0, 0.0, 0.160), (0.0, 0.0, 0.0, 3.0, 0.0), (0.0, 0.0, 0.0, 3.0, 0.0), (POS, ANG), 3)
+    ev3 = SpatialFlexionEvaluator(load_ev_arm(sc3), L, (0.0, 0.0, 0.160), es3,
+                                  spatial_noise_corners(POS, ANG, in_plane=True))
+    y = np.linspace(-0.03, 0.03, 7)
+    z = np.linspace(0.37, 0.45, 9)
+    Y, Z = np.meshgrid(y, z, indexing="ij")
+    x2 = np.stack([Y.ravel(), Z.ravel()], -1)
+    x3 = np.concatenate([np.zeros((len(x2), 1)), x2], -1)
+    w2 = worst_case(ev2, x2, k)
+    w3 = worst_case(ev3, x3, k)
+    assert np.array_equal(w2["valid"], w3["valid"]) and w2["valid"].sum() > 40
+    v = w2["valid"]
+    # the out-of-plane entry, independently: finite differences of the flexed shaft, the controller's
+    # estimate from the planar estimator (the noise corners of the plane)
+    w3t, t3, p3, _ = ev3.truth(x3[v], es3.lo_arr)
+    Jxx = fd_out_of_plane(w3t, p3, t3)
+    tip2, thw, tht = shaft.flexed_end_angles(w3t[:, 1:], p3[:, 1:], L, 3.0)
+    nc = ev2.errors.noise_corners()
+    pw = w3t[:, None, 1:] + nc[:, 0:2]
+    est = shaft.estimate_from_ends(pw, tip2[:, None] + nc[:, 2:4], thw[:, None] + nc[:, 4], tht[:, None] + nc[:, 5], L)
+    emb = lambda a: np.concatenate([np.zeros(a.shape[:-1] + (1,)), a], -1)
+    load = est["t"][..., None] * emb(shaft.direction_derivative(shaft.angle_of(est["port"] - pw)))
+    Jhxx = fd_out_of_plane(emb(pw), emb(est["port"]), load)
+    g_out = np.abs(1 - k * Jxx[:, None] / Jhxx).max(axis=1)
+    expect = np.maximum(w2["G_norm"][v], g_out)
+    np.testing.assert_allclose(w3["G_norm"][v], expect, rtol=1e-9)
+    assert np.any(w2["G_norm"][v] > g_out), "the planar block should decide somewhere"
+    # the planar block on its own equals the planar controller to 1e-9 relative
+    M3, _, ok3 = ev3.parts(x3[v], es3.lo_arr)
+    mu, nu, ok2 = ev2.parts(x2[v], ev2.errors.lo_arr)
+    G2 = g_norm(np.asarray(_maps_from_parts(mu, nu)), k).max(axis=1)
+    G3b = g_norm(M3[:, :, 1:, 1:], k).max(axis=1)
+    np.testing.assert_allclose(G3b, G2, rtol=1e-9)
+    assert np.all(w3["phi_max"][v] >= w2["phi_max"][v] - 1e-6)
+
+
+def load_ev_arm(sc):
+    from errplan.kinematics import arm_for
+
+    return arm_for(sc.robot)
+
+
+def _maps_from_parts(mu, nu):
+    """2 x 2 maps from conformal parts: M z = mu z + nu conj(z) (z = y + i z)."""
+    a, b = mu.real, mu.imag
+    c, d = nu.real, nu.imag
+    return np.stack([np.stack([a + c, -b + d], -1), np.stack([b + d, a - c], -1)], -2)
+
+
+def test_diagonal_load_sees_the_noise_box_diagonal(tmp_path):
+    """Shaft along z, load toward (x + y)/sqrt(2): rotating the world by 45 deg about z is P2's
+    planar problem whose normal axis sees both position axes: position half width sqrt(2) p
+    normal to the shaft, p along it. The 3-D worst over the noise set's corners equals the
+    planar worst over that box (an independent check of the 3-D noise set and of the bending
+    plane estimate), and exceeds the in-plane load's (itself at least the planar worst case)."""
+    sc3 = load_scenario(spatial_flexion_scenario(tmp_path))
+    ev = SpatialFlexionEvaluator.from_scenario(sc3)
+    m = InsertionModel(L, 3.0, 1.0)
+    for rl in (0.66, 0.72, 0.8):
+        x = np.array([[0.0, 0.0, 0.160 + rl * L]])
+        gs = [g_norm(ev.parts(x, np.array([0, 0, 0, 3.0, psi]))[0], 1.0).max() for psi in (0.0, math.pi / 4)]
+        p2 = POS * math.sqrt(2)
+        ref = insertion_worst(m, np.array([rl]), POS, ANG, half=np.array([[p2, POS, p2, POS, ANG, ANG]]))[0]
+        ref0 = insertion_worst(m, np.array([rl]), POS, ANG)[0]
+        assert gs[1] == pytest.approx(ref, rel=1e-6)
+        assert gs[0] >= ref0 * (1 - 1e-9)  # the in-plane load: the planar worst, or more (out-of-plane noise)
+        assert gs[1] > gs[0]
+
+
+def test_spatial_flexion_fields_run_and_say_lower_bound(tmp_path):
+    """errplan fields on a spatial flexion scenario: the numpy search over loads in every direction
+    normal to the shaft and the noise set's corners; the npz metadata says the noise worst case
+    is a lower bound."""
+    sc = load_scenario(spatial_flexion_scenario(tmp_path))
+    m = compute_fields(sc, metrics=("G_norm", "phi_max"))
+    assert m.valid.all() and m.G_norm.shape == (3, 3, 3)
+    assert np.all(np.isfinite(m.G_norm)) and np.all(m.G_norm > 1.0)  # the Liberty bounds in 3-D: no band here
+    assert "lower bound" in m.meta["noise_worst_case"]
+    # symmetric in x -> -x (the PHANToM's waist, an axis-aligned noise set)
+    np.testing.assert_allclose(m.G_norm, m.G_norm[::-1], rtol=1e-9)
