@@ -162,3 +162,124 @@ def test_spatial_flexion_fields_run_and_say_lower_bound(tmp_path):
     assert "lower bound" in m.meta["noise_worst_case"]
     # symmetric in x -> -x (the PHANToM's waist, an axis-aligned noise set)
     np.testing.assert_allclose(m.G_norm, m.G_norm[::-1], rtol=1e-9)
+
+
+# ----------------------------------------------------------------------------- gains and replays
+def _unit(v):
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def _fd(f, x, h=1e-6):
+    return np.stack([(f(x + h * e) - f(x - h * e)) / (2 * h) for e in np.eye(len(x))], axis=-1)
+
+
+def independent_replay(arm, L, port, t_world, q0, waypoints, gains, pos, ang, rng, steps=60):
+    """A simulator sharing no controller code with errplan.simulation: the true tip from the arm's
+    forward kinematics and the 3-D flexed shaft under a constant world load; the controller's
+    measurements with uniform noise (positions per coordinate, directions tilted inside the cone),
+    P2's estimate, ``Jhat = d tip/d w`` by central differences of the flexed shaft through the
+    estimated port with the estimated load, times the arm's Jacobian by central differences.
+    Returns the distances to the active target before each command, per segment."""
+    q = np.array(q0, float)
+    out = []
+    for b, k in zip(waypoints, gains):
+        errs = []
+        for _ in range(steps):
+            w = arm.forward(q)
+            tip, dw, dt = shaft.flexed_end_directions(w, port, L, t_world)
+            e = b - tip
+            errs.append(float(np.linalg.norm(e)))
+            if errs[-1] < 1e-7:
+                break
+            pw = w + rng.uniform(-pos, pos, 3)
+            pt = tip + rng.uniform(-pos, pos, 3)
+            meas = []
+            for d in (dw, dt):
+                f1 = _unit(np.cross(d, [1.0, 0.0, 0.0]))
+                f2 = np.cross(d, f1)
+                r, a = ang * math.sqrt(rng.uniform()), rng.uniform(0, 2 * math.pi)
+                meas.append(_unit(math.cos(r) * d + math.sin(r) * (math.cos(a) * f1 + math.sin(a) * f2)))
+            est = shaft.estimate_from_end_poses(pw, pt, meas[0], meas[1], L)
+            Jtw = _fd(lambda ww: shaft.flexed_tip(ww, est["port"], L, est["load"]), pw)
+            Jarm = _fd(arm.forward, q)
+            q = q + k * np.linalg.solve(Jtw @ Jarm, e)
+        out.append(np.array(errs))
+    return out
+
+
+@pytest.mark.slow
+def test_certified_3d_flexion_segments_replay_monotonic(tmp_path):
+    """A certified gain schedule of P2's flexion controller in 3-D (loads of 2.5-3.5 /m^2 in any
+    direction normal to the shaft, the Liberty noise set) replays monotonic in an independent
+    simulator under random load truths and random noise inside the set; the direct segment at the
+    scenario's gain 1 (uncertified here: ||G|| > 1) is not what is replayed."""
+    from errplan.gains import schedule_gains
+    from errplan.gains.options import GainOptions
+    from errplan.gains.physics import SpatialModel
+    from errplan.kinematics import arm_for
+
+    sc = load_scenario(spatial_flexion_scenario(tmp_path, unc="""
+[uncertainty]
+tip_force_over_ei = [2.5, 3.5]
+sensor_noise = { position = 0.000746, angle = 0.0026 }
+samples = 2
+"""))
+    model = SpatialModel(sc)
+    opts = GainOptions.for_dim(3, verify_disk=20, verify_ring=12, opt_disk=10, opt_ring=8)
+    path = np.array([[0.0, 0.0, 0.160 + 0.70 * L], [0.006, 0.003, 0.160 + 0.72 * L], [0.010, -0.002, 0.160 + 0.74 * L]])
+    sched = schedule_gains(model, path, opts)
+    assert sched.certified
+    segs = sched.segments
+    assert all(s.certified_G_norm < 1.0 for s in segs)
+    arm = arm_for(sc.robot)
+    port = np.array([0.0, 0.0, 0.160])
+    rng = np.random.default_rng(5)
+    for trial in range(6):
+        # a random load truth of magnitude in the set, normal to the shaft at the start
+        x0 = path[0]
+        u = _unit(x0 - port)
+        v = rng.normal(size=3)
+        t_world = rng.uniform(2.5, 3.5) * _unit(v - (v @ u) * u)
+        e1 = _unit(x0 - port)
+        w0 = None
+        # the wrist putting the tip at the start under that load: Newton on the forward model
+        w0 = x0 - L * e1
+        for _ in range(30):
+            w0 = w0 - np.linalg.solve(_fd(lambda ww: shaft.flexed_tip(ww, port, L, t_world), w0),
+                                      shaft.flexed_tip(w0, port, L, t_world) - x0)
+        q0, ok = arm.inverse(w0[None])
+        assert ok[0]
+        errs = independent_replay(arm, L, port, t_world, q0[0], sched.waypoints, sched.gains, POS, ANG, rng)
+        for seg_errs in errs:
+            assert np.all(np.diff(seg_errs) <= 1e-12), (trial, seg_errs)
+            assert seg_errs[-1] < 1e-6 or len(seg_errs) == 60
+
+
+def test_simulation_runs_the_3d_flexion_controller_on_the_urdf_arm(tmp_path):
+    """errplan.simulation with P2's controller in 3-D: noise-free, its Jhat is the flexed shaft's
+    through the true port with the load's normal part, so at k = 1 it converges in a few steps; with the
+    Liberty noise at the gain k = 0.75 (rho* < 1 there) the run still converges monotonically."""
+    from errplan.simulation import ControllerModel, Plant, simulate
+
+    sc = load_scenario(spatial_flexion_scenario(tmp_path))
+    ctrl = ControllerModel.from_scenario(sc)
+    assert ctrl.jacobian == "flexion" and ctrl.dim == 3 and ctrl.noise == (POS, ANG)
+    # a load normal to the shaft along z: (0, -3, 0); at the start the truth's J equals Jhat
+    plant = Plant.from_scenario(sc, load=3.0)
+    start = np.array([0.0, 0.0, 0.160 + 0.70 * L])
+    goal = np.array([0.008, -0.004, 0.160 + 0.73 * L])
+    q0 = plant.configuration_for_tip(start)
+    w, tip, dw, dt = plant.end_poses(q0)
+    assert np.allclose(tip, start, atol=1e-12)
+    Jh = ControllerModel(ctrl.arm, L, ctrl.port_estimate, "flexion").J_hat(q0, plant)
+    port = np.array([0.0, 0.0, 0.160])
+    u = _unit(port - w)
+    t = np.array([0.0, -3.0, 0.0])
+    t_perp = t - (t @ u) * u  # the estimate holds the load's normal part (the truth's axial part turns in)
+    np.testing.assert_allclose(Jh, shaft.flexed_jacobian(w, port, L, t_perp) @ ctrl.arm.jacobian(q0), atol=1e-7)
+    assert np.max(np.abs(Jh - plant.true_jacobian(q0))) > 1e-4
+    quiet = ControllerModel(ctrl.arm, L, ctrl.port_estimate, "flexion")
+    r = simulate(plant, quiet, q0, goal[None], [1.0], tolerance=1e-9)
+    assert r.converged and r.steps <= 6
+    r = simulate(plant, ctrl, q0, goal[None], [0.75], tolerance=1e-6, rng=np.random.default_rng(3))
+    assert r.converged and r.monotonic

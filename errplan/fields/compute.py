@@ -183,6 +183,13 @@ def _numpy_tile(ev, X: np.ndarray, k: float, samples, refine: int, want_rho: boo
     return out
 
 
+def numpy_worst_case(ev, x: np.ndarray, k: float, *, samples: int | None = None, refine: int = REFINE_LEVELS,
+                     rho: bool = False) -> dict[str, np.ndarray]:
+    """The numpy path's worst case at tips ``x`` (n, d) for an evaluator ``ev``: ``valid``,
+    ``G_norm``, ``phi_max``, ``rho_star``, ``k_star`` (what a field tile computes)."""
+    return _numpy_tile(ev, np.asarray(x, float), float(k), samples, refine, rho)
+
+
 def _no_chain():
     """Placeholder chain and reachability map for the planar kernel (same numba types, never read)."""
     from ..kinematics.urdf import ChainData, ReachMap
