@@ -610,7 +610,7 @@ def placement_cases() -> list[Case]:
             "certify-margin-one": {"certify_margin": 1.0},
             "refine-not-bool": {"refine": 1},
             "refine-levels-huge": {"refine_levels": 1000},
-            "planar-kind-beside": None,
+            "planar-only-key-beside": None,
         }
         for tag, change in variants.items():
             d = copy.deepcopy(doc)
@@ -618,7 +618,8 @@ def placement_cases() -> list[Case]:
                 if not d3:
                     continue
                 d["tolerance"] = [base, {"name": "band", "kind": "insertion_band", "tip_force_over_ei": 3.0,
-                                         "sensor_noise": {"position": 0.001, "angle": 0.002}}]
+                                         "sensor_noise": {"position": 0.001, "angle": 0.002},
+                                         "hold": "port_force"}]  # the hold variants are planar only
             else:
                 d["tolerance"] = [dict(base, **change)]
             out.append(_scenario_case(f"placement:{src.stem}:{tag}", d, "tolerance"))

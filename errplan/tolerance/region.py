@@ -274,6 +274,9 @@ class _SpatialPhysics:
         from ..fields import KernelEvaluator
         from ..scenario import Port, Uncertainty
 
+        if sc.controller.jacobian != "rigid":
+            raise ErrplanError(f"{sc.source}: port and tip_load queries with P2's flexion controller in 3-D are not "
+                               "supported yet (insertion_band, tracker_noise and port_placement are)")
         # No error box: the evaluator's true port is ``port.position`` = base; instances give offsets.
         sc0 = replace(sc, effects={}, port=Port(tuple(float(v) for v in base_port), tuple(sc.port.estimate)),
                       uncertainty=Uncertainty(samples=sc.uncertainty.samples))
