@@ -307,18 +307,22 @@ def test_3d_insertion_band_inside_the_planar_band():
     from errplan.tolerance import insertion_band, spatial_insertion_band
 
     b2 = insertion_band(L, 3.0, POS, ANG, gain=0.8, extras=False)
-    b3 = spatial_insertion_band(L, 3.0, POS, ANG, gain=0.8, samples=25)
+    b3 = spatial_insertion_band(L, 3.0, POS, ANG, gain=0.8, samples=17)
     assert b3["band"] is not None
     assert b2["band"][0] < b3["band"][0] < b3["band"][1] < b2["band"][1]
     assert b3["band"][0] == pytest.approx(0.617, abs=2e-3) and b3["band"][1] == pytest.approx(0.832, abs=2e-3)
     # the 3-D worst case is never below the planar one near the band (far from it, near a degenerate
     # estimate, both searches find local maxima in the thousands)
-    g2 = insertion_band(L, 3.0, POS, ANG, gain=0.8, samples=25, extras=False)["worst_G_norm"]["G_norm"]
+    g2 = insertion_band(L, 3.0, POS, ANG, gain=0.8, samples=17, extras=False)["worst_G_norm"]["G_norm"]
     near = g2 < 2.0
     assert near.sum() >= 8
     assert np.all(b3["worst_G_norm"]["G_norm"][near] >= g2[near] * (1 - 1e-9))
-    k1 = spatial_insertion_band(L, 3.0, POS, ANG, gain=1.0, samples=13)
-    assert k1["band"] is None and k1["best_G_norm"] > 1.2
+    # P2's k = 1: above 1 at every depth of the planar band's neighbourhood (the bundled scenario's
+    # full k = 1 band query, in the slow test below, finds none)
+    from errplan.tolerance import SpatialInsertionModel
+
+    g1 = SpatialInsertionModel(L, 3.0, 1.0).worst(np.linspace(0.5, 0.9, 9), POS, ANG)[0]
+    assert np.all(g1 > 1.2)
 
 
 def test_3d_tracker_noise_in_plane_equals_planar_and_full_set_needs_less():
@@ -377,3 +381,28 @@ def test_experiment_and_calibrate_with_the_3d_flexion_controller(tmp_path):
     assert p["fx"] == pytest.approx(1.5, abs=0.05) and p["fy"] == pytest.approx(-1.0, abs=0.05)
     assert abs(p["fz"]) < 0.1
     assert rep["pose_rms_after"] < 0.2 * rep["pose_rms_before"]
+
+
+def test_noise_refinement_reaches_a_dense_search(tmp_path):
+    """The fields' refinement over the 3-D noise set (pattern search from the worst corner) is never
+    below the corners and reaches the maximum of a dense grid over the set (chord box 7^3 x each
+    tilt on 9 points of its disc) to 1e-6 relative, at loads in and off the tracker's axes."""
+    import itertools
+
+    sc = load_scenario(spatial_flexion_scenario(tmp_path))
+    ev = SpatialFlexionEvaluator.from_scenario(sc)
+    k = 0.8
+    x = np.array([[0.004, -0.003, 0.160 + 0.72 * L]])
+    half = ev.noise_bounds()
+    dvals = np.linspace(-half[0], half[0], 7)
+    disc = [(0.0, 0.0)] + [(ANG * math.cos(a), ANG * math.sin(a)) for a in np.arange(8) * math.pi / 4]
+    dense = np.array([(*d, *tw, *tt) for d in itertools.product(dvals, repeat=3) for tw in disc for tt in disc])
+    for psi in (0.0, 0.6, math.pi / 4):
+        th = np.array([[0.0, 0.0, 0.0, 3.0, psi]])
+        Mc, _, ok = ev.parts(x, th)
+        g_corners = g_norm(Mc, k).max()
+        g_ref, _ = ev.refine_noise(x, th, k)
+        Md, _, _ = ev.parts(x, th, dense)
+        g_dense = g_norm(Md, k).max()
+        assert g_ref[0] >= g_corners
+        assert g_ref[0] >= g_dense * (1 - 1e-6)

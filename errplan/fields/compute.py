@@ -159,6 +159,16 @@ def _numpy_tile(ev, X: np.ndarray, k: float, samples, refine: int, want_rho: boo
             return {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
     wc = worst_case(ev, X, k, samples=samples, refine=refine, keep_parts=want_rho)
     out = {"valid": wc["valid"], "G_norm": wc["G_norm"], "phi_max": wc["phi_max"]}
+    if noise is not None and np.any(noise) and np.any(wc["valid"]):
+        # P2's controller in 3-D: the corners' worst, then a refinement over the noise set at the
+        # worst instance (a lower bound still; the npz metadata says so)
+        v = wc["valid"]
+        g_r, _ = ev.refine_noise(X[v], wc["theta_G"][v], k)
+        _, p_r = ev.refine_noise(X[v], wc["theta_phi"][v], k)
+        out["G_norm"] = out["G_norm"].copy()
+        out["phi_max"] = out["phi_max"].copy()
+        out["G_norm"][v] = np.maximum(out["G_norm"][v], g_r)
+        out["phi_max"][v] = np.maximum(out["phi_max"][v], p_r)
     n = len(X)
     rfull, kfull = np.full(n, np.nan), np.full(n, np.nan)
     if want_rho:
@@ -345,6 +355,7 @@ def compute_fields(sc, resolution: float | None = None, rho_star: bool = False, 
             + ("(the 64 vertices of the box)" if sc.dim == 2 else
                "(position differences at -2p, 0, 2p per axis, each end direction tilted by the full angle "
                "toward 4 directions around its cone)")
+            + ("" if sc.dim == 2 else ", then a pattern search over the noise set from the worst corner")
             + "; the worst noise can lie inside the set where ||G|| is not convex in it")
     kw = dict(meta=meta, rho_star=scatter("rho_star") if want_rho else None,
               k_star=scatter("k_star") if want_rho else None)

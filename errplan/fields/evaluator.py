@@ -298,13 +298,14 @@ def noisy_end_poses(w: np.ndarray, tip: np.ndarray, dw: np.ndarray, dt: np.ndarr
     plane's normal (..., 3)."""
     from ..kinematics.shaft import tilt
 
-    pw = np.broadcast_to(w[..., None, :], w.shape[:-1] + (len(noise), 3))
-    pt = tip[..., None, :] + noise[:, 0:3]
+    noise = np.asarray(noise, float)  # (c, 7), or (..., c, 7) per point
+    pw = np.broadcast_to(w[..., None, :], np.broadcast_shapes(w.shape[:-1] + (1,), noise.shape[:-1]) + (3,))
+    pt = tip[..., None, :] + noise[..., 0:3]
     out = []
     for d, sl in ((dw, slice(3, 5)), (dt, slice(5, 7))):
         e1 = np.cross(m, d)
         e1 = e1 / np.linalg.norm(e1, axis=-1, keepdims=True)
-        out.append(tilt(d[..., None, :], noise[:, sl], e1[..., None, :], m[..., None, :]))
+        out.append(tilt(d[..., None, :], noise[..., sl], e1[..., None, :], m[..., None, :]))
     return pw, pt, out[0], out[1]
 
 
@@ -370,14 +371,16 @@ class SpatialFlexionEvaluator:
         ok &= self.arm.reachable(np.where(ok[:, None], w, self.arm.forward(np.zeros(self.arm.n))))
         return w, t, port, ok
 
-    def controller_jacobian(self, w: np.ndarray, t: np.ndarray, port: np.ndarray) -> np.ndarray:
-        """``Jhat_tw`` (n, c, 3, 3) from the true shaft's end poses under every noise vector."""
+    def controller_jacobian(self, w: np.ndarray, t: np.ndarray, port: np.ndarray,
+                            noise: np.ndarray | None = None) -> np.ndarray:
+        """``Jhat_tw`` (n, c, 3, 3) from the true shaft's end poses under every noise vector
+        (``noise`` (c, 7) or per point (n, c, 7); default the corners)."""
         from ..kinematics.shaft import flexed_end_directions, flexion_controller_jacobian
 
         L = self.length
         tip, dw, dt = flexed_end_directions(w, port, L, t)
         m = bending_frame(w, port, L, t)
-        pw, pt, mw, mt = noisy_end_poses(w, tip, dw, dt, m, self.noise)
+        pw, pt, mw, mt = noisy_end_poses(w, tip, dw, dt, m, self.noise if noise is None else noise)
         with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
             Jh = flexion_controller_jacobian(pw, pt, mw, mt, L)
         rigid = ~np.all(np.isfinite(Jh), axis=(-2, -1))
@@ -386,12 +389,16 @@ class SpatialFlexionEvaluator:
             Jh = np.where(rigid[..., None, None], lever[:, None], Jh)
         return Jh
 
-    def parts(self, x: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, None, np.ndarray]:
+    def parts(self, x: np.ndarray, theta: np.ndarray, noise: np.ndarray | None = None
+              ) -> tuple[np.ndarray, None, np.ndarray]:
+        """``(M, None, ok)``: ``M`` (n, c, 3, 3) at tips ``x`` (n, 3) under instances ``theta`` over the
+        noise vectors ``noise`` ((c, 7) or per tip (n, c, 7); default the noise set's corners)."""
         from ..kinematics.shaft import flexed_jacobian
         from ..metrics import inv
 
         x = np.asarray(x, float).reshape(-1, 3)
-        n, c = len(x), len(self.noise)
+        nz = self.noise if noise is None else np.asarray(noise, float)
+        n, c = len(x), nz.shape[-2]
         M = np.full((n, c, 3, 3), np.nan)
         w, t, port, ok = self.truth(x, theta)
         if not np.any(ok):
@@ -399,10 +406,71 @@ class SpatialFlexionEvaluator:
         i = np.flatnonzero(ok)
         with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
             J = flexed_jacobian(w[i], port[i], self.length, t[i])
-            Jh_inv, singular = inv(self.controller_jacobian(w[i], t[i], port[i]))
+            Jh_inv, singular = inv(self.controller_jacobian(w[i], t[i], port[i], nz if nz.ndim == 2 else nz[i]))
             Mi = J[:, None] @ Jh_inv
         bad = np.any(singular | ~np.all(np.isfinite(Mi), axis=(-2, -1)), axis=-1)
         M[i] = Mi
         ok[i[bad]] = False
         M[~ok] = np.nan
         return M, None, ok
+
+    def noise_bounds(self) -> np.ndarray:
+        """Half widths (7,) of the noise parameters: ``2 position`` per chord axis, ``angle`` per tilt."""
+        pos, ang = self.errors.noise
+        return np.array([2 * pos] * 3 + [ang] * 4, float)
+
+    def refine_noise(self, x: np.ndarray, theta: np.ndarray, k: float, *, levels: int = 4, sweeps: int = 2
+                     ) -> tuple[np.ndarray, np.ndarray]:
+        """The noise refinement of the worst case: from the worst corner at each tip's worst instance
+        ``theta`` (n, 5), a pattern search over the noise vector (steps halved per level, each move
+        the best of the axis polls, projected back into the set: the chord box, each tilt's disc).
+        Returns the refined worst ``(||G||, |phi_max|)`` (n,) at gain ``k`` (never below the
+        corners'); still a lower bound of the worst case over the set. Axes the corners keep at zero
+        (the in-plane set's out-of-plane ones) stay there."""
+        from ..metrics import g_norm, phi_max
+
+        x = np.asarray(x, float).reshape(-1, 3)
+        n = len(x)
+        M, _, ok = self.parts(x, theta)
+        g = np.where(ok[:, None], g_norm(np.where(ok[:, None, None, None], M, 0.0), k), -np.inf)
+        j = np.argmax(g, axis=1)
+        best_g = g[np.arange(n), j]
+        best_p = np.where(ok, phi_max(np.where(ok[:, None, None], M[np.arange(n), j], np.eye(3))), -np.inf)
+        z = self.noise[j].copy()
+        half = self.noise_bounds()
+        moving = np.flatnonzero(np.any(self.noise != 0, axis=0) & (half > 0))
+        if not len(moving) or not np.any(ok):
+            return best_g, best_p
+        steps = np.concatenate([np.eye(7)[moving], -np.eye(7)[moving]])
+        live = ok.copy()
+        for level in range(levels):
+            h = half * 2.0 ** (-level)
+            for _ in range(sweeps):
+                c = _project_noise(z[live][:, None, :] + steps[None] * h, half)
+                Mc, _, okc = self.parts(x[live], theta[live], c)
+                gc = np.where(okc[:, None], g_norm(np.where(okc[:, None, None, None], Mc, 0.0), k), -np.inf)
+                jj = np.argmax(gc, axis=1)
+                li = np.flatnonzero(live)
+                vg = gc[np.arange(len(li)), jj]
+                upd = okc & (vg > best_g[li])
+                if upd.any():
+                    pc = phi_max(Mc[upd].reshape(-1, 3, 3)).reshape(int(upd.sum()), -1).max(axis=1)
+                    best_p[li[upd]] = np.maximum(best_p[li[upd]], pc)
+                    best_g[li[upd]] = vg[upd]
+                    z[li[upd]] = c[upd, jj[upd]]
+                else:
+                    break
+        return best_g, best_p
+
+
+def _project_noise(z: np.ndarray, half: np.ndarray) -> np.ndarray:
+    """Noise vectors (..., 7) back into the set: the chord difference clipped to its box, each tilt
+    scaled into its disc of radius ``half[3]``."""
+    out = z.copy()
+    out[..., 0:3] = np.clip(out[..., 0:3], -half[0:3], half[0:3])
+    for sl in (slice(3, 5), slice(5, 7)):
+        r = np.linalg.norm(out[..., sl], axis=-1)
+        lim = half[sl.start]
+        scale = np.where(r > lim, lim / np.where(r > 0, r, 1.0), 1.0)
+        out[..., sl] = out[..., sl] * scale[..., None]
+    return out
