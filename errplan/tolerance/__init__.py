@@ -11,7 +11,7 @@ region as possible". Five kinds (``[[tolerance]]`` tables of a scenario, docs/in
     true port in ``estimate + S(e)``, the tip is reachable and ``||G||`` at the query's gain is
     below 1. ``S(e)`` is the segment ``[-e, e]`` along ``y`` or ``z`` (and ``x`` in 3-D), or the
     disk (planar) / ball (spatial) ``{|d| <= e}`` (``radial``). The controller is the scenario's
-    (rigid lever through ``port.estimate``, or, planar only, P2's flexion model fed by noisy end
+    (rigid lever through ``port.estimate``, or, in the plane, P2's flexion model fed by noisy end
     measurements, noise from ``[uncertainty] sensor_noise``).
 ``tip_load``
     The largest ``T`` (1/m^2) such that a *rigid-lever* controller through ``port.estimate`` keeps
