@@ -406,3 +406,28 @@ def test_noise_refinement_reaches_a_dense_search(tmp_path):
         g_dense = g_norm(Md, k).max()
         assert g_ref[0] >= g_corners
         assert g_ref[0] >= g_dense * (1 - 1e-6)
+
+
+def test_effects_path_runs_the_3d_flexion_controller(tmp_path):
+    """A truth with [effects] that move the arm takes the general path (Newton on the full forward
+    map, FD true Jacobian, the controller at the encoder angles); with effects of zero size it gives
+    the flexion evaluator's maps (to the FD error), and noise-free its ||G|| is |1 - k| up to the
+    load's axial part."""
+    from dataclasses import replace as dc_replace
+
+    from errplan.fields.evaluator import SpatialEffectsEvaluator
+
+    sc = load_scenario(spatial_flexion_scenario(tmp_path))
+    ev = SpatialEffectsEvaluator.from_scenario(sc.with_(effects={"joint_offset": {"dq1": 0.0, "dq2": 0.0, "dq3": 0.0}}))
+    fe = SpatialFlexionEvaluator.from_scenario(sc)
+    assert ev.jacobian == "flexion" and ev.noise.shape == fe.noise.shape
+    x = np.array([[0.003, 0.002, 0.41], [0.0, -0.004, 0.40]])
+    for psi in (0.0, 1.0):
+        th = np.array([0.0, 0.0, 0.0, 3.0, psi])
+        M1, _, ok1 = ev.parts(x, th)
+        M2, _, ok2 = fe.parts(x, th)
+        assert ok1.all() and ok2.all()
+        np.testing.assert_allclose(M1, M2, atol=1e-8)
+    ev.errors = dc_replace(ev.errors, noise=(0.0, 0.0))
+    M0, _, _ = ev.parts(x, np.array([0.0, 0.0, 0.0, 3.0, 0.5]))
+    assert np.allclose(g_norm(M0, 0.8), 0.2, atol=0.01)

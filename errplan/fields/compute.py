@@ -159,7 +159,7 @@ def _numpy_tile(ev, X: np.ndarray, k: float, samples, refine: int, want_rho: boo
             return {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
     wc = worst_case(ev, X, k, samples=samples, refine=refine, keep_parts=want_rho)
     out = {"valid": wc["valid"], "G_norm": wc["G_norm"], "phi_max": wc["phi_max"]}
-    if noise is not None and np.any(noise) and np.any(wc["valid"]):
+    if noise is not None and np.any(noise) and np.any(wc["valid"]) and hasattr(ev, "refine_noise"):
         # P2's controller in 3-D: the corners' worst, then a refinement over the noise set at the
         # worst instance (a lower bound still; the npz metadata says so)
         v = wc["valid"]
@@ -312,7 +312,7 @@ def compute_fields(sc, resolution: float | None = None, rho_star: bool = False, 
 
         if sc.dim == 2:
             ev = Evaluator.from_scenario(sc)
-        elif sc.controller.jacobian == "flexion":
+        elif sc.controller.jacobian == "flexion" and not jac_effects:
             ev = SpatialFlexionEvaluator.from_scenario(sc)
         else:
             ev = SpatialEffectsEvaluator.from_scenario(sc)
@@ -355,7 +355,7 @@ def compute_fields(sc, resolution: float | None = None, rho_star: bool = False, 
             + ("(the 64 vertices of the box)" if sc.dim == 2 else
                "(position differences at -2p, 0, 2p per axis, each end direction tilted by the full angle "
                "toward 4 directions around its cone)")
-            + ("" if sc.dim == 2 else ", then a pattern search over the noise set from the worst corner")
+            + ("" if sc.dim == 2 or jac_effects else ", then a pattern search over the noise set from the worst corner")
             + "; the worst noise can lie inside the set where ||G|| is not convex in it")
     kw = dict(meta=meta, rho_star=scatter("rho_star") if want_rho else None,
               k_star=scatter("k_star") if want_rho else None)

@@ -207,7 +207,12 @@ class SpatialEffectsEvaluator:
         es, _ = error_set(sc)  # the port_offset effect folded into the box's base port
         effects = {name: p for name, p in sc.effects.items() if name != "port_offset"}
         plant = Plant.from_scenario(sc.with_(effects=effects), port=es.base_port)
-        return cls(plant, tuple(sc.port.estimate), es)
+        return cls(plant, tuple(sc.port.estimate), es, sc.controller.jacobian)
+
+    @property
+    def noise(self) -> np.ndarray | None:
+        """The flexion controller's noise corners (c, 7); None for the rigid controller."""
+        return self.errors.noise_corners() if self.jacobian == "flexion" else None
 
     @property
     def arm(self):
@@ -235,7 +240,7 @@ class SpatialEffectsEvaluator:
         x = np.asarray(x, float).reshape(-1, 3)
         theta = np.broadcast_to(np.asarray(theta, float), (len(x), 5))
         n = len(x)
-        M = np.full((n, 1, 3, 3), np.nan)
+        M = np.full((n, 1 if self.noise is None else len(self.noise), 3, 3), np.nan)
         plant, port = self._plant(x, theta)
         L = self.length
         r = np.linalg.norm(x - port, axis=-1)
@@ -262,15 +267,28 @@ class SpatialEffectsEvaluator:
             qo = q[ok]
             J = _fd_jacobian(plant.with_(port=port[ok], load=plant.load_vector[ok]).tip, qo)
             wm = self.arm.forward(qo)
-            Jh = lever_jacobian(wm, np.asarray(self.estimate), L) @ self.arm.jacobian(qo)
+            lever = lever_jacobian(wm, np.asarray(self.estimate), L)
+            if self.jacobian == "flexion":  # P2's controller in 3-D fed the true end poses + noise corners
+                from ..kinematics.shaft import flexion_controller_jacobian
+
+                pl = plant.with_(port=port[ok], load=plant.load_vector[ok])
+                w, tip, dw, dt = pl.end_poses(qo)
+                m = bending_frame(w, pl.true_port, L, pl.shaft_load(w))
+                pw, pt, mw, mt = noisy_end_poses(w, tip, dw, dt, m, self.noise)
+                Jtw = flexion_controller_jacobian(pw, pt, mw, mt, L)
+                Jtw = np.where(np.all(np.isfinite(Jtw), axis=(-2, -1))[..., None, None], Jtw, lever[:, None])
+            else:
+                Jtw = lever[:, None]
+            Jh = Jtw @ self.arm.jacobian(qo)[:, None]  # (n, c, 3, 3)
             det = np.linalg.det(Jh)
             fro = np.sqrt(np.sum(Jh * Jh, axis=(-2, -1)))
-            nonsing = np.abs(det) > 1e-12 * fro**3
-            Mo = np.full((len(qo), 3, 3), np.nan)
-            Mo[nonsing] = J[nonsing] @ np.linalg.inv(Jh[nonsing])
+            nonsing = np.all(np.abs(det) > 1e-12 * fro**3, axis=-1)
+            c = Jh.shape[1]
+            Mo = np.full((len(qo), c, 3, 3), np.nan)
+            Mo[nonsing] = J[nonsing][:, None] @ np.linalg.inv(Jh[nonsing])
         idx = np.flatnonzero(ok)
         ok[idx[~nonsing]] = False
-        M[idx, 0] = Mo
+        M[idx] = Mo
         M[~ok] = np.nan
         return M, None, ok
 
