@@ -431,3 +431,27 @@ def test_effects_path_runs_the_3d_flexion_controller(tmp_path):
     ev.errors = dc_replace(ev.errors, noise=(0.0, 0.0))
     M0, _, _ = ev.parts(x, np.array([0.0, 0.0, 0.0, 3.0, 0.5]))
     assert np.allclose(g_norm(M0, 0.8), 0.2, atol=0.01)
+
+
+def test_region_queries_take_the_3d_flexion_controller(tmp_path):
+    """The port query's physics in 3-D runs P2's controller (worst over its noise corners, the
+    sensor noise kept), tip_load stays the rigid lever's by definition, and a load range that
+    reaches 0 is refused for the flexion controller (no flexion: nothing to identify)."""
+    from errplan.errors import ErrplanError
+    from errplan.tolerance import port_tolerance
+    from errplan.tolerance.region import _SpatialPhysics
+
+    sc = load_scenario(spatial_flexion_scenario(tmp_path))
+    base = (0.002, -0.001, 0.161)
+    phys = _SpatialPhysics(sc, base, "flexion")
+    x = np.array([[0.003, 0.002, 0.41], [0.0, -0.004, 0.40]])
+    th = np.array([[0.001, 0.0, -0.002, 3.0, 0.3], [0.0, 0.002, 0.0, 3.0, 2.0]])
+    g, ok = phys.g(x, th, 0.8)
+    fe = SpatialFlexionEvaluator.from_scenario(sc)  # true port = estimate + offset: shift the offsets
+    M, _, ok2 = fe.parts(x, th + np.array([*np.subtract(base, sc.port.estimate), 0.0, 0.0]))
+    assert ok.all() and ok2.all()
+    np.testing.assert_allclose(g, g_norm(M, 0.8).max(axis=1), rtol=1e-12)
+    assert len(fe.noise) > 1 and phys.fev.errors.noise == (POS, ANG)
+    assert _SpatialPhysics(sc, base).fev is None  # the rigid lever (tip_load)
+    with pytest.raises(ErrplanError, match="flexion"):
+        port_tolerance(sc, {"x": (0.0, 0.0), "y": (0.0, 0.0), "z": (0.41, 0.41)}, "x", tip_force_over_ei=[0.0, 3.0])
