@@ -207,6 +207,30 @@ def insertion_worst(model: InsertionModel, rl: np.ndarray, position: float, angl
 
 
 # ============================================================================= insertion band
+def _band_of_curve(rl: np.ndarray, g: np.ndarray, f) -> tuple[list | None, list, float, float]:
+    """Band, intervals, best depth and its worst ``||G||`` from the worst-case curve ``g`` on depths
+    ``rl`` and the worst case ``f(r)`` at one depth (planar or 3-D): every run of ``g < 1`` with its
+    edges bisected, the best depth by golden section around the curve's minimum (kept only if it
+    improves on the grid), the band the run holding the minimum (``None`` if none)."""
+    i = int(np.argmin(g))
+    lo_b, hi_b = rl[max(i - 1, 0)], rl[min(i + 1, len(rl) - 1)]
+    best = _golden_min(f, lo_b, hi_b) if hi_b > lo_b else float(rl[i])
+    best_g = f(best)
+    if best_g > g[i]:
+        best, best_g = float(rl[i]), float(g[i])
+    below = g < 1.0
+    intervals = []
+    for a, b in _runs(below):
+        lo = rl[a] if a == 0 else _crossing(f, rl[a], rl[a - 1])
+        hi = rl[b] if b == len(rl) - 1 else _crossing(f, rl[b], rl[b + 1])
+        intervals.append([float(lo), float(hi)])
+    band = None
+    for (a, b), iv in zip(_runs(below), intervals):
+        if a <= i <= b:
+            band = iv
+    return band, intervals, float(best), float(best_g)
+
+
 def insertion_band(length: float, tip_load: float, position: float, angle: float, *, gain: float = 1.0,
                    samples: int = 193, hold: str = "tip_force", shaft_angle: float = 0.0,
                    sampling: str = "worst", draws: int = 10000, seed: int = 0, extras: bool = True,
@@ -237,22 +261,7 @@ def insertion_band(length: float, tip_load: float, position: float, angle: float
     def f(r: float) -> float:
         return float(insertion_worst(model, np.array([r]), position, angle, **kw)[0])
 
-    i = int(np.argmin(g))
-    lo_b, hi_b = rl[max(i - 1, 0)], rl[min(i + 1, len(rl) - 1)]
-    best = _golden_min(f, lo_b, hi_b) if hi_b > lo_b else float(rl[i])
-    best_g = f(best)
-    if best_g > g[i]:
-        best, best_g = float(rl[i]), float(g[i])
-    below = g < 1.0
-    intervals = []
-    for a, b in _runs(below):
-        lo = rl[a] if a == 0 else _crossing(f, rl[a], rl[a - 1])
-        hi = rl[b] if b == len(rl) - 1 else _crossing(f, rl[b], rl[b + 1])
-        intervals.append([float(lo), float(hi)])
-    band = None
-    for (a, b), iv in zip(_runs(below), intervals):
-        if a <= i <= b:
-            band = iv
+    band, intervals, best, best_g = _band_of_curve(rl, g, f)
     out: dict[str, Any] = {
         "band": band, "intervals": intervals, "best": float(best), "best_G_norm": float(best_g),
         "worst_G_norm": {"r_over_L": rl, "G_norm": g, "degenerate_model": degenerate},
@@ -492,22 +501,7 @@ def spatial_insertion_band(length: float, tip_load: float, position: float, angl
     def f(r: float) -> float:
         return float(model.worst(np.array([r]), position, angle)[0][0])
 
-    i = int(np.argmin(g))
-    lo_b, hi_b = rl[max(i - 1, 0)], rl[min(i + 1, len(rl) - 1)]
-    best = _golden_min(f, lo_b, hi_b) if hi_b > lo_b else float(rl[i])
-    best_g = f(best)
-    if best_g > g[i]:
-        best, best_g = float(rl[i]), float(g[i])
-    below = g < 1.0
-    intervals = []
-    for a, b in _runs(below):
-        lo = rl[a] if a == 0 else _crossing(f, rl[a], rl[a - 1])
-        hi = rl[b] if b == len(rl) - 1 else _crossing(f, rl[b], rl[b + 1])
-        intervals.append([float(lo), float(hi)])
-    band = None
-    for (a, b), iv in zip(_runs(below), intervals):
-        if a <= i <= b:
-            band = iv
+    band, intervals, best, best_g = _band_of_curve(rl, g, f)
     if progress:
         progress(1.0, "insertion band (3-D)")
     return {
