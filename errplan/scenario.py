@@ -408,9 +408,6 @@ def _uncertainty(ctx: _Ctx, t: Mapping[str, Any], d: int = 2) -> Uncertainty:
     w = "[uncertainty] "
     allowed = ("port_y", "port_z", "tip_force_over_ei", "sensor_noise", "samples")
     _check_keys(ctx, t, allowed + (("port_x",) if d == 3 else ()), w)
-    if d == 3 and "sensor_noise" in t:
-        raise ctx.fail(w + "sensor_noise", t["sensor_noise"],
-                       "no sensor noise in a spatial scenario (P2's flexion controller is planar only)")
     px = _pair(ctx, t["port_x"], w + "port_x", ordered=True) if "port_x" in t else None
     py = _pair(ctx, t["port_y"], w + "port_y", ordered=True) if "port_y" in t else None
     pz = _pair(ctx, t["port_z"], w + "port_z", ordered=True) if "port_z" in t else None
@@ -505,7 +502,9 @@ _TOL_KEYS = {
     "port_placement": ("candidates", "spacing", "region", "resolution", "gain", "certify_margin", "refine",
                        "refine_levels"),
 }
-_TOL_PLANAR = ("insertion_band", "tracker_noise")  # P2's flexion controller: planar only
+_TOL_PLANAR = ("insertion_band", "tracker_noise")  # P2's flexion controller at insertion depths
+#: their keys without a 3-D meaning yet: the hold variants, Monte Carlo noise, the planar shaft angle
+_TOL_PLANAR_ONLY = ("hold", "noise_sampling", "draws", "seed", "shaft_angle")
 _TOL_HOLDS = ("tip_force", "port_force", "port_deflection")
 
 
@@ -516,10 +515,21 @@ def _tol_int(ctx: _Ctx, t: Mapping[str, Any], key: str, w: str, lo: int, hi: int
     return s
 
 
+def _shaft_direction(ctx: _Ctx, v: Any, key: str) -> tuple[float, float, float]:
+    """A non-zero 3-vector: the port->tip direction of P2's insertion-depth queries in 3-D."""
+    if not isinstance(v, list) or len(v) != 3:
+        raise ctx.fail(key, v, "[x, y, z]: the port->tip direction, a non-zero 3-vector")
+    vals = tuple(_num(ctx, x, key) for x in v)
+    if not any(vals):
+        raise ctx.fail(key, v, "[x, y, z]: the port->tip direction, a non-zero 3-vector")
+    return vals
+
+
 def _tolerances(ctx: _Ctx, v: Any, controller_gain: float, d: int = 2) -> tuple[Tolerance, ...]:
     """``[[tolerance]]`` tables (docs/interfaces.md; every key in docs/tolerance.md). Regions and
     candidate boxes have the scenario's axes (``x`` too in 3-D); ``insertion_band`` and
-    ``tracker_noise`` are planar only."""
+    ``tracker_noise`` take ``shaft_direction`` instead of ``shaft_angle`` in 3-D (and no ``hold`` or
+    Monte Carlo keys there)."""
     if not isinstance(v, list):
         raise ctx.fail("[[tolerance]]", v, "an array of tables")
     out = []
@@ -531,10 +541,9 @@ def _tolerances(ctx: _Ctx, v: Any, controller_gain: float, d: int = 2) -> tuple[
         kind = _get(ctx, t, "kind", w)
         if kind not in TOLERANCE_KINDS:
             raise ctx.fail(w + "kind", kind, " | ".join(f'"{k}"' for k in TOLERANCE_KINDS))
-        if d == 3 and kind in _TOL_PLANAR:
-            raise ctx.fail(w + "kind", kind, '"port", "tip_load" or "port_placement" in a spatial scenario '
-                           "(insertion_band and tracker_noise are planar: P2's flexion controller)")
         allowed = tuple(k for k in _TOL_KEYS[kind] if d == 3 or k != "port_x")
+        if d == 3 and kind in _TOL_PLANAR:  # P2's controller in 3-D: a shaft direction, not an angle
+            allowed = tuple(k for k in allowed if k not in _TOL_PLANAR_ONLY) + ("shaft_direction",)
         _check_keys(ctx, t, ("name", "kind") + allowed, w)
         name = t.get("name", f"tolerance{i}")
         if not isinstance(name, str) or not name:
@@ -596,6 +605,8 @@ def _tolerances(ctx: _Ctx, v: Any, controller_gain: float, d: int = 2) -> tuple[
         for key in ("port_x", "port_y", "port_z", "band"):
             if key in t:
                 opts[key] = _pair(ctx, t[key], w + key, ordered=True)
+        if "shaft_direction" in t:
+            opts["shaft_direction"] = _shaft_direction(ctx, t["shaft_direction"], w + "shaft_direction")
         if "band" in opts and not 0.0 < opts["band"][0] <= opts["band"][1] < 1.0:
             raise ctx.fail(w + "band", list(opts["band"]), "insertion depths [lo, hi] with 0 < lo <= hi < 1 (r/L)")
         if "angle_ratio" in t:
@@ -667,9 +678,6 @@ def scenario_from_dict(doc: Mapping[str, Any], source: str = "<memory>") -> Scen
     if "urdf" in robot_t:
         d = 3
         robot: Robot | UrdfRobot = _urdf_robot(ctx, robot_t, base_dir)
-        if controller.jacobian != "rigid":
-            raise ctx.fail("[controller] jacobian", controller.jacobian,
-                           '"rigid" in a spatial scenario (P2\'s flexion controller is planar only)')
     else:
         d = 2
         robot = _robot(ctx, robot_t)

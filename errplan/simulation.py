@@ -8,7 +8,8 @@ the port estimate, or P2's flexion model fed by measured end poses); the motion 
 
 Planar and spatial with the same code (docs/physics.md "Spatial robots"): points, motions and
 Jacobians are ``(..., d)`` / ``(..., d, d)`` with ``d`` the plant's dimension; in 3-D the arm is
-the scenario's URDF arm and the controller the rigid lever through the port estimate.
+the scenario's URDF arm and the controller the rigid lever through the port estimate or P2's
+flexion controller in 3-D (end positions and directions, the bending plane estimated from them).
 
 This module imports neither ompl nor casadi nor rerun.
 """
@@ -20,7 +21,7 @@ import numpy as np
 
 from .errors import ErrplanError
 from .kinematics.arm import Arm
-from .kinematics.shaft import estimate_from_ends, flexed_jacobian, lever_jacobian
+from .kinematics.shaft import estimate_from_ends, flexed_jacobian, flexion_controller_jacobian, lever_jacobian, tilt
 from .kinematics.truth import Plant, effect_kwargs
 
 __all__ = ["Plant", "effect_kwargs", "ControllerModel", "SimResult", "simulate", "distance_to_polyline",
@@ -46,9 +47,6 @@ class ControllerModel:
         if getattr(sc, "dim", 2) == 3:
             from .kinematics import arm_for
 
-            if sc.controller.jacobian != "rigid":
-                raise ErrplanError(f"{sc.source}: [controller] jacobian = {sc.controller.jacobian!r}: in 3-D errplan "
-                                   "runs the rigid controller (P2's flexion controller is planar)")
             arm = arm_for(sc.robot)
         else:
             arm = Arm.from_robot(sc.robot)
@@ -78,11 +76,17 @@ class ControllerModel:
             pos, ang = self.noise
             w = w + rng.uniform(-pos, pos, np.shape(w))
             tip = tip + rng.uniform(-pos, pos, np.shape(tip))
-            thw = thw + rng.uniform(-ang, ang, np.shape(thw))
-            tht = tht + rng.uniform(-ang, ang, np.shape(tht))
+            if self.dim == 3:  # directions: tilted by an angle uniform in the disk of radius ang
+                thw, tht = (_random_tilt(d, ang, rng) for d in (thw, tht))
+            else:
+                thw = thw + rng.uniform(-ang, ang, np.shape(thw))
+                tht = tht + rng.uniform(-ang, ang, np.shape(tht))
         with np.errstate(invalid="ignore", divide="ignore"):
-            est = estimate_from_ends(w, tip, thw, tht, self.length)
-            J_tw = flexed_jacobian(w, est["port"], self.length, est["t"])
+            if self.dim == 3:  # thw, tht: the end directions (P2's controller in the estimated plane)
+                J_tw = flexion_controller_jacobian(w, tip, thw, tht, self.length)
+            else:
+                est = estimate_from_ends(w, tip, thw, tht, self.length)
+                J_tw = flexed_jacobian(w, est["port"], self.length, est["t"])
         # A shaft that does not bend (equal end slopes) does not identify P2's model: the
         # controller falls back to the straight-shaft model, the lever through the port estimate.
         rigid = ~np.all(np.isfinite(J_tw), axis=(-2, -1))
@@ -90,6 +94,20 @@ class ControllerModel:
             lever = lever_jacobian(self.arm.forward(q), np.asarray(self.port_estimate), self.length)
             J_tw = np.where(rigid[..., None, None], lever, J_tw)
         return J_tw @ Jr
+
+
+def _random_tilt(d: np.ndarray, angle: float, rng: np.random.Generator) -> np.ndarray:
+    """Unit directions ``d`` (..., 3) tilted by a random angular error uniform in the disk of radius
+    ``angle`` (rad) around each: the 3-D reading of "direction noise bounded by an angle"."""
+    d = np.asarray(d, float)
+    n = d / np.linalg.norm(d, axis=-1, keepdims=True)
+    ref = np.where((np.abs(n[..., 0]) < 0.9)[..., None], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0])
+    e1 = np.cross(n, ref)
+    e1 /= np.linalg.norm(e1, axis=-1, keepdims=True)
+    e2 = np.cross(n, e1)
+    r = angle * np.sqrt(rng.uniform(0.0, 1.0, n.shape[:-1]))
+    a = rng.uniform(0.0, 2 * np.pi, n.shape[:-1])
+    return tilt(n, np.stack([r * np.cos(a), r * np.sin(a)], axis=-1), e1, e2)
 
 
 # ----------------------------------------------------------------------------- results

@@ -124,6 +124,40 @@ def flexed_functions(L: float, hold: str = "tip_force") -> tuple[ca.Function, ca
             ca.Function("flexed_shape", args, [ca.vertcat(a, ym, phi)], names, ["shape"]))
 
 
+@lru_cache(maxsize=32)
+def flexed_functions_3d(L: float) -> tuple[ca.Function, ca.Function]:
+    """``(tip, jac)`` of the 3-D flexed shaft (docs/physics.md "Flexed shaft in 3-D"), built
+    independently of shaft.py: the world load ``t`` (3) over EI, its part normal to the wrist->port
+    line ``t_perp = t - (t.u) u`` bends the shaft in the plane of ``u`` and ``t_perp`` as P2's planar
+    beam with load ``|t_perp|`` (eq. 18 by casadi's rootfinder). ``jac`` = d tip / d w holding the
+    port and the world vector ``t``, by AD."""
+    w = ca.MX.sym("w", 3)
+    p = ca.MX.sym("p", 3)
+    t = ca.MX.sym("t", 3)
+    d = p - w
+    rho = ca.norm_2(d)
+    u = d / rho
+    tp = t - ca.dot(t, u) * u
+    tau = ca.norm_2(tp)
+    n = tp / tau
+    a = _port_position_solver(L, "tip_force")(rho, ca.vertcat(rho, tau))
+    ym = _deflection(a, L, tau, "tip_force")
+    beta = -ca.atan(ym / a)
+    tip = w + L * (ca.cos(beta) * u + ca.sin(beta) * n)
+    args, names = [w, p, t], ["w", "p", "t"]
+    return (ca.Function("flexed_tip3", args, [tip], names, ["tip"]),
+            ca.Function("flexed_jac3", args, [ca.jacobian(tip, w)], names, ["J"]))
+
+
+def flexed_tip_3d(w, p, L: float, t) -> np.ndarray:
+    return _batched(flexed_functions_3d(float(L))[0], [w, p, t], (3,))
+
+
+def flexed_jacobian_3d(w, p, L: float, t) -> np.ndarray:
+    """``d tip / d w`` (..., 3, 3) of the 3-D flexed shaft by casadi AD, port and world load held."""
+    return _batched(flexed_functions_3d(float(L))[1], [w, p, t], (3, 3))
+
+
 def _batched(f: ca.Function, args: list[np.ndarray], out_shape: tuple[int, ...]) -> np.ndarray:
     """Evaluate a casadi Function over leading batch axes of numpy arguments (last axis = input)."""
     arrs = [np.asarray(x, float) for x in args]

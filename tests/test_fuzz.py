@@ -558,9 +558,7 @@ def spatial_robot_cases() -> list[Case]:
         case("region-2d", {"arm.urdf": urdf_src}, **{"fields.region": {"y": [-0.1, 0.1], "z": [0.3, 0.4]}}),
         case("region-empty", {"arm.urdf": urdf_src},
              **{"fields.region": {"x": [0.001, 0.002], "y": [0.0, 0.1], "z": [0.3, 0.4]}}),
-        case("flexion-controller", {"arm.urdf": urdf_src}, **{"controller.jacobian": "flexion"}),
-        case("sensor-noise", {"arm.urdf": urdf_src},
-             **{"uncertainty.sensor_noise": {"position": 0.001, "angle": 0.002}}),
+        # (P2's flexion controller and its sensor noise are spatial too since issue 20: no longer refused)
         case("joint-limits-2-pairs", {"arm.urdf": urdf_src}, **{"robot.joint_limits": [[-1, 1], [-1, 1]]}),
         case("base-rpy-2", {"arm.urdf": urdf_src}, **{"robot.base_rpy": [0.0, 0.0]}),
         # malformed URDFs (issue 17): each one line naming what is wrong
@@ -612,7 +610,7 @@ def placement_cases() -> list[Case]:
             "certify-margin-one": {"certify_margin": 1.0},
             "refine-not-bool": {"refine": 1},
             "refine-levels-huge": {"refine_levels": 1000},
-            "planar-kind-beside": None,
+            "planar-only-key-beside": None,
         }
         for tag, change in variants.items():
             d = copy.deepcopy(doc)
@@ -620,7 +618,8 @@ def placement_cases() -> list[Case]:
                 if not d3:
                     continue
                 d["tolerance"] = [base, {"name": "band", "kind": "insertion_band", "tip_force_over_ei": 3.0,
-                                         "sensor_noise": {"position": 0.001, "angle": 0.002}}]
+                                         "sensor_noise": {"position": 0.001, "angle": 0.002},
+                                         "hold": "port_force"}]  # the hold variants are planar only
             else:
                 d["tolerance"] = [dict(base, **change)]
             out.append(_scenario_case(f"placement:{src.stem}:{tag}", d, "tolerance"))

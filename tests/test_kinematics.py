@@ -278,3 +278,94 @@ def test_fields_use_the_tip_force_hold():
     w = shaft_wrists(20, 12)
     assert np.allclose(shaft.flexed_jacobian(w, PORT, L, 3.0), sym.flexed_jacobian(w, PORT, L, 3.0, "tip_force"), atol=1e-10)
     assert angle_of(np.array([1.0, 0.0])) == pytest.approx(np.pi / 2)
+
+
+# ----------------------------------------------------------------------------- P2's controller in 3-D
+def spatial_shafts(n, seed, L=0.355):
+    """Wrists, ports and world loads (normal part up to 5 1/m^2, any direction) in 3-D."""
+    rng = np.random.default_rng(seed)
+    p = rng.uniform(-0.05, 0.05, (n, 3)) + [0.0, 0.0, 0.2]
+    v = rng.normal(size=(n, 3))
+    v /= np.linalg.norm(v, axis=-1, keepdims=True)
+    w = p - rng.uniform(0.08, 0.27, n)[:, None] * (v + [0.0, 0.0, 2.0]) / np.linalg.norm(v + [0.0, 0.0, 2.0], axis=-1,
+                                                                                            keepdims=True)
+    t = rng.uniform(-5, 5, (n, 3))
+    return w, p, t
+
+
+def fd3(f, x, h=1e-6):
+    return np.stack([(f(x + h * e) - f(x - h * e)) / (2 * h) for e in np.eye(3)], axis=-1)
+
+
+def test_flexed_jacobian_3d_closed_form_vs_casadi_vs_fd():
+    """docs/physics.md "P2's flexion controller in 3-D": d tip/d w with the port and the world load
+    vector held, closed form against casadi AD (an independent 3-D model) and central differences."""
+    L3 = 0.355
+    w, p, t = spatial_shafts(60, 21)
+    tip = shaft.flexed_tip(w, p, L3, t)
+    assert np.allclose(tip, sym.flexed_tip_3d(w, p, L3, t), atol=1e-12)
+    J = shaft.flexed_jacobian(w, p, L3, t)
+    J_ad = sym.flexed_jacobian_3d(w, p, L3, t)
+    J_fd = fd3(lambda ww: shaft.flexed_tip(ww, p, L3, t), w)
+    assert np.max(np.abs(J - J_ad)) < 1e-10
+    assert np.max(np.abs(J - J_fd)) < 1e-7
+    assert np.max(np.abs(J - shaft.lever_jacobian(w, p, L3))) > 1e-3
+
+
+def test_estimate_from_end_poses_recovers_the_3d_model():
+    """Noise-free end poses of a shaft bent in any plane give back the port and the load's
+    normal part (the estimator's bending plane is the true one); the flexed shaft through the
+    estimate reproduces the measured tip and the controller's Jacobian is the true one of the
+    normal load."""
+    L3 = 0.355
+    w, p, t = spatial_shafts(80, 22)
+    tip, dw, dt = shaft.flexed_end_directions(w, p, L3, t)
+    assert np.allclose(np.linalg.norm(dw, axis=-1), 1) and np.allclose(np.linalg.norm(dt, axis=-1), 1)
+    est = shaft.estimate_from_end_poses(w, tip, dw, dt, L3)
+    u = (p - w) / np.linalg.norm(p - w, axis=-1, keepdims=True)
+    tperp = t - np.sum(t * u, axis=-1, keepdims=True) * u
+    assert np.allclose(est["port"], p, atol=1e-10)
+    assert np.allclose(est["load"], tperp, atol=1e-7)
+    assert np.allclose(shaft.flexed_tip(w, est["port"], L3, est["load"]), tip, atol=1e-12)
+    Jh = shaft.flexion_controller_jacobian(w, tip, dw, dt, L3)
+    # the estimate holds the load's normal part; the truth's axial part turns with the shaft
+    assert np.allclose(Jh, shaft.flexed_jacobian(w, p, L3, tperp), atol=1e-7)
+    # unbent: the tangents are the chord, nothing identifies a (NaN, as in the plane)
+    tip0, dw0, dt0 = shaft.flexed_end_directions(w[:4], p[:4], L3, 0.0 * t[:4])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        est0 = shaft.estimate_from_end_poses(w[:4], tip0, dw0, dt0, L3)
+    assert np.isnan(est0["a"]).all() and np.isnan(est0["port"]).all()
+
+
+def test_flexion_controller_in_plane_x0_equals_planar():
+    """On the plane x = 0 with in-plane loads and in-plane noise the 3-D flexion controller (end
+    directions, estimated plane, estimate, Jhat) equals P2's planar one to 1e-9 relative."""
+    L3 = 0.355
+    rng = np.random.default_rng(23)
+    w2 = shaft_wrists(120, 24, lo=0.08, hi=0.26)
+    t2 = rng.uniform(-5, 5, 120)
+    nz = rng.uniform(-1, 1, (120, 6)) * np.array([7e-4] * 4 + [2.6e-3] * 2)
+    emb = lambda v: np.concatenate([np.zeros(v.shape[:-1] + (1,)), v], axis=-1)
+    tip2, thw, tht = shaft.flexed_end_angles(w2, PORT, L3, t2)
+    tip3, dw3, dt3 = shaft.flexed_end_directions(emb(w2), emb(PORT), L3, emb(t2[:, None] * direction_derivative(
+        angle_of(PORT - w2))))
+    assert np.allclose(tip3, emb(tip2), atol=1e-14)
+    assert np.allclose(dw3, emb(direction(thw)), atol=1e-14) and np.allclose(dt3, emb(direction(tht)), atol=1e-14)
+    pw, pt = w2 + nz[:, 0:2], tip2 + nz[:, 2:4]
+    aw, at = thw + nz[:, 4], tht + nz[:, 5]
+    e2 = shaft.estimate_from_ends(pw, pt, aw, at, L3)
+    J2 = shaft.flexed_jacobian(pw, e2["port"], L3, e2["t"])
+    e3 = shaft.estimate_from_end_poses(emb(pw), emb(pt), emb(direction(aw)), emb(direction(at)), L3)
+    J3 = shaft.flexion_controller_jacobian(emb(pw), emb(pt), emb(direction(aw)), emb(direction(at)), L3)
+    assert np.allclose(e3["port"], emb(e2["port"]), rtol=0, atol=1e-12)
+    assert np.max(np.abs(J3[:, 1:, 1:] - J2) / np.abs(J2).max(axis=(-2, -1))[:, None, None]) < 1e-9
+    assert np.all(J3[:, 0, 1:] == 0) and np.all(J3[:, 1:, 0] == 0)
+    # the same function in the plane is the planar estimator
+    e2b = shaft.estimate_from_end_poses(pw, pt, direction(aw), direction(at), L3)
+    assert np.allclose(e2b["load"], e2["t"], rtol=1e-12)
+    # out-of-plane noise tilts the estimated plane: the 3-D Jacobian leaves the plane
+    J3o = shaft.flexion_controller_jacobian(emb(pw), emb(pt) + [[3e-4, 0, 0]],
+                                            shaft.tilt(emb(direction(aw)), np.array([0.0, 2e-3]),
+                                                       np.array([1.0, 0, 0]), emb(direction_derivative(aw))),
+                                            emb(direction(at)), L3)
+    assert np.max(np.abs(J3o[:, 0, 1:])) > 1e-4

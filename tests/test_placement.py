@@ -364,10 +364,20 @@ def test_malformed_placement_tables_name_the_key(doc, tol, key):
 
 
 @pytest.mark.parametrize("kind", ["insertion_band", "tracker_noise"])
-def test_planar_kinds_refused_in_a_spatial_scenario(kind):
-    with pytest.raises(ScenarioError, match="planar"):
-        _sc(SPATIAL_DOC, tolerance=[{"name": "p2", "kind": kind, "tip_force_over_ei": 3.0, "band": [0.5, 0.8],
-                                     "sensor_noise": {"position": 0.001, "angle": 0.002}}])
+def test_planar_only_keys_refused_in_a_spatial_scenario(kind):
+    """P2's insertion-depth kinds run in 3-D since issue 20; their planar-only keys (the hold
+    variants, the planar shaft angle) are refused there, the 3-D shaft direction accepted."""
+    t = {"name": "p2", "kind": kind, "tip_force_over_ei": 3.0, "band": [0.5, 0.8],
+         "sensor_noise": {"position": 0.001, "angle": 0.002}}
+    if kind == "tracker_noise":
+        t.pop("sensor_noise")
+    else:
+        t.pop("band")
+    sc = _sc(SPATIAL_DOC, tolerance=[dict(t, shaft_direction=[0.0, 0.1, 1.0])])
+    assert sc.tolerances[0].options["shaft_direction"] == (0.0, 0.1, 1.0)
+    for key, v in (("hold", "port_force"), ("shaft_angle", 0.2)):
+        with pytest.raises(ScenarioError, match=key):
+            _sc(SPATIAL_DOC, tolerance=[dict(t, **{key: v})])
 
 
 @pytest.mark.parametrize("change, needle", [

@@ -550,8 +550,11 @@ def test_spatial_tolerance_tables_and_planar_only_kinds(tmp_path, capsys):
     assert sc.tolerances[0].options["direction"] == "x"
     for bad, key in ((dict(doc["tolerance"][0], region={"y": [0, 0], "z": [0.3, 0.4]}), "region"),
                      (dict(doc["tolerance"][0], tip_force_over_ei=-1.0), "tip_force_over_ei"),
+                     ({"name": "b", "kind": "insertion_band", "tip_force_over_ei": 3.0, "shaft_angle": 0.1,
+                       "sensor_noise": {"position": 0.001, "angle": 0.002}}, "shaft_angle"),
                      ({"name": "b", "kind": "insertion_band", "tip_force_over_ei": 3.0,
-                       "sensor_noise": {"position": 0.001, "angle": 0.002}}, "planar")):
+                       "shaft_direction": [0.0, 0.0, 0.0],
+                       "sensor_noise": {"position": 0.001, "angle": 0.002}}, "shaft_direction")):
         with pytest.raises(ScenarioError, match=key):
             parse_scenario(dict(doc, tolerance=[bad]), "<test>")
     with pytest.raises(ScenarioError, match="direction"):  # "x" only in 3-D

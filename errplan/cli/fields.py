@@ -58,4 +58,6 @@ def run(args) -> int:
     if args.json:
         write_json(args.json, {"scenario": sc.name, "out": str(out), "summary": summary})
     print(field_table(summary, f"worst-case fields of {sc.name} (gain {sc.controller.gain:g}) -> {out}"))
+    if mf.meta.get("noise_worst_case"):  # P2's flexion controller: the worst case over the noise is searched
+        print("sensor noise: " + mf.meta["noise_worst_case"])
     return 0

@@ -22,11 +22,11 @@ from __future__ import annotations
 
 from .compute import ALL_METRICS, DEFAULT_METRICS, KernelEvaluator, compute_fields, parse_metrics, tip_grid, workspace_bounds
 from .errorset import ErrorSet, error_set
-from .evaluator import EFFECT_NEWTON_ITERS, JACOBIAN_EFFECTS, Evaluator
+from .evaluator import EFFECT_NEWTON_ITERS, JACOBIAN_EFFECTS, Evaluator, SpatialFlexionEvaluator
 from .grid import METRIC_NAMES, MetricField
 from .search import EXTRA_PASSES, REFINE_LEVELS, SECOND_START, Progress, minimize_gain, worst_case
 
 __all__ = ["ErrorSet", "Evaluator", "MetricField", "compute_fields", "minimize_gain", "worst_case",
            "workspace_bounds", "REFINE_LEVELS", "EXTRA_PASSES", "SECOND_START", "EFFECT_NEWTON_ITERS",
            "JACOBIAN_EFFECTS", "Progress", "ALL_METRICS", "DEFAULT_METRICS", "METRIC_NAMES", "error_set",
-           "parse_metrics", "tip_grid", "KernelEvaluator"]
+           "parse_metrics", "tip_grid", "KernelEvaluator", "SpatialFlexionEvaluator"]

@@ -144,9 +144,31 @@ def run_tile(job: FieldJob, span: tuple[int, int]) -> dict[str, np.ndarray]:
     return _numpy_tile(job.evaluator, X, job.k, job.samples, job.refine, job.want_rho)
 
 
+#: bytes of kept motion maps per chunk of tips when rho* needs them (3-D flexion: instances x noise corners)
+RHO_PARTS_BYTES = 200_000_000
+
+
 def _numpy_tile(ev, X: np.ndarray, k: float, samples, refine: int, want_rho: bool) -> dict[str, np.ndarray]:
+    noise = getattr(ev, "noise", None)
+    if want_rho and noise is not None and len(X) > 1:
+        # the kept maps are (tips, instances, corners, 3, 3): chunk the tips so memory stays flat
+        per_tip = len(ev.errors.sample_grid(samples)) * len(noise) * 72
+        step = max(1, int(RHO_PARTS_BYTES // max(per_tip, 1)))
+        if step < len(X):
+            parts = [_numpy_tile(ev, X[i:i + step], k, samples, refine, want_rho) for i in range(0, len(X), step)]
+            return {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
     wc = worst_case(ev, X, k, samples=samples, refine=refine, keep_parts=want_rho)
     out = {"valid": wc["valid"], "G_norm": wc["G_norm"], "phi_max": wc["phi_max"]}
+    if noise is not None and np.any(noise) and np.any(wc["valid"]) and hasattr(ev, "refine_noise"):
+        # P2's controller in 3-D: the corners' worst, then a refinement over the noise set at the
+        # worst instance (a lower bound still; the npz metadata says so)
+        v = wc["valid"]
+        g_r, _ = ev.refine_noise(X[v], wc["theta_G"][v], k)
+        _, p_r = ev.refine_noise(X[v], wc["theta_phi"][v], k)
+        out["G_norm"] = out["G_norm"].copy()
+        out["phi_max"] = out["phi_max"].copy()
+        out["G_norm"][v] = np.maximum(out["G_norm"][v], g_r)
+        out["phi_max"][v] = np.maximum(out["phi_max"][v], p_r)
     n = len(X)
     rfull, kfull = np.full(n, np.nan), np.full(n, np.nan)
     if want_rho:
@@ -169,6 +191,13 @@ def _numpy_tile(ev, X: np.ndarray, k: float, samples, refine: int, want_rho: boo
         kfull[v] = np.where(none, 0.0, ks)
     out["rho_star"], out["k_star"] = rfull, kfull
     return out
+
+
+def numpy_worst_case(ev, x: np.ndarray, k: float, *, samples: int | None = None, refine: int = REFINE_LEVELS,
+                     rho: bool = False) -> dict[str, np.ndarray]:
+    """The numpy path's worst case at tips ``x`` (n, d) for an evaluator ``ev``: ``valid``,
+    ``G_norm``, ``phi_max``, ``rho_star``, ``k_star`` (what a field tile computes)."""
+    return _numpy_tile(ev, np.asarray(x, float), float(k), samples, refine, rho)
 
 
 def _no_chain():
@@ -279,9 +308,14 @@ def compute_fields(sc, resolution: float | None = None, rho_star: bool = False, 
     if compiled:
         job = FieldJob(P[cand], k, want_phi, want_rho, refine, samples, _kernel_args(sc, es, samples))
     else:
-        from .evaluator import Evaluator, SpatialEffectsEvaluator
+        from .evaluator import Evaluator, SpatialEffectsEvaluator, SpatialFlexionEvaluator
 
-        ev = Evaluator.from_scenario(sc) if sc.dim == 2 else SpatialEffectsEvaluator.from_scenario(sc)
+        if sc.dim == 2:
+            ev = Evaluator.from_scenario(sc)
+        elif sc.controller.jacobian == "flexion" and not jac_effects:
+            ev = SpatialFlexionEvaluator.from_scenario(sc)
+        else:
+            ev = SpatialEffectsEvaluator.from_scenario(sc)
         job = FieldJob(P[cand], k, want_phi, want_rho, refine, samples, None, ev)
     spans = [(i, min(i + tile_points, len(cand))) for i in range(0, len(cand), tile_points)]
 
@@ -315,6 +349,14 @@ def compute_fields(sc, resolution: float | None = None, rho_star: bool = False, 
             "length": L, "effects": {name: dict(p) for name, p in sc.effects.items()},
             "metrics": list(names), "region": {a: list(v) for a, v in sc.fields.region.items()} if sc.fields.region
             else None}
+    if sc.controller.jacobian == "flexion" and any(es.noise):
+        meta["noise_worst_case"] = (
+            "lower bound: the worst case over P2's sensor-noise set is taken at its corners "
+            + ("(the 64 vertices of the box)" if sc.dim == 2 else
+               "(position differences at -2p, 0, 2p per axis, each end direction tilted by the full angle "
+               "toward 4 directions around its cone)")
+            + ("" if sc.dim == 2 or jac_effects else ", then a pattern search over the noise set from the worst corner")
+            + "; the worst noise can lie inside the set where ||G|| is not convex in it")
     kw = dict(meta=meta, rho_star=scatter("rho_star") if want_rho else None,
               k_star=scatter("k_star") if want_rho else None)
     if sc.dim == 3:

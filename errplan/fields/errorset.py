@@ -112,12 +112,46 @@ class ErrorSet:
         return np.asarray(self.base_port) + theta[..., :self.dim]
 
     def noise_corners(self) -> np.ndarray:
-        """Sensor-noise vectors (c, 6) at the corners of the noise box: [pw(2), pt(2), th_w, th_t]."""
+        """Sensor-noise vectors at the corners of the noise set.
+
+        Planar (c, 6): ``[pw(2), pt(2), th_w, th_t]`` at the corners of the box. Spatial (c, 7):
+        ``[delta(3), tilt_w(2), tilt_t(2)]`` (see :func:`spatial_noise_corners`).
+        """
         pos, ang = self.noise
+        if self.dim == 3:
+            return spatial_noise_corners(pos, ang)
         if pos == 0 and ang == 0:
             return np.zeros((1, 6))
         axes = [(-pos, pos) if pos > 0 else (0.0,)] * 4 + [(-ang, ang) if ang > 0 else (0.0,)] * 2
         return np.array(list(itertools.product(*axes)), float)
+
+
+def spatial_noise_corners(position: float, angle: float, azimuths: int = 4,
+                          in_plane: bool = False) -> np.ndarray:
+    """Noise vectors (c, 7) of the 3-D flexion controller's sensor-noise set at its corners.
+
+    The controller's ``Jhat`` depends on the measured positions only through the chord ``pt - pw``
+    (the estimated port moves with the wrist), so the two position boxes enter through their
+    difference ``delta`` in ``[-2 position, 2 position]^3``, taken at ``{-2p, 0, 2p}`` per axis (the
+    set of chords the corners of the two boxes give; in the plane the planar controller's 64
+    corners give the same Jacobians; the middle values matter: an out-of-plane chord tilt lowers the
+    worst case, so the worst often sits at an edge's middle, not a corner). Each end direction
+    is tilted by the full ``angle`` toward ``azimuths`` directions evenly around its cone,
+    ``tilt = angle (cos a, sin a)`` in the end's frame ``(e1, e2)`` (``e1`` in the true bending
+    plane, ``e2`` its normal): a cone has no corners, so the worst case over these is a lower bound
+    of the worst case over the set. ``in_plane``: only the noise of the bending plane (``delta``
+    along ``y, z`` and tilts ``+-angle e1``), the planar controller's set.
+    """
+    pos, ang = float(position), float(angle)
+    dvals = (-2 * pos, 0.0, 2 * pos) if pos > 0 else (0.0,)
+    dx = (0.0,) if in_plane else dvals
+    if ang > 0:
+        az = (0.0, math.pi) if in_plane else tuple(2 * math.pi * i / azimuths for i in range(azimuths))
+        tilts = [(ang * math.cos(a), 0.0 if in_plane else ang * math.sin(a)) for a in az]
+    else:
+        tilts = [(0.0, 0.0)]
+    rows = [(a, b, c, *tw, *tt) for a in dx for b in dvals for c in dvals for tw in tilts for tt in tilts]
+    return np.array(rows, float)
 
 
 # The effects that change the true Jacobian at a tip (the others move the measurement only).

@@ -207,7 +207,12 @@ class SpatialEffectsEvaluator:
         es, _ = error_set(sc)  # the port_offset effect folded into the box's base port
         effects = {name: p for name, p in sc.effects.items() if name != "port_offset"}
         plant = Plant.from_scenario(sc.with_(effects=effects), port=es.base_port)
-        return cls(plant, tuple(sc.port.estimate), es)
+        return cls(plant, tuple(sc.port.estimate), es, sc.controller.jacobian)
+
+    @property
+    def noise(self) -> np.ndarray | None:
+        """The flexion controller's noise corners (c, 7); None for the rigid controller."""
+        return self.errors.noise_corners() if self.jacobian == "flexion" else None
 
     @property
     def arm(self):
@@ -235,7 +240,7 @@ class SpatialEffectsEvaluator:
         x = np.asarray(x, float).reshape(-1, 3)
         theta = np.broadcast_to(np.asarray(theta, float), (len(x), 5))
         n = len(x)
-        M = np.full((n, 1, 3, 3), np.nan)
+        M = np.full((n, 1 if self.noise is None else len(self.noise), 3, 3), np.nan)
         plant, port = self._plant(x, theta)
         L = self.length
         r = np.linalg.norm(x - port, axis=-1)
@@ -262,14 +267,228 @@ class SpatialEffectsEvaluator:
             qo = q[ok]
             J = _fd_jacobian(plant.with_(port=port[ok], load=plant.load_vector[ok]).tip, qo)
             wm = self.arm.forward(qo)
-            Jh = lever_jacobian(wm, np.asarray(self.estimate), L) @ self.arm.jacobian(qo)
+            lever = lever_jacobian(wm, np.asarray(self.estimate), L)
+            if self.jacobian == "flexion":  # P2's controller in 3-D fed the true end poses + noise corners
+                from ..kinematics.shaft import flexion_controller_jacobian
+
+                pl = plant.with_(port=port[ok], load=plant.load_vector[ok])
+                w, tip, dw, dt = pl.end_poses(qo)
+                m = bending_frame(w, pl.true_port, L, pl.shaft_load(w))
+                pw, pt, mw, mt = noisy_end_poses(w, tip, dw, dt, m, self.noise)
+                Jtw = flexion_controller_jacobian(pw, pt, mw, mt, L)
+                Jtw = np.where(np.all(np.isfinite(Jtw), axis=(-2, -1))[..., None, None], Jtw, lever[:, None])
+            else:
+                Jtw = lever[:, None]
+            Jh = Jtw @ self.arm.jacobian(qo)[:, None]  # (n, c, 3, 3)
             det = np.linalg.det(Jh)
             fro = np.sqrt(np.sum(Jh * Jh, axis=(-2, -1)))
-            nonsing = np.abs(det) > 1e-12 * fro**3
-            Mo = np.full((len(qo), 3, 3), np.nan)
-            Mo[nonsing] = J[nonsing] @ np.linalg.inv(Jh[nonsing])
+            nonsing = np.all(np.abs(det) > 1e-12 * fro**3, axis=-1)
+            c = Jh.shape[1]
+            Mo = np.full((len(qo), c, 3, 3), np.nan)
+            Mo[nonsing] = J[nonsing][:, None] @ np.linalg.inv(Jh[nonsing])
         idx = np.flatnonzero(ok)
         ok[idx[~nonsing]] = False
-        M[idx, 0] = Mo
+        M[idx] = Mo
         M[~ok] = np.nan
         return M, None, ok
+
+
+def bending_frame(w: np.ndarray, port: np.ndarray, L: float, t: np.ndarray) -> np.ndarray:
+    """Unit normal (..., 3) of the true shaft's bending plane (wrist->port line and the load's
+    normal part); for an unbent shaft the second vector of :func:`_perp_basis` of the chord (in the
+    plane x = 0 that is the x axis, so "in-plane" keeps its meaning)."""
+    from ..kinematics.shaft import _spatial_geometry
+
+    g = _spatial_geometry(w, port, L, t)
+    m = np.cross(g["u"], g["n"])
+    mn = np.linalg.norm(m, axis=-1)
+    chord = (g["tip"] - w) / L
+    _, f2 = _perp_basis(np.where(np.isfinite(chord), chord, [0.0, 0.0, 1.0]))
+    bent = mn > 1e-12
+    return np.where(bent[..., None], m / np.where(bent, mn, 1.0)[..., None], f2)
+
+
+def noisy_end_poses(w: np.ndarray, tip: np.ndarray, dw: np.ndarray, dt: np.ndarray, m: np.ndarray,
+                    noise: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The 3-D flexion controller's measurements (..., c, 3) under noise vectors ``noise`` (c, 7)
+    (:func:`errplan.fields.errorset.spatial_noise_corners`): the chord difference ``delta`` on the
+    tip position, each end direction tilted in its frame ``(m x d, m)``, ``m`` the true bending
+    plane's normal (..., 3)."""
+    from ..kinematics.shaft import tilt
+
+    noise = np.asarray(noise, float)  # (c, 7), or (..., c, 7) per point
+    pw = np.broadcast_to(w[..., None, :], np.broadcast_shapes(w.shape[:-1] + (1,), noise.shape[:-1]) + (3,))
+    pt = tip[..., None, :] + noise[..., 0:3]
+    out = []
+    for d, sl in ((dw, slice(3, 5)), (dt, slice(5, 7))):
+        e1 = np.cross(m, d)
+        e1 = e1 / np.linalg.norm(e1, axis=-1, keepdims=True)
+        out.append(tilt(d[..., None, :], noise[..., sl], e1[..., None, :], m[..., None, :]))
+    return pw, pt, out[0], out[1]
+
+
+@dataclass
+class SpatialFlexionEvaluator:
+    """P2's flexion controller in 3-D (docs/physics.md "P2's flexion controller in 3-D") without
+    [effects] that move the arm: ``M = J Jhat^-1 = J_tw Jhat_tw^-1`` (the arm Jacobian cancels, as
+    for the rigid controller), per (tip, instance, noise corner).
+
+    Per instance ``theta = (dx, dy, dz, tau, psi)`` the true wrist and world load come from
+    :func:`flexed_wrist_plane` (the load direction ``psi`` around the port->tip line, the convention
+    of the compiled kernels), the true end poses from :func:`flexed_end_directions`; the controller
+    sees them with each noise vector of ``noise`` (c, 7) and builds ``Jhat_tw`` by
+    :func:`flexion_controller_jacobian`. Where the estimate is unidentifiable (an unbent shaft, no
+    noise) it falls back to the lever through ``estimate``, as the planar controller does.
+
+    ``parts(x, theta)`` returns ``(M, None, ok)``, ``M`` (n, c, 3, 3): the numpy search
+    (:mod:`.search`) takes motion maps.
+    """
+
+    arm: object
+    length: float
+    estimate: tuple[float, ...]
+    errors: ErrorSet
+    noise: np.ndarray = None  # (c, 7); default: errors.noise_corners()
+    jacobian: str = "flexion"
+
+    def __post_init__(self):
+        if self.noise is None:
+            self.noise = self.errors.noise_corners()
+
+    @classmethod
+    def from_scenario(cls, sc, noise: np.ndarray | None = None) -> "SpatialFlexionEvaluator":
+        from ..errors import ErrplanError
+        from ..kinematics import arm_for
+
+        es, kw = error_set(sc)
+        if kw:
+            raise ErrplanError(f"{sc.source}: [effects] {sorted(kw)} with P2's flexion controller in 3-D: not "
+                               "supported yet (the 3-D flexion controller runs with a truth whose effects do not "
+                               "move the arm)")
+        return cls(arm_for(sc.robot), float(sc.instrument.length), tuple(sc.port.estimate), es, noise)
+
+    def truth(self, x: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """True wrist, world load, port (n, 3) and validity (n,) putting the true tip at ``x``."""
+        x = np.asarray(x, float).reshape(-1, 3)
+        theta = np.broadcast_to(np.asarray(theta, float), (len(x), 5))
+        L = self.length
+        port = np.asarray(self.errors.base_port, float) + theta[:, :3]
+        e = x - port
+        r = np.linalg.norm(e, axis=-1)
+        ok = (r > 1e-9) & (r < L)
+        xs = np.where(ok[:, None], x, port + [0.0, 0.0, 0.5 * L])
+        e1 = (xs - port) / np.linalg.norm(xs - port, axis=-1, keepdims=True)
+        tau = np.where(ok, theta[:, 3], 0.0)
+        w = xs - L * e1
+        t = np.zeros_like(x)
+        bent = tau > 0
+        if np.any(bent):
+            f1, f2 = _perp_basis(e1[bent])
+            psi = theta[bent, 4][:, None]
+            w[bent], t[bent] = flexed_wrist_plane(xs[bent], port[bent], L, tau[bent], np.cos(psi) * f1 + np.sin(psi) * f2)
+        ok &= self.arm.reachable(np.where(ok[:, None], w, self.arm.forward(np.zeros(self.arm.n))))
+        return w, t, port, ok
+
+    def controller_jacobian(self, w: np.ndarray, t: np.ndarray, port: np.ndarray,
+                            noise: np.ndarray | None = None) -> np.ndarray:
+        """``Jhat_tw`` (n, c, 3, 3) from the true shaft's end poses under every noise vector
+        (``noise`` (c, 7) or per point (n, c, 7); default the corners)."""
+        from ..kinematics.shaft import flexed_end_directions, flexion_controller_jacobian
+
+        L = self.length
+        tip, dw, dt = flexed_end_directions(w, port, L, t)
+        m = bending_frame(w, port, L, t)
+        pw, pt, mw, mt = noisy_end_poses(w, tip, dw, dt, m, self.noise if noise is None else noise)
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            Jh = flexion_controller_jacobian(pw, pt, mw, mt, L)
+        rigid = ~np.all(np.isfinite(Jh), axis=(-2, -1))
+        if np.any(rigid):
+            lever = lever_jacobian(w, np.asarray(self.estimate, float), L)
+            Jh = np.where(rigid[..., None, None], lever[:, None], Jh)
+        return Jh
+
+    def parts(self, x: np.ndarray, theta: np.ndarray, noise: np.ndarray | None = None
+              ) -> tuple[np.ndarray, None, np.ndarray]:
+        """``(M, None, ok)``: ``M`` (n, c, 3, 3) at tips ``x`` (n, 3) under instances ``theta`` over the
+        noise vectors ``noise`` ((c, 7) or per tip (n, c, 7); default the noise set's corners)."""
+        from ..kinematics.shaft import flexed_jacobian
+        from ..metrics import inv
+
+        x = np.asarray(x, float).reshape(-1, 3)
+        nz = self.noise if noise is None else np.asarray(noise, float)
+        n, c = len(x), nz.shape[-2]
+        M = np.full((n, c, 3, 3), np.nan)
+        w, t, port, ok = self.truth(x, theta)
+        if not np.any(ok):
+            return M, None, ok
+        i = np.flatnonzero(ok)
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            J = flexed_jacobian(w[i], port[i], self.length, t[i])
+            Jh_inv, singular = inv(self.controller_jacobian(w[i], t[i], port[i], nz if nz.ndim == 2 else nz[i]))
+            Mi = J[:, None] @ Jh_inv
+        bad = np.any(singular | ~np.all(np.isfinite(Mi), axis=(-2, -1)), axis=-1)
+        M[i] = Mi
+        ok[i[bad]] = False
+        M[~ok] = np.nan
+        return M, None, ok
+
+    def noise_bounds(self) -> np.ndarray:
+        """Half widths (7,) of the noise parameters: ``2 position`` per chord axis, ``angle`` per tilt."""
+        pos, ang = self.errors.noise
+        return np.array([2 * pos] * 3 + [ang] * 4, float)
+
+    def refine_noise(self, x: np.ndarray, theta: np.ndarray, k: float, *, levels: int = 4, sweeps: int = 2
+                     ) -> tuple[np.ndarray, np.ndarray]:
+        """The noise refinement of the worst case: from the worst corner at each tip's worst instance
+        ``theta`` (n, 5), a pattern search over the noise vector (steps halved per level, each move
+        the best of the axis polls, projected back into the set: the chord box, each tilt's disc).
+        Returns the refined worst ``(||G||, |phi_max|)`` (n,) at gain ``k`` (never below the
+        corners'); still a lower bound of the worst case over the set. Axes the corners keep at zero
+        (the in-plane set's out-of-plane ones) stay there."""
+        from ..metrics import g_norm, phi_max
+
+        x = np.asarray(x, float).reshape(-1, 3)
+        n = len(x)
+        M, _, ok = self.parts(x, theta)
+        g = np.where(ok[:, None], g_norm(np.where(ok[:, None, None, None], M, 0.0), k), -np.inf)
+        j = np.argmax(g, axis=1)
+        best_g = g[np.arange(n), j]
+        best_p = np.where(ok, phi_max(np.where(ok[:, None, None], M[np.arange(n), j], np.eye(3))), -np.inf)
+        z = self.noise[j].copy()
+        half = self.noise_bounds()
+        moving = np.flatnonzero(np.any(self.noise != 0, axis=0) & (half > 0))
+        if not len(moving) or not np.any(ok):
+            return best_g, best_p
+        steps = np.concatenate([np.eye(7)[moving], -np.eye(7)[moving]])
+        live = ok.copy()
+        for level in range(levels):
+            h = half * 2.0 ** (-level)
+            for _ in range(sweeps):
+                c = _project_noise(z[live][:, None, :] + steps[None] * h, half)
+                Mc, _, okc = self.parts(x[live], theta[live], c)
+                gc = np.where(okc[:, None], g_norm(np.where(okc[:, None, None, None], Mc, 0.0), k), -np.inf)
+                jj = np.argmax(gc, axis=1)
+                li = np.flatnonzero(live)
+                vg = gc[np.arange(len(li)), jj]
+                upd = okc & (vg > best_g[li])
+                if upd.any():
+                    pc = phi_max(Mc[upd].reshape(-1, 3, 3)).reshape(int(upd.sum()), -1).max(axis=1)
+                    best_p[li[upd]] = np.maximum(best_p[li[upd]], pc)
+                    best_g[li[upd]] = vg[upd]
+                    z[li[upd]] = c[upd, jj[upd]]
+                else:
+                    break
+        return best_g, best_p
+
+
+def _project_noise(z: np.ndarray, half: np.ndarray) -> np.ndarray:
+    """Noise vectors (..., 7) back into the set: the chord difference clipped to its box, each tilt
+    scaled into its disc of radius ``half[3]``."""
+    out = z.copy()
+    out[..., 0:3] = np.clip(out[..., 0:3], -half[0:3], half[0:3])
+    for sl in (slice(3, 5), slice(5, 7)):
+        r = np.linalg.norm(out[..., sl], axis=-1)
+        lim = half[sl.start]
+        scale = np.where(r > lim, lim / np.where(r > 0, r, 1.0), 1.0)
+        out[..., sl] = out[..., sl] * scale[..., None]
+    return out

@@ -18,9 +18,9 @@ def _sample_segment(ev: Evaluator, a, b, radius: float, opts: GainOptions) -> di
     if _is_spatial(ev):
         th = ev.instances(opts.opt_samples)
         M, ok = ev.maps(x, th)
-        Ms = M[ok]
+        Ms = M[ok].reshape(-1, 3, 3)  # the flexion controller's noise corners flattened too
         singular = 0 if ev.singular_free(b, radius) else int(ok.sum())
-        return {"M": Ms, "singular": singular, "tips": len(x), "instances": len(th), "noise_corners": 1,
+        return {"M": Ms, "singular": singular, "tips": len(x), "instances": len(th), "noise_corners": ev.noise_corners,
                 "pairs": int(ok.sum())}
     th = ev.errors.sample_grid(opts.opt_samples)
     mu, nu, reach, ok = _pairs(ev, x, th)

@@ -139,11 +139,9 @@ class SpatialModel:
         from ..fields import KernelEvaluator
         from ..kinematics import arm_for
 
-        if sc.controller.jacobian != "rigid":
-            raise ErrplanError(f"{sc.source}: [controller] jacobian = {sc.controller.jacobian!r}: in 3-D gains are "
-                               "certified for the rigid controller only (P2's flexion controller is planar)")
+        self.jacobian = sc.controller.jacobian
         try:
-            self.kev = KernelEvaluator(sc)
+            self.kev = KernelEvaluator(sc) if self.jacobian == "rigid" else FlexionKernel(sc)
         except ErrplanError:
             raise ErrplanError(f"{sc.source}: [effects] {', '.join(sorted(sc.effects))}: gain certificates of a "
                                "spatial truth whose effects move the arm (joint_offset, gravity_sag, shaft_flexion) "
@@ -178,6 +176,11 @@ class SpatialModel:
             rows += [[*p, es.hi[3], psi] for p in ports for psi in (0.0, 0.5 * math.pi, math.pi, 1.5 * math.pi)]
         return np.array(rows, float)
 
+    @property
+    def noise_corners(self) -> int:
+        """Noise corners per (tip, instance) pair: 1 for the rigid controller."""
+        return 1 if self.jacobian == "rigid" else len(self.kev.fev.noise)
+
     def singular_free(self, center, radius: float) -> bool:
         """True when the controller's lever Jacobian cannot be singular at any tip of the ball.
 
@@ -187,7 +190,37 @@ class SpatialModel:
         ``|w - e| < L`` whenever ``|x - e| > 2 delta + deviation``.
         """
         c = np.asarray(center, float)
+        if self.jacobian == "flexion":
+            return self._flexion_singular_free(c, radius)
         return bool(np.linalg.norm(c - self.estimate) - radius > 2.0 * self.delta + self.deviation + 1e-6)
+
+    def _flexion_singular_free(self, c: np.ndarray, radius: float) -> bool:
+        """P2's flexion controller: ``Jhat_tw`` is the flexed shaft's through the *estimated* port,
+        singular where the tip reaches that port. The estimated port is within ``e_p`` of the true
+        one, ``e_p`` the largest estimated-port error over the noise corners at the ball's centre
+        under the corner instances (sampled, doubled for the ball): the ball is called singular-free
+        when it keeps ``delta + deviation + 2 e_p`` from every true port of the box. Unlike the
+        rigid case this margin is sampled, not proven."""
+        from ..kinematics.shaft import estimate_from_end_poses, flexed_end_directions
+        from ..fields.evaluator import bending_frame, noisy_end_poses
+
+        base = np.asarray(self.errors.base_port, float)
+        th = self.corner_instances()
+        x = np.repeat(c[None], len(th), axis=0)
+        fev = self.kev.fev
+        w, t, p, ok = fev.truth(x, th)
+        if not np.any(ok):
+            return False
+        w, t, p = w[ok], t[ok], p[ok]
+        tip, dw, dt = flexed_end_directions(w, p, self.length, t)
+        pw, pt, mw, mt = noisy_end_poses(w, tip, dw, dt, bending_frame(w, p, self.length, t), fev.noise)
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            est = estimate_from_end_poses(pw, pt, mw, mt, self.length)
+            ep = np.linalg.norm(est["port"] - p[:, None, :], axis=-1)
+        if not np.all(np.isfinite(ep)):
+            return False
+        far = float(np.linalg.norm(c - base)) - radius
+        return bool(far > self.delta + self.deviation + 2.0 * float(ep.max()) + 1e-6)
 
     def maps(self, x: np.ndarray, th: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``M`` (n, m, 3, 3) and validity (n, m) of every (tip, instance) pair."""
@@ -240,8 +273,17 @@ class SpatialModel:
         if not len(idx):
             return out
         w, p, t, q, xx, kk = w[idx], p[idx], t[idx], q[idx], x[idx], k[idx]
+        if self.jacobian == "flexion":  # the worst over the controller's noise corners: one row per corner
+            Jh = self.kev.fev.controller_jacobian(w, t, p)  # (n, c, 3, 3)
+            c = Jh.shape[1]
+            rep = lambda a: np.repeat(a, c, axis=0)
+            w, p, t, q, xx, kk = rep(w), rep(p), rep(t), rep(q), rep(xx), rep(kk)
+            Jh = Jh.reshape(-1, 3, 3)
+        else:
+            c = 1
+            Jh = lever_jacobian(w, self.estimate, self.length)
         with np.errstate(invalid="ignore", divide="ignore"):
-            Jh_inv, sing = inv(lever_jacobian(w, self.estimate, self.length))
+            Jh_inv, sing = inv(Jh)
             Ja_inv, sing_arm = inv(self.arm.jacobian(q))
             e = b - xx
             dw = kk[:, None] * np.einsum("nij,nj->ni", np.nan_to_num(Jh_inv), e)
@@ -255,8 +297,40 @@ class SpatialModel:
             e0 = np.linalg.norm(e, axis=-1)
             ratio = np.linalg.norm(x2 - b, axis=-1) / np.where(e0 > 0, e0, np.nan)
         good = ok_lim & ok_shaft & ~sing & ~sing_arm & np.isfinite(ratio)
-        out[idx] = np.where(good, ratio, np.inf)
+        out[idx] = np.where(good, ratio, np.inf).reshape(len(idx), c).max(axis=1)
         return out
+
+
+class FlexionKernel:
+    """P2's flexion controller in 3-D behind the interface :class:`SpatialModel` takes from the
+    compiled :class:`errplan.fields.KernelEvaluator`: ``motion_maps`` (with a noise-corner axis) and
+    ``worst_case``, both from :class:`errplan.fields.SpatialFlexionEvaluator` (numpy)."""
+
+    def __init__(self, sc):
+        from ..fields import SpatialFlexionEvaluator
+
+        self.scenario = sc
+        self.fev = SpatialFlexionEvaluator.from_scenario(sc)
+        self.errors = self.fev.errors
+
+    def motion_maps(self, x: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(M, ok)`` for tips ``x`` (..., 3) under instances ``theta`` (..., 5), broadcast together:
+        ``M`` (..., c, 3, 3) over the noise corners, NaN where ``ok`` is False."""
+        x = np.asarray(x, float)
+        theta = np.asarray(theta, float)
+        shape = np.broadcast_shapes(x.shape[:-1], theta.shape[:-1])
+        X = np.broadcast_to(x, shape + (3,)).reshape(-1, 3)
+        TH = np.broadcast_to(theta, shape + theta.shape[-1:]).reshape(-1, theta.shape[-1])
+        M, _, ok = self.fev.parts(X, TH)
+        return M.reshape(shape + M.shape[1:]), ok.reshape(shape)
+
+    def worst_case(self, x: np.ndarray, k: float, *, phi: bool = True, rho: bool = False,
+                   refine: int | None = None, samples: int | None = None) -> dict[str, np.ndarray]:
+        from ..fields.compute import numpy_worst_case
+        from ..fields.search import REFINE_LEVELS
+
+        return numpy_worst_case(self.fev, np.asarray(x, float).reshape(-1, 3), k, samples=samples,
+                                refine=REFINE_LEVELS if refine is None else refine, rho=rho)
 
 
 def _is_spatial(ev) -> bool:

@@ -56,9 +56,10 @@ def verify_segment(ev: Evaluator, start, end, k: float, radius: float, opts: Gai
     th = _instance_grid(ev, opts.verify_samples)
     n, m = len(x), len(th)
     if spatial:
-        M, ok = ev.maps(x, th)
-        G = _mask3(gnorm3_grid(M.reshape(-1, 3, 3), k)[0].reshape(n, m), ok, singular)
-        reach, corners, n_singular = ok, 1, int(ok.sum()) if singular else 0
+        M, ok = ev.maps(x, th)  # (n, m, 3, 3), or (n, m, c, 3, 3) over the flexion controller's noise corners
+        G = gnorm3_grid(M, k)[0].reshape(M.shape[:-2])
+        G = _mask3(G.max(axis=-1) if G.ndim == 3 else G, ok, singular)
+        reach, corners, n_singular = ok, ev.noise_corners, int(ok.sum()) if singular else 0
     else:
         mu, nu, reach, ok = _pairs(ev, x, th)
         G = _worst_g(mu, nu, reach, ok, k)
@@ -133,7 +134,8 @@ def _g3(ev: SpatialModel, x: np.ndarray, th: np.ndarray, k: float, singular: boo
     """Worst ||G|| per pair (n,) in 3-D: -inf where the truth cannot reach the tip, +inf where it can
     and the ball is not singular-free."""
     M, ok = ev.maps_paired(x, th)
-    return _mask3(gnorm3_grid(M, k)[0], ok, singular)
+    g = gnorm3_grid(M, k)[0].reshape(M.shape[:-2])
+    return _mask3(g.max(axis=-1) if g.ndim == 2 else g, ok, singular)
 
 
 def _mask3(g: np.ndarray, ok: np.ndarray, singular: bool) -> np.ndarray:

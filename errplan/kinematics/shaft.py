@@ -291,3 +291,130 @@ def estimate_from_ends(pw: np.ndarray, pt: np.ndarray, th_w: np.ndarray, th_t: n
         ym = -fp * a * a * (a - L) ** 2 / (3 * L)
     port = pw + a[..., None] * direction(phi) + ym[..., None] * direction_derivative(phi)
     return {"a": a, "fp_over_ei": fp, "t": fp * a / L, "port": port, "phi": phi, "ym": ym}
+
+
+# ----------------------------------------------------------------------------- P2's controller, d-generic
+def flexed_end_directions(w: np.ndarray, p: np.ndarray, L: float, t) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Tip position and unit end tangents (wrist->tip sense) of the flexed shaft: ``(tip, dw, dt)``.
+
+    What P2's flexion controller measures, with directions as unit vectors (..., d) so that the plane
+    (``d = 2``: ``direction`` of :func:`flexed_end_angles`) and space (``d = 3``: the tangents of the
+    beam in its bending plane, P2 eq. 2 for the slopes) share one interface.
+    """
+    w = np.asarray(w, float)
+    if w.shape[-1] == 2:
+        tip, thw, tht = flexed_end_angles(w, p, L, t)
+        return tip, direction(thw), direction(tht)
+    g = _spatial_geometry(w, p, L, t)
+    u, n, tau, a, beta, tip = g["u"], g["n"], g["tau"], g["a"], g["beta"], g["tip"]
+    cb, sb = np.cos(beta)[..., None], np.sin(beta)[..., None]
+    chord = cb * u + sb * n
+    v = -sb * u + cb * n  # in the bending plane, normal to the chord, toward the bent side (0 unbent)
+    fp = tau * L / a
+    a0 = np.arctan(beam_slope(np.zeros_like(a), a, L, fp))[..., None]
+    aL = np.arctan(beam_slope(np.full_like(a, L), a, L, fp))[..., None]
+    return tip, np.cos(a0) * chord + np.sin(a0) * v, np.cos(aL) * chord + np.sin(aL) * v
+
+
+def _chord_frame(c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unit vectors (..., 3) completing the unit chord ``c`` to a right-handed frame (the axis of
+    least |component| as reference, deterministic)."""
+    a = np.abs(c)
+    ref = np.zeros_like(c)
+    first = (a[..., 0] <= a[..., 1]) & (a[..., 0] <= a[..., 2])
+    second = ~first & (a[..., 1] <= a[..., 2])
+    ref[..., 0] = first
+    ref[..., 1] = second
+    ref[..., 2] = ~first & ~second
+    f1 = np.cross(c, ref)
+    f1 = f1 / _norm(f1)[..., None]
+    return f1, np.cross(c, f1)
+
+
+def bending_plane(pw: np.ndarray, pt: np.ndarray, dw: np.ndarray, dt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The bending plane P2's flexion controller estimates in 3-D from measured end poses.
+
+    A shaft loaded only at its ends bends in one plane, spanned by the wrist->tip chord and the end
+    tangents. The estimate keeps the measured chord ``c`` (positions) in the plane and takes the
+    in-plane normal ``nb`` (unit, normal to ``c``) that best fits, in least squares, the tangents'
+    components normal to the chord: the principal direction of ``sum e e^T`` over
+    ``e = d - (d.c) c`` of both ends (closed form: half the angle of the 2x2 problem). Sign-free:
+    ``-nb`` describes the same plane. Where the tangents do not leave the chord (no measurable
+    flexion) any ``nb`` fits; the one returned is deterministic and the planar estimate there is
+    unidentifiable anyway.
+
+    Returns ``(c_hat, nb)`` (..., 3).
+    """
+    c = np.asarray(pt, float) - np.asarray(pw, float)
+    c = c / _norm(c)[..., None]
+    f1, f2 = _chord_frame(c)
+    comps = []
+    for d in (np.asarray(dw, float), np.asarray(dt, float)):
+        comps.append((np.sum(d * f1, axis=-1), np.sum(d * f2, axis=-1)))
+    s11 = sum(x * x for x, _ in comps)
+    s22 = sum(y * y for _, y in comps)
+    s12 = sum(x * y for x, y in comps)
+    psi = 0.5 * np.arctan2(2.0 * s12, s11 - s22)
+    nb = np.cos(psi)[..., None] * f1 + np.sin(psi)[..., None] * f2
+    return c, nb
+
+
+def estimate_from_end_poses(pw: np.ndarray, pt: np.ndarray, dw: np.ndarray, dt: np.ndarray, L: float) -> dict[str, np.ndarray]:
+    """P2's flexion estimate from measured end poses, in the plane or in space (..., d).
+
+    ``pw``, ``pt``: measured wrist and tip positions (m); ``dw``, ``dt``: measured unit shaft
+    directions at the wrist and the tip (wrist->tip sense). In the plane this is
+    :func:`estimate_from_ends` on the directions' angles. In space (docs/physics.md "P2's flexion
+    controller in 3-D") the bending plane comes from :func:`bending_plane`, then P2's planar
+    estimator (eqs. 8-14) runs in that plane's coordinates (``[y, z]`` = components along ``nb`` and
+    the chord).
+
+    Returns ``a``, ``fp_over_ei``, ``t`` (the signed in-plane Ft/EI), ``port`` (..., d) and ``load``:
+    what :func:`flexed_jacobian` takes as its load, the scalar ``t`` in the plane and in space the
+    world vector ``t n_u`` (1/m^2, ``n_u`` the in-plane normal of the wrist->port line), so the 3-D
+    flexed shaft through the estimated port with that load is exactly P2's planar beam of the plane.
+    Unidentifiable entries (equal end slopes) are NaN, as in the plane.
+    """
+    pw, pt = np.asarray(pw, float), np.asarray(pt, float)
+    if pw.shape[-1] == 2:
+        est = estimate_from_ends(pw, pt, angle_of(np.asarray(dw, float)), angle_of(np.asarray(dt, float)), L)
+        est["load"] = est["t"]
+        return est
+    c, nb = bending_plane(pw, pt, dw, dt)
+    dw, dt = np.asarray(dw, float), np.asarray(dt, float)
+    thw = np.arctan2(np.sum(dw * nb, axis=-1), np.sum(dw * c, axis=-1))
+    tht = np.arctan2(np.sum(dt * nb, axis=-1), np.sum(dt * c, axis=-1))
+    r = _norm(pt - pw)
+    zero = np.zeros_like(r)
+    shape = np.broadcast_shapes(r.shape, thw.shape, tht.shape)
+    pw2 = np.zeros(shape + (2,))
+    pt2 = np.stack(np.broadcast_arrays(zero, r), axis=-1) + pw2
+    est = estimate_from_ends(pw2, pt2, thw, tht, L)
+    port2 = est["port"]
+    port = pw + port2[..., 0:1] * nb + port2[..., 1:2] * c
+    thp = angle_of(port2)
+    n_u = np.cos(thp)[..., None] * nb - np.sin(thp)[..., None] * c  # dir'(theta_p) in the plane
+    out = {k: est[k] for k in ("a", "fp_over_ei", "t", "ym")}
+    out.update(port=port, load=est["t"][..., None] * n_u, chord=c, normal=nb)
+    return out
+
+
+def flexion_controller_jacobian(pw: np.ndarray, pt: np.ndarray, dw: np.ndarray, dt: np.ndarray, L: float) -> np.ndarray:
+    """``Jhat_tw`` (..., d, d) of P2's flexion controller: the flexed-shaft ``d tip / d w`` at the
+    measured wrist, holding the estimated port and load (:func:`estimate_from_end_poses`). NaN where
+    the estimate is unidentifiable (the controller then falls back to the lever)."""
+    est = estimate_from_end_poses(pw, pt, dw, dt, L)
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        J = flexed_jacobian(np.asarray(pw, float), est["port"], L, est["load"])
+    return J
+
+
+def tilt(d: np.ndarray, delta: np.ndarray, e1: np.ndarray, e2: np.ndarray) -> np.ndarray:
+    """Unit direction ``d`` (..., 3) turned by the angle ``|delta|`` (rad) toward
+    ``delta[0] e1 + delta[1] e2`` (``e1``, ``e2`` unit, normal to ``d``): a direction measurement
+    with angular noise ``delta`` (..., 2)."""
+    delta = np.asarray(delta, float)
+    ang = np.sqrt(delta[..., 0] ** 2 + delta[..., 1] ** 2)
+    safe = np.where(ang > 0, ang, 1.0)
+    k = (delta[..., 0:1] * e1 + delta[..., 1:2] * e2) / safe[..., None]
+    return np.cos(ang)[..., None] * d + np.sin(ang)[..., None] * k

@@ -18,7 +18,7 @@ import numpy as np
 
 from ..errors import ErrplanError
 from .arm import Arm, angle_of, direction, direction_derivative
-from .shaft import flexed_end_angles, flexed_geometry, flexed_jacobian, flexed_tip, flexed_wrist, lever_wrist
+from .shaft import flexed_end_angles, flexed_end_directions, flexed_geometry, flexed_jacobian, flexed_tip, flexed_wrist, lever_wrist
 
 #: a scalar tip load in 3-D is this world direction times the load (docs/pipeline.md): gravity-like
 SPATIAL_LOAD_DIRECTION = (0.0, -1.0, 0.0)
@@ -187,11 +187,13 @@ class Plant:
         return tip
 
     def end_poses(self, q_enc: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """True wrist, tip and end tangent angles (what P2's flexion controller measures)."""
-        if self.dim == 3:
-            raise ErrplanError("P2's flexion controller is planar: in 3-D errplan runs the rigid controller "
-                               "(docs/physics.md \"Spatial robots\", Controller)")
+        """True wrist, tip and end tangents (what P2's flexion controller measures): in the plane the
+        tangents' angles (rad), in 3-D their unit directions (..., 3) (docs/physics.md "P2's flexion
+        controller in 3-D")."""
         w = self.wrist(q_enc)
+        if self.dim == 3:
+            tip, dw, dt = flexed_end_directions(w, self.true_port, self.length, self.shaft_load(w))
+            return w, tip, dw, dt
         tip, thw, tht = flexed_end_angles(w, self.true_port, self.length, self.shaft_load(w))
         return w, tip, thw, tht
 

@@ -11,7 +11,7 @@ region as possible". Five kinds (``[[tolerance]]`` tables of a scenario, docs/in
     true port in ``estimate + S(e)``, the tip is reachable and ``||G||`` at the query's gain is
     below 1. ``S(e)`` is the segment ``[-e, e]`` along ``y`` or ``z`` (and ``x`` in 3-D), or the
     disk (planar) / ball (spatial) ``{|d| <= e}`` (``radial``). The controller is the scenario's
-    (rigid lever through ``port.estimate``, or, planar only, P2's flexion model fed by noisy end
+    (rigid lever through ``port.estimate``, or, in the plane, P2's flexion model fed by noisy end
     measurements, noise from ``[uncertainty] sensor_noise``).
 ``tip_load``
     The largest ``T`` (1/m^2) such that a *rigid-lever* controller through ``port.estimate`` keeps
@@ -33,8 +33,11 @@ region as possible". Five kinds (``[[tolerance]]`` tables of a scenario, docs/in
     port, and optionally a refined best port (:mod:`.placement`). Candidates run as independent
     tasks on local worker processes or a dask cluster.
 
-``insertion_band`` and ``tracker_noise`` are planar (P2's flexion controller); the others run on
-planar and spatial scenarios.
+All kinds run on planar and spatial scenarios. In 3-D ``insertion_band`` and ``tracker_noise`` take
+loads of the given magnitude in every direction normal to the shaft and the tracker's 3-D noise set
+(positions per coordinate, directions within a cone), the shaft along ``shaft_direction``
+(:class:`SpatialInsertionModel`); their worst case is searched (corners and a pattern search), a
+lower bound, and the JSON says so (``lower_bound``).
 
 Soundness. Each criterion is a worst case over a *nested* family of sets (segments, disks, load
 ranges, noise boxes that grow with the error size), hence monotone in the size; the size is found
@@ -55,8 +58,8 @@ size checks done before any query runs).
 """
 from __future__ import annotations
 
-from .insertion import (HOLDS, LIBERTY_ANGLE_RATIO, InsertionModel, flexed_jacobian_hold, insertion_band,
-                        insertion_worst, tracker_noise)
+from .insertion import (HOLDS, LIBERTY_ANGLE_RATIO, InsertionModel, SpatialInsertionModel, flexed_jacobian_hold,
+                        insertion_band, insertion_worst, spatial_insertion_band, spatial_tracker_noise, tracker_noise)
 from .placement import MAX_CANDIDATES, candidate_scenario, port_placement, rank_key, score
 from .region import port_tolerance, region_grid, tip_load_tolerance
 from .result import Progress, ToleranceResult
@@ -66,4 +69,5 @@ from .search import box_worst
 __all__ = ["ToleranceResult", "Progress", "run_all", "run_query", "check_sizes", "port_tolerance",
            "tip_load_tolerance", "port_placement", "insertion_band", "insertion_worst", "tracker_noise",
            "InsertionModel", "flexed_jacobian_hold", "box_worst", "region_grid", "HOLDS", "LIBERTY_ANGLE_RATIO",
-           "MAX_CANDIDATES", "PLANAR_KINDS", "candidate_scenario", "rank_key", "score"]
+           "MAX_CANDIDATES", "PLANAR_KINDS", "candidate_scenario", "rank_key", "score", "SpatialInsertionModel",
+           "spatial_insertion_band", "spatial_tracker_noise"]

@@ -267,19 +267,32 @@ class _SpatialPhysics:
     """``||G||`` of one spatial error instance per tip: the compiled kernels' ``M = J Jhat^-1``
     (:meth:`errplan.fields.KernelEvaluator.motion_maps`, rigid lever through the estimate, the true
     port ``base + (dx, dy, dz)``, the flexed shaft under a lateral load) and the largest singular
-    value of ``I - k M``. The kernel reports one validity flag (reachable and a regular controller
+    value of ``I - k M``; for P2's flexion controller in 3-D (``jacobian = "flexion"``) the maps of
+    :class:`errplan.fields.SpatialFlexionEvaluator` and the worst over its noise corners. The kernel reports one validity flag (reachable and a regular controller
     Jacobian), so reachability here is that flag."""
 
-    def __init__(self, sc, base_port):
-        from ..fields import KernelEvaluator
+    def __init__(self, sc, base_port, jacobian: str = "rigid"):
+        from ..fields import KernelEvaluator, SpatialFlexionEvaluator
         from ..scenario import Port, Uncertainty
 
         # No error box: the evaluator's true port is ``port.position`` = base; instances give offsets.
+        noise = sc.uncertainty.sensor_noise if jacobian == "flexion" else None
         sc0 = replace(sc, effects={}, port=Port(tuple(float(v) for v in base_port), tuple(sc.port.estimate)),
-                      uncertainty=Uncertainty(samples=sc.uncertainty.samples))
-        self.kev = KernelEvaluator(sc0)
+                      uncertainty=Uncertainty(sensor_noise=noise, samples=sc.uncertainty.samples),
+                      controller=replace(sc.controller, jacobian=jacobian))
+        # P2's flexion controller in 3-D: the numpy evaluator, the worst over its noise corners
+        self.fev = SpatialFlexionEvaluator.from_scenario(sc0) if jacobian == "flexion" else None
+        self.kev = None if self.fev is not None else KernelEvaluator(sc0)
 
     def g(self, x: np.ndarray, th: np.ndarray, k: float) -> tuple[np.ndarray, np.ndarray]:
+        if self.fev is not None:
+            x, th = np.asarray(x, float), np.asarray(th, float)
+            shape = np.broadcast_shapes(x.shape[:-1], th.shape[:-1])
+            M, _, ok = self.fev.parts(np.broadcast_to(x, shape + (3,)).reshape(-1, 3),
+                                      np.broadcast_to(th, shape + th.shape[-1:]).reshape(-1, th.shape[-1]))
+            G = np.eye(3) - k * np.where(ok[:, None, None, None], M, 0.0)
+            g = np.linalg.norm(G, 2, axis=(-2, -1)).max(axis=-1)
+            return np.where(ok, g, np.inf).reshape(shape), ok.reshape(shape)
         M, ok = self.kev.motion_maps(x, th)
         G = np.eye(3) - k * np.where(ok[..., None, None], M, 0.0)
         g = np.linalg.norm(G, 2, axis=(-2, -1))
@@ -471,7 +484,10 @@ def port_tolerance(sc, region: dict, direction_: str = "radial", *, gain: float 
         if t_range[0] < 0 or t_range[1] < t_range[0]:
             raise ErrplanError(f"tip_force_over_ei = {list(t_range)}: expected a lateral load magnitude "
                                "(a number >= 0 or [lo, hi] with 0 <= lo <= hi) in a spatial scenario")
-        ev: Any = _SpatialPhysics(sc, sc.port.estimate)
+        if sc.controller.jacobian == "flexion" and t_range[0] <= 0:
+            raise ErrplanError(f"tip_force_over_ei = {list(t_range)}: P2's flexion controller cannot identify its "
+                               "model without flexion; give a load magnitude range above 0")
+        ev: Any = _SpatialPhysics(sc, sc.port.estimate, sc.controller.jacobian)
         oset: Any = _SpatialSet(direction_, t_range)
     else:
         if sc.controller.jacobian == "flexion" and t_range[0] <= 0 <= t_range[1]:

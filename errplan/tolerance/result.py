@@ -47,11 +47,13 @@ class ToleranceResult:
         if self.kind == "insertion_band":
             band = d["band"]
             b = "none" if band is None else f"{band[0]:.3f} < r/L < {band[1]:.3f}"
+            lb = " (3-D: lower bound, band at most)" if d.get("lower_bound") else ""
             return [self.name, "insertion_band", b, f"best r/L {d['best']:.3f}",
-                    f"min worst ||G|| {d['best_G_norm']:.3f}"]
+                    f"min worst ||G|| {d['best_G_norm']:.3f}{lb}"]
         if self.kind == "tracker_noise":
+            lb = " (3-D: lower bound, noise at most)" if d.get("lower_bound") else ""
             return [self.name, "tracker_noise", f"{1000 * d['value']:.4f} mm, {d['angle_value']:.5f} rad",
-                    f"r/L {d['binding_r_over_L']:.3f}", f"= {d['value'] / d['length']:.5f} L"]
+                    f"r/L {d['binding_r_over_L']:.3f}", f"= {d['value'] / d['length']:.5f} L{lb}"]
         return [self.name, self.kind, "", "", ""]  # pragma: no cover
 
 

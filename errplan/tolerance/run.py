@@ -5,12 +5,13 @@ import math
 import time
 
 from ..errors import ErrplanError
-from .insertion import LIBERTY_ANGLE_RATIO, insertion_band, tracker_noise
+from .insertion import (LIBERTY_ANGLE_RATIO, insertion_band, spatial_insertion_band, spatial_tracker_noise,
+                        tracker_noise)
 from .placement import check_placement, port_placement
 from .region import TIP_BYTES, _extent, _grid_size, port_tolerance, region_text, tip_load_tolerance
 from .result import Progress, ToleranceResult
 
-#: kinds that only exist in the plane (P2's flexion controller at insertion depths)
+#: P2's flexion controller at insertion depths (planar, and in 3-D since issue 20)
 PLANAR_KINDS = ("insertion_band", "tracker_noise")
 
 
@@ -23,9 +24,6 @@ def run_query(sc, tol, progress: Progress | None = None, *, workers: int | None 
     gain = o.get("gain", sc.controller.gain)
     where = f"[[tolerance]] {tol.name!r}"
     try:
-        if tol.kind in PLANAR_KINDS and sc.dim != 2:
-            raise ErrplanError(f"kind = {tol.kind!r} is planar only (P2's flexion controller); this scenario is "
-                               "spatial")
         if tol.kind == "port":
             data = port_tolerance(sc, o["region"], o.get("direction", "radial"), gain=gain,
                                   tip_force_over_ei=o.get("tip_force_over_ei"), spacing=o.get("spacing"),
@@ -38,6 +36,16 @@ def run_query(sc, tol, progress: Progress | None = None, *, workers: int | None 
                                   gain=gain, certify_margin=o.get("certify_margin"), refine=o.get("refine", False),
                                   refine_levels=o.get("refine_levels", 3), workers=workers, scheduler=scheduler,
                                   progress=progress)
+        elif tol.kind == "insertion_band" and sc.dim == 3:
+            sn = o["sensor_noise"]
+            data = spatial_insertion_band(o.get("length", sc.instrument.length), _tip_load(o, where), sn.position,
+                                          sn.angle, gain=gain, samples=o.get("samples", 97),
+                                          shaft_direction=o.get("shaft_direction", (0.0, 0.0, 1.0)), progress=progress)
+        elif tol.kind == "tracker_noise" and sc.dim == 3:
+            data = spatial_tracker_noise(o.get("length", sc.instrument.length), _tip_load(o, where), o["band"],
+                                         gain=gain, angle_ratio=o.get("angle_ratio", LIBERTY_ANGLE_RATIO),
+                                         samples=o.get("samples", 21),
+                                         shaft_direction=o.get("shaft_direction", (0.0, 0.0, 1.0)), progress=progress)
         elif tol.kind == "insertion_band":
             sn = o["sensor_noise"]
             data = insertion_band(o.get("length", sc.instrument.length), _tip_load(o, where), sn.position, sn.angle,
@@ -78,9 +86,6 @@ def check_sizes(sc) -> None:
         o = tol.options
         where = f"[[tolerance]] {tol.name!r}"
         region = o.get("region")
-        if tol.kind in PLANAR_KINDS and sc.dim != 2:
-            raise ErrplanError(f"{where}: kind = {tol.kind!r} is planar only (P2's flexion controller); this "
-                               "scenario is spatial")
         if tol.kind in ("port", "tip_load") and region is not None:
             ext = _extent(region)
             h = float(o["spacing"]) if o.get("spacing") else ext / 8.0
