@@ -20,7 +20,7 @@ from ..kinematics.shaft import (estimate_from_ends, flexed_end_angles, flexed_ge
                                 flexed_wrist)
 from ..metrics import compose_parts, conformal_parts, g_norm_from_parts, inverse_parts
 from .result import Progress
-from .search import _bisect_vec, _crossing, _golden_min, _runs, box_worst
+from .search import _bisect_vec, _crossing, _golden_min, _runs, box_worst, pattern_search
 
 #: P2 Sec. VI: the Liberty tracker, 0.0021 L position and 0.0026 rad angle (RMS used as bounds).
 LIBERTY_ANGLE_RATIO = 0.0026 / 0.0021
@@ -281,6 +281,18 @@ def insertion_band(length: float, tip_load: float, position: float, angle: float
 
 
 # ============================================================================= tracker noise
+def _check_noise_query(band, samples: int, angle_ratio: float) -> tuple[float, float]:
+    """The arguments of a tracker-noise query (plane or 3-D), checked; returns the band's ends."""
+    lo_b, hi_b = band
+    if not 0 < lo_b <= hi_b < 1:
+        raise ErrplanError(f"band = {list(band)}: expected insertion depths 0 < lo <= hi < 1 (r/L)")
+    if samples < 2:
+        raise ErrplanError(f"samples = {samples}: expected at least 2 depths")
+    if angle_ratio < 0 or not math.isfinite(angle_ratio):
+        raise ErrplanError(f"angle_ratio = {angle_ratio!r}: expected a number >= 0")
+    return lo_b, hi_b
+
+
 def tracker_noise(length: float, tip_load: float, band: tuple[float, float], *, gain: float = 1.0,
                   angle_ratio: float = LIBERTY_ANGLE_RATIO, samples: int = 41, hold: str = "tip_force",
                   shaft_angle: float = 0.0, progress: Progress | None = None) -> dict[str, Any]:
@@ -292,13 +304,7 @@ def tracker_noise(length: float, tip_load: float, band: tuple[float, float], *, 
     worst case over nested boxes is monotone in ``s``); ``value`` is the minimum over the band and
     ``binding_r_over_L`` where it is reached. ``curve`` gives the largest noise per depth.
     """
-    lo_b, hi_b = band
-    if not 0 < lo_b <= hi_b < 1:
-        raise ErrplanError(f"band = {list(band)}: expected insertion depths 0 < lo <= hi < 1 (r/L)")
-    if samples < 2:
-        raise ErrplanError(f"samples = {samples}: expected at least 2 depths")
-    if angle_ratio < 0 or not math.isfinite(angle_ratio):
-        raise ErrplanError(f"angle_ratio = {angle_ratio!r}: expected a number >= 0")
+    lo_b, hi_b = _check_noise_query(band, samples, angle_ratio)
     model = InsertionModel(length, tip_load, gain, hold, shaft_angle)
     rl = np.linspace(lo_b, hi_b, samples) if hi_b > lo_b else np.array([lo_b])
     st = model.state(rl)
@@ -456,21 +462,16 @@ class SpatialInsertionModel:
             keep = np.zeros(8, bool)
             keep[[1, 2, 3, 5]] = True
             steps = steps[np.tile(keep, 2)]
-        active = np.isfinite(g)
-        for level in range(levels):
-            h = half * 2.0 ** (-level)
-            for _ in range(sweeps):
-                c = self._project(arg[:, None, :] + steps[None] * h[:, None, :], half[:, None, :])
-                v, a = self.g_norm(rl, c)
-                amin = np.minimum(amin, a.min(axis=1))
-                amax = np.maximum(amax, np.where(np.isfinite(a), a, -np.inf).max(axis=1))
-                j = np.argmax(v, axis=1)
-                vj = v[np.arange(n), j]
-                upd = active & (vj > g)
-                if not upd.any():
-                    break
-                g = np.where(upd, vj, g)
-                arg = np.where(upd[:, None], c[np.arange(n), j], arg)
+
+        def objective(c):
+            v, a = self.g_norm(rl, c)
+            amin[:] = np.minimum(amin, a.min(axis=1))
+            amax[:] = np.maximum(amax, np.where(np.isfinite(a), a, -np.inf).max(axis=1))
+            return v
+
+        g, arg = pattern_search(objective, g, arg, half, steps=steps, active=np.isfinite(g),
+                                project=lambda c: self._project(c, half[:, None, :]), levels=levels,
+                                sweeps=sweeps)
         degenerate = ~((amin > 0) & (amax < self.length))
         return np.where(degenerate, np.maximum(g, 1.0), g), degenerate, arg
 
@@ -526,13 +527,7 @@ def spatial_tracker_noise(length: float, tip_load: float, band: tuple[float, flo
     band (:func:`tracker_noise` in 3-D): position bound ``s`` per coordinate, direction bound
     ``angle_ratio * s / L``; the worst case per depth from :meth:`SpatialInsertionModel.worst`
     (a lower bound, so the noise found can only be too large: ``lower_bound`` says so)."""
-    lo_b, hi_b = band
-    if not 0 < lo_b <= hi_b < 1:
-        raise ErrplanError(f"band = {list(band)}: expected insertion depths 0 < lo <= hi < 1 (r/L)")
-    if samples < 2:
-        raise ErrplanError(f"samples = {samples}: expected at least 2 depths")
-    if angle_ratio < 0 or not math.isfinite(angle_ratio):
-        raise ErrplanError(f"angle_ratio = {angle_ratio!r}: expected a number >= 0")
+    lo_b, hi_b = _check_noise_query(band, samples, angle_ratio)
     model = SpatialInsertionModel(length, tip_load, gain, tuple(float(v) for v in shaft_direction), in_plane)
     rl = np.linspace(lo_b, hi_b, samples) if hi_b > lo_b else np.array([lo_b])
     g0 = model.worst(rl, 0.0, 0.0, levels=0)[0]

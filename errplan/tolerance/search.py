@@ -34,12 +34,32 @@ def box_worst(objective: Callable[[np.ndarray], np.ndarray], half: np.ndarray, *
     i = np.argmax(vals, axis=1)
     best = vals[np.arange(n), i]
     arg = cand[np.arange(n), i]
-    steps = np.concatenate([np.eye(d), -np.eye(d)])  # (2d, d)
-    active = half.max(axis=1) > 0
+    return pattern_search(objective, best, arg, half, levels=levels, sweeps=sweeps)
+
+
+def pattern_search(objective: Callable[[np.ndarray], np.ndarray], best: np.ndarray, arg: np.ndarray,
+                   half: np.ndarray, *, steps: np.ndarray | None = None,
+                   project: Callable[[np.ndarray], np.ndarray] | None = None,
+                   active: np.ndarray | None = None, levels: int = 5, sweeps: int = 3
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Raise ``best`` (n,) at ``arg`` (n, d) by a pattern search: at level ``l`` the steps are
+    ``steps * half * 2^-l`` (``steps`` (m, d), by default the ``2d`` axis steps), each candidate is
+    put back into the set by ``project`` (by default clipped to ``[-half, half]``), and each row moves
+    to its best candidate while that raises its value (up to ``sweeps`` moves per level). Rows not
+    ``active`` (by default: a box of zero size) keep their start. ``objective(c (n, m, d)) -> (n, m)``.
+    Returns the maximum found (n,) and its argument (n, d)."""
+    n, d = arg.shape
+    if steps is None:
+        steps = np.concatenate([np.eye(d), -np.eye(d)])
+    if project is None:
+        def project(c):
+            return np.clip(c, -half[:, None, :], half[:, None, :])
+    if active is None:
+        active = half.max(axis=1) > 0
     for level in range(levels):
         h = half * 2.0 ** (-level)
         for _ in range(sweeps):
-            c = np.clip(arg[:, None, :] + steps[None] * h[:, None, :], -half[:, None, :], half[:, None, :])
+            c = project(arg[:, None, :] + steps[None] * h[:, None, :])
             v = objective(c)
             j = np.argmax(v, axis=1)
             vj = v[np.arange(n), j]
