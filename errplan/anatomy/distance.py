@@ -49,18 +49,21 @@ def _support(P, n, dx, dy, dz):
 
 
 @njit
-def _closest_on_simplex(W, m, out_v, keep):
+def _closest_on_simplex(W, m, out_v, keep, S):
     """Closest point to the origin of conv(W[:m]) (m <= 4). Writes it to ``out_v`` and the
     indices of the face it lies on to ``keep`` (returns their count, 0 when the origin is inside
-    a full tetrahedron)."""
+    a full tetrahedron). ``S``: scratch (a :func:`scratch` array)."""
     best = 1e300
     best_mask = 0
     bv0 = 0.0
     bv1 = 0.0
     bv2 = 0.0
-    lam = np.zeros(4)
+    lam = S[0, 0]
+    G = S[1, :3]
+    r = S[1, 3]
+    mu = S[2, 0]
+    idx = keep[4:]
     for mask in range(1, 1 << m):
-        idx = np.empty(4, np.int64)
         k = 0
         for i in range(m):
             if mask & (1 << i):
@@ -72,8 +75,6 @@ def _closest_on_simplex(W, m, out_v, keep):
             lam[0] = 1.0
         else:
             q = k - 1
-            G = np.zeros((3, 3))
-            r = np.zeros(3)
             for a in range(q):
                 ia = idx[a + 1]
                 for c in range(q):
@@ -116,7 +117,6 @@ def _closest_on_simplex(W, m, out_v, keep):
                     r[a] -= f * r[col]
             if not ok:
                 continue
-            mu = np.zeros(3)
             for a in range(q - 1, -1, -1):
                 s = r[a]
                 for c in range(a + 1, q):
@@ -155,13 +155,25 @@ def _closest_on_simplex(W, m, out_v, keep):
     return n
 
 
+def scratch() -> tuple[np.ndarray, np.ndarray]:
+    """Work arrays of :func:`hull_distance_s` (float (5, 4, 4), int (8,))."""
+    return np.zeros((5, 4, 4)), np.zeros(8, np.int64)
+
+
 @njit
 def hull_distance(P, np_, Q, nq):
     """Distance (m) between conv(P[:np_]) and conv(Q[:nq]) (points (n, 3)); 0 when they meet."""
-    W = np.zeros((4, 3))
-    W2 = np.zeros((4, 3))
-    keep = np.zeros(4, np.int64)
-    v = np.zeros(3)
+    S = np.zeros((5, 4, 4))
+    keep = np.zeros(8, np.int64)
+    return hull_distance_s(P, np_, Q, nq, S, keep)
+
+
+@njit
+def hull_distance_s(P, np_, Q, nq, S, keep):
+    """:func:`hull_distance` with caller-owned work arrays ``S``, ``keep`` (:func:`scratch`)."""
+    W = S[3, :, :3]
+    W2 = S[4, :, :3]
+    v = S[2, 1, :3]
     v[0] = P[0, 0] - Q[0, 0]
     v[1] = P[0, 1] - Q[0, 1]
     v[2] = P[0, 2] - Q[0, 2]
@@ -187,7 +199,7 @@ def hull_distance(P, np_, Q, nq):
             return nv
         W[m, 0], W[m, 1], W[m, 2] = w0, w1, w2
         m += 1
-        n = _closest_on_simplex(W, m, v, keep)
+        n = _closest_on_simplex(W, m, v, keep, S)
         if n == 0:
             return 0.0
         for a in range(n):
@@ -222,6 +234,8 @@ def shaft_clearance(H, nh, cap_a, cap_b, cap_r, pts, npts, prad, pball, clusters
     (centre, radius incl. ``prad``); ``clusters`` (c + 1,): piece ranges; ``cball`` (c, 4) their spheres.
     """
     nc = len(clusters) - 1
+    S = np.zeros((5, 4, 4))
+    keep = np.zeros(8, np.int64)
     lb = np.empty(nc)
     for c in range(nc):
         lb[c] = _point_segment(cball[c, 0], cball[c, 1], cball[c, 2], cap_a, cap_b) - cball[c, 3] - cap_r
@@ -235,7 +249,7 @@ def shaft_clearance(H, nh, cap_a, cap_b, cap_r, pts, npts, prad, pball, clusters
             lp = _point_segment(pball[p, 0], pball[p, 1], pball[p, 2], cap_a, cap_b) - pball[p, 3] - cap_r
             if lp >= best:
                 continue
-            d = hull_distance(H, nh, pts[p], npts[p]) - prad[p]
+            d = hull_distance_s(H, nh, pts[p], npts[p], S, keep) - prad[p]
             if d < best:
                 best = d
         if best < stop:
@@ -274,3 +288,16 @@ def clearance_batch(box, tips_a, tips_b, extra, pts, npts, prad, pball, clusters
         d = shaft_clearance(H, nb + 2, c0, mid, rho + half, pts, npts, prad, pball, clusters, cball,
                             stop + extra[i])
         out[i] = max(d - extra[i], 0.0)
+
+
+@njit
+def motion_clearance1(box, ax, ay, az, bx, by, bz, pts, npts, prad, pball, clusters, cball, stop):
+    """:func:`clearance_batch` of one motion [a, b] given by its coordinates (a scalar call for the
+    planner's validity checks: one dispatch, no array built in Python)."""
+    A = np.empty((1, 3))
+    B = np.empty((1, 3))
+    A[0, 0], A[0, 1], A[0, 2] = ax, ay, az
+    B[0, 0], B[0, 1], B[0, 2] = bx, by, bz
+    out = np.empty(1)
+    clearance_batch(box, A, B, np.zeros(1), pts, npts, prad, pball, clusters, cball, stop, out)
+    return out[0]

@@ -87,6 +87,37 @@ class ShaftClearance:
         """Whether every tip of the motions [a, b] (within ``ball`` of them) is robustly clear."""
         return self._batch(a, b, ball, self.required) >= self.required
 
+    def with_box(self, box: np.ndarray) -> "ShaftClearance":
+        """The same obstacles for another port box (corners (nb, 3); one point: a known true port)."""
+        from dataclasses import replace
+
+        return replace(self, box=np.ascontiguousarray(np.asarray(box, float).reshape(-1, 3)))
+
+    def run_clearance(self, port: np.ndarray, tips: np.ndarray) -> float:
+        """Smallest clearance (m) of a simulated run: the shaft from the true ``port`` (3,) through every
+        tip it visits (n, 3), each step moving straight (the triangle port-tip-next tip, exact)."""
+        tips = np.asarray(tips, float).reshape(-1, 3)
+        m = self.with_box(port)
+        a, b = (tips[:-1], tips[1:]) if len(tips) > 1 else (tips, tips)
+        return float(m.motion(a, b).min())
+
+    def motion_ok(self, ax: float, ay: float, az: float, bx: float, by: float, bz: float) -> bool:
+        """Whether every tip of the motion (a, b) is robustly clear: one compiled call (the planner's checks)."""
+        return _d.motion_clearance1(self.box, ax, ay, az, bx, by, bz, self.pts, self.npts, self.prad, self.pball,
+                                    self.clusters, self.cball, self.required) >= self.required
+
+    def checker(self):
+        """``ok(ax, ay, az, bx, by, bz) -> bool``: :meth:`motion_ok` with its arrays bound (fewer lookups)."""
+        f = _d.motion_clearance1
+        args = (self.box, self.pts, self.npts, self.prad, self.pball, self.clusters, self.cball)
+        box, pts, npts, prad, pball, clusters, cball = args
+        req = self.required
+
+        def ok(ax, ay, az, bx, by, bz):
+            return f(box, ax, ay, az, bx, by, bz, pts, npts, prad, pball, clusters, cball, req) >= req
+
+        return ok
+
     @property
     def empty(self) -> bool:
         return len(self.clusters) <= 1

@@ -35,11 +35,20 @@ def _segment_fn(cm):
 
         def seg(a, b, check=True):
             return walk2(D, a[0], a[1], b[0], b[1], check, True)
-    else:
+    elif cm._clear is None:
         walk3 = cellwalk.walk3
 
         def seg(a, b, check=True):
             return walk3(D, a[0], a[1], a[2], b[0], b[1], b[2], check, True)
+    else:  # an anatomy: a valid motion is also robustly clear (CostMap.segment)
+        walk3, clear = cellwalk.walk3, cm._clear
+        inf = math.inf
+
+        def seg(a, b, check=True):
+            ok, c = walk3(D, a[0], a[1], a[2], b[0], b[1], b[2], check, True)
+            if check and ok and not clear(a[0], a[1], a[2], b[0], b[1], b[2]):
+                return False, inf
+            return ok, c
     return seg
 
 
