@@ -59,14 +59,9 @@ def parse_scenario(doc: Mapping[str, Any], source: str = "<memory>") -> Scenario
 def check_anatomy(sc: Scenario) -> None:
     """The checks of ``[anatomy]`` that need its geometry (meshes load and are closed, the port box is
     clear of every obstacle, no query endpoint inside one): one :class:`errplan.ScenarioError`."""
-    from .errors import ScenarioError
-
     an = sc.anatomy
     if an is None:
         return
-    if an.body_wall is not None:
-        raise ScenarioError(f"{sc.source}: [anatomy.body_wall]: not supported yet (obstacles and clearance are; "
-                            "the body wall and port placement on it are not)")
     from .anatomy import check
     from .fields.errorset import error_set
 

@@ -10,7 +10,7 @@ from errplan.anatomy import build, winding_number
 from errplan.anatomy import distance as D
 from errplan.anatomy.meshes import icosphere, write_surface
 from errplan.errors import ScenarioError
-from errplan.scenario import Anatomy, Obstacle
+from errplan.scenario import Anatomy, BodyWall, Obstacle
 
 
 # ----------------------------------------------------------------------------- brute force
@@ -168,3 +168,70 @@ def test_bad_meshes(tmp_path, organ):
         load_surface(str(tmp_path / "nan.obj"))
     with pytest.raises(ScenarioError, match="missing"):
         load_surface(str(tmp_path / "none.ply"))
+
+
+def test_ellipsoid_wall_depth_against_dense_surface():
+    from errplan.anatomy.distance import ellipsoid_depth
+    rng = np.random.default_rng(1)
+    wall = np.array([0.01, -0.02, 0.3, 0.15, 0.12, 0.2, 1.0])
+    u = rng.normal(size=(300000, 3))
+    u /= np.linalg.norm(u, axis=1)[:, None]
+    S = wall[:3] + u * wall[3:6]
+    pts = [wall[:3], wall[:3] + [0.05, 0, 0], wall[:3] + [0, 0.05, 0.0]]
+    pts += list(wall[:3] + rng.uniform(-0.6, 0.6, (60, 3)) * wall[3:6])
+    for p in pts:
+        d = ellipsoid_depth(*p, wall)
+        b = np.linalg.norm(S - p, axis=1).min()
+        assert d <= b + 1e-9
+        assert b - d <= 0.0006  # the surface sample's spacing
+    assert ellipsoid_depth(0.01, -0.02, 0.51, wall) < 0  # outside
+
+
+def test_body_wall_in_clearance():
+    wall_anat = Anatomy(0.004, (), BodyWall("ellipsoid", center=(0.0, 0.0, 0.3), radii=(0.1, 0.1, 0.14)))
+    m = build(wall_anat, np.array([[0.0, 0.0, 0.16]]))
+    assert float(m.tip(np.array([0.0, 0.0, 0.3]))) == pytest.approx(0.1, abs=1e-9)
+    assert float(m.tip(np.array([0.0, 0.0, 0.5]))) == 0.0
+    # a motion between two deep points stays deep (convex wall): the smaller end's depth
+    assert float(m.motion(np.array([0.0, 0.0, 0.3]), np.array([0.05, 0.0, 0.3]))) == pytest.approx(0.05, abs=1e-9)
+
+
+# ----------------------------------------------------------------------------- the bundled abdomen
+ROOT = __import__("pathlib").Path(__file__).resolve().parents[1]
+ABDOMEN = ROOT / "scenarios" / "abdomen.toml"
+
+
+def test_bundled_organs_are_the_generators(tmp_path):
+    from errplan.anatomy.abdomen import ORGANS, write_organs
+    for p in write_organs(tmp_path):
+        assert p.read_bytes() == (ROOT / "scenarios" / "abdomen" / p.name).read_bytes()
+    assert len(ORGANS) == 3
+
+
+def test_bundled_abdomen_loads_and_its_straight_lines_are_blocked():
+    from errplan.api import load_scenario
+    from errplan.fields.compute import anatomy_model
+    sc = load_scenario(ABDOMEN)
+    m = anatomy_model(sc)
+    assert m.wall[6] > 0 and len(m.surfaces) == 4
+    for q in sc.queries:
+        assert float(m.motion(np.asarray(q.start), np.asarray(q.goal))) < sc.anatomy.clearance, q.name
+        assert float(m.tip(np.asarray(q.start))) >= sc.anatomy.clearance
+        assert float(m.tip(np.asarray(q.goal))) >= sc.anatomy.clearance
+
+
+@pytest.mark.parametrize("change, word", [
+    (("radii = [0.16, 0.14, 0.20]", "radii = [0.16, 0.14, 0.25]"), "from the body wall"),
+    (("start = [-0.08, 0.04, 0.40]", "start = [-0.08, 0.04, 0.58]"), "outside the body wall"),
+    (('shape = "ellipsoid"', 'shape = "ellipsoid"\nbogus = 1'), "unknown key"),
+])
+def test_bad_body_wall(tmp_path, change, word):
+    import shutil
+    from errplan.api import load_scenario
+    shutil.copytree(ROOT / "scenarios" / "abdomen", tmp_path / "abdomen")
+    shutil.copy(ROOT / "scenarios" / "phantom15.urdf", tmp_path)
+    text = ABDOMEN.read_text()
+    assert change[0] in text
+    (tmp_path / "a.toml").write_text(text.replace(change[0], change[1]))
+    with pytest.raises(ScenarioError, match=word):
+        load_scenario(tmp_path / "a.toml")

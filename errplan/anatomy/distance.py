@@ -258,10 +258,12 @@ def shaft_clearance(H, nh, cap_a, cap_b, cap_r, pts, npts, prad, pball, clusters
 
 
 @njit
-def clearance_batch(box, tips_a, tips_b, extra, pts, npts, prad, pball, clusters, cball, stop, out):
+def clearance_batch(box, tips_a, tips_b, extra, pts, npts, prad, pball, clusters, cball, wall, stop, out):
     """:func:`shaft_clearance` of the hulls conv(box ∪ {a_i, b_i}) (``box`` (nb, 3) corners;
-    ``tips_a``, ``tips_b`` (n, 3); a == b for a single tip), minus ``extra[i]`` (a tip ball's
-    radius, by the 1-Lipschitz bound), into ``out`` (n,)."""
+    ``tips_a``, ``tips_b`` (n, 3); a == b for a single tip), and, when ``wall[6] > 0``, the depth of
+    the tips inside the ellipsoid body wall ``wall`` (:func:`ellipsoid_depth`; along a motion the
+    smaller of its ends', exact since the set of points at least that deep in a convex body is
+    convex), minus ``extra[i]`` (a tip ball's radius, by the 1-Lipschitz bound), into ``out`` (n,)."""
     nb = box.shape[0]
     H = np.zeros((MAX_HULL, 3))
     c0 = np.zeros(3)
@@ -282,16 +284,18 @@ def clearance_batch(box, tips_a, tips_b, extra, pts, npts, prad, pball, clusters
             mid[t] = 0.5 * (tips_a[i, t] + tips_b[i, t])
             half += (tips_b[i, t] - tips_a[i, t]) ** 2
         half = 0.5 * math.sqrt(half)
-        if len(clusters) <= 1:
-            out[i] = 1e300
-            continue
-        d = shaft_clearance(H, nb + 2, c0, mid, rho + half, pts, npts, prad, pball, clusters, cball,
-                            stop + extra[i])
+        d = 1e300
+        if wall[6] > 0.0:
+            d = min(ellipsoid_depth(tips_a[i, 0], tips_a[i, 1], tips_a[i, 2], wall),
+                    ellipsoid_depth(tips_b[i, 0], tips_b[i, 1], tips_b[i, 2], wall))
+        if len(clusters) > 1 and d > stop + extra[i]:
+            d = min(d, shaft_clearance(H, nb + 2, c0, mid, rho + half, pts, npts, prad, pball, clusters, cball,
+                                       stop + extra[i]))
         out[i] = max(d - extra[i], 0.0)
 
 
 @njit
-def motion_clearance1(box, ax, ay, az, bx, by, bz, pts, npts, prad, pball, clusters, cball, stop):
+def motion_clearance1(box, ax, ay, az, bx, by, bz, pts, npts, prad, pball, clusters, cball, wall, stop):
     """:func:`clearance_batch` of one motion [a, b] given by its coordinates (a scalar call for the
     planner's validity checks: one dispatch, no array built in Python)."""
     A = np.empty((1, 3))
@@ -299,5 +303,82 @@ def motion_clearance1(box, ax, ay, az, bx, by, bz, pts, npts, prad, pball, clust
     A[0, 0], A[0, 1], A[0, 2] = ax, ay, az
     B[0, 0], B[0, 1], B[0, 2] = bx, by, bz
     out = np.empty(1)
-    clearance_batch(box, A, B, np.zeros(1), pts, npts, prad, pball, clusters, cball, stop, out)
+    clearance_batch(box, A, B, np.zeros(1), pts, npts, prad, pball, clusters, cball, wall, stop, out)
     return out[0]
+
+
+@njit
+def ellipsoid_depth(px, py, pz, wall):
+    """Signed distance (m) of a point inside the ellipsoid ``wall`` = (cx, cy, cz, a, b, c, ...)
+    (axis-aligned semi-axes) to its surface: > 0 inside, <= 0 outside (then ``-(F - 1)`` scaled, only
+    its sign is used). Exact inside (Eberly's root of ``sum (e_i y_i / (t + e_i^2))^2 = 1`` on
+    ``t in (-e_min^2, 0]`` by bisection, with the degenerate case of a point on the smallest axis'
+    plane)."""
+    y = np.empty(3)
+    e = np.empty(3)
+    y[0], y[1], y[2] = abs(px - wall[0]), abs(py - wall[1]), abs(pz - wall[2])
+    e[0], e[1], e[2] = wall[3], wall[4], wall[5]
+    f0 = 0.0
+    for i in range(3):
+        f0 += (y[i] / e[i]) ** 2
+    if f0 >= 1.0:
+        return -(math.sqrt(f0) - 1.0) * min(e[0], min(e[1], e[2]))  # outside: a negative number
+    # the smallest semi-axis
+    k = 0
+    for i in range(1, 3):
+        if e[i] < e[k]:
+            k = i
+    ek2 = e[k] * e[k]
+    best = 1e300
+    # candidate 1: the regular root t in (-ek^2, 0]
+    lo = -ek2
+    hi = 0.0
+    for _ in range(200):
+        mid = 0.5 * (lo + hi)
+        if mid <= lo or mid >= hi:
+            break
+        f = 0.0
+        for i in range(3):
+            den = mid + e[i] * e[i]
+            f += (e[i] * y[i] / den) ** 2
+        if f > 1.0:
+            lo = mid
+        else:
+            hi = mid
+    t = 0.5 * (lo + hi)
+    d2 = 0.0
+    ok = True
+    for i in range(3):
+        den = t + e[i] * e[i]
+        if den <= 0.0:
+            ok = False
+            break
+        x = e[i] * e[i] * y[i] / den
+        d2 += (x - y[i]) ** 2
+    if ok:
+        best = math.sqrt(d2)
+    # candidate 2 (degenerate): t = -ek^2, x_k from the surface equation
+    s = 0.0
+    d2 = 0.0
+    ok = True
+    for i in range(3):
+        if i == k:
+            continue
+        den = e[i] * e[i] - ek2
+        if den <= 0.0:
+            ok = False
+            break
+        x = e[i] * e[i] * y[i] / den
+        s += (x / e[i]) ** 2
+        d2 += (x - y[i]) ** 2
+    if ok and s <= 1.0:
+        xk = e[k] * math.sqrt(1.0 - s)
+        d2 += (xk - y[k]) ** 2
+        best = min(best, math.sqrt(d2))
+    # candidate 3: straight along the smallest axis (always a surface point: an upper bound)
+    s = 0.0
+    for i in range(3):
+        if i != k:
+            s += (y[i] / e[i]) ** 2
+    best = min(best, e[k] * math.sqrt(max(1.0 - s, 0.0)) - y[k])
+    return best

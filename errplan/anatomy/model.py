@@ -51,6 +51,7 @@ class ShaftClearance:
     piece_obstacle: np.ndarray  # (n,) index of the obstacle of each piece
     names: tuple[str, ...]
     surfaces: tuple[Surface, ...] = field(default_factory=tuple)
+    wall: np.ndarray = field(default_factory=lambda: np.zeros(7))  # ellipsoid body wall (cx, cy, cz, a, b, c, on)
     _solid: tuple = field(default_factory=tuple)  # per obstacle: ("convex", piece ids) or ("mesh", v, f)
 
     # ---------------------------------------------------------------- queries
@@ -67,7 +68,7 @@ class ShaftClearance:
         if not (np.all(np.isfinite(A)) and np.all(np.isfinite(B))):
             raise ValueError("tips must be finite")
         _d.clearance_batch(self.box, A, B, E, self.pts, self.npts, self.prad, self.pball, self.clusters,
-                           self.cball, float(stop), out)
+                           self.cball, self.wall, float(stop), out)
         return np.minimum(out, np.inf).reshape(shape)
 
     def tip(self, x: np.ndarray) -> np.ndarray:
@@ -104,23 +105,41 @@ class ShaftClearance:
     def motion_ok(self, ax: float, ay: float, az: float, bx: float, by: float, bz: float) -> bool:
         """Whether every tip of the motion (a, b) is robustly clear: one compiled call (the planner's checks)."""
         return _d.motion_clearance1(self.box, ax, ay, az, bx, by, bz, self.pts, self.npts, self.prad, self.pball,
-                                    self.clusters, self.cball, self.required) >= self.required
+                                    self.clusters, self.cball, self.wall, self.required) >= self.required
 
     def checker(self):
         """``ok(ax, ay, az, bx, by, bz) -> bool``: :meth:`motion_ok` with its arrays bound (fewer lookups)."""
         f = _d.motion_clearance1
-        args = (self.box, self.pts, self.npts, self.prad, self.pball, self.clusters, self.cball)
-        box, pts, npts, prad, pball, clusters, cball = args
+        box, pts, npts, prad, pball, clusters, cball, wall = (self.box, self.pts, self.npts, self.prad, self.pball,
+                                                              self.clusters, self.cball, self.wall)
         req = self.required
 
         def ok(ax, ay, az, bx, by, bz):
-            return f(box, ax, ay, az, bx, by, bz, pts, npts, prad, pball, clusters, cball, req) >= req
+            return f(box, ax, ay, az, bx, by, bz, pts, npts, prad, pball, clusters, cball, wall, req) >= req
 
         return ok
 
     @property
     def empty(self) -> bool:
-        return len(self.clusters) <= 1
+        """No obstacle and no body wall: nothing to check."""
+        return len(self.clusters) <= 1 and not self.wall[6] > 0
+
+    def wall_mesh(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The ellipsoid body wall as a triangle mesh ``(vertices, faces)`` for drawing, or None."""
+        if not self.wall[6] > 0:
+            return None
+        from .meshes import icosphere
+
+        v, f = icosphere(3)
+        return self.wall[:3] + v * self.wall[3:6], f
+
+    def wall_depth(self, p: np.ndarray) -> np.ndarray:
+        """Depth (m) of points (..., 3) inside the body wall (> 0 inside; ``inf`` without a wall)."""
+        p = np.asarray(p, float)
+        if not self.wall[6] > 0:
+            return np.full(p.shape[:-1], np.inf)
+        flat = p.reshape(-1, 3)
+        return np.array([_d.ellipsoid_depth(x, y, z, self.wall) for x, y, z in flat]).reshape(p.shape[:-1])
 
     def inside(self, p: np.ndarray) -> np.ndarray:
         """``(...,)`` index of an obstacle containing point ``p`` (..., 3) (on its surface counts), else -1."""
@@ -138,6 +157,21 @@ class ShaftClearance:
                 w = winding_number(flat, solid[1], solid[2])
                 out[(out < 0) & (w > 0.5)] = k
         return out.reshape(p.shape[:-1])
+
+
+#: m: how far from the body wall a port estimate may lie when the port box is smaller
+WALL_TOLERANCE = 0.001
+
+
+def _wall_gap(p: np.ndarray, wall: np.ndarray) -> float:
+    """Distance (m) of a point to the ellipsoid wall's surface (inside: exact; outside: along the ray from
+    the centre, an upper bound that is exact on the surface)."""
+    d = _d.ellipsoid_depth(float(p[0]), float(p[1]), float(p[2]), wall)
+    if d > 0:
+        return float(d)
+    q = (p - wall[:3]) / wall[3:6]
+    r = float(np.linalg.norm(q))
+    return float(np.linalg.norm(p - (wall[:3] + q / r * wall[3:6]))) if r > 0 else 0.0
 
 
 def winding_number(p: np.ndarray, v: np.ndarray, f: np.ndarray) -> np.ndarray:
@@ -258,8 +292,15 @@ def build(anatomy, box: np.ndarray, where: str = "[anatomy]") -> ShaftClearance:
         surfaces.append(Surface(o.name, o.shape, sv, sf))
         solids.append(("convex", [first]))
     n = len(pts)
+    wall = np.zeros(7)
+    bw = anatomy.body_wall if anatomy else None
+    if bw is not None:
+        if bw.shape != "ellipsoid":
+            raise ScenarioError(f"{where}: [anatomy.body_wall] shape = {bw.shape!r}: not supported yet (an "
+                                "\"ellipsoid\" wall is)")
+        wall = np.array([*bw.center, *bw.radii, 1.0], float)
     return ShaftClearance(
-        required=float(anatomy.clearance) if anatomy else 0.0, box=box,
+        wall=wall, required=float(anatomy.clearance) if anatomy else 0.0, box=box,
         pts=np.ascontiguousarray(np.array(pts, float).reshape(n, _d.MAX_PIECE, 3)),
         npts=np.array(npts, np.int64), prad=np.array(prad, float),
         pball=np.ascontiguousarray(np.array(pball, float).reshape(n, 4)),
@@ -270,14 +311,30 @@ def build(anatomy, box: np.ndarray, where: str = "[anatomy]") -> ShaftClearance:
 
 def check(sc, box: np.ndarray, model: ShaftClearance | None = None) -> ShaftClearance:
     """Build the anatomy of ``sc`` and check it against the port and the queries: one
-    :class:`ScenarioError` when the port box touches an obstacle or a query's start or goal is
-    inside one."""
+    :class:`ScenarioError` when the port box touches an obstacle, a query's start or goal is
+    inside one or outside the body wall, or the port estimate is not on the body wall (within the
+    port box's half-diagonal, at least :data:`WALL_TOLERANCE`)."""
     m = model or build(sc.anatomy, box)
-    if m.empty:
-        return m
     src = sc.source
+    if m.wall[6] > 0:
+        est = np.asarray(sc.port.estimate, float)
+        c = m.box.mean(axis=0)
+        tol = max(WALL_TOLERANCE, float(np.max(np.linalg.norm(m.box - c, axis=1))))
+        gap = _wall_gap(est, m.wall)
+        if gap > tol:
+            raise ScenarioError(f"{src}: [port] estimate = {list(map(float, est))}: {gap * 1000:.1f} mm from the body "
+                                f"wall (more than {tol * 1000:.1f} mm): expected a port on [anatomy.body_wall]")
+        for q in sc.queries:
+            for what, p in (("start", q.start), ("goal", q.goal)):
+                if not float(m.wall_depth(np.asarray(p, float))) > 0:
+                    raise ScenarioError(f"{src}: [[query]] {q.name!r} {what} = {list(p)}: outside the body wall: "
+                                        "expected a tip inside [anatomy.body_wall]")
+    if len(m.clusters) <= 1:
+        return m
+    from dataclasses import replace
+
     c0 = m.box.mean(axis=0)
-    hull = m.motion(c0, c0)  # the box alone: conv(box ∪ {centre}) = conv(box)
+    hull = replace(m, wall=np.zeros(7)).motion(c0, c0)  # the box alone: conv(box ∪ {centre}) = conv(box)
     ins = m.inside(np.vstack([m.box, c0]))
     if float(hull) <= 0.0 or np.any(ins >= 0):
         k = int(np.max(ins)) if np.any(ins >= 0) else int(m.piece_obstacle[0])

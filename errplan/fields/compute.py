@@ -349,10 +349,10 @@ def compute_fields(sc, resolution: float | None = None, rho_star: bool = False, 
 
 
 def anatomy_model(sc, es: ErrorSet | None = None):
-    """The :class:`errplan.anatomy.ShaftClearance` of a spatial scenario's ``[anatomy]`` obstacles for
-    the port box of its error set, or None (no anatomy, or no obstacle)."""
+    """The :class:`errplan.anatomy.ShaftClearance` of a spatial scenario's ``[anatomy]`` (obstacles and
+    body wall) for the port box of its error set, or None (no anatomy, or nothing in it)."""
     an = getattr(sc, "anatomy", None)
-    if an is None or not an.obstacles:
+    if an is None or (not an.obstacles and an.body_wall is None):
         return None
     from ..anatomy import build
 

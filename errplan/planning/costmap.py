@@ -453,6 +453,13 @@ class CostMap:
         i = [min(max(math.floor((p[k] - self.origin[k]) / self.h), 0), self._cells[k] - 1) for k in range(self.dim)]
         corners = [tuple(a + o for a, o in zip(i, off)) for off in itertools.product((0, 1), repeat=self.dim)]
         valid = np.asarray(self.mf.valid, bool)
+        cl = getattr(self.mf, "clearance", None)
+        if self.anatomy is not None and cl is not None:
+            low = [float(cl[c]) for c in corners if np.isfinite(cl[c]) and cl[c] < self.anatomy.required]
+            if low:
+                return (f"{where}: its grid cell is not robustly clear of the anatomy (at a corner the shaft comes "
+                        f"{min(low) * 1000:.1f} mm from an obstacle or the tip is that close to the body wall, under "
+                        f"some true port; [anatomy] clearance = {self.anatomy.required * 1000:.1f} mm)" + tail)
         if not all(valid[c] for c in corners):
             ws = np.ones(self.cell_ok.shape, bool)
             for s in _corner_slices(self.dim):
