@@ -602,6 +602,9 @@ def _tolerances(ctx: _Ctx, v: Any, controller_gain: float, d: int = 2) -> tuple[
         if kind == "port_placement":
             if "candidates" not in t:
                 raise ctx.fail(w + "candidates", None, form + ": the box of nominal port positions to try (missing)")
+            if t["candidates"] == "body_wall":
+                raise ctx.fail(w + "candidates", "body_wall", form + ' (candidates = "body_wall", ports on the body '
+                               "wall, is not supported yet)")
             opts["candidates"] = _region(ctx, t["candidates"], w + "candidates", d)
             if "spacing" not in t:
                 raise ctx.fail(w + "spacing", None, "the candidate grid spacing > 0 m (missing)")

@@ -235,3 +235,19 @@ def test_bad_body_wall(tmp_path, change, word):
     (tmp_path / "a.toml").write_text(text.replace(change[0], change[1]))
     with pytest.raises(ScenarioError, match=word):
         load_scenario(tmp_path / "a.toml")
+
+
+def test_culling_changes_nothing(organ):
+    """The cluster and piece culling (tapered-capsule lower bounds) returns the minimum over every piece."""
+    anat, _ = _anat(organ)
+    box = np.array(list(itertools.product((-0.005, 0.005), (-0.004, 0.004), (0.195, 0.203))), float)
+    m = build(anat, box)
+    rng = np.random.default_rng(2)
+    a = rng.uniform([-0.07, -0.07, 0.26], [0.07, 0.07, 0.44], size=(40, 3))
+    b = a + rng.normal(scale=0.01, size=a.shape) * (rng.uniform(size=(40, 1)) < 0.5)
+    got = m.motion(a, b)
+    for x, y, g in zip(a, b, got):
+        H = np.zeros((10, 3))
+        H[:8], H[8], H[9] = box, x, y
+        full = min(D.hull_distance(H, 10, m.pts[p], m.npts[p]) - m.prad[p] for p in range(len(m.pts)))
+        assert g == pytest.approx(max(full, 0.0), abs=1e-12)

@@ -225,11 +225,35 @@ def _point_segment(cx, cy, cz, a, b):
 
 
 @njit
+def _cone_lb(qx, qy, qz, c0, m, rho, half):
+    """A lower bound on the distance from point q to the shaft hull, which lies in the union over
+    s in [0, 1] of the balls centred at ``c0 + s (m - c0)`` with radius ``(1 - s) rho + s half``
+    (a tapered capsule): the exact minimum over s of ``|q - p(s)| - r(s)`` (convex in s; closed form)."""
+    ax, ay, az = m[0] - c0[0], m[1] - c0[1], m[2] - c0[2]
+    L = math.sqrt(ax * ax + ay * ay + az * az)
+    wx, wy, wz = qx - c0[0], qy - c0[1], qz - c0[2]
+    if L <= 1e-12:
+        return math.sqrt(wx * wx + wy * wy + wz * wz) - max(rho, half)
+    ax, ay, az = ax / L, ay / L, az / L
+    u = wx * ax + wy * ay + wz * az
+    hx, hy, hz = wx - u * ax, wy - u * ay, wz - u * az
+    h = math.sqrt(hx * hx + hy * hy + hz * hz)
+    k = (rho - half) / L
+    if abs(k) >= 1.0:
+        t = 0.0 if k > 0 else L
+    else:
+        t = u - k * h / math.sqrt(1.0 - k * k)
+    t = min(max(t, 0.0), L)
+    return math.sqrt((u - t) ** 2 + h * h) - rho + k * t
+
+
+@njit
 def shaft_clearance(H, nh, cap_a, cap_b, cap_r, pts, npts, prad, pball, clusters, cball, stop):
     """Smallest distance (m, >= 0) from conv(H[:nh]) to every piece; stops early once it is below
     ``stop`` (then the value is only known to be below ``stop``, and is the distance found so far).
 
-    ``cap_a``, ``cap_b``, ``cap_r``: a capsule containing the hull (for culling); ``pts`` (n, 8, 3),
+    ``cap_a``, ``cap_b``, ``cap_r`` = (rho, half): a tapered capsule containing the hull (radius rho at
+    ``cap_a``, half at ``cap_b``; :func:`_cone_lb`, for culling); ``pts`` (n, 8, 3),
     ``npts`` (n,), ``prad`` (n,): the pieces; ``pball`` (n, 4): each piece's bounding sphere
     (centre, radius incl. ``prad``); ``clusters`` (c + 1,): piece ranges; ``cball`` (c, 4) their spheres.
     """
@@ -238,7 +262,7 @@ def shaft_clearance(H, nh, cap_a, cap_b, cap_r, pts, npts, prad, pball, clusters
     keep = np.zeros(8, np.int64)
     lb = np.empty(nc)
     for c in range(nc):
-        lb[c] = _point_segment(cball[c, 0], cball[c, 1], cball[c, 2], cap_a, cap_b) - cball[c, 3] - cap_r
+        lb[c] = _cone_lb(cball[c, 0], cball[c, 1], cball[c, 2], cap_a, cap_b, cap_r[0], cap_r[1]) - cball[c, 3]
     order = np.argsort(lb)
     best = 1e300
     for oi in range(nc):
@@ -246,7 +270,7 @@ def shaft_clearance(H, nh, cap_a, cap_b, cap_r, pts, npts, prad, pball, clusters
         if lb[c] >= best:
             break
         for p in range(clusters[c], clusters[c + 1]):
-            lp = _point_segment(pball[p, 0], pball[p, 1], pball[p, 2], cap_a, cap_b) - pball[p, 3] - cap_r
+            lp = _cone_lb(pball[p, 0], pball[p, 1], pball[p, 2], cap_a, cap_b, cap_r[0], cap_r[1]) - pball[p, 3]
             if lp >= best:
                 continue
             d = hull_distance_s(H, nh, pts[p], npts[p], S, keep) - prad[p]
@@ -276,6 +300,8 @@ def clearance_batch(box, tips_a, tips_b, extra, pts, npts, prad, pball, clusters
         dx, dy, dz = box[i, 0] - c0[0], box[i, 1] - c0[1], box[i, 2] - c0[2]
         rho = max(rho, math.sqrt(dx * dx + dy * dy + dz * dz))
     mid = np.zeros(3)
+    rr = np.zeros(2)
+    rr[0] = rho
     for i in range(tips_a.shape[0]):
         half = 0.0
         for t in range(3):
@@ -284,12 +310,13 @@ def clearance_batch(box, tips_a, tips_b, extra, pts, npts, prad, pball, clusters
             mid[t] = 0.5 * (tips_a[i, t] + tips_b[i, t])
             half += (tips_b[i, t] - tips_a[i, t]) ** 2
         half = 0.5 * math.sqrt(half)
+        rr[1] = half
         d = 1e300
         if wall[6] > 0.0:
             d = min(ellipsoid_depth(tips_a[i, 0], tips_a[i, 1], tips_a[i, 2], wall),
                     ellipsoid_depth(tips_b[i, 0], tips_b[i, 1], tips_b[i, 2], wall))
         if len(clusters) > 1 and d > stop + extra[i]:
-            d = min(d, shaft_clearance(H, nb + 2, c0, mid, rho + half, pts, npts, prad, pball, clusters, cball,
+            d = min(d, shaft_clearance(H, nb + 2, c0, mid, rr, pts, npts, prad, pball, clusters, cball,
                                        stop + extra[i]))
         out[i] = max(d - extra[i], 0.0)
 
