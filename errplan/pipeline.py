@@ -327,6 +327,14 @@ def summary_table(runs: list[QueryRun], title: str | None = None) -> str:
             if bad:
                 lines.append(f"{r.name} {kind}: {len(bad)} of {len(sched.segments)} segment(s) not certified: {bad[0].reason}"
                              + (f"; simulated with the scenario gain {r.direct_gain:g}" if kind == "direct" else ""))
+    for r in runs:
+        if r.sim_planned.min_clearance is None:
+            continue
+        parts = []
+        for kind, rep, reps in (("planned", r.sim_planned, r.corner_planned), ("direct", r.sim_direct, r.corner_direct)):
+            cs = [x.min_clearance for x in reps if x.min_clearance is not None]
+            parts.append(f"{kind} {rep.min_clearance * 1000:.1f} mm" + (f" (corners >= {min(cs) * 1000:.1f} mm)" if cs else ""))
+        lines.append(f"{r.name} min clearance of the shaft (anatomy): " + ", ".join(parts))
     lines.append("max ||G||: worst case along the path at the scenario gain (fields); certified ||G||: verified "
                  "worst case over every segment's convergence ball at the chosen gain; steps/converged/monotonic: "
                  "simulated under the scenario's truth; corners: replays under every corner of the error box.")

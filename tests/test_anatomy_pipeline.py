@@ -217,3 +217,16 @@ def test_anatomy_is_spatial_only():
     doc.update(tomllib.loads("[anatomy]\nclearance = 0.001\n"))
     with pytest.raises(ScenarioError, match="planar"):
         parse_scenario(doc, str(ROOT / "scenarios" / "beasley2004_bounded.toml"))
+
+
+def test_cli_fields_writes_clearance(tmp_path):
+    out = tmp_path / "a.npz"
+    r = subprocess.run([sys.executable, "-m", "errplan", "fields", str(ROOT / "scenarios" / "abdomen.toml"), "--out",
+                        str(out), "--resolution", "0.012", "--workers", "1"], capture_output=True, text=True, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert "clearance" in r.stdout and "not robustly clear" in r.stdout
+    with np.load(out) as d:
+        c, v = d["clearance"], d["valid"]
+        meta = json.loads(str(d["meta"]))
+    assert np.all(c[v] >= meta["anatomy"]["clearance"])
+    assert meta["anatomy"]["blocked_points"] == int(np.sum(np.isfinite(c) & (c < meta["anatomy"]["clearance"])))
