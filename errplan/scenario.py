@@ -602,10 +602,13 @@ def _tolerances(ctx: _Ctx, v: Any, controller_gain: float, d: int = 2) -> tuple[
         if kind == "port_placement":
             if "candidates" not in t:
                 raise ctx.fail(w + "candidates", None, form + ": the box of nominal port positions to try (missing)")
-            if t["candidates"] == "body_wall":
-                raise ctx.fail(w + "candidates", "body_wall", form + ' (candidates = "body_wall", ports on the body '
-                               "wall, is not supported yet)")
-            opts["candidates"] = _region(ctx, t["candidates"], w + "candidates", d)
+            if t["candidates"] == "body_wall":  # ports on [anatomy.body_wall] (checked with the anatomy)
+                if d != 3:
+                    raise ctx.fail(w + "candidates", "body_wall", form + ' (candidates = "body_wall" needs a '
+                                   "spatial scenario with [anatomy.body_wall])")
+                opts["candidates"] = "body_wall"
+            else:
+                opts["candidates"] = _region(ctx, t["candidates"], w + "candidates", d)
             if "spacing" not in t:
                 raise ctx.fail(w + "spacing", None, "the candidate grid spacing > 0 m (missing)")
             opts["spacing"] = _num(ctx, t["spacing"], w + "spacing", positive=True)
@@ -828,6 +831,10 @@ def scenario_from_dict(doc: Mapping[str, Any], source: str = "<memory>") -> Scen
         source=source,
         anatomy=anatomy,
     )
+    for i, tol in enumerate(sc.tolerances):
+        if tol.get("candidates") == "body_wall" and (anatomy is None or anatomy.body_wall is None):
+            raise ctx.fail(f"[[tolerance]][{i}] candidates", "body_wall", "a box of candidate ports, or \"body_wall\" "
+                           "with an [anatomy.body_wall] table (missing)")
     return sc
 
 

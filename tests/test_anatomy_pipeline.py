@@ -230,3 +230,76 @@ def test_cli_fields_writes_clearance(tmp_path):
         meta = json.loads(str(d["meta"]))
     assert np.all(c[v] >= meta["anatomy"]["clearance"])
     assert meta["anatomy"]["blocked_points"] == int(np.sum(np.isfinite(c) & (c < meta["anatomy"]["clearance"])))
+
+
+# ----------------------------------------------------------------------------- port placement on the wall
+WALL_REGION = {"x": (-0.03, 0.03), "y": (-0.03, 0.03), "z": (0.36, 0.42)}
+WALL_TOL = """
+[[tolerance]]
+name = "on the wall"
+kind = "port_placement"
+candidates = "body_wall"
+spacing = 0.015
+region = { x = [-0.03, 0.03], y = [-0.03, 0.03], z = [0.36, 0.42] }
+resolution = 0.01
+"""
+
+
+@pytest.fixture(scope="module")
+def wall_run():
+    from errplan.tolerance.wall import wall_port_placement
+    abd = ROOT / "scenarios" / "abdomen.toml"
+    sc = parse_scenario(tomllib.loads(abd.read_text() + WALL_TOL), str(abd))
+    return sc, wall_port_placement(sc, 0.015, WALL_REGION, resolution=0.01)
+
+
+@pytest.mark.slow
+def test_wall_candidates_are_on_the_wall_and_spaced(wall_run):
+    sc, r = wall_run
+    c, rad = np.array(sc.anatomy.body_wall.center), np.array(sc.anatomy.body_wall.radii)
+    P = np.array([x["port"] for x in r["candidates"]])
+    assert np.allclose(np.sum(((P - c) / rad) ** 2, axis=1), 1.0, atol=1e-9)
+    g = P[:r["wall_refinement"]["grid_candidates"]]  # the spaced set; refinement adds finer points after it
+    d = np.linalg.norm(g[:, None] - g[None], axis=-1) + np.eye(len(g))
+    assert d.min() >= 0.015 - 1e-12
+    assert r["wall_refinement"]["added"] > 0 and r["covered"] >= r["wall_refinement"]["grid_covered"]
+    assert r["best"] in [x["port"] for x in r["candidates"]]
+    # the best is the largest coverage (then the smaller max rho*)
+    assert r["covered"] == max(x["covered"] for x in r["candidates"])
+    assert 0 < r["coverage"] <= 1 and r["covered"] <= r["clear"] <= r["reachable"]
+
+
+@pytest.mark.slow
+def test_wall_coverage_counts_only_clear_points(wall_run):
+    """Independently: the best candidate's covered points are reachable and certifiable (the plain
+    box-candidate placement at that port), and robustly clear (the fields' clearance of a scenario whose
+    port is that candidate)."""
+    from dataclasses import replace
+    from errplan.fields.compute import anatomy_model
+    from errplan.scenario import Port
+    from errplan.tolerance.placement import port_placement
+    sc, r = wall_run
+    b = tuple(r["best"])
+    box = {a: (v, v) for a, v in zip("xyz", b)}
+    plain = port_placement(sc, box, 0.01, WALL_REGION, resolution=0.01, keep_arrays=True)
+    A = plain["_arrays"]
+    ok = A["best_valid"] & (A["best_rho_star"] <= A["bound"]) & (A["best_rho_star"] < 1)
+    m = anatomy_model(replace(sc, port=Port(b, b)))
+    clear = m.tip(A["region_points"]) >= sc.anatomy.clearance
+    assert int(np.sum(ok & clear)) == r["covered"]
+    assert int(np.sum(ok)) >= r["covered"]
+
+
+@pytest.mark.slow
+def test_cli_tolerance_body_wall(tmp_path):
+    abd = ROOT / "scenarios" / "abdomen.toml"
+    import shutil
+    shutil.copytree(ROOT / "scenarios" / "abdomen", tmp_path / "abdomen")
+    shutil.copy(ROOT / "scenarios" / "phantom15.urdf", tmp_path)
+    (tmp_path / "w.toml").write_text(abd.read_text() + WALL_TOL.replace("spacing = 0.015", "spacing = 0.03"))
+    js = tmp_path / "t.json"
+    r = subprocess.run([sys.executable, "-m", "errplan", "tolerance", str(tmp_path / "w.toml"), "--json", str(js),
+                        "--workers", "1"], capture_output=True, text=True, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    t = json.loads(js.read_text())["tolerances"][0]
+    assert t["kind"] == "port_placement" and len(t["best"]) == 3 and t["candidate_grid"]["body_wall"]

@@ -124,6 +124,54 @@ class ShaftClearance:
         """No obstacle and no body wall: nothing to check."""
         return len(self.clusters) <= 1 and not self.wall[6] > 0
 
+    def wall_points(self, spacing: float, near: np.ndarray | None = None, radius: float = 0.0) -> np.ndarray:
+        """Points (n, 3) of the ellipsoid body wall about ``spacing`` (m) apart along it: a dense
+        Fibonacci set on the surface (about 16 points per ``spacing**2`` of area), thinned greedily in
+        its order so that kept points are at least ``spacing`` apart (chordal) and every dense point is
+        within ``spacing`` of one. Deterministic. Empty without a wall. ``near`` (k, 3), ``radius``: only
+        the part of the wall within ``radius`` of those points (the dense set is cut before thinning)."""
+        if not self.wall[6] > 0:
+            return np.zeros((0, 3))
+        c, r = self.wall[:3], self.wall[3:6]
+        a, b, cc = r
+        p = 1.6075
+        area = 4 * np.pi * (((a * b) ** p + (a * cc) ** p + (b * cc) ** p) / 3) ** (1 / p)
+        n = int(min(max(16 * area / spacing ** 2, 64), 400_000))
+        i = np.arange(n) + 0.5
+        z = 1 - 2 * i / n
+        th = np.pi * (1 + 5 ** 0.5) * i
+        u = np.stack([np.sqrt(1 - z * z) * np.cos(th), np.sqrt(1 - z * z) * np.sin(th), z], -1)
+        pts = c + u * r
+        if near is not None:
+            near = np.asarray(near, float).reshape(-1, 3)
+            keep = np.zeros(len(pts), bool)
+            for i0 in range(0, len(pts), 4096):
+                dd = np.min(np.sum((pts[i0:i0 + 4096, None, :] - near[None]) ** 2, axis=-1), axis=1)
+                keep[i0:i0 + 4096] = dd <= radius * radius
+            pts = pts[keep]
+        keys = np.floor(pts / spacing).astype(np.int64)
+        cells: dict = {}
+        kept = []
+        for q, key in zip(pts, map(tuple, keys)):
+            ok = True
+            for dx in (-1, 0, 1):
+                for dy in (-1, 0, 1):
+                    for dz in (-1, 0, 1):
+                        for j in cells.get((key[0] + dx, key[1] + dy, key[2] + dz), ()):
+                            if np.sum((kept[j] - q) ** 2) < spacing * spacing:
+                                ok = False
+                                break
+                        if not ok:
+                            break
+                    if not ok:
+                        break
+                if not ok:
+                    break
+            if ok:
+                cells.setdefault(key, []).append(len(kept))
+                kept.append(q)
+        return np.array(kept).reshape(-1, 3)
+
     def wall_mesh(self) -> tuple[np.ndarray, np.ndarray] | None:
         """The ellipsoid body wall as a triangle mesh ``(vertices, faces)`` for drawing, or None."""
         if not self.wall[6] > 0:
