@@ -303,3 +303,16 @@ def test_cli_tolerance_body_wall(tmp_path):
     assert r.returncode == 0, r.stderr
     t = json.loads(js.read_text())["tolerances"][0]
     assert t["kind"] == "port_placement" and len(t["best"]) == 3 and t["candidate_grid"]["body_wall"]
+@pytest.mark.slow
+def test_wall_brute_force_finds_none_better(wall_run):
+    """A denser set of wall points (a third of the spacing, another lattice than the refinement's halvings)
+    near every candidate within 2 covered points of the best: none covers more."""
+    from errplan.fields.compute import anatomy_model
+    from errplan.tolerance.wall import wall_candidates, wall_port_placement
+    sc, r = wall_run
+    m = anatomy_model(sc)
+    top = np.array([x["port"] for x in r["candidates"] if x["covered"] >= r["covered"] - 2])
+    dense = wall_candidates(sc, m, 0.005, WALL_REGION, near=top, radius=0.015)
+    rd = wall_port_placement(sc, 0.005, WALL_REGION, resolution=0.01, ports=dense)
+    assert len(rd["candidates"]) > len(top)
+    assert rd["covered"] <= r["covered"]
