@@ -43,6 +43,7 @@ def load_scenario(path: str | Path) -> Scenario:
     shaft reaches the port). Raises one :class:`errplan.ScenarioError` naming the key and value."""
     sc = read_scenario(path)
     check_scenario(sc)
+    check_anatomy(sc)
     return sc
 
 
@@ -51,7 +52,20 @@ def parse_scenario(doc: Mapping[str, Any], source: str = "<memory>") -> Scenario
     ``source``'s folder)."""
     sc = scenario_from_dict(doc, source)
     check_scenario(sc)
+    check_anatomy(sc)
     return sc
+
+
+def check_anatomy(sc: Scenario) -> None:
+    """The checks of ``[anatomy]`` that need its geometry (meshes load and are closed, the port box is
+    clear of every obstacle, no query endpoint inside one): one :class:`errplan.ScenarioError`."""
+    an = sc.anatomy
+    if an is None:
+        return
+    from .anatomy import check
+    from .fields.errorset import error_set
+
+    check(sc, error_set(sc)[0].port_corners())
 
 
 def _part(progress: Progress | None, lo: float, hi: float) -> Progress | None:

@@ -47,11 +47,23 @@ class Replay:
 
     sim: SimResult
     G_norm: np.ndarray  # (steps,) actual ||G|| at the state each command was issued from
+    min_clearance: float | None = None  # m: smallest shaft clearance to [anatomy] along the run (3-D, obstacles)
 
     def to_json(self) -> dict:
         out = self.sim.to_json()
         out["max_G_norm"] = float(self.G_norm.max()) if len(self.G_norm) else 0.0
+        if self.min_clearance is not None:
+            out["min_clearance"] = self.min_clearance
         return out
+
+
+def _clearance(model, plant: Plant, rep: Replay) -> Replay:
+    """Set ``rep.min_clearance`` when the scenario has obstacles: the shaft from ``plant``'s true port to
+    every visited tip, each step's straight move included (errplan.anatomy)."""
+    an = getattr(model, "anatomy", None)
+    if an is not None:
+        rep.min_clearance = an.run_clearance(plant.true_port, rep.sim.tip)
+    return rep
 
 
 @dataclass
@@ -193,6 +205,7 @@ def run_query(sc, qjson: dict, *, options: GainOptions | None = None, corners: b
     if dim == 3:
         src = model if model is not None else SpatialModel(sc)
         check_query_endpoints(sc, name, ppath[0], ppath[-1], src, opts.margin)
+    an_model = src if dim == 3 else None  # its .anatomy: the obstacles, for min_clearance
     if progress:
         progress(0.05, f"{name}: certifying gains")
     sched = schedule_gains(src, ppath, opts)
@@ -206,16 +219,18 @@ def run_query(sc, qjson: dict, *, options: GainOptions | None = None, corners: b
     ctrl = ControllerModel.from_scenario(sc)
     truth = truth_plant(sc)
     seed = int(sc.planner.seed)
-    sp = replay(truth, ctrl, ppath[0], sched.waypoints, sched.gains, opts, seed)
-    sd = replay(truth, ctrl, dpath[0], dpath[-1:], [kd], opts, seed)
+    sp = _clearance(an_model, truth, replay(truth, ctrl, ppath[0], sched.waypoints, sched.gains, opts, seed))
+    sd = _clearance(an_model, truth, replay(truth, ctrl, dpath[0], dpath[-1:], [kd], opts, seed))
     cs = corner_instances(sc) if corners else np.zeros((0, dim + 1))
     run = QueryRun(name, start, goal, ppath, dpath, dict(qjson["planned"]) if isinstance(qjson["planned"], dict) else {},
                    dict(qjson["direct"]) if isinstance(qjson.get("direct"), dict) else {}, sched, dsched, kd, src,
                    sp, sd, cs)
     for i, th in enumerate(cs):
         pl = corner_plant(sc, th)
-        run.corner_planned.append(replay(pl, ctrl, ppath[0], sched.waypoints, sched.gains, opts, seed + 1 + i))
-        run.corner_direct.append(replay(pl, ctrl, dpath[0], dpath[-1:], [kd], opts, seed + 1 + i))
+        run.corner_planned.append(_clearance(an_model, pl, replay(pl, ctrl, ppath[0], sched.waypoints, sched.gains,
+                                                                  opts, seed + 1 + i)))
+        run.corner_direct.append(_clearance(an_model, pl, replay(pl, ctrl, dpath[0], dpath[-1:], [kd], opts,
+                                                                 seed + 1 + i)))
         if progress:
             progress(0.5 + 0.5 * (i + 1) / len(cs), f"{name}: corner replays")
     return run
@@ -312,6 +327,14 @@ def summary_table(runs: list[QueryRun], title: str | None = None) -> str:
             if bad:
                 lines.append(f"{r.name} {kind}: {len(bad)} of {len(sched.segments)} segment(s) not certified: {bad[0].reason}"
                              + (f"; simulated with the scenario gain {r.direct_gain:g}" if kind == "direct" else ""))
+    for r in runs:
+        if r.sim_planned.min_clearance is None:
+            continue
+        parts = []
+        for kind, rep, reps in (("planned", r.sim_planned, r.corner_planned), ("direct", r.sim_direct, r.corner_direct)):
+            cs = [x.min_clearance for x in reps if x.min_clearance is not None]
+            parts.append(f"{kind} {rep.min_clearance * 1000:.1f} mm" + (f" (corners >= {min(cs) * 1000:.1f} mm)" if cs else ""))
+        lines.append(f"{r.name} min clearance of the shaft (anatomy): " + ", ".join(parts))
     lines.append("max ||G||: worst case along the path at the scenario gain (fields); certified ||G||: verified "
                  "worst case over every segment's convergence ball at the chosen gain; steps/converged/monotonic: "
                  "simulated under the scenario's truth; corners: replays under every corner of the error box.")

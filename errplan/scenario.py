@@ -170,6 +170,55 @@ class Tolerance:
         return self.options.get(key, default)
 
 
+# ----------------------------------------------------------------------------- anatomy (issue 18)
+OBSTACLE_SHAPES = ("sphere", "capsule", "box", "mesh")
+WALL_SHAPES = ("ellipsoid", "mesh")
+MESH_SUFFIXES = (".stl", ".obj", ".ply")
+
+
+@dataclass(frozen=True)
+class Obstacle:
+    """One obstacle of ``[anatomy]`` (docs/interfaces.md "Anatomy"), plain data: ``shape`` is
+    ``"sphere"`` (``center``, ``radius``), ``"capsule"`` (``a``, ``b``, ``radius``), ``"box"``
+    (``center``, ``half_extents``, ``rpy``) or ``"mesh"`` (``file``, absolute; ``scale``,
+    ``position``, ``rpy``). Unused fields keep their defaults. m, rad."""
+
+    name: str
+    shape: str
+    center: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    radius: float = 0.0
+    a: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    b: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    half_extents: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    rpy: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    file: str = ""
+    scale: float = 1.0
+    position: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+
+@dataclass(frozen=True)
+class BodyWall:
+    """The inner surface of the insufflated abdomen: ``"ellipsoid"`` (``center``, ``radii``) or
+    ``"mesh"`` (``file``, ``scale``, ``position``, ``rpy`` as an obstacle mesh)."""
+
+    shape: str
+    center: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    radii: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    file: str = ""
+    scale: float = 1.0
+    position: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    rpy: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+
+@dataclass(frozen=True)
+class Anatomy:
+    """``[anatomy]``: the clearance (m) kept from every obstacle, the obstacles, the body wall."""
+
+    clearance: float = 0.0
+    obstacles: tuple[Obstacle, ...] = ()
+    body_wall: BodyWall | None = None
+
+
 @dataclass(frozen=True)
 class Scenario:
     name: str
@@ -186,6 +235,7 @@ class Scenario:
     effects: Mapping[str, Mapping[str, float]] = field(default_factory=dict)
     description: str = ""
     source: str = "<memory>"
+    anatomy: Anatomy | None = None  # [anatomy] (spatial scenarios only)
 
     @property
     def dim(self) -> int:
@@ -561,7 +611,13 @@ def _tolerances(ctx: _Ctx, v: Any, controller_gain: float, d: int = 2) -> tuple[
         if kind == "port_placement":
             if "candidates" not in t:
                 raise ctx.fail(w + "candidates", None, form + ": the box of nominal port positions to try (missing)")
-            opts["candidates"] = _region(ctx, t["candidates"], w + "candidates", d)
+            if t["candidates"] == "body_wall":  # ports on [anatomy.body_wall] (checked with the anatomy)
+                if d != 3:
+                    raise ctx.fail(w + "candidates", "body_wall", form + ' (candidates = "body_wall" needs a '
+                                   "spatial scenario with [anatomy.body_wall])")
+                opts["candidates"] = "body_wall"
+            else:
+                opts["candidates"] = _region(ctx, t["candidates"], w + "candidates", d)
             if "spacing" not in t:
                 raise ctx.fail(w + "spacing", None, "the candidate grid spacing > 0 m (missing)")
             opts["spacing"] = _num(ctx, t["spacing"], w + "spacing", positive=True)
@@ -652,9 +708,87 @@ def _effects(ctx: _Ctx, t: Mapping[str, Any], d: int = 2, n_joints: int = 2) -> 
     return out
 
 
+def _mesh_keys(ctx: _Ctx, t: Mapping[str, Any], w: str, base_dir: Path) -> dict[str, Any]:
+    """``file`` (resolved against the scenario's folder; must exist, STL/OBJ/PLY), ``scale``,
+    ``position``, ``rpy`` of a mesh obstacle or wall. The file's content is read by errplan.anatomy."""
+    f = _get(ctx, t, "file", w)
+    if not isinstance(f, str) or not f:
+        raise ctx.fail(w + "file", f, "the path of an STL, OBJ or PLY file (relative to the scenario file)")
+    path = (base_dir / f).resolve()
+    if path.suffix.lower() not in MESH_SUFFIXES:
+        raise ctx.fail(w + "file", f, "an STL, OBJ or PLY file (.stl, .obj, .ply)")
+    if not path.is_file():
+        raise ctx.fail(w + "file", f, f"an existing mesh file (missing: {path})")
+    return {"file": str(path), "scale": _num(ctx, t.get("scale", 1.0), w + "scale", positive=True),
+            "position": _vec(ctx, t.get("position", [0.0, 0.0, 0.0]), w + "position", 3),
+            "rpy": _vec(ctx, t.get("rpy", [0.0, 0.0, 0.0]), w + "rpy", 3)}
+
+
+def _anatomy(ctx: _Ctx, t: Mapping[str, Any], base_dir: Path) -> Anatomy:
+    """``[anatomy]`` (docs/interfaces.md "Anatomy (spatial)"): numbers checked here (finite, radii and
+    clearance >= 0 / > 0, files present); mesh contents and the geometry against the robot's port in
+    :mod:`errplan.anatomy`."""
+    w = "[anatomy] "
+    _check_keys(ctx, t, ("clearance", "obstacle", "body_wall"), w)
+    clearance = _num(ctx, t.get("clearance", 0.0), w + "clearance", nonneg=True)
+    obs = t.get("obstacle", [])
+    if not isinstance(obs, list):
+        raise ctx.fail("[[anatomy.obstacle]]", obs, "an array of tables")
+    out, names = [], set()
+    for i, o in enumerate(obs):
+        wo = f"[[anatomy.obstacle]][{i}] "
+        if not isinstance(o, dict):
+            raise ctx.fail(wo.strip(), o, "a table")
+        shape = _get(ctx, o, "shape", wo)
+        if shape not in OBSTACLE_SHAPES:
+            raise ctx.fail(wo + "shape", shape, " | ".join(f'"{x}"' for x in OBSTACLE_SHAPES))
+        keys = {"sphere": ("center", "radius"), "capsule": ("a", "b", "radius"),
+                "box": ("center", "half_extents", "rpy"), "mesh": ("file", "scale", "position", "rpy")}[shape]
+        _check_keys(ctx, o, ("name", "shape") + keys, wo)
+        name = o.get("name", f"obstacle{i}")
+        if not isinstance(name, str) or not name:
+            raise ctx.fail(wo + "name", name, "a non-empty string")
+        if name in names:
+            raise ctx.fail(wo + "name", name, "a name used by no other obstacle")
+        names.add(name)
+        kw: dict[str, Any] = {}
+        if shape == "mesh":
+            kw = _mesh_keys(ctx, o, wo, base_dir)
+        else:
+            for k in ("center", "a", "b", "half_extents"):
+                if k in keys:
+                    kw[k] = _vec(ctx, _get(ctx, o, k, wo), wo + k, 3)
+            if "radius" in keys:
+                kw["radius"] = _num(ctx, _get(ctx, o, "radius", wo), wo + "radius", positive=True)
+            if shape == "box":
+                kw["rpy"] = _vec(ctx, o.get("rpy", [0.0, 0.0, 0.0]), wo + "rpy", 3)
+                if min(kw["half_extents"]) <= 0:
+                    raise ctx.fail(wo + "half_extents", list(kw["half_extents"]), "three half-lengths > 0 (m)")
+        out.append(Obstacle(name=name, shape=shape, **kw))
+    wall = None
+    if "body_wall" in t:
+        bw = t["body_wall"]
+        ww = "[anatomy.body_wall] "
+        if not isinstance(bw, dict):
+            raise ctx.fail(ww.strip(), bw, "a table")
+        shape = _get(ctx, bw, "shape", ww)
+        if shape not in WALL_SHAPES:
+            raise ctx.fail(ww + "shape", shape, " | ".join(f'"{x}"' for x in WALL_SHAPES))
+        if shape == "ellipsoid":
+            _check_keys(ctx, bw, ("shape", "center", "radii"), ww)
+            radii = _vec(ctx, _get(ctx, bw, "radii", ww), ww + "radii", 3)
+            if min(radii) <= 0:
+                raise ctx.fail(ww + "radii", list(radii), "three semi-axes > 0 (m)")
+            wall = BodyWall("ellipsoid", center=_vec(ctx, _get(ctx, bw, "center", ww), ww + "center", 3), radii=radii)
+        else:
+            _check_keys(ctx, bw, ("shape", "file", "scale", "position", "rpy"), ww)
+            wall = BodyWall("mesh", **_mesh_keys(ctx, bw, ww, base_dir))
+    return Anatomy(clearance, tuple(out), wall)
+
+
 _TOP = (
     "name", "description", "robot", "instrument", "port", "controller", "uncertainty",
-    "sensors", "fields", "planner", "query", "tolerance", "effects",
+    "sensors", "fields", "planner", "query", "tolerance", "effects", "anatomy",
 )
 
 
@@ -682,6 +816,12 @@ def scenario_from_dict(doc: Mapping[str, Any], source: str = "<memory>") -> Scen
         d = 2
         robot = _robot(ctx, robot_t)
     n_joints = len(robot.joints) if d == 3 else 2
+    anatomy = None
+    if "anatomy" in doc:
+        if d != 3:
+            raise ctx.fail("[anatomy]", doc["anatomy"], "no [anatomy] in a planar scenario (anatomy is spatial: "
+                           "a [robot] urdf)")
+        anatomy = _anatomy(ctx, _table(ctx, doc, "anatomy", True), base_dir)
     sc = Scenario(
         name=name,
         description=desc,
@@ -697,7 +837,12 @@ def scenario_from_dict(doc: Mapping[str, Any], source: str = "<memory>") -> Scen
         tolerances=_tolerances(ctx, doc.get("tolerance", []), controller.gain, d),
         effects=_effects(ctx, _table(ctx, doc, "effects", False), d, n_joints),
         source=source,
+        anatomy=anatomy,
     )
+    for i, tol in enumerate(sc.tolerances):
+        if tol.get("candidates") == "body_wall" and (anatomy is None or anatomy.body_wall is None):
+            raise ctx.fail(f"[[tolerance]][{i}] candidates", "body_wall", "a box of candidate ports, or \"body_wall\" "
+                           "with an [anatomy.body_wall] table (missing)")
     return sc
 
 

@@ -1,7 +1,7 @@
 """`errplan demo`: the bundled scenarios end to end (fields, plan, gains, simulation, recording): P1's
-planar Phantom and the spatial PHANToM 1.5 on its URDF, the plan JSON keys of docs/interfaces.md
+planar Phantom, the spatial PHANToM 1.5 on its URDF and the abdomen (issue 18), the plan JSON keys of docs/interfaces.md
 (`gains` S objects, `simulation` R objects) in both, every planned segment certified and every corner
-replay monotonic, both recordings verified."""
+replay monotonic, every recording verified, the abdomen's runs clear of its anatomy."""
 from __future__ import annotations
 
 import json
@@ -43,13 +43,16 @@ def test_demo_runs_and_prints_the_summary(demo):
         assert q["name"] in out
     assert "planned" in out and "direct" in out and "recording:" in out
     assert "errplan demo: beasley2004-bounded" in out and "errplan demo: phantom15-spatial" in out
-    assert out.count("max ||G||: worst case along the path") == 2  # the same table twice
+    assert out.count("max ||G||: worst case along the path") == 3  # the same table for each scenario
+    assert "errplan demo: abdomen" in out and "min clearance of the shaft" in out
     assert rec.exists() and rec.with_name("errplan-demo-3d.rrd").exists()
+    assert rec.with_name("errplan-demo-abdomen.rrd").exists()
     assert doc["spatial"]["dim"] == 3 and len(doc["spatial"]["queries"]) == 3
+    assert doc["anatomy"]["scenario"] == "abdomen" and len(doc["anatomy"]["queries"]) == 3
 
 
 def _all_queries(doc):
-    return doc["queries"] + doc["spatial"]["queries"]
+    return doc["queries"] + doc["spatial"]["queries"] + doc["anatomy"]["queries"]
 
 
 def test_demo_json_has_the_interface_keys(demo):
@@ -80,6 +83,11 @@ def test_demo_plans_are_certified_and_monotonic_everywhere(demo):
     for q in doc["spatial"]["queries"]:
         assert len(q["start"]) == 3 and all(len(p) == 3 for p in q["planned"]["path"])
         assert len(q["simulation"]["corners"]["instances"][0]["port_offset"]) == 3
+    for q in doc["anatomy"]["queries"]:  # issue 18: every planned run keeps the shaft 4 mm clear
+        sim = q["simulation"]
+        assert not q["direct"]["valid"]  # every straight line cuts an obstacle
+        assert sim["planned"]["min_clearance"] >= 0.004
+        assert all(r["min_clearance"] >= 0.004 for r in sim["corners"]["planned"])
 
 
 def test_demo_direct_path_fails_where_its_certificate_does(demo):
@@ -95,7 +103,7 @@ def test_demo_direct_path_fails_where_its_certificate_does(demo):
     assert not q["simulation"]["corners"]["direct_all_monotonic"]
 
 
-@pytest.mark.parametrize("name", ["errplan-demo.rrd", "errplan-demo-3d.rrd"])
+@pytest.mark.parametrize("name", ["errplan-demo.rrd", "errplan-demo-3d.rrd", "errplan-demo-abdomen.rrd"])
 def test_demo_recording_verifies(demo, name):
     rec = demo[2].with_name(name)
     exe = shutil.which("rerun")

@@ -6,7 +6,9 @@ box -> one rerun recording and a summary table (planned vs direct).
 
 Without ``--scenario`` the demo runs P1's planar Phantom (``beasley2004_bounded.toml``, recorded to
 ``--record``, default ``errplan-demo.rrd``) and then the spatial PHANToM 1.5 on its URDF
-(``phantom15_spatial.toml``, recorded beside it as ``<stem>-3d.rrd``). The spatial fields are
+(``phantom15_spatial.toml``, recorded beside it as ``<stem>-3d.rrd``), then the bundled abdomen
+(``abdomen.toml``: the PHANToM among mesh organs, a vessel and the body wall, issue 18; at its own 8 mm
+grid, recorded as ``<stem>-abdomen.rrd``). The PHANToM's spatial fields are
 computed at ``SPATIAL_RESOLUTION`` over the scenario's task region (its own 4 mm grid takes about a
 minute of CPU) with the metrics the planner and the recording use (G_norm, phi_hat_max, rho_star).
 With ``--scenario F`` only that scenario runs (planar or spatial), recorded to ``--record``.
@@ -23,6 +25,7 @@ from . import warmup
 SCENARIOS = Path(__file__).resolve().parents[2] / "scenarios"
 BUNDLED = SCENARIOS / "beasley2004_bounded.toml"
 BUNDLED_SPATIAL = SCENARIOS / "phantom15_spatial.toml"
+BUNDLED_ANATOMY = SCENARIOS / "abdomen.toml"
 #: grid spacing (m) of the demo's spatial fields (the scenario's [fields] resolution is 4 mm)
 SPATIAL_RESOLUTION = 0.010
 SPATIAL_METRICS = ("G_norm", "phi_hat_max", "rho_star")
@@ -34,12 +37,13 @@ def bundled_scenario() -> Path:
     return BUNDLED
 
 
-def spatial_record_path(rec: Path) -> Path:
-    """Where the spatial recording goes beside the planar one: ``<stem>-3d<suffix>``."""
-    return rec.with_name(f"{rec.stem}-3d{rec.suffix or '.rrd'}")
+def spatial_record_path(rec: Path, tag: str = "3d") -> Path:
+    """Where the spatial recording goes beside the planar one: ``<stem>-3d<suffix>`` (``-abdomen`` for the
+    anatomy scenario)."""
+    return rec.with_name(f"{rec.stem}-{tag}{rec.suffix or '.rrd'}")
 
 
-def run_scenario(sc, path: Path, rec: Path | None, quiet: bool, *, spatial_demo: bool = False) -> dict:
+def run_scenario(sc, path: Path, rec: Path | None, quiet: bool, *, spatial_demo: bool | str = False) -> dict:
     """Fields, plan, gains, simulation and recording of one scenario; prints its table and times.
     Returns the JSON document of the run (``queries`` with the plan JSON keys, ``timing_s``)."""
     from ..fields import compute_fields
@@ -51,8 +55,9 @@ def run_scenario(sc, path: Path, rec: Path | None, quiet: bool, *, spatial_demo:
         raise ErrplanError(f"{path}: the scenario has no [[query]] to plan")
     prog = Progress("fields", quiet=quiet)
     warmup.wait(f"fields{sc.dim}")  # a first run compiles ahead in the background (errplan.cli.warmup)
-    if spatial_demo:
-        mf = compute_fields(sc, SPATIAL_RESOLUTION, metrics=SPATIAL_METRICS, progress=prog, workers=None)
+    if spatial_demo:  # True: the PHANToM at SPATIAL_RESOLUTION; "own": the abdomen at its own resolution
+        res = SPATIAL_RESOLUTION if spatial_demo is True else None
+        mf = compute_fields(sc, res, metrics=SPATIAL_METRICS, progress=prog, workers=None)
     else:
         mf = compute_fields(sc, rho_star=True, progress=prog)
     prog.done()
@@ -69,7 +74,7 @@ def run_scenario(sc, path: Path, rec: Path | None, quiet: bool, *, spatial_demo:
     prog.done()
     t_pipe = time.perf_counter() - t2
     total = time.perf_counter() - t0
-    res_note = f" (spatial fields at {SPATIAL_RESOLUTION * 1000:g} mm)" if spatial_demo else ""
+    res_note = f" (spatial fields at {SPATIAL_RESOLUTION * 1000:g} mm)" if spatial_demo is True else ""
     print(summary_table(res["runs"], f"errplan demo: {sc.name} ({path.name}){res_note}"))
     print(f"time: fields {t_fields:.1f} s, planning {t_plan:.1f} s, gains + simulation"
           f"{' + recording' if rec else ''} {t_pipe:.1f} s, total {total:.1f} s")
@@ -99,11 +104,14 @@ def run(args) -> int:
         # the split balances the two on 2 cores
         warmup.start(("plan2", "fields3", "gains3"))
         jobs = [(load_scenario(path), path, False), (load_scenario(BUNDLED_SPATIAL), BUNDLED_SPATIAL, True)]
+        if BUNDLED_ANATOMY.exists():
+            jobs.append((load_scenario(BUNDLED_ANATOMY), BUNDLED_ANATOMY, "own"))
     rec = check_output("--record", args.record)
     check_output("--json", args.json)
-    recs = [rec] + ([spatial_record_path(rec) if rec else None] if len(jobs) > 1 else [])
-    if len(recs) > 1 and recs[1] is not None:
-        check_output("--record", str(recs[1]))
+    recs = [rec] + [spatial_record_path(rec, tag) if rec else None for tag in ("3d", "abdomen")[:len(jobs) - 1]]
+    for r in recs[1:]:
+        if r is not None:
+            check_output("--record", str(r))
     docs = []
     for i, ((sc, p, spatial_demo), r) in enumerate(zip(jobs, recs)):
         if i:
@@ -112,6 +120,8 @@ def run(args) -> int:
     doc = dict(docs[0])
     if len(docs) > 1:
         doc["spatial"] = docs[1]
+    if len(docs) > 2:
+        doc["anatomy"] = docs[2]
     doc["total_s"] = time.perf_counter() - t0
     if args.json:
         write_json(args.json, doc)

@@ -17,12 +17,18 @@ def field_table(summary: dict, title: str) -> str:
             continue
         f = (180 / math.pi) if unit == "deg" else 1.0
         rows.append([name, unit, s["min"] * f, s["median"] * f, s["max"] * f])
+    if summary.get("clearance") is not None:  # [anatomy]: over the reachable tips
+        s = summary["clearance"]
+        rows.append(["clearance", "mm", s["min"] * 1000, s["median"] * 1000, s["max"] * 1000])
     lines = [format_table(["field", "unit", "min", "median", "max"], rows, title)]
     grid = " x ".join(str(n) for n in summary["grid"])
     size = (f"{summary['workspace_area_m2'] * 1e4:.1f} cm^2" if "workspace_area_m2" in summary
             else f"{summary['workspace_volume_m3'] * 1e6:.1f} cm^3")
     lines.append(f"workspace: {summary['valid_points']} tips on a {grid} grid at {summary['resolution'] * 1000:g} mm "
                  f"({size})")
+    if "blocked_points" in summary:
+        lines.append(f"anatomy: {summary['blocked_points']} reachable tips are not robustly clear (outside the workspace); "
+                     "clearance over every reachable tip")
     if "share_G_below_1" in summary:
         lines.append(f"share with worst-case ||G|| < 1 (monotonic at the scenario gain): {100 * summary['share_G_below_1']:.1f}%")
     if "share_rho_star_below_1" in summary:

@@ -34,9 +34,11 @@ def placement_table(r, top: int = 5) -> str:
         rows.append(["refined", _mm(f["port"]), 100 * f["coverage"], f"{f['covered']}/{m}", f["reachable"],
                      f["max_rho_star"] if f["max_rho_star"] is not None else math.nan])
     grid = d["candidate_grid"]
-    title = (f"{r.name}: {grid['count']} candidate ports at {1000 * grid['spacing']:g} mm, task region of {m} points "
-             f"at {1000 * d['region_grid']['resolution']:g} mm; covered = robustly reachable and "
-             f"rho* <= {1 - d['certify_margin']:g}")
+    where = " on the body wall" if grid.get("body_wall") else ""
+    title = (f"{r.name}: {grid['count']} candidate ports{where} at {1000 * grid['spacing']:g} mm, task region of {m} "
+             f"points at {1000 * d['region_grid']['resolution']:g} mm; covered = "
+             + (d["criterion"] if grid.get("body_wall") else
+                f"robustly reachable and rho* <= {1 - d['certify_margin']:g}"))
     lines = [format_table(["rank", "port (mm)", "coverage %", "covered", "reachable", "max rho*"], rows, title)]
     lines.append(f"ties: {d['tie_break']}; {d['seconds_per_candidate']:.3g} s per candidate "
                  f"({grid['count']} in {d['sweep_seconds']:.3g} s)")

@@ -338,6 +338,25 @@ def compute_fields(sc, resolution: float | None = None, rho_star: bool = False, 
 
     valid = scatter("valid", False, bool)
     gn = scatter("G_norm")
+    clearance, anatomy_meta = None, None
+    extra = {}
+    model = anatomy_model(sc, es)
+    if model is not None:
+        # The anatomy pass (issue 18): a reachable tip that is not robustly clear is outside the workspace.
+        clearance = np.full(shape, np.nan)
+        flat = valid.reshape(-1)
+        reach = np.flatnonzero(flat)
+        cl = model.tip(P[reach])
+        clearance.reshape(-1)[reach] = cl
+        blocked = reach[cl < model.required]
+        flat[blocked] = False
+        gn.reshape(-1)[blocked] = np.nan
+        anatomy_meta = {"clearance": model.required, "obstacles": list(model.names),
+                        "blocked_points": int(len(blocked))}
+        extra = {name: scatter(name) for name in ("phi_max", "rho_star", "k_star")
+                 if (name == "phi_max" and want_phi) or (name != "phi_max" and want_rho)}
+        for a in extra.values():
+            a.reshape(-1)[blocked] = np.nan
     ph = None
     if "phi_hat_max" in names:
         ph = phi_hat_max(np.where(valid, gn, 1.0))
@@ -357,9 +376,27 @@ def compute_fields(sc, resolution: float | None = None, rho_star: bool = False, 
                "toward 4 directions around its cone)")
             + ("" if sc.dim == 2 or jac_effects else ", then a pattern search over the noise set from the worst corner")
             + "; the worst noise can lie inside the set where ||G|| is not convex in it")
-    kw = dict(meta=meta, rho_star=scatter("rho_star") if want_rho else None,
-              k_star=scatter("k_star") if want_rho else None)
+    if anatomy_meta is not None:
+        meta["anatomy"] = anatomy_meta
+
+    def get(name):
+        return extra[name] if name in extra else scatter(name)
+
+    kw = dict(meta=meta, rho_star=get("rho_star") if want_rho else None,
+              k_star=get("k_star") if want_rho else None, clearance=clearance)
     if sc.dim == 3:
         kw["x"] = axes[0]
     return MetricField(axes[-2], axes[-1], valid, gn if "G_norm" in names else None, ph,
-                       scatter("phi_max") if want_phi else None, **kw)
+                       get("phi_max") if want_phi else None, **kw)
+
+
+def anatomy_model(sc, es: ErrorSet | None = None):
+    """The :class:`errplan.anatomy.ShaftClearance` of a spatial scenario's ``[anatomy]`` (obstacles and
+    body wall) for the port box of its error set, or None (no anatomy, or nothing in it)."""
+    an = getattr(sc, "anatomy", None)
+    if an is None or (not an.obstacles and an.body_wall is None):
+        return None
+    from ..anatomy import build
+
+    es = es or error_set(sc)[0]
+    return build(an, es.port_corners())

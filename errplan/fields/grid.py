@@ -33,6 +33,7 @@ class MetricField:
     k_star: np.ndarray | None = None
     meta: dict = field(default_factory=dict)
     x: np.ndarray | None = None
+    clearance: np.ndarray | None = None  # m: robust shaft clearance to [anatomy] (spatial, with obstacles)
 
     @property
     def dim(self) -> int:
@@ -98,6 +99,11 @@ class MetricField:
             return out
         if self.G_norm is not None:
             out["share_G_below_1"] = float(np.mean(self.G_norm[self.valid] < 1.0))
+        if self.clearance is not None:
+            c = self.clearance[np.isfinite(self.clearance)]
+            out["blocked_points"] = int(self.meta.get("anatomy", {}).get("blocked_points", 0))
+            if len(c):
+                out["clearance"] = {"max": float(c.max()), "median": float(np.median(c)), "min": float(c.min())}
         if self.rho_star is not None:
             out["share_rho_star_below_1"] = float(np.mean(self.rho_star[self.valid] < 1.0))
         for name in METRIC_NAMES:
@@ -116,6 +122,8 @@ class MetricField:
         for name in METRIC_NAMES:
             if getattr(self, name) is not None:
                 arrays[name] = getattr(self, name)
+        if self.clearance is not None:
+            arrays["clearance"] = self.clearance
         arrays["meta"] = np.array(json.dumps(self.meta))
         tmp = path.with_name(path.name + ".part")
         try:
@@ -130,4 +138,5 @@ class MetricField:
         with np.load(path) as d:
             meta = json.loads(str(d["meta"])) if "meta" in d else {}
             get = {n: (d[n] if n in d else None) for n in METRIC_NAMES}
-            return cls(d["y"], d["z"], d["valid"].astype(bool), meta=meta, x=d["x"] if "x" in d else None, **get)
+            return cls(d["y"], d["z"], d["valid"].astype(bool), meta=meta, x=d["x"] if "x" in d else None,
+                       clearance=d["clearance"] if "clearance" in d else None, **get)

@@ -84,6 +84,7 @@ class Segment:
     depth: int = 0               # halvings applied to reach it
     samples: dict = field(default_factory=dict)
     reason: str = ""
+    ball_clearance: float | None = None  # m: a lower bound on the robust clearance of every tip of the ball
 
     @property
     def length(self) -> float:
@@ -101,6 +102,8 @@ class Segment:
             # (docs/interfaces.md: certified_G_norm < 1 means certified). The ball's value stays here:
             out["ball_G_norm"] = out["certified_G_norm"]
             out["certified_G_norm"] = None
+        if self.ball_clearance is not None:
+            out["ball_clearance"] = float(self.ball_clearance)
         if self.reason:
             out["reason"] = self.reason
         return out

@@ -155,6 +155,9 @@ class SpatialModel:
         self.delta = float(np.max(np.linalg.norm(es.port_corners() - self.estimate, axis=-1)))
         tmax = float(max(abs(es.lo[3]), abs(es.hi[3])))
         self.deviation = self.length * math.atan(tmax * self.length ** 2 / 12.0)
+        from ..fields.compute import anatomy_model
+
+        self.anatomy = anatomy_model(sc, es)  # [anatomy] obstacles (errplan.anatomy.ShaftClearance) or None
 
     @classmethod
     def from_scenario(cls, sc) -> "SpatialModel":

@@ -73,6 +73,7 @@ def schedule_gains(src, path, options: GainOptions | None = None, *, progress=No
     if not pieces:
         raise ErrplanError("path has zero length: start and goal coincide")
     cache: dict = {}
+    anatomy = getattr(ev, "anatomy", None)
 
     def sample(a, b):
         key = (tuple(np.round(a, 12)), tuple(np.round(b, 12)))
@@ -168,7 +169,18 @@ def schedule_gains(src, path, options: GainOptions | None = None, *, progress=No
                     pred = float(_rho(s, kk)[0])
             cert = bool(gn < 1.0 and sr < 1.0)  # NaN compares False: never certified by default
             reason = ""
-            if not cert:
+            ball_cl = None
+            if anatomy is not None:
+                # the whole convergence ball must be robustly clear (docs/physics.md "Anatomy"): the
+                # clearance at its centre less its radius bounds every tip of it (1-Lipschitz)
+                ball_cl = float(anatomy.tip(b)) - s["d"]
+                if cert and ball_cl < anatomy.required:
+                    cert = False
+                    reason = (f"the convergence ball (radius {s['d'] * 1000:.1f} mm) is not robustly clear of the "
+                              f"anatomy: clearance >= {max(ball_cl, 0.0) * 1000:.1f} mm < {anatomy.required * 1000:.1f} mm")
+                    if can_split(p):
+                        redo.append(i)
+            if not cert and not reason:
                 if math.isnan(gn):
                     reason = "no tip of the ball is reachable under the error set"
                 elif v["singular_pairs"] or s["singular"]:
@@ -185,7 +197,8 @@ def schedule_gains(src, path, options: GainOptions | None = None, *, progress=No
             smpinfo = {"optimiser": {k_: s[k_] for k_ in ("tips", "instances", "noise_corners", "pairs")},
                        "verification": {k_: v[k_] for k_ in ("tips", "instances", "noise_corners", "pairs", "grid_G_norm",
                                                               "reachable_tip_share", "worst_tip", "worst_theta")}}
-            segs.append(Segment(a.copy(), b.copy(), float(kk), gn, sr, cert, s["d"], pred, e, d, smpinfo, reason))
+            segs.append(Segment(a.copy(), b.copy(), float(kk), gn, sr, cert, s["d"], pred, e, d, smpinfo, reason,
+                                ball_cl))
         if not redo:
             break
         pieces = [q for i, p in enumerate(pieces) for q in (split(p) if i in redo else [p])]

@@ -198,6 +198,8 @@ class CostMap:
         self._cells = cell.shape
         self._D = cellwalk.pack(self.origin, self.h, cell.shape, multilinear_coefficients(self.integrand),
                                 cell, self.f_max)
+        self.anatomy = None  # errplan.anatomy.ShaftClearance, attached by attach_anatomy
+        self._clear = None
         if self.dim == 2:
             self._walk, self._point, self._path = cellwalk.walk2, cellwalk.point_ok2, cellwalk.path_cost2
         else:
@@ -222,10 +224,28 @@ class CostMap:
         """``"221 x 172 grid at 2 mm"``."""
         return f"{' x '.join(str(n) for n in self.shape)} grid at {self.h * 1000:g} mm"
 
+    def attach_anatomy(self, model) -> "CostMap":
+        """Keep every point of every path robustly clear of ``model``'s obstacles (an
+        :class:`errplan.anatomy.ShaftClearance`; spatial): from now on a point is valid only when it is
+        also clear, and a motion only when every tip of it is (exact: one hull query per motion, not
+        samples), in :meth:`point_ok`, :meth:`segment`, :meth:`motion`, :meth:`path_cost`, the planner's
+        checks and refinement. The cost is unchanged (no clearance term)."""
+        if model is None or model.empty:
+            return self
+        if self.dim != 3:
+            raise ErrplanError("anatomy is spatial: the cost map is planar")
+        self.anatomy = model
+        self._clear = model.checker()
+        return self
+
     def point_ok(self, *p: float) -> bool:
         """True if the point (d coordinates) lies in a usable cell (closed cells: a point on a face,
-        an edge or a corner counts if any cell touching it is usable)."""
-        return self._point(self._D, *p)
+        an edge or a corner counts if any cell touching it is usable), and is robustly clear of the
+        anatomy when one is attached."""
+        ok = self._point(self._D, *p)
+        if ok and self._clear is not None:
+            ok = self._clear(*p, *p)
+        return ok
 
     def integrand_at(self, *p: float) -> float:
         """Multilinear ``1 + weight * metric`` at a point (clamped to the grid)."""
@@ -423,10 +443,23 @@ class CostMap:
         if not all(b[2 * k] <= p[k] <= b[2 * k + 1] for k in range(self.dim)):
             box = ", ".join(f"{n} in [{b[2 * k]:.3f}, {b[2 * k + 1]:.3f}]" for k, n in enumerate(self.axis_names))
             return f"{where} is outside the field grid ({box} m), so outside the workspace" + tail
+        if self.anatomy is not None:
+            c = float(self.anatomy.tip(np.array(p)))
+            if c < self.anatomy.required:
+                return (f"{where} is not robustly clear of the anatomy: the shaft comes {c * 1000:.1f} mm from an "
+                        f"obstacle under some true port, less than [anatomy] clearance = "
+                        f"{self.anatomy.required * 1000:.1f} mm" + tail)
         # Which corners of the surrounding cell fail, and why.
         i = [min(max(math.floor((p[k] - self.origin[k]) / self.h), 0), self._cells[k] - 1) for k in range(self.dim)]
         corners = [tuple(a + o for a, o in zip(i, off)) for off in itertools.product((0, 1), repeat=self.dim)]
         valid = np.asarray(self.mf.valid, bool)
+        cl = getattr(self.mf, "clearance", None)
+        if self.anatomy is not None and cl is not None:
+            low = [float(cl[c]) for c in corners if np.isfinite(cl[c]) and cl[c] < self.anatomy.required]
+            if low:
+                return (f"{where}: its grid cell is not robustly clear of the anatomy (at a corner the shaft comes "
+                        f"{min(low) * 1000:.1f} mm from an obstacle or the tip is that close to the body wall, under "
+                        f"some true port; [anatomy] clearance = {self.anatomy.required * 1000:.1f} mm)" + tail)
         if not all(valid[c] for c in corners):
             ws = np.ones(self.cell_ok.shape, bool)
             for s in _corner_slices(self.dim):

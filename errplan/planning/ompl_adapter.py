@@ -3,10 +3,12 @@
 - **state space**: a d-dimensional ``RealVectorStateSpace`` (d = 2: ``[y, z]``, d = 3:
   ``[x, y, z]``, chosen by the cost map's dimension) over a box (the grid, or the search box of
   :func:`errplan.planning.plan.search_box`);
-- **validity**: the point is in a usable cell (:meth:`CostMap.point_ok`, compiled);
+- **validity**: the point is in a usable cell (:meth:`CostMap.point_ok`, compiled) and, with an
+  anatomy attached (:meth:`CostMap.attach_anatomy`), robustly clear of every obstacle;
 - **motion validation** (:class:`CellWalkMotionValidator`) is exact: every cell the straight motion
   crosses is usable (the compiled cell walk), so paths never leave the usable region between their
-  vertices;
+  vertices; with an anatomy, every tip of the motion is also robustly clear (exact: the hull of the
+  port box and the motion's two ends, :mod:`errplan.anatomy`);
 - **objective** (:class:`FieldObjective`): ``integral (1 + weight * metric) ds``, exact on the
   multilinear field, computed in ``motionCost`` by the compiled walk; ``motionCostHeuristic`` is the
   admissible ``distance * min(1 + weight * metric)``. (In ompl 2.0.1 a Python
@@ -96,6 +98,17 @@ def _classes() -> dict[str, Any]:
         def checkMotion(self, s1, s2):  # noqa: N802
             return walk3(self._D, s1[0], s1[1], s1[2], s2[0], s2[1], s2[2], True, False)[0]
 
+    class ClearMotionValidator3(CellWalkMotionValidator):
+        """The cell walk, then the anatomy: every tip of the motion robustly clear (exact, one query)."""
+
+        def __init__(self, si, cm):
+            super().__init__(si, cm)
+            self._clear = cm._clear
+
+        def checkMotion(self, s1, s2):  # noqa: N802
+            a0, a1, a2, b0, b1, b2 = s1[0], s1[1], s1[2], s2[0], s2[1], s2[2]
+            return walk3(self._D, a0, a1, a2, b0, b1, b2, True, False)[0] and self._clear(a0, a1, a2, b0, b1, b2)
+
     class FieldObjective(ob.OptimizationObjective):
         """``integral (1 + weight * metric) ds`` of each motion, exact on the multilinear field, with
         the admissible heuristic ``distance * min(1 + weight * metric)``."""
@@ -134,7 +147,7 @@ def _classes() -> dict[str, Any]:
             dx, dy, dz = s1[0] - s2[0], s1[1] - s2[1], s1[2] - s2[2]
             return self._Cost(math.sqrt(dx * dx + dy * dy + dz * dz) * self._fmin)
 
-    _CLASSES.update(mv={2: CellWalkMotionValidator, 3: CellWalkMotionValidator3},
+    _CLASSES.update(mv={2: CellWalkMotionValidator, 3: CellWalkMotionValidator3}, clear_mv=ClearMotionValidator3,
                     obj={2: FieldObjective, 3: FieldObjective3})
     return _CLASSES
 
@@ -157,10 +170,18 @@ def make_space_information(cm, bounds: tuple[float, ...] | None = None):
     if d == 2:
         point_ok = cellwalk.point_ok2
         si.setStateValidityChecker(lambda s: point_ok(D, s[0], s[1]))
-    else:
+    elif cm._clear is None:
         point_ok = cellwalk.point_ok3
         si.setStateValidityChecker(lambda s: point_ok(D, s[0], s[1], s[2]))
-    si.setMotionValidator(_classes()["mv"][d](si, cm))
+    else:  # an anatomy: a state is valid when it is in a usable cell and robustly clear
+        point_ok, clear = cellwalk.point_ok3, cm._clear
+
+        def valid(s):
+            x, y, z = s[0], s[1], s[2]
+            return point_ok(D, x, y, z) and clear(x, y, z, x, y, z)
+
+        si.setStateValidityChecker(valid)
+    si.setMotionValidator((_classes()["clear_mv"] if cm._clear is not None else _classes()["mv"][d])(si, cm))
     # Used only by OMPL routines that interpolate states themselves: finer than the grid.
     si.setStateValidityCheckingResolution(min(1.0, 0.25 * cm.h / max(space.getMaximumExtent(), 1e-12)))
     si.setup()

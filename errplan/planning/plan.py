@@ -293,7 +293,9 @@ def costmap_for(sc, mf) -> CostMap:
     dim = getattr(sc, "dim", 2)
     if getattr(mf, "dim", 2) != dim:
         raise ErrplanError(f"{sc.source}: the fields are {getattr(mf, 'dim', 2)}-D but the scenario is {dim}-D")
-    return CostMap(mf, p.metric, p.weight, p.certifiable, p.certify_margin)
+    from ..fields.compute import anatomy_model
+
+    return CostMap(mf, p.metric, p.weight, p.certifiable, p.certify_margin).attach_anatomy(anatomy_model(sc))
 
 
 def select_queries(sc, name: str | None = None) -> list:
@@ -337,7 +339,7 @@ def plan_scenario(sc, mf=None, *, query: str | None = None, planner: str | None 
                               + (f" with rho_star <= {cm.rho_bound:g}" if cm.certifiable else "") + " is empty)")
     for q in qs:
         check_endpoints(cm, q.start, q.goal, f"query {q.name!r}")
-    wm = CostMap(mf, cm.metric, cm.weight, certifiable=False) if cm.certifiable else cm
+    wm = CostMap(mf, cm.metric, cm.weight, certifiable=False).attach_anatomy(cm.anatomy) if cm.certifiable else cm
     plans = []
     for n, q in enumerate(qs):
         if progress:

@@ -43,6 +43,20 @@ def _segment_fn(cm):
     return seg
 
 
+def _clear_fn(cm):
+    """``clear(a, b) -> bool``: every tip of the motion robustly clear of the cost map's anatomy
+    (:meth:`CostMap.attach_anatomy`), or None without one. The refinement calls it only on a change it
+    would accept (cheaper and in the usable region), the dearer check last."""
+    c = getattr(cm, "_clear", None)
+    if c is None:
+        return None
+
+    def clear(a, b):
+        return c(a[0], a[1], a[2], b[0], b[1], b[2])
+
+    return clear
+
+
 def _directions(t: list[float], tangent: bool) -> list[list[float]]:
     """Trial move directions of a vertex whose neighbours are joined by unit vector ``t``: across
     the path (planar: both normals; spatial: both ways along two orthonormal normals and their
@@ -68,7 +82,7 @@ def _directions(t: list[float], tangent: bool) -> list[list[float]]:
     return dirs
 
 
-def _reduce_vertices(seg, pts: list[list[float]], seg_cost: list[float]) -> bool:
+def _reduce_vertices(seg, pts: list[list[float]], seg_cost: list[float], clear=None) -> bool:
     """Greedy shortcuts: from each vertex, jump to the farthest later vertex whose straight
     connection is valid and not more expensive than the sub-path it replaces."""
     changed = False
@@ -80,7 +94,7 @@ def _reduce_vertices(seg, pts: list[list[float]], seg_cost: list[float]) -> bool
             acc.append(acc[-1] + seg_cost[j - 1])
         for j in range(len(pts) - 1, i + 1, -1):
             ok, c = seg(pts[i], pts[j])
-            if ok and c <= acc[j - i - 1] * (1 + 1e-12):
+            if ok and c <= acc[j - i - 1] * (1 + 1e-12) and (clear is None or clear(pts[i], pts[j])):
                 best = (j, c)
                 break
         if best is not None:
@@ -93,7 +107,7 @@ def _reduce_vertices(seg, pts: list[list[float]], seg_cost: list[float]) -> bool
 
 
 def _relax(seg, pts: list[list[float]], seg_cost: list[float], step: float, stop: float,
-           max_sweeps: int, deadline: float | None, tangent: bool) -> int:
+           max_sweeps: int, deadline: float | None, tangent: bool, clear=None) -> int:
     """Gauss-Seidel vertex relaxation (see :func:`refine_path`); returns the number of sweeps."""
     sweeps = 0
     d = len(pts[0])
@@ -117,7 +131,7 @@ def _relax(seg, pts: list[list[float]], seg_cost: list[float], step: float, stop
                 if not ok1 or c1 >= here:
                     continue
                 ok2, c2 = seg(q, b)
-                if ok2 and c1 + c2 < here - 1e-15:
+                if ok2 and c1 + c2 < here - 1e-15 and (clear is None or (clear(a, q) and clear(q, b))):
                     here = c1 + c2
                     best = (q, c1, c2)
             if best is not None:
@@ -160,6 +174,7 @@ def refine_path(cm, path, *, spacing: float | None = None, min_step: float | Non
     orig = [[float(x) for x in p] for p in np.asarray(path, float).reshape(-1, cm.dim)]
     pts = [p[:] for p in orig]
     seg = _segment_fn(cm)
+    clear = _clear_fn(cm)
     ok0, cost0 = cm.path_cost(pts)
     if not ok0:
         raise ErrplanError("refine_path: the input path leaves the usable region")
@@ -168,7 +183,7 @@ def refine_path(cm, path, *, spacing: float | None = None, min_step: float | Non
         return [seg(a, b, False)[1] for a, b in zip(p[:-1], p[1:])]
 
     seg_cost = costs(pts)
-    _reduce_vertices(seg, pts, seg_cost)
+    _reduce_vertices(seg, pts, seg_cost, clear)
     length = sum(math.dist(a, b) for a, b in zip(pts[:-1], pts[1:]))
     finest = spacing or min(max(2 * cm.h, length / 64), length / 16)
     sp = max(length / 8, finest)
@@ -178,11 +193,11 @@ def refine_path(cm, path, *, spacing: float | None = None, min_step: float | Non
         seg_cost = costs(pts)
         last = sp <= finest * (1 + 1e-9)
         stop = (min_step or cm.h / 32) if last else sp / 16
-        sweeps += _relax(seg, pts, seg_cost, 0.25 * sp, stop, max_sweeps, deadline, tangent=last)
+        sweeps += _relax(seg, pts, seg_cost, 0.25 * sp, stop, max_sweeps, deadline, tangent=last, clear=clear)
         if last or (deadline is not None and _time.perf_counter() > deadline):
             break
         sp = max(sp / 2, finest)
-    _reduce_vertices(seg, pts, seg_cost)
+    _reduce_vertices(seg, pts, seg_cost, clear)
     ok1, cost1 = cm.path_cost(pts)
     if not ok1 or cost1 >= cost0:
         pts, cost1 = orig, cost0

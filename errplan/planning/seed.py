@@ -52,6 +52,13 @@ class CellGraph:
         rows, cols = np.concatenate(rows), np.concatenate(cols)
         cost = cellwalk.walk_many(cm._D, self.centers[rows], self.centers[cols], True)
         keep = np.isfinite(cost)
+        an = getattr(cm, "anatomy", None)
+        if an is not None:
+            # A move between two cell centres is clear when both centres keep the clearance plus half its
+            # length (clearance is 1-Lipschitz in the tip): conservative, one query per cell, not per move.
+            cc = an.tip(self.centers)
+            half = 0.5 * np.linalg.norm(self.centers[rows] - self.centers[cols], axis=1)
+            keep &= np.minimum(cc[rows], cc[cols]) >= an.required + half
         n = len(cells)
         self.graph = csr_matrix((np.maximum(cost[keep], 1e-300), (rows[keep], cols[keep])), shape=(n, n))
         self.build_time = time.perf_counter() - t0

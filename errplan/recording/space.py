@@ -182,8 +182,53 @@ def _log_plan_spatial(rec, rr, sc, mf, runs, scene) -> None:
                                         radii=ui(0.75)), static=True)
         tip_of = lambda pts, col: rr.Points3D(pts, colors=col, radii=ui(5.0))  # noqa: E731
         _log_query_series(rec, rr, r, q, base, tip_of, scene.offsets[q])
+    _log_anatomy(rec, rr, sc, mf, runs, scene)
     text = _markdown_summary(sc, runs) + "\n" + _spatial_notes(sc, mf, scene, info)
     rec.log("summary", rr.TextDocument(text, media_type="text/markdown"), static=True)
+
+
+OBSTACLE_COLOR = (200, 90, 110, 200)
+WALL_COLOR = (230, 200, 170, 50)
+BLOCKED_COLOR = (150, 150, 150)
+
+
+def _log_anatomy(rec, rr, sc, mf, runs, scene) -> None:
+    """``[anatomy]`` (issue 18): ``world/anatomy/<obstacle>`` and ``world/anatomy/body_wall`` as meshes,
+    ``world/fields/blocked`` the grid tips that are reachable but not robustly clear (the blocked part
+    of the workspace), and ``series/<query>/<kind>/clearance``: the shaft's clearance (m) at every
+    state of the runs under the truth (true port to tip), on the ``step`` and ``replay`` timelines."""
+    from ..fields.compute import anatomy_model
+    from ..kinematics.truth import Plant
+
+    an = anatomy_model(sc)
+    if an is None:
+        return
+    ui = rr.Radius.ui_points
+    for srf in an.surfaces:
+        rec.log(f"world/anatomy/{srf.name}", rr.Mesh3D(vertex_positions=srf.vertices, triangle_indices=srf.faces,
+                                                       albedo_factor=OBSTACLE_COLOR), static=True)
+    wm = an.wall_mesh()
+    if wm is not None:
+        rec.log("world/anatomy/body_wall", rr.Mesh3D(vertex_positions=wm[0], triangle_indices=wm[1],
+                                                     albedo_factor=WALL_COLOR), static=True)
+    cl = getattr(mf, "clearance", None)
+    if cl is not None:
+        blocked = np.isfinite(cl) & (cl < an.required)
+        if blocked.any():
+            rec.log("world/fields/blocked", rr.Points3D(mf.points()[blocked], colors=BLOCKED_COLOR, radii=ui(1.5)),
+                    static=True)
+    port = Plant.from_scenario(sc).true_port
+    mt = an.with_box(port)
+    for r, q in zip(runs, scene.names):
+        for kind, rep, col in (("planned", r.sim_planned, PLANNED_COLOR), ("direct", r.sim_direct, DIRECT_COLOR)):
+            rec.log(f"series/{q}/{kind}/clearance", rr.SeriesLines(colors=col, names=f"{kind}: clearance (m)"),
+                    static=True)
+            c = mt.tip(rep.sim.tip)
+            for i, v in enumerate(c):
+                rec.set_time("step", sequence=i)
+                rec.set_time("replay", sequence=scene.offsets[q][kind] + i)
+                rec.log(f"series/{q}/{kind}/clearance", rr.Scalars(float(v)))
+    rec.reset_time()
 
 
 def _spatial_notes(sc, mf, scene, info) -> str:

@@ -31,6 +31,12 @@ def run_query(sc, tol, progress: Progress | None = None, *, workers: int | None 
         elif tol.kind == "tip_load":
             data = tip_load_tolerance(sc, o["region"], gain=gain, port_x=o.get("port_x"), port_y=o.get("port_y"),
                                       port_z=o.get("port_z"), spacing=o.get("spacing"), progress=progress)
+        elif tol.kind == "port_placement" and o["candidates"] == "body_wall":
+            from .wall import wall_port_placement
+
+            data = wall_port_placement(sc, o["spacing"], o["region"], resolution=o.get("resolution"), gain=gain,
+                                       certify_margin=o.get("certify_margin"), workers=workers, scheduler=scheduler,
+                                       progress=progress)
         elif tol.kind == "port_placement":
             data = port_placement(sc, o["candidates"], o["spacing"], o["region"], resolution=o.get("resolution"),
                                   gain=gain, certify_margin=o.get("certify_margin"), refine=o.get("refine", False),
@@ -94,7 +100,10 @@ def check_sizes(sc) -> None:
             check_allocation(key, value, math.prod(size), TIP_BYTES,
                              f"the region grid ({' x '.join(f'{n:.3g}' for n in size)} tips)")
         if tol.kind == "port_placement":
-            check_placement(sc, o, where)
+            if o["candidates"] == "body_wall":  # the wall's candidates are counted when the anatomy is built
+                check_placement(sc, dict(o, candidates={a: (0.0, 0.0) for a in sc.axes}, spacing=1.0), where)
+            else:
+                check_placement(sc, o, where)
         if tol.kind == "insertion_band" and o.get("noise_sampling") == "random":
             draws = o.get("draws", 10000)
             check_allocation(f"{where} draws", draws, draws, 6 * 8, "the noise draws")
