@@ -1,6 +1,13 @@
 """Speed of ``errplan fields`` against plain vectorized numpy, planar and spatial (issues 2 and 10).
 
     python benchmarks/fields.py [--repeat 3] [--quick]
+    python benchmarks/fields.py --scale [--repeat 3]     # issue 21's problems at scale only
+
+With ``--scale`` (issue 21): planar 0.25 mm over P1's workspace with the 5 x 5 port box against the
+chunked elementwise planar peer with reachability, and the PHANToM 1.5 task region at 2 mm with
+3 x 3 x 3 ports against the chunked elementwise spatial peer; errplan's whole process, errplan in
+process (all cores) and the peer alternately, medians; CPU ns per (tip x sampled instance) of each;
+targets: planar whole process <= 0.25 x peer, spatial <= 0.5 x peer.
 
 Each row is measured in this one run, side by side, on this machine:
 
@@ -247,6 +254,120 @@ def numpy_spatial_elementwise(axes, est, L, k, box, samples) -> tuple[np.ndarray
     return worst.reshape(tuple(len(a) for a in axes)), time.perf_counter() - t0
 
 
+# ----------------------------------------------------------------------------- at scale (issue 21)
+def chunked_planar_peer(y, z, est, L, k, arm, chunk=65536) -> tuple[np.ndarray, float]:
+    """The elementwise planar peer (:func:`numpy_planar`) with reachability of every instance's
+    wrist (``Arm.reachable``, vectorized numpy, both elbow branches inside the limits: the same
+    robust validity errplan computes), over chunks of ``chunk`` tips (cache-sized arrays)."""
+    t0 = time.perf_counter()
+    X = np.stack(np.meshgrid(y, z, indexing="ij"), -1).reshape(-1, 2)
+    est = np.asarray(est, float)
+    out = np.empty(len(X))
+
+    def lever(d):  # I - (L/rho)(I - u u^T), elementwise
+        rho = np.sqrt(d[:, 0] ** 2 + d[:, 1] ** 2)
+        s = L / rho
+        u0, u1 = d[:, 0] / rho, d[:, 1] / rho
+        return 1 - s + s * u0 * u0, s * u0 * u1, s * u0 * u1, 1 - s + s * u1 * u1
+
+    for c0 in range(0, len(X), chunk):
+        Xc = X[c0:c0 + chunk]
+        worst = np.full(len(Xc), -np.inf)
+        for dy in np.linspace(-BOX, BOX, 5):
+            for dz in np.linspace(-BOX, BOX, 5):
+                p = est + [dy, dz]
+                e = Xc - p
+                r = np.sqrt(e[:, 0] ** 2 + e[:, 1] ** 2)
+                m = (r < L) & (r > 1e-9)
+                w = Xc - L * e / np.where(m, r, 1.0)[:, None]
+                m &= arm.reachable(w)
+                x, w = Xc[m], w[m]
+                a, b, c, d = lever(p - w)
+                ha, hb, hc, hd = lever(est - w)
+                det = ha * hd - hb * hc
+                sing = np.abs(det) < 1e-12
+                det = np.where(sing, 1.0, det)
+                ia, ib, ic, id_ = hd / det, -hb / det, -hc / det, ha / det
+                g00 = 1 - k * (a * ia + b * ic)
+                g01 = -k * (a * ib + b * id_)
+                g10 = -k * (c * ia + d * ic)
+                g11 = 1 - k * (c * ib + d * id_)
+                f = g00 ** 2 + g01 ** 2 + g10 ** 2 + g11 ** 2
+                dg = g00 * g11 - g01 * g10
+                g = np.sqrt((f + np.sqrt(np.maximum(f * f - 4 * dg * dg, 0))) / 2)
+                g[sing] = np.inf
+                full = np.full(len(Xc), np.nan)  # an unreachable instance invalidates the tip
+                full[m] = g
+                worst = np.maximum(worst, full)
+        out[c0:c0 + chunk] = worst
+    return out.reshape(len(y), len(z)), time.perf_counter() - t0
+
+
+def chunked_spatial_peer(axes, est, L, k, box, samples, chunk=8) -> tuple[np.ndarray, float]:
+    """The elementwise spatial peer (:func:`numpy_spatial_elementwise`) over slabs of ``chunk``
+    planes of the first axis (no reachability, as that peer)."""
+    t0 = time.perf_counter()
+    parts = [numpy_spatial_elementwise([axes[0][i:i + chunk], *axes[1:]], est, L, k, box, samples)[0]
+             for i in range(0, len(axes[0]), chunk)]
+    return np.concatenate(parts, axis=0), time.perf_counter() - t0
+
+
+def at_scale(tmp: Path, repeat: int) -> list[str]:
+    """Issue 21's two problems, errplan (whole process and in process) and its peer alternately in
+    one run: planar 0.25 mm over P1's workspace with a 5 x 5 port box (the chunked planar peer,
+    reachability included), spatial PHANToM 1.5 task region at 2 mm with 3 x 3 x 3 ports (the
+    elementwise peer, chunked, no reachability). Per-instance costs are CPU time over
+    (grid tips x sampled instances): errplan's includes its refinement and reachability."""
+    from errplan.api import load_scenario
+    from errplan.fields import MetricField, compute_fields
+    from errplan.kinematics import arm_for
+
+    lines = []
+    sp, so = planar_scenario(tmp), spatial_scenario(tmp, 0.002, 3)
+    scp, sco = load_scenario(sp), load_scenario(so)
+    run_cli([str(sp), "--out", str(tmp / "warm.npz"), "--resolution", "0.004", "--metrics", "G_norm"])
+    run_cli([str(so), "--out", str(tmp / "warm3.npz"), "--resolution", "0.01", "--metrics", "G_norm"])
+    arm = arm_for(scp.robot)
+    u = sco.uncertainty
+    res = {}
+    for name, scen, cli_args, peer in (
+            ("planar", scp, [str(sp), "--resolution", "0.00025"],
+             lambda mf: chunked_planar_peer(mf.y, mf.z, scp.port.estimate, scp.instrument.length,
+                                            scp.controller.gain, arm)),
+            ("spatial", sco, [str(so)],
+             lambda mf: chunked_spatial_peer(mf.axes, sco.port.estimate, sco.instrument.length,
+                                             sco.controller.gain, [u.port_x, u.port_y, u.port_z], 3))):
+        t_cli, cpu_cli, t_in, t_peer, cpu_peer = [], [], [], [], []
+        for _ in range(repeat):
+            c0 = os.times()
+            t_cli.append(run_cli([*cli_args, "--out", str(tmp / f"{name}.npz"), "--metrics", "G_norm"]))
+            c1 = os.times()
+            cpu_cli.append(c1.children_user + c1.children_system - c0.children_user - c0.children_system)
+            mf = MetricField.load(tmp / f"{name}.npz")
+            t0 = time.perf_counter()
+            compute_fields(scen, 0.00025 if name == "planar" else None, metrics=("G_norm",), workers=None)
+            t_in.append(time.perf_counter() - t0)
+            c0 = time.process_time()
+            worst, tp = peer(mf)
+            cpu_peer.append(time.process_time() - c0)
+            t_peer.append(tp)
+        both = mf.valid & np.isfinite(worst)
+        diff = np.abs(worst[both] - mf.G_norm[both])
+        below = float(np.max((worst[both] - mf.G_norm[both]) / np.maximum(1, worst[both])))
+        same_valid = float(np.mean(mf.valid == np.isfinite(worst)))
+        n, m = mf.valid.size, 25 if name == "planar" else 27
+        med = statistics.median
+        res[name] = med(t_cli) / med(t_peer)
+        lines.append(f"| {name} | {n:,} ({int(mf.valid.sum()):,} valid) | {med(t_cli):.2f} ({med(cpu_cli):.1f} CPU) | "
+                     f"{med(t_in):.2f} | {med(t_peer):.2f} | {res[name]:.2f} | "
+                     f"{med(cpu_cli) / (n * m) * 1e9:.0f} | {med(cpu_peer) / (n * m) * 1e9:.0f} | "
+                     f"{np.mean(diff <= 1e-3) * 100:.2f} % / {below:.1e} / {same_valid * 100:.2f} % |")
+    head = ["| problem | grid tips | errplan whole process, s (CPU s) | errplan in process, s | peer in process, s | "
+            "ratio whole/peer | errplan CPU ns per tip x instance | peer CPU ns per tip x instance | "
+            "agree within 1e-3 / peer above errplan by at most / same validity |", "|---|---|---|---|---|---|---|---|---|"]
+    return head + lines, res
+
+
 def peer_rows(kind, what, times, stacked, t_stacked, target, elementwise, t_elem) -> list[tuple[str, float]]:
     """Rows of errplan's median time against the two numpy peers' and the ratios."""
     t, ts, te = statistics.median(times), statistics.median(t_stacked), statistics.median(t_elem)
@@ -258,7 +379,23 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--quick", action="store_true", help="fewer scaling points")
+    ap.add_argument("--scale", action="store_true",
+                    help="only issue 21's problems at scale (planar 0.25 mm, spatial 2 mm) and their targets")
     a = ap.parse_args()
+    if a.scale:
+        load0 = os.getloadavg()[0]
+        with tempfile.TemporaryDirectory() as d:
+            lines, res = at_scale(Path(d), a.repeat)
+        print(f"{os.cpu_count()} cores, load average (1 min) {load0:.2f} before, {os.getloadavg()[0]:.2f} after the run; medians of "
+              f"{a.repeat}, errplan and peer alternately")
+        print()
+        print("\n".join(lines))
+        ok = res["planar"] <= 0.25 and res["spatial"] <= 0.5
+        print()
+        print(f"targets (planar <= 0.25, spatial <= 0.5): planar {res['planar']:.2f} "
+              f"{'met' if res['planar'] <= 0.25 else 'NOT met'}, spatial {res['spatial']:.2f} "
+              f"{'met' if res['spatial'] <= 0.5 else 'NOT met'}")
+        return 0 if ok else 1
     from errplan.fields import MetricField, compute_fields
     from errplan.api import load_scenario
 

@@ -217,9 +217,9 @@ def _kernel_args(sc, es: ErrorSet, samples: int | None) -> dict[str, Any]:
 
     arm = arm_for(sc.robot)
     if sc.dim == 2:
-        arm_p = np.array([*arm.base, arm.l1, arm.l2, *arm.home, *arm.q1_limits, *arm.q2_limits, *arm.sum_limits,
-                          math.cos(arm.home[0]), math.sin(arm.home[0]), math.cos(arm.home[1]), math.sin(arm.home[1])],
-                         float)
+        from .kernels import planar_arm_params
+
+        arm_p = planar_arm_params(arm)
         chain, rmap = _no_chain()
     else:
         arm_p = np.zeros(16)
