@@ -111,7 +111,7 @@ def _anat(organ):
     return anat, {"organ": mesh}
 
 
-@pytest.mark.parametrize("n_tips", [12, pytest.param(80, marks=pytest.mark.slow)])
+@pytest.mark.parametrize("n_tips", [12, pytest.param(30, marks=pytest.mark.slow)])
 def test_robust_clearance_against_brute_force(organ, n_tips):
     anat, meshes = _anat(organ)
     lo, hi = np.array([-0.005, -0.005, 0.195]), np.array([0.005, 0.004, 0.203])

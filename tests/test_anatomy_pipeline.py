@@ -296,7 +296,8 @@ def test_cli_tolerance_body_wall(tmp_path):
     import shutil
     shutil.copytree(ROOT / "scenarios" / "abdomen", tmp_path / "abdomen")
     shutil.copy(ROOT / "scenarios" / "phantom15.urdf", tmp_path)
-    (tmp_path / "w.toml").write_text(abd.read_text() + WALL_TOL.replace("spacing = 0.015", "spacing = 0.03"))
+    (tmp_path / "w.toml").write_text(abd.read_text() + WALL_TOL.replace("spacing = 0.015", "spacing = 0.04")
+                                            .replace("resolution = 0.01", "resolution = 0.02"))
     js = tmp_path / "t.json"
     r = subprocess.run([sys.executable, "-m", "errplan", "tolerance", str(tmp_path / "w.toml"), "--json", str(js),
                         "--workers", "1"], capture_output=True, text=True, cwd=tmp_path)
