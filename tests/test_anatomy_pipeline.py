@@ -239,7 +239,7 @@ WALL_TOL = """
 name = "on the wall"
 kind = "port_placement"
 candidates = "body_wall"
-spacing = 0.015
+spacing = 0.02
 region = { x = [-0.03, 0.03], y = [-0.03, 0.03], z = [0.36, 0.42] }
 resolution = 0.01
 """
@@ -250,7 +250,7 @@ def wall_run():
     from errplan.tolerance.wall import wall_port_placement
     abd = ROOT / "scenarios" / "abdomen.toml"
     sc = parse_scenario(tomllib.loads(abd.read_text() + WALL_TOL), str(abd))
-    return sc, wall_port_placement(sc, 0.015, WALL_REGION, resolution=0.01)
+    return sc, wall_port_placement(sc, 0.02, WALL_REGION, resolution=0.01)
 
 
 @pytest.mark.slow
@@ -261,7 +261,7 @@ def test_wall_candidates_are_on_the_wall_and_spaced(wall_run):
     assert np.allclose(np.sum(((P - c) / rad) ** 2, axis=1), 1.0, atol=1e-9)
     g = P[:r["wall_refinement"]["grid_candidates"]]  # the spaced set; refinement adds finer points after it
     d = np.linalg.norm(g[:, None] - g[None], axis=-1) + np.eye(len(g))
-    assert d.min() >= 0.015 - 1e-12
+    assert d.min() >= 0.02 - 1e-12
     assert r["wall_refinement"]["added"] > 0 and r["covered"] >= r["wall_refinement"]["grid_covered"]
     assert r["best"] in [x["port"] for x in r["candidates"]]
     # the best is the largest coverage (then the smaller max rho*)
@@ -296,7 +296,7 @@ def test_cli_tolerance_body_wall(tmp_path):
     import shutil
     shutil.copytree(ROOT / "scenarios" / "abdomen", tmp_path / "abdomen")
     shutil.copy(ROOT / "scenarios" / "phantom15.urdf", tmp_path)
-    (tmp_path / "w.toml").write_text(abd.read_text() + WALL_TOL.replace("spacing = 0.015", "spacing = 0.04")
+    (tmp_path / "w.toml").write_text(abd.read_text() + WALL_TOL.replace("spacing = 0.02", "spacing = 0.04")
                                             .replace("resolution = 0.01", "resolution = 0.02"))
     js = tmp_path / "t.json"
     r = subprocess.run([sys.executable, "-m", "errplan", "tolerance", str(tmp_path / "w.toml"), "--json", str(js),
@@ -313,7 +313,7 @@ def test_wall_brute_force_finds_none_better(wall_run):
     sc, r = wall_run
     m = anatomy_model(sc)
     top = np.array([x["port"] for x in r["candidates"] if x["covered"] >= r["covered"] - 2])
-    dense = wall_candidates(sc, m, 0.005, WALL_REGION, near=top, radius=0.015)
-    rd = wall_port_placement(sc, 0.005, WALL_REGION, resolution=0.01, ports=dense)
+    dense = wall_candidates(sc, m, 0.0067, WALL_REGION, near=top, radius=0.02)
+    rd = wall_port_placement(sc, 0.0067, WALL_REGION, resolution=0.01, ports=dense)
     assert len(rd["candidates"]) > len(top)
     assert rd["covered"] <= r["covered"]

@@ -259,7 +259,7 @@ def test_unseen_urdf_matches_reference(tmp_path, which):
     tips = W[near] + L * (port - W[near]) / d[near][:, None]
     lo, hi = np.percentile(tips, 3, axis=0), np.percentile(tips, 97, axis=0)
     region = ", ".join(f"{a} = [{u:.4f}, {v:.4f}]" for a, u, v in zip("xyz", lo, hi))
-    res = max(0.006, float(np.max(hi - lo)) / 30)
+    res = max(0.006, float(np.max(hi - lo)) / 22)
     toml = write(port, est, f"""[controller]
 gain = 0.8
 [uncertainty]
@@ -280,7 +280,9 @@ region = {{ {region} }}
     idx = np.argwhere(np.ones(mf.valid.shape, bool))
     rng.shuffle(idx)
     compared = 0
-    for ijk in map(tuple, idx[:300]):
+    for n, ijk in enumerate(map(tuple, idx[:300])):
+        if n >= 150 and compared >= 40:  # enough of both kinds (an arm with a sparse region samples on)
+            break
         Ms = [reference_M(sc, P[ijk], th) for th in samples]
         ok = all(M is not None for M in Ms)
         assert ok == bool(mf.valid[ijk]), (P[ijk], ok)

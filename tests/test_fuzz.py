@@ -66,6 +66,11 @@ def _abs_paths(doc: dict, src: Path) -> dict:
         if isinstance(robot.get("package_path"), list):
             robot["package_path"] = [str((src.parent / p).resolve()) if isinstance(p, str) else p
                                      for p in robot["package_path"]]
+    anatomy = doc.get("anatomy")
+    if isinstance(anatomy, dict):  # mesh files of obstacles and of the body wall
+        for t in list(anatomy.get("obstacle") or []) + [anatomy.get("body_wall")]:
+            if isinstance(t, dict) and isinstance(t.get("file"), str):
+                t["file"] = str((src.parent / t["file"]).resolve())
     return doc
 
 
