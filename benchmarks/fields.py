@@ -82,6 +82,34 @@ def run_cli(args: list[str], env=None) -> float:
 
 
 # ----------------------------------------------------------------------------- numpy baselines
+def _lever(d, L):
+    """The planar lever ``I - (L/rho)(I - u u^T)`` of wrist-to-port vectors ``d`` (n, 2), elementwise."""
+    rho = np.sqrt(d[:, 0] ** 2 + d[:, 1] ** 2)
+    s = L / rho
+    u0, u1 = d[:, 0] / rho, d[:, 1] / rho
+    return 1 - s + s * u0 * u0, s * u0 * u1, s * u0 * u1, 1 - s + s * u1 * u1
+
+
+def _peer_g_norm(p, est, w, L, k):
+    """The elementwise peer's ``||G||`` for the true port ``p``, the estimate and wrists ``w`` (n, 2):
+    the 2 x 2 inverse written out and the closed-form largest singular value (inf where Jhat is singular)."""
+    a, b, c, d = _lever(p - w, L)
+    ha, hb, hc, hd = _lever(est - w, L)
+    det = ha * hd - hb * hc
+    sing = np.abs(det) < 1e-12
+    det = np.where(sing, 1.0, det)
+    ia, ib, ic, id_ = hd / det, -hb / det, -hc / det, ha / det
+    g00 = 1 - k * (a * ia + b * ic)
+    g01 = -k * (a * ib + b * id_)
+    g10 = -k * (c * ia + d * ic)
+    g11 = 1 - k * (c * ib + d * id_)
+    f = g00 ** 2 + g01 ** 2 + g10 ** 2 + g11 ** 2
+    dg = g00 * g11 - g01 * g10
+    g = np.sqrt((f + np.sqrt(np.maximum(f * f - 4 * dg * dg, 0))) / 2)
+    g[sing] = np.inf
+    return g
+
+
 def numpy_planar(y, z, est, L, k) -> tuple[np.ndarray, float]:
     t0 = time.perf_counter()
     X = np.stack(np.meshgrid(y, z, indexing="ij"), -1).reshape(-1, 2)
@@ -95,27 +123,7 @@ def numpy_planar(y, z, est, L, k) -> tuple[np.ndarray, float]:
             m = (r < L) & (r > 1e-9)
             x, e, r = X[m], e[m], r[m]
             w = x - L * e / r[:, None]
-
-            def lever(d):  # I - (L/rho)(I - u u^T), elementwise
-                rho = np.sqrt(d[:, 0] ** 2 + d[:, 1] ** 2)
-                s = L / rho
-                u0, u1 = d[:, 0] / rho, d[:, 1] / rho
-                return 1 - s + s * u0 * u0, s * u0 * u1, s * u0 * u1, 1 - s + s * u1 * u1
-
-            a, b, c, d = lever(p - w)
-            ha, hb, hc, hd = lever(est - w)
-            det = ha * hd - hb * hc
-            sing = np.abs(det) < 1e-12
-            det = np.where(sing, 1.0, det)
-            ia, ib, ic, id_ = hd / det, -hb / det, -hc / det, ha / det
-            g00 = 1 - k * (a * ia + b * ic)
-            g01 = -k * (a * ib + b * id_)
-            g10 = -k * (c * ia + d * ic)
-            g11 = 1 - k * (c * ib + d * id_)
-            f = g00 ** 2 + g01 ** 2 + g10 ** 2 + g11 ** 2
-            dg = g00 * g11 - g01 * g10
-            g = np.sqrt((f + np.sqrt(np.maximum(f * f - 4 * dg * dg, 0))) / 2)
-            g[sing] = np.inf
+            g = _peer_g_norm(p, est, w, L, k)
             full = np.full(len(X), np.nan)
             full[m] = g
             worst = np.fmax(worst, full)
@@ -264,12 +272,6 @@ def chunked_planar_peer(y, z, est, L, k, arm, chunk=65536) -> tuple[np.ndarray, 
     est = np.asarray(est, float)
     out = np.empty(len(X))
 
-    def lever(d):  # I - (L/rho)(I - u u^T), elementwise
-        rho = np.sqrt(d[:, 0] ** 2 + d[:, 1] ** 2)
-        s = L / rho
-        u0, u1 = d[:, 0] / rho, d[:, 1] / rho
-        return 1 - s + s * u0 * u0, s * u0 * u1, s * u0 * u1, 1 - s + s * u1 * u1
-
     for c0 in range(0, len(X), chunk):
         Xc = X[c0:c0 + chunk]
         worst = np.full(len(Xc), -np.inf)
@@ -282,20 +284,7 @@ def chunked_planar_peer(y, z, est, L, k, arm, chunk=65536) -> tuple[np.ndarray, 
                 w = Xc - L * e / np.where(m, r, 1.0)[:, None]
                 m &= arm.reachable(w)
                 x, w = Xc[m], w[m]
-                a, b, c, d = lever(p - w)
-                ha, hb, hc, hd = lever(est - w)
-                det = ha * hd - hb * hc
-                sing = np.abs(det) < 1e-12
-                det = np.where(sing, 1.0, det)
-                ia, ib, ic, id_ = hd / det, -hb / det, -hc / det, ha / det
-                g00 = 1 - k * (a * ia + b * ic)
-                g01 = -k * (a * ib + b * id_)
-                g10 = -k * (c * ia + d * ic)
-                g11 = 1 - k * (c * ib + d * id_)
-                f = g00 ** 2 + g01 ** 2 + g10 ** 2 + g11 ** 2
-                dg = g00 * g11 - g01 * g10
-                g = np.sqrt((f + np.sqrt(np.maximum(f * f - 4 * dg * dg, 0))) / 2)
-                g[sing] = np.inf
+                g = _peer_g_norm(p, est, w, L, k)
                 full = np.full(len(Xc), np.nan)  # an unreachable instance invalidates the tip
                 full[m] = g
                 worst = np.maximum(worst, full)

@@ -260,6 +260,18 @@ class _Ctx:
         return ScenarioError(f"{self.source}: {key} = {value!r}: expected {expected}")
 
 
+def _unique_name(ctx, t: dict, where: str, default: str, names: set, what: str) -> str:
+    """The ``name`` of one entry of an array of tables (``default`` when absent): a non-empty string no
+    other entry has; added to ``names``."""
+    name = t.get("name", default)
+    if not isinstance(name, str) or not name:
+        raise ctx.fail(where + "name", name, "a non-empty string")
+    if name in names:
+        raise ctx.fail(where + "name", name, f"a name used by no other {what}")
+    names.add(name)
+    return name
+
+
 def _check_keys(ctx: _Ctx, table: Mapping[str, Any], allowed: tuple[str, ...], where: str) -> None:
     for k in table:
         if k not in allowed:
@@ -595,12 +607,7 @@ def _tolerances(ctx: _Ctx, v: Any, controller_gain: float, d: int = 2) -> tuple[
         if d == 3 and kind in _TOL_PLANAR:  # P2's controller in 3-D: a shaft direction, not an angle
             allowed = tuple(k for k in allowed if k not in _TOL_PLANAR_ONLY) + ("shaft_direction",)
         _check_keys(ctx, t, ("name", "kind") + allowed, w)
-        name = t.get("name", f"tolerance{i}")
-        if not isinstance(name, str) or not name:
-            raise ctx.fail(w + "name", name, "a non-empty string")
-        if name in names:
-            raise ctx.fail(w + "name", name, "a name used by no other [[tolerance]]")
-        names.add(name)
+        name = _unique_name(ctx, t, w, f"tolerance{i}", names, "[[tolerance]]")
         opts: dict[str, Any] = {}
         opts["gain"] = _num(ctx, t.get("gain", controller_gain), w + "gain", positive=True)
         form = "{ " + ", ".join(f"{a} = [lo, hi]" for a in AXES[d]) + " }"
@@ -745,12 +752,7 @@ def _anatomy(ctx: _Ctx, t: Mapping[str, Any], base_dir: Path) -> Anatomy:
         keys = {"sphere": ("center", "radius"), "capsule": ("a", "b", "radius"),
                 "box": ("center", "half_extents", "rpy"), "mesh": ("file", "scale", "position", "rpy")}[shape]
         _check_keys(ctx, o, ("name", "shape") + keys, wo)
-        name = o.get("name", f"obstacle{i}")
-        if not isinstance(name, str) or not name:
-            raise ctx.fail(wo + "name", name, "a non-empty string")
-        if name in names:
-            raise ctx.fail(wo + "name", name, "a name used by no other obstacle")
-        names.add(name)
+        name = _unique_name(ctx, o, wo, f"obstacle{i}", names, "obstacle")
         kw: dict[str, Any] = {}
         if shape == "mesh":
             kw = _mesh_keys(ctx, o, wo, base_dir)
