@@ -28,7 +28,7 @@ PLANAR = ROOT / "scenarios" / "beasley2004_port.toml"
 
 
 def omni_scenario(tmp_path: Path, extra: str = "", uncertainty: str | None = None) -> Path:
-    """The Omni of ../shared/robots as a user would describe it (interfaces.md's example); only where that
+    """The Omni description (arms.OMNI) as a user would describe it (interfaces.md's example); only where that
     folder exists (:data:`arms.needs_omni`)."""
     unc = uncertainty if uncertainty is not None else """
 [uncertainty]
@@ -205,7 +205,7 @@ def test_spatial_worst_case_matches_independent_reference(phantom):
 
 @needs_omni
 def test_omni_fields_match_reference_with_phi(tmp_path):
-    """The Omni of ../shared/robots, as it is: ||G|| and |phi_max| against the reference."""
+    """The Omni description (arms.OMNI), as it is: ||G|| and |phi_max| against the reference."""
     sc = load_scenario(omni_scenario(tmp_path))
     mf = compute_fields(sc, 0.02)
     assert mf.valid.any()

@@ -513,7 +513,7 @@ def test_omni_meshes_resolve_and_missing_meshes_fall_back_to_lines(omni_run, tmp
     urdf = Path(sc.robot.urdf).read_text().replace("package://omni_description/meshes/", "package://nowhere/")
     (tmp_path / "omni_nomesh.urdf").write_text(urdf)
     # the scenario with its urdf line pointing at the copy (paths compared as written: a symlinked
-    # ../shared must not matter)
+    # folder of the description must not matter)
     p = re.sub(r'^urdf = ".*"$', f'urdf = "{tmp_path / "omni_nomesh.urdf"}"', omni_scenario(tmp_path).read_text(),
                count=1, flags=re.M)
     assert "omni_nomesh.urdf" in p

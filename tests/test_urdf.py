@@ -4,7 +4,7 @@ Forward kinematics and Jacobians are checked against pinocchio, central finite d
 hand-written chain of explicit rotation matrices; the PHANToM against P1's planar arm;
 reachability against brute-force IK (many seeds) and closed-form IK of the Omni and the PHANToM;
 gravity against finite differences of the potential energy (pinocchio's and a hand-written one).
-The Omni is read from ../shared/robots, never copied into the repository.
+The Omni is read where ERRPLAN_TEST_OMNI_URDF names it (tests/arms.py), never copied into the repository.
 """
 from __future__ import annotations
 
