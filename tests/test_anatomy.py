@@ -60,11 +60,53 @@ def brute_clearance(anat, box_lo, box_hi, tip, n_port=5, n_seg=400, meshes=None)
         elif o.shape == "box":
             d = point_box(pts, np.asarray(o.center), np.asarray(o.half_extents), rpy_matrix(o.rpy))
         else:
-            v, f = meshes[o.name]
-            d = np.min([point_triangle(pts, *v[t]) for t in f], axis=0)
-            d = np.where(winding_number(pts, v, f) > 0.5, 0.0, d)
+            best = min(best, _mesh_min_distance(pts, *meshes[o.name], shafts=(ports, tip, s)))
+            continue
         best = min(best, float(np.maximum(d, 0).min()))
     return best
+
+
+def _mesh_min_distance(pts, v, f, shafts, m=16):
+    """min over pts (the shafts' samples) of the exact distance to the solid bounded by the closed mesh
+    (v, f): 0 if a sample is inside, else the smallest point-triangle distance. Exact, only pruned.
+    Inside: a shaft's sample is inside when the port is (winding number) xor an odd number of the shaft's
+    crossings of the surface (Möller-Trumbore) lie before it. Distance: every triangle is covered by
+    barycentric samples m to an edge, so a point's distance to the nearest sample overestimates its
+    distance to the surface by at most h (the longest edge / m); only points whose sample distance is
+    within h of the smallest one can hold the minimum, and they are measured exactly."""
+    from scipy.spatial import cKDTree
+    ports, tip, s = shafts
+    tri = v[f]
+    a, e1, e2 = tri[:, 0], tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    dirs = tip - ports  # (P, 3)
+    pv = np.cross(dirs[:, None], e2[None])  # (P, T, 3)
+    det = np.einsum("ptk,tk->pt", pv, e1)
+    ok = np.abs(det) > 1e-300
+    inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+    tv = ports[:, None] - a[None]
+    u = np.einsum("ptk,ptk->pt", tv, pv) * inv
+    qv = np.cross(tv, e1[None])
+    w = np.einsum("pk,ptk->pt", dirs, qv) * inv
+    t = np.einsum("tk,ptk->pt", e2, qv) * inv
+    hit = ok & (u >= 0) & (w >= 0) & (u + w <= 1) & (t >= 0) & (t <= 1)
+    crossings = np.sum(hit[:, :, None] & (t[:, :, None] <= s[None, None, :]), axis=1)  # (P, S)
+    start_in = winding_number(ports, v, f) > 0.5
+    if np.any(start_in[:, None] ^ (crossings % 2 == 1)):
+        return 0.0
+    i, j = np.mgrid[0:m + 1, 0:m + 1]
+    keep = i + j <= m
+    w = np.stack([i[keep], j[keep], m - i[keep] - j[keep]], 1) / m  # barycentric weights
+    samples = np.einsum("sk,tkd->tsd", w, tri).reshape(-1, 3)
+    h = max(np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).max() / m, 1e-12)
+    tree = cKDTree(samples)
+    c = samples.mean(axis=0)
+    lb = np.linalg.norm(pts - c, axis=1) - np.linalg.norm(samples - c, axis=1).max()  # <= distance to a sample
+    near = np.argsort(lb)[:256]
+    ub = tree.query(pts[near])[0].min()  # a sample distance reached
+    maybe = pts[lb <= ub + h]
+    dv = tree.query(maybe, distance_upper_bound=(ub + h) * (1 + 1e-12) + 1e-15)[0]
+    cand = maybe[dv <= dv.min() + h]
+    return float(np.min([point_triangle(cand, *t) for t in tri]))
 
 
 def test_gjk_matches_closed_forms():
