@@ -370,3 +370,33 @@ def test_port_off_the_mesh_wall_is_refused(tmp_path):
     text = _mesh_wall_abdomen(tmp_path).replace("start = [-0.08, 0.04, 0.40]", "start = [-0.08, 0.04, 0.58]")
     with pytest.raises(ScenarioError, match="outside the body wall"):
         parse_scenario(tomllib.loads(text), str(abd))
+
+
+def test_record_wall_placement_reads_back(tmp_path):
+    """`errplan tolerance --record` of a body-wall placement (errplan.recording.record_placement, as the
+    CLI calls it) on the mesh wall: the wall, the obstacles, the candidates coloured by coverage, the
+    best port and the region read back; `rerun rrd verify` passes."""
+    import os
+    import shutil
+    import rerun.chunk as rrc
+    from errplan.recording import record_placement
+    from errplan.tolerance.result import ToleranceResult
+    from errplan.tolerance.wall import wall_port_placement
+    abd = ROOT / "scenarios" / "abdomen.toml"
+    sc = parse_scenario(tomllib.loads(_mesh_wall_abdomen(tmp_path)), str(abd))
+    d = wall_port_placement(sc, 0.05, WALL_REGION, resolution=0.03, refine_levels=0)
+    path = tmp_path / "w.rrd"
+    record_placement(path, sc, [ToleranceResult("on the wall", "port_placement", d, 0.0)])
+    rows = {}
+    for ch in rrc.RrdReader(path).stream().to_chunks():
+        rows[ch.entity_path] = rows.get(ch.entity_path, 0) + ch.num_rows
+    base = "/placement/on_the_wall/space"
+    for e in ("anatomy/body_wall", "anatomy/stomach", "anatomy/liver", "anatomy/kidney", "anatomy/vessel",
+              "candidates", "best", "region"):
+        assert rows.get(f"{base}/{e}") == 1, (e, rows)
+    assert rows["/placement/on_the_wall/summary"] == 1 and rrc.RrdReader(path).blueprints()
+    exe = shutil.which("rerun")
+    cmd = [exe] if exe else [sys.executable, "-m", "rerun_cli"]
+    v = subprocess.run(cmd + ["rrd", "verify", str(path)], env=dict(os.environ, CI="1"), capture_output=True,
+                       text=True, timeout=120)
+    assert v.returncode == 0, v.stdout + v.stderr
