@@ -11,6 +11,12 @@ and the corners of the port box (the error set's true ports). It answers, for ti
   of their separation);
 - :meth:`ShaftClearance.inside` whether points are inside (or on) some obstacle.
 
+With ``[anatomy.body_wall]`` the clearance is also at most the tips' depth inside the wall: an
+ellipsoid (exact point-to-ellipsoid distance; a motion: the smaller of its ends', exact for a convex
+body) or a closed triangle mesh (the distance from the motion's segment to the wall's triangles, by the
+same GJK and culling, when its start is inside by the winding number: exact, also when not convex).
+:meth:`ShaftClearance.wall_points` spreads candidate ports over either wall.
+
 Distances are exact (GJK on primitives' cores and on every triangle of a mesh, :mod:`.distance`).
 """
 from __future__ import annotations
