@@ -178,6 +178,7 @@ def test_ellipsoid_wall_depth_against_dense_surface():
     u /= np.linalg.norm(u, axis=1)[:, None]
     S = wall[:3] + u * wall[3:6]
     pts = [wall[:3], wall[:3] + [0.05, 0, 0], wall[:3] + [0, 0.05, 0.0]]
+    pts += [wall[:3] + [0.05, 0, -0.06], wall[:3] + [0, 0, -0.06]]  # on the smallest axis' plane (y): no regular root
     pts += list(wall[:3] + rng.uniform(-0.6, 0.6, (60, 3)) * wall[3:6])
     for p in pts:
         d = ellipsoid_depth(*p, wall)
