@@ -220,6 +220,7 @@ def test_ellipsoid_wall_depth_against_dense_surface():
     u /= np.linalg.norm(u, axis=1)[:, None]
     S = wall[:3] + u * wall[3:6]
     pts = [wall[:3], wall[:3] + [0.05, 0, 0], wall[:3] + [0, 0.05, 0.0]]
+    pts += [wall[:3] + [0.05, 0, -0.06], wall[:3] + [0, 0, -0.06]]  # on the smallest axis' plane (y): no regular root
     pts += list(wall[:3] + rng.uniform(-0.6, 0.6, (60, 3)) * wall[3:6])
     for p in pts:
         d = ellipsoid_depth(*p, wall)
@@ -236,6 +237,46 @@ def test_body_wall_in_clearance():
     assert float(m.tip(np.array([0.0, 0.0, 0.5]))) == 0.0
     # a motion between two deep points stays deep (convex wall): the smaller end's depth
     assert float(m.motion(np.array([0.0, 0.0, 0.3]), np.array([0.05, 0.0, 0.3]))) == pytest.approx(0.05, abs=1e-9)
+
+
+def _mesh_wall(tmp_path, center=(0.0, 0.0, 0.3), radii=(0.1, 0.1, 0.14), sub=3):
+    """A closed mesh wall: an icosphere scaled to the ellipsoid (its vertices on the ellipsoid), in mm."""
+    v, f = icosphere(sub)
+    write_surface(tmp_path / "wall.stl", v * np.asarray(radii) * 1000, f)
+    return BodyWall("mesh", file=str(tmp_path / "wall.stl"), scale=0.001, position=tuple(center), rpy=(0.0, 0.0, 0.0))
+
+
+def test_mesh_body_wall_against_the_ellipsoid_and_brute_force(tmp_path):
+    """A triangulated ellipsoid as the wall: tips' depths agree with the analytic ellipsoid within the
+    triangulation's chord error, a motion's depth is the smallest over its dense samples (exact, the
+    segment's distance to the surface), tips outside have clearance 0, the checker refuses a motion
+    leaving the wall, and the wall points lie on the mesh, spacing apart."""
+    c, r = np.array([0.0, 0.0, 0.3]), np.array([0.1, 0.1, 0.14])
+    port = np.array([[0.0, 0.0, 0.16]])
+    me = build(Anatomy(0.004, (), _mesh_wall(tmp_path, c, r, sub=2)), port)
+    el = build(Anatomy(0.004, (), BodyWall("ellipsoid", center=tuple(c), radii=tuple(r))), port)
+    assert me.mesh_wall and not el.mesh_wall and me.wall_mesh()[1].shape == (320, 3)
+    rng = np.random.default_rng(3)
+    x = c + rng.uniform(-1.15, 1.15, (400, 3)) * r
+    a, b = me.tip(x), el.tip(x)
+    chord = 0.004  # icosphere(2) scaled: its triangles lie within ~3 mm inside the ellipsoid
+    assert np.all(np.abs(a - b) <= chord)
+    assert np.all(a[el.wall_depth(x) < -chord] == 0) and np.all(a[me.wall_depth(x) < 0] == 0)
+    v, f = me.wall_mesh()
+    for p0, p1 in ((c + [0.0, 0.0, -0.05], c + [0.05, 0.02, 0.0]), (c + [0.06, 0.0, 0.0], c + [0.0, 0.0, 0.1])):
+        got = float(me.motion(p0, p1))
+        s = np.linspace(0, 1, 201)[:, None]
+        seg = p0 * (1 - s) + p1 * s
+        brute = float(np.min([point_triangle(seg, *v[t]) for t in f]))
+        assert got == pytest.approx(brute, abs=2e-4)  # the segment's sampling gap
+    ok = me.checker()
+    assert ok(*c, *(c + [0.0, 0.0, 0.05])) and not ok(*c, *(c + [0.0, 0.0, 0.2]))
+    assert me.wall_gap(np.array([0.0, 0.0, 0.16])) < 1e-12 and me.wall_gap(c) > 0.09
+    P = me.wall_points(0.03)
+    assert len(P) > 20 and max(me.wall_gap(p) for p in P) < 1e-9
+    d = np.linalg.norm(P[:, None] - P[None], axis=-1) + np.eye(len(P))
+    assert d.min() >= 0.03 - 1e-12
+    assert np.array_equal(P, me.wall_points(0.03))  # deterministic
 
 
 # ----------------------------------------------------------------------------- the bundled abdomen

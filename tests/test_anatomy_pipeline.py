@@ -191,6 +191,9 @@ BAD = {
                      'radius = 0.01\n', "inside obstacle"),
     "port inside": ('[anatomy]\n[[anatomy.obstacle]]\nshape = "box"\ncenter = [0.0, 0.0, 0.16]\n'
                     'half_extents = [0.01, 0.01, 0.01]\n', "port box touches"),
+    "open mesh wall": ('[anatomy]\n[anatomy.body_wall]\nshape = "mesh"\nfile = "open.stl"\n',
+                       "open.stl: not a closed surface"),
+    "missing mesh wall": ('[anatomy]\n[anatomy.body_wall]\nshape = "mesh"\nfile = "nope.stl"\n', "nope.stl"),
     "planar": None,
 }
 
@@ -317,3 +320,83 @@ def test_wall_brute_force_finds_none_better(wall_run):
     rd = wall_port_placement(sc, 0.0067, WALL_REGION, resolution=0.01, ports=dense)
     assert len(rd["candidates"]) > len(top)
     assert rd["covered"] <= r["covered"]
+
+
+# ----------------------------------------------------------------------------- a mesh body wall
+ELLIPSOID_WALL = """shape = "ellipsoid"                        # the inner surface of the insufflated abdomen
+center = [0.0, 0.0, 0.36]
+radii = [0.16, 0.14, 0.20]"""
+
+
+def _mesh_wall_abdomen(tmp_path, z=0.36):
+    """The bundled abdomen with its ellipsoid wall as a triangulated ellipsoid (icosphere(3) scaled: its
+    vertices on the ellipsoid, the port (0, 0, 0.16) one of them) centred at height ``z``."""
+    from errplan.anatomy.meshes import icosphere, write_surface
+    v, f = icosphere(3)
+    write_surface(tmp_path / "wall.stl", v * [160.0, 140.0, 200.0], f)
+    abd = ROOT / "scenarios" / "abdomen.toml"
+    text = abd.read_text()
+    assert ELLIPSOID_WALL in text
+    return text.replace(ELLIPSOID_WALL, f'shape = "mesh"\nfile = "{tmp_path / "wall.stl"}"\nscale = 0.001\n'
+                                        f"position = [0.0, 0.0, {z}]")
+
+
+def test_mesh_wall_placement_matches_the_ellipsoid(tmp_path):
+    """Port placement on a mesh wall (a triangulated ellipsoid) finds the analytic ellipsoid's coverage
+    and a best port within one spacing of its best; the candidates lie on the mesh, spacing apart."""
+    from errplan.tolerance.wall import wall_port_placement
+    abd = ROOT / "scenarios" / "abdomen.toml"
+    runs = []
+    for text in (abd.read_text(), _mesh_wall_abdomen(tmp_path)):
+        sc = parse_scenario(tomllib.loads(text), str(abd))
+        runs.append((sc, wall_port_placement(sc, 0.04, WALL_REGION, resolution=0.02, refine_levels=0)))
+    (_, el), (sc, me) = runs
+    assert me["region_points"] == el["region_points"] and me["covered"] > 0
+    assert abs(me["covered"] - el["covered"]) <= 1
+    assert np.linalg.norm(np.subtract(me["best"], el["best"])) <= 0.04
+    from errplan.fields.compute import anatomy_model
+    m = anatomy_model(sc)
+    assert m.mesh_wall
+    P = np.array([c["port"] for c in me["candidates"]])
+    assert max(m.wall_gap(p) for p in P) < 1e-9
+    assert (np.linalg.norm(P[:, None] - P[None], axis=-1) + np.eye(len(P))).min() >= 0.04 - 1e-12
+
+
+def test_port_off_the_mesh_wall_is_refused(tmp_path):
+    abd = ROOT / "scenarios" / "abdomen.toml"
+    parse_scenario(tomllib.loads(_mesh_wall_abdomen(tmp_path)), str(abd))  # on the wall: accepted
+    with pytest.raises(ScenarioError, match="from the body wall"):
+        parse_scenario(tomllib.loads(_mesh_wall_abdomen(tmp_path, z=0.37)), str(abd))
+    text = _mesh_wall_abdomen(tmp_path).replace("start = [-0.08, 0.04, 0.40]", "start = [-0.08, 0.04, 0.58]")
+    with pytest.raises(ScenarioError, match="outside the body wall"):
+        parse_scenario(tomllib.loads(text), str(abd))
+
+
+def test_record_wall_placement_reads_back(tmp_path):
+    """`errplan tolerance --record` of a body-wall placement (errplan.recording.record_placement, as the
+    CLI calls it) on the mesh wall: the wall, the obstacles, the candidates coloured by coverage, the
+    best port and the region read back; `rerun rrd verify` passes."""
+    import os
+    import shutil
+    import rerun.chunk as rrc
+    from errplan.recording import record_placement
+    from errplan.tolerance.result import ToleranceResult
+    from errplan.tolerance.wall import wall_port_placement
+    abd = ROOT / "scenarios" / "abdomen.toml"
+    sc = parse_scenario(tomllib.loads(_mesh_wall_abdomen(tmp_path)), str(abd))
+    d = wall_port_placement(sc, 0.05, WALL_REGION, resolution=0.03, refine_levels=0)
+    path = tmp_path / "w.rrd"
+    record_placement(path, sc, [ToleranceResult("on the wall", "port_placement", d, 0.0)])
+    rows = {}
+    for ch in rrc.RrdReader(path).stream().to_chunks():
+        rows[ch.entity_path] = rows.get(ch.entity_path, 0) + ch.num_rows
+    base = "/placement/on_the_wall/space"
+    for e in ("anatomy/body_wall", "anatomy/stomach", "anatomy/liver", "anatomy/kidney", "anatomy/vessel",
+              "candidates", "best", "region"):
+        assert rows.get(f"{base}/{e}") == 1, (e, rows)
+    assert rows["/placement/on_the_wall/summary"] == 1 and rrc.RrdReader(path).blueprints()
+    exe = shutil.which("rerun")
+    cmd = [exe] if exe else [sys.executable, "-m", "rerun_cli"]
+    v = subprocess.run(cmd + ["rrd", "verify", str(path)], env=dict(os.environ, CI="1"), capture_output=True,
+                       text=True, timeout=120)
+    assert v.returncode == 0, v.stdout + v.stderr

@@ -282,12 +282,53 @@ def shaft_clearance(H, nh, cap_a, cap_b, cap_r, pts, npts, prad, pball, clusters
 
 
 @njit
-def clearance_batch(box, tips_a, tips_b, extra, pts, npts, prad, pball, clusters, cball, wall, stop, out):
+def winding(px, py, pz, wpts, n):
+    """Generalized winding number of point p for the closed mesh whose triangles are ``wpts[:n, :3]``
+    (1 inside, 0 outside; van Oosterom & Strackee's solid angle of each triangle)."""
+    tot = 0.0
+    for t in range(n):
+        ax, ay, az = wpts[t, 0, 0] - px, wpts[t, 0, 1] - py, wpts[t, 0, 2] - pz
+        bx, by, bz = wpts[t, 1, 0] - px, wpts[t, 1, 1] - py, wpts[t, 1, 2] - pz
+        cx, cy, cz = wpts[t, 2, 0] - px, wpts[t, 2, 1] - py, wpts[t, 2, 2] - pz
+        la = math.sqrt(ax * ax + ay * ay + az * az)
+        lb = math.sqrt(bx * bx + by * by + bz * bz)
+        lc = math.sqrt(cx * cx + cy * cy + cz * cz)
+        det = ax * (by * cz - bz * cy) - ay * (bx * cz - bz * cx) + az * (bx * cy - by * cx)
+        den = (la * lb * lc + (ax * bx + ay * by + az * bz) * lc + (bx * cx + by * cy + bz * cz) * la
+               + (cx * ax + cy * ay + cz * az) * lb)
+        tot += 2.0 * math.atan2(det, den)
+    return tot / (4.0 * math.pi)
+
+
+@njit
+def mesh_wall_depth(ax, ay, az, bx, by, bz, wpts, wnpts, wprad, wpball, wclusters, wcball, stop):
+    """Depth (m) of every point of the segment [a, b] inside the closed mesh body wall (its triangles
+    as pieces, ``wpts`` ...): the distance from the segment to the surface when ``a`` is inside (the
+    segment then stays inside up to that distance: exact, also for a wall that is not convex), -1 when
+    ``a`` is outside; 0 when the segment touches the surface. Once the distance is below ``stop`` the
+    value is only known to be below ``stop`` (and the inside test is skipped)."""
+    H = np.zeros((MAX_HULL, 3))
+    H[0, 0], H[0, 1], H[0, 2] = ax, ay, az
+    H[1, 0], H[1, 1], H[1, 2] = bx, by, bz
+    rr = np.zeros(2)
+    d = shaft_clearance(H, 2, H[0], H[1], rr, wpts, wnpts, wprad, wpball, wclusters, wcball, stop)
+    if d <= 0.0 or d < stop:
+        return d
+    if winding(ax, ay, az, wpts, wpts.shape[0]) < 0.5:
+        return -1.0
+    return d
+
+
+@njit
+def clearance_batch(box, tips_a, tips_b, extra, pts, npts, prad, pball, clusters, cball, wall, stop, out,
+                    wpts, wnpts, wprad, wpball, wclusters, wcball):
     """:func:`shaft_clearance` of the hulls conv(box ∪ {a_i, b_i}) (``box`` (nb, 3) corners;
     ``tips_a``, ``tips_b`` (n, 3); a == b for a single tip), and, when ``wall[6] > 0``, the depth of
-    the tips inside the ellipsoid body wall ``wall`` (:func:`ellipsoid_depth`; along a motion the
-    smaller of its ends', exact since the set of points at least that deep in a convex body is
-    convex), minus ``extra[i]`` (a tip ball's radius, by the 1-Lipschitz bound), into ``out`` (n,)."""
+    the tips inside the body wall: ``wall[6] == 1`` the ellipsoid ``wall`` (:func:`ellipsoid_depth`;
+    along a motion the smaller of its ends', exact since the set of points at least that deep in a
+    convex body is convex), ``wall[6] == 2`` the closed mesh whose triangles are the pieces ``wpts`` ...
+    (:func:`mesh_wall_depth`: the distance of the motion's segment to the surface, exact), minus
+    ``extra[i]`` (a tip ball's radius, by the 1-Lipschitz bound), into ``out`` (n,)."""
     nb = box.shape[0]
     H = np.zeros((MAX_HULL, 3))
     c0 = np.zeros(3)
@@ -312,7 +353,10 @@ def clearance_batch(box, tips_a, tips_b, extra, pts, npts, prad, pball, clusters
         half = 0.5 * math.sqrt(half)
         rr[1] = half
         d = 1e300
-        if wall[6] > 0.0:
+        if wall[6] > 1.5:
+            d = mesh_wall_depth(tips_a[i, 0], tips_a[i, 1], tips_a[i, 2], tips_b[i, 0], tips_b[i, 1], tips_b[i, 2],
+                                wpts, wnpts, wprad, wpball, wclusters, wcball, stop + extra[i])
+        elif wall[6] > 0.0:
             d = min(ellipsoid_depth(tips_a[i, 0], tips_a[i, 1], tips_a[i, 2], wall),
                     ellipsoid_depth(tips_b[i, 0], tips_b[i, 1], tips_b[i, 2], wall))
         if len(clusters) > 1 and d > stop + extra[i]:
@@ -322,7 +366,8 @@ def clearance_batch(box, tips_a, tips_b, extra, pts, npts, prad, pball, clusters
 
 
 @njit
-def motion_clearance1(box, ax, ay, az, bx, by, bz, pts, npts, prad, pball, clusters, cball, wall, stop):
+def motion_clearance1(box, ax, ay, az, bx, by, bz, pts, npts, prad, pball, clusters, cball, wall, stop,
+                      wpts, wnpts, wprad, wpball, wclusters, wcball):
     """:func:`clearance_batch` of one motion [a, b] given by its coordinates (a scalar call for the
     planner's validity checks: one dispatch, no array built in Python)."""
     A = np.empty((1, 3))
@@ -330,7 +375,8 @@ def motion_clearance1(box, ax, ay, az, bx, by, bz, pts, npts, prad, pball, clust
     A[0, 0], A[0, 1], A[0, 2] = ax, ay, az
     B[0, 0], B[0, 1], B[0, 2] = bx, by, bz
     out = np.empty(1)
-    clearance_batch(box, A, B, np.zeros(1), pts, npts, prad, pball, clusters, cball, wall, stop, out)
+    clearance_batch(box, A, B, np.zeros(1), pts, npts, prad, pball, clusters, cball, wall, stop, out,
+                    wpts, wnpts, wprad, wpball, wclusters, wcball)
     return out[0]
 
 
@@ -374,6 +420,7 @@ def ellipsoid_depth(px, py, pz, wall):
             hi = mid
     t = 0.5 * (lo + hi)
     d2 = 0.0
+    s1 = 0.0
     ok = True
     for i in range(3):
         den = t + e[i] * e[i]
@@ -382,7 +429,8 @@ def ellipsoid_depth(px, py, pz, wall):
             break
         x = e[i] * e[i] * y[i] / den
         d2 += (x - y[i]) ** 2
-    if ok:
+        s1 += (x / e[i]) ** 2
+    if ok and abs(s1 - 1.0) <= 1e-6:  # no root in (-ek^2, 0] (a point on the smallest axis' plane): not a surface point
         best = math.sqrt(d2)
     # candidate 2 (degenerate): t = -ek^2, x_k from the surface equation
     s = 0.0

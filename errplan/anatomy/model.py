@@ -11,6 +11,12 @@ and the corners of the port box (the error set's true ports). It answers, for ti
   of their separation);
 - :meth:`ShaftClearance.inside` whether points are inside (or on) some obstacle.
 
+With ``[anatomy.body_wall]`` the clearance is also at most the tips' depth inside the wall: an
+ellipsoid (exact point-to-ellipsoid distance; a motion: the smaller of its ends', exact for a convex
+body) or a closed triangle mesh (the distance from the motion's segment to the wall's triangles, by the
+same GJK and culling, when its start is inside by the winding number: exact, also when not convex).
+:meth:`ShaftClearance.wall_points` spreads candidate ports over either wall.
+
 Distances are exact (GJK on primitives' cores and on every triangle of a mesh, :mod:`.distance`).
 """
 from __future__ import annotations
@@ -51,8 +57,25 @@ class ShaftClearance:
     piece_obstacle: np.ndarray  # (n,) index of the obstacle of each piece
     names: tuple[str, ...]
     surfaces: tuple[Surface, ...] = field(default_factory=tuple)
-    wall: np.ndarray = field(default_factory=lambda: np.zeros(7))  # ellipsoid body wall (cx, cy, cz, a, b, c, on)
+    wall: np.ndarray = field(default_factory=lambda: np.zeros(7))  # body wall (cx, cy, cz, a, b, c, kind)
     _solid: tuple = field(default_factory=tuple)  # per obstacle: ("convex", piece ids) or ("mesh", v, f)
+    # a mesh body wall (``wall[6] == 2``): its triangles as pieces (as a mesh obstacle's), and its surface
+    wpts: np.ndarray = field(default_factory=lambda: np.zeros((0, _d.MAX_PIECE, 3)))
+    wnpts: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    wprad: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    wpball: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
+    wclusters: np.ndarray = field(default_factory=lambda: np.zeros(1, np.int64))
+    wcball: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
+    wall_surface: tuple | None = None  # (vertices (n, 3), faces (m, 3)) of a mesh wall
+
+    @property
+    def _wall_args(self) -> tuple:
+        return self.wpts, self.wnpts, self.wprad, self.wpball, self.wclusters, self.wcball
+
+    @property
+    def mesh_wall(self) -> bool:
+        """Whether the body wall is a closed triangle mesh (``[anatomy.body_wall] shape = "mesh"``)."""
+        return bool(self.wall[6] > 1.5)
 
     # ---------------------------------------------------------------- queries
     def _batch(self, a: np.ndarray, b: np.ndarray, extra, stop: float) -> np.ndarray:
@@ -68,7 +91,7 @@ class ShaftClearance:
         if not (np.all(np.isfinite(A)) and np.all(np.isfinite(B))):
             raise ValueError("tips must be finite")
         _d.clearance_batch(self.box, A, B, E, self.pts, self.npts, self.prad, self.pball, self.clusters,
-                           self.cball, self.wall, float(stop), out)
+                           self.cball, self.wall, float(stop), out, *self._wall_args)
         return np.minimum(out, np.inf).reshape(shape)
 
     def tip(self, x: np.ndarray) -> np.ndarray:
@@ -105,7 +128,8 @@ class ShaftClearance:
     def motion_ok(self, ax: float, ay: float, az: float, bx: float, by: float, bz: float) -> bool:
         """Whether every tip of the motion (a, b) is robustly clear: one compiled call (the planner's checks)."""
         return _d.motion_clearance1(self.box, ax, ay, az, bx, by, bz, self.pts, self.npts, self.prad, self.pball,
-                                    self.clusters, self.cball, self.wall, self.required) >= self.required
+                                    self.clusters, self.cball, self.wall, self.required,
+                                    *self._wall_args) >= self.required
 
     def checker(self):
         """``ok(ax, ay, az, bx, by, bz) -> bool``: :meth:`motion_ok` with its arrays bound (fewer lookups)."""
@@ -113,9 +137,11 @@ class ShaftClearance:
         box, pts, npts, prad, pball, clusters, cball, wall = (self.box, self.pts, self.npts, self.prad, self.pball,
                                                               self.clusters, self.cball, self.wall)
         req = self.required
+        wpts, wnpts, wprad, wpball, wclusters, wcball = self._wall_args
 
         def ok(ax, ay, az, bx, by, bz):
-            return f(box, ax, ay, az, bx, by, bz, pts, npts, prad, pball, clusters, cball, wall, req) >= req
+            return f(box, ax, ay, az, bx, by, bz, pts, npts, prad, pball, clusters, cball, wall, req,
+                     wpts, wnpts, wprad, wpball, wclusters, wcball) >= req
 
         return ok
 
@@ -125,23 +151,31 @@ class ShaftClearance:
         return len(self.clusters) <= 1 and not self.wall[6] > 0
 
     def wall_points(self, spacing: float, near: np.ndarray | None = None, radius: float = 0.0) -> np.ndarray:
-        """Points (n, 3) of the ellipsoid body wall about ``spacing`` (m) apart along it: a dense
-        Fibonacci set on the surface (about 16 points per ``spacing**2`` of area), thinned greedily in
-        its order so that kept points are at least ``spacing`` apart (chordal) and every dense point is
-        within ``spacing`` of one. Deterministic. Empty without a wall. ``near`` (k, 3), ``radius``: only
-        the part of the wall within ``radius`` of those points (the dense set is cut before thinning)."""
+        """Points (n, 3) of the body wall about ``spacing`` (m) apart along it: a dense deterministic set
+        on the surface (about 16 points per ``spacing**2`` of area; the ellipsoid: a Fibonacci set; a
+        mesh: :func:`surface_samples`, exactly on its triangles), thinned greedily in its order so that
+        kept points are at least ``spacing`` apart (chordal) and every dense point is within ``spacing``
+        of one. Deterministic. Empty without a wall. ``near`` (k, 3), ``radius``: only the part of the
+        wall within ``radius`` of those points (the dense set is cut before thinning)."""
         if not self.wall[6] > 0:
             return np.zeros((0, 3))
-        c, r = self.wall[:3], self.wall[3:6]
-        a, b, cc = r
-        p = 1.6075
-        area = 4 * np.pi * (((a * b) ** p + (a * cc) ** p + (b * cc) ** p) / 3) ** (1 / p)
-        n = int(min(max(16 * area / spacing ** 2, 64), 400_000))
-        i = np.arange(n) + 0.5
-        z = 1 - 2 * i / n
-        th = np.pi * (1 + 5 ** 0.5) * i
-        u = np.stack([np.sqrt(1 - z * z) * np.cos(th), np.sqrt(1 - z * z) * np.sin(th), z], -1)
-        pts = c + u * r
+        if self.mesh_wall:
+            v, f = self.wall_surface
+            tri = v[f]
+            area = float(np.sum(np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)) / 2)
+            n = int(min(max(16 * area / spacing ** 2, 64), 400_000))
+            pts = surface_samples(v, f, n)
+        else:
+            c, r = self.wall[:3], self.wall[3:6]
+            a, b, cc = r
+            p = 1.6075
+            area = 4 * np.pi * (((a * b) ** p + (a * cc) ** p + (b * cc) ** p) / 3) ** (1 / p)
+            n = int(min(max(16 * area / spacing ** 2, 64), 400_000))
+            i = np.arange(n) + 0.5
+            z = 1 - 2 * i / n
+            th = np.pi * (1 + 5 ** 0.5) * i
+            u = np.stack([np.sqrt(1 - z * z) * np.cos(th), np.sqrt(1 - z * z) * np.sin(th), z], -1)
+            pts = c + u * r
         if near is not None:
             near = np.asarray(near, float).reshape(-1, 3)
             keep = np.zeros(len(pts), bool)
@@ -173,9 +207,12 @@ class ShaftClearance:
         return np.array(kept).reshape(-1, 3)
 
     def wall_mesh(self) -> tuple[np.ndarray, np.ndarray] | None:
-        """The ellipsoid body wall as a triangle mesh ``(vertices, faces)`` for drawing, or None."""
+        """The body wall as a triangle mesh ``(vertices, faces)`` for drawing (the ellipsoid: an
+        icosphere scaled; a mesh wall: its surface), or None."""
         if not self.wall[6] > 0:
             return None
+        if self.mesh_wall:
+            return self.wall_surface
         from .meshes import icosphere
 
         v, f = icosphere(3)
@@ -187,7 +224,20 @@ class ShaftClearance:
         if not self.wall[6] > 0:
             return np.full(p.shape[:-1], np.inf)
         flat = p.reshape(-1, 3)
+        if self.mesh_wall:
+            return np.array([_d.mesh_wall_depth(x, y, z, x, y, z, *self._wall_args, -1.0)
+                             for x, y, z in flat]).reshape(p.shape[:-1])
         return np.array([_d.ellipsoid_depth(x, y, z, self.wall) for x, y, z in flat]).reshape(p.shape[:-1])
+
+    def wall_gap(self, p: np.ndarray) -> float:
+        """Distance (m) of a point (3,) to the body wall's surface (the ellipsoid: exact inside, outside
+        along the ray from the centre, an upper bound that is exact on the surface; a mesh: exact)."""
+        p = np.asarray(p, float)
+        if self.mesh_wall:
+            H = np.zeros((_d.MAX_HULL, 3))
+            H[0] = H[1] = p
+            return float(_d.shaft_clearance(H, 2, H[0], H[1], np.zeros(2), *self._wall_args, -1.0))
+        return _wall_gap(p, self.wall)
 
     def inside(self, p: np.ndarray) -> np.ndarray:
         """``(...,)`` index of an obstacle containing point ``p`` (..., 3) (on its surface counts), else -1."""
@@ -220,6 +270,28 @@ def _wall_gap(p: np.ndarray, wall: np.ndarray) -> float:
     q = (p - wall[:3]) / wall[3:6]
     r = float(np.linalg.norm(q))
     return float(np.linalg.norm(p - (wall[:3] + q / r * wall[3:6]))) if r > 0 else 0.0
+
+
+def surface_samples(v: np.ndarray, f: np.ndarray, n: int) -> np.ndarray:
+    """``n`` points (n, 3) on the triangle mesh (v, f), deterministic and even in area: point i falls in
+    the triangle where ``(i + 0.5) / n`` lands on the cumulative area (systematic sampling), at
+    barycentric coordinates from the R2 low-discrepancy sequence (folded into the triangle); the order
+    is then a fixed pseudo-random permutation (so that greedy thinning in this order is not biased
+    toward the first triangles)."""
+    tri = v[f]
+    e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    area = np.linalg.norm(np.cross(e1, e2), axis=1) / 2
+    cdf = np.cumsum(area)
+    i = np.arange(n)
+    t = np.minimum(np.searchsorted(cdf, (i + 0.5) / n * cdf[-1]), len(f) - 1)
+    g = 1.32471795724474602596
+    r1 = (0.5 + i / g) % 1.0
+    r2 = (0.5 + i / (g * g)) % 1.0
+    flip = r1 + r2 > 1
+    r1 = np.where(flip, 1 - r1, r1)
+    r2 = np.where(flip, 1 - r2, r2)
+    pts = tri[t, 0] + r1[:, None] * e1[t] + r2[:, None] * e2[t]
+    return pts[np.random.default_rng(0).permutation(n)]
 
 
 def winding_number(p: np.ndarray, v: np.ndarray, f: np.ndarray) -> np.ndarray:
@@ -342,12 +414,24 @@ def build(anatomy, box: np.ndarray, where: str = "[anatomy]") -> ShaftClearance:
     n = len(pts)
     wall = np.zeros(7)
     bw = anatomy.body_wall if anatomy else None
-    if bw is not None:
-        if bw.shape != "ellipsoid":
-            raise ScenarioError(f"{where}: [anatomy.body_wall] shape = {bw.shape!r}: not supported yet (an "
-                                "\"ellipsoid\" wall is)")
+    wk: dict = {}
+    if bw is not None and bw.shape == "mesh":
+        wv, wf = load_surface(bw.file, bw.scale, bw.position, bw.rpy, where="[anatomy.body_wall]")
+        tri = wv[wf][_morton_order(wv[wf].mean(axis=1))]
+        wpts = np.zeros((len(tri), _d.MAX_PIECE, 3))
+        wpts[:, :3] = tri
+        starts = list(range(0, len(tri), _d.CLUSTER))
+        lo, hi = wv.min(axis=0), wv.max(axis=0)
+        wall = np.array([*((lo + hi) / 2), *((hi - lo) / 2), 2.0], float)  # centre, half extents, kind 2
+        wk = dict(wpts=np.ascontiguousarray(wpts), wnpts=np.full(len(tri), 3, np.int64), wprad=np.zeros(len(tri)),
+                  wpball=np.ascontiguousarray(np.array([_ball(t) for t in tri], float).reshape(-1, 4)),
+                  wclusters=np.array([0] + [min(s + _d.CLUSTER, len(tri)) for s in starts], np.int64),
+                  wcball=np.ascontiguousarray(np.array([_ball(tri[s:s + _d.CLUSTER].reshape(-1, 3)) for s in starts],
+                                                       float).reshape(-1, 4)),
+                  wall_surface=(wv, wf))
+    elif bw is not None:
         wall = np.array([*bw.center, *bw.radii, 1.0], float)
-    return ShaftClearance(
+    return ShaftClearance(**wk,
         wall=wall, required=float(anatomy.clearance) if anatomy else 0.0, box=box,
         pts=np.ascontiguousarray(np.array(pts, float).reshape(n, _d.MAX_PIECE, 3)),
         npts=np.array(npts, np.int64), prad=np.array(prad, float),
@@ -368,7 +452,7 @@ def check(sc, box: np.ndarray, model: ShaftClearance | None = None) -> ShaftClea
         est = np.asarray(sc.port.estimate, float)
         c = m.box.mean(axis=0)
         tol = max(WALL_TOLERANCE, float(np.max(np.linalg.norm(m.box - c, axis=1))))
-        gap = _wall_gap(est, m.wall)
+        gap = m.wall_gap(est)
         if gap > tol:
             raise ScenarioError(f"{src}: [port] estimate = {list(map(float, est))}: {gap * 1000:.1f} mm from the body "
                                 f"wall (more than {tol * 1000:.1f} mm): expected a port on [anatomy.body_wall]")

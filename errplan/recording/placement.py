@@ -21,6 +21,12 @@ coverage as coloured cubes, one per candidate, the region as a box), and the cov
 slices ``placement/<q>/slices/x_<mm>``: one heat map over ``(y, z)`` per candidate ``x``, with the
 best port marked on its slice.
 
+On the body wall (``candidates = "body_wall"``, 3-D), in ``placement/<q>/space``:
+
+- ``anatomy/body_wall`` (ellipsoid or mesh) and ``anatomy/<obstacle>``: the anatomy as meshes;
+- ``candidates``: every candidate port on the wall, coloured by its coverage (Viridis, 0..1) and
+  labelled with it; ``best``: the best port; ``region``: the task region as a box.
+
 ``placement/<q>/summary``: a markdown table of the top candidates.
 """
 from __future__ import annotations
@@ -42,9 +48,13 @@ def _results(results) -> list:
         results = [results]
     out = [r for r in results if r.kind == "port_placement"]
     for r in out:
-        if "_arrays" not in r.data:
+        if "_arrays" not in r.data and not _on_wall(r):
             raise ErrplanError(f"{r.name}: the placement result holds no arrays to record (keep_arrays=False)")
     return out
+
+
+def _on_wall(r) -> bool:
+    return bool(r.data.get("candidate_grid", {}).get("body_wall"))
 
 
 def heat_image(values: np.ndarray, ya: np.ndarray, za: np.ndarray) -> tuple[np.ndarray, list, list]:
@@ -98,7 +108,11 @@ def placement_blueprint(rr, results, sc) -> Any:
     tabs = []
     for r, q in zip(results, _names(results)):
         base = f"placement/{q}"
-        if sc.dim == 2:
+        if _on_wall(r):
+            main = rrb.Spatial3DView(origin=f"{base}/space", name=f"{r.name}: coverage over ports on the body wall")
+            tabs.append(rrb.Horizontal(main, rrb.TextDocumentView(origin=f"{base}/summary", name="top candidates"),
+                                       column_shares=[3, 1], name=r.name))
+        elif sc.dim == 2:
             main = rrb.Spatial2DView(origin=f"{base}/plane", name=f"{r.name}: coverage over candidate ports")
             tabs.append(rrb.Horizontal(main, rrb.TextDocumentView(origin=f"{base}/summary", name="top candidates"),
                                        column_shares=[3, 1], name=r.name))
@@ -123,7 +137,9 @@ def log_placement(rec, rr, results, sc) -> None:
     ``_arrays``) of scenario ``sc`` into recording ``rec`` with the rerun module ``rr``."""
     results = _results(results)
     for r, q in zip(results, _names(results)):
-        if sc.dim == 2:
+        if _on_wall(r):
+            _log_wall(rec, rr, r, f"placement/{q}", sc)
+        elif sc.dim == 2:
             _log_plane(rec, rr, r, f"placement/{q}")
         else:
             _log_space(rec, rr, r, f"placement/{q}")
@@ -169,6 +185,35 @@ def _log_plane(rec, rr, r, base: str) -> None:
         col = {"certified": CERTIFIED_COLOR, "not_certified": NOT_CERTIFIED_COLOR}.get(name, UNREACHABLE_COLOR)
         rec.log(f"{p}/{name}", rr.Points2D(uv(pts.reshape(-1, 2)), radii=ui(2.5), colors=col, draw_order=25.0),
                 static=True)
+
+
+def _log_wall(rec, rr, r, base: str, sc) -> None:
+    """A body-wall placement: the wall and the obstacles as meshes, the candidate ports on the wall
+    coloured by coverage, the best port and the task region (module docstring)."""
+    from ..fields.compute import anatomy_model
+    from .space import OBSTACLE_COLOR, WALL_COLOR
+
+    ui = rr.Radius.ui_points
+    d = r.data
+    s = f"{base}/space"
+    rec.log(s, rr.ViewCoordinates.RIGHT_HAND_Y_UP, static=True)
+    an = anatomy_model(sc)
+    for srf in an.surfaces:
+        rec.log(f"{s}/anatomy/{srf.name}", rr.Mesh3D(vertex_positions=srf.vertices, triangle_indices=srf.faces,
+                                                     albedo_factor=OBSTACLE_COLOR), static=True)
+    wm = an.wall_mesh()
+    rec.log(f"{s}/anatomy/body_wall", rr.Mesh3D(vertex_positions=wm[0], triangle_indices=wm[1],
+                                                albedo_factor=WALL_COLOR), static=True)
+    ports = np.array([c["port"] for c in d["candidates"]], float).reshape(-1, 3)
+    cov = np.array([c["coverage"] for c in d["candidates"]], float)
+    rec.log(f"{s}/candidates", rr.Points3D(ports, radii=ui(4.0), colors=viridis(cov), labels=_labels(d),
+                                           show_labels=False), static=True)
+    rec.log(f"{s}/best", rr.Points3D([d["best"]], radii=ui(9.0), colors=BEST_COLOR,
+                                     labels=[f"best port {100 * d['coverage']:.1f}%"]), static=True)
+    lo = np.array([d["region"][a][0] for a in ("x", "y", "z")])
+    hi = np.array([d["region"][a][1] for a in ("x", "y", "z")])
+    rec.log(f"{s}/region", rr.Boxes3D(centers=[(lo + hi) / 2], half_sizes=[(hi - lo) / 2], colors=REGION_COLOR,
+                                      labels=["task region"]), static=True)
 
 
 def _log_space(rec, rr, r, base: str) -> None:
