@@ -18,6 +18,33 @@ import pytest
 # errors. tests/test_jit.py turns it back on in its own processes.
 os.environ["ERRPLAN_COMPILE_NOTICE"] = "0"
 
+#: compiled once before the tests, in two processes at once (errplan.cli.warmup), when the kernel cache is
+#: cold (a fresh clone): otherwise both test workers would compile the same kernels side by side
+_PRECOMPILE = (("fields3",), ("fields2", "gains3", "plan2", "plan3"))
+
+
+def pytest_configure(config):
+    if hasattr(config, "workerinput") or os.environ.get("ERRPLAN_TEST_PRECOMPILE", "1") == "0":
+        return  # an xdist worker: the controller did it
+    import subprocess
+    import sys
+    import tempfile
+    import time
+
+    from errplan.cli import warmup
+
+    if not warmup._cold([p for group in _PRECOMPILE for p in group]):
+        return
+    sys.stderr.write("errplan tests: compiling the numerical kernels once for this machine (1 to 2 min)\n")
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory() as tmp:
+        procs = [subprocess.Popen([sys.executable, "-m", "errplan.cli.warmup", os.path.join(tmp, f"s{i}"), *group],
+                                  stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                 for i, group in enumerate(_PRECOMPILE)]
+        for proc in procs:
+            proc.wait()
+    sys.stderr.write(f"errplan tests: kernels compiled in {time.perf_counter() - t0:.0f} s\n")
+
 BASE_DOC = {
     "name": "test-p1",
     "description": "P1 planar Phantom, port estimate off by (+20, +10) mm",

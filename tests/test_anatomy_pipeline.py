@@ -237,6 +237,7 @@ def test_cli_fields_writes_clearance(tmp_path):
 
 # ----------------------------------------------------------------------------- port placement on the wall
 WALL_REGION = {"x": (-0.03, 0.03), "y": (-0.03, 0.03), "z": (0.36, 0.42)}
+WALL_SPACING, WALL_RES = 0.03, 0.015  # 265 wall candidates (510 with refinement), 125 region points
 WALL_TOL = """
 [[tolerance]]
 name = "on the wall"
@@ -253,7 +254,7 @@ def wall_run():
     from errplan.tolerance.wall import wall_port_placement
     abd = ROOT / "scenarios" / "abdomen.toml"
     sc = parse_scenario(tomllib.loads(abd.read_text() + WALL_TOL), str(abd))
-    return sc, wall_port_placement(sc, 0.02, WALL_REGION, resolution=0.01)
+    return sc, wall_port_placement(sc, WALL_SPACING, WALL_REGION, resolution=WALL_RES)
 
 
 @pytest.mark.slow
@@ -264,7 +265,7 @@ def test_wall_candidates_are_on_the_wall_and_spaced(wall_run):
     assert np.allclose(np.sum(((P - c) / rad) ** 2, axis=1), 1.0, atol=1e-9)
     g = P[:r["wall_refinement"]["grid_candidates"]]  # the spaced set; refinement adds finer points after it
     d = np.linalg.norm(g[:, None] - g[None], axis=-1) + np.eye(len(g))
-    assert d.min() >= 0.02 - 1e-12
+    assert d.min() >= WALL_SPACING - 1e-12
     assert r["wall_refinement"]["added"] > 0 and r["covered"] >= r["wall_refinement"]["grid_covered"]
     assert r["best"] in [x["port"] for x in r["candidates"]]
     # the best is the largest coverage (then the smaller max rho*)
@@ -284,7 +285,7 @@ def test_wall_coverage_counts_only_clear_points(wall_run):
     sc, r = wall_run
     b = tuple(r["best"])
     box = {a: (v, v) for a, v in zip("xyz", b)}
-    plain = port_placement(sc, box, 0.01, WALL_REGION, resolution=0.01, keep_arrays=True)
+    plain = port_placement(sc, box, 0.01, WALL_REGION, resolution=WALL_RES, keep_arrays=True)
     A = plain["_arrays"]
     ok = A["best_valid"] & (A["best_rho_star"] <= A["bound"]) & (A["best_rho_star"] < 1)
     m = anatomy_model(replace(sc, port=Port(b, b)))
@@ -316,8 +317,8 @@ def test_wall_brute_force_finds_none_better(wall_run):
     sc, r = wall_run
     m = anatomy_model(sc)
     top = np.array([x["port"] for x in r["candidates"] if x["covered"] >= r["covered"] - 2])
-    dense = wall_candidates(sc, m, 0.0067, WALL_REGION, near=top, radius=0.02)
-    rd = wall_port_placement(sc, 0.0067, WALL_REGION, resolution=0.01, ports=dense)
+    dense = wall_candidates(sc, m, WALL_SPACING / 3, WALL_REGION, near=top, radius=WALL_SPACING)
+    rd = wall_port_placement(sc, WALL_SPACING / 3, WALL_REGION, resolution=WALL_RES, ports=dense)
     assert len(rd["candidates"]) > len(top)
     assert rd["covered"] <= r["covered"]
 
