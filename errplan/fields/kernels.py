@@ -563,25 +563,34 @@ def _tip_reach(x, base_port, lo, hi, L, rmap):
     R = L / rmin * delta + L * math.atan(max(abs(lo[3]), abs(hi[3])) * L * L / 12.0) + 1e-9
     w0, w1, w2 = x[0] - L * e0 / r, x[1] - L * e1 / r, x[2] - L * e2 / r
     h = rmap.h
-    ilo = np.empty(3, np.int64)
-    ihi = np.empty(3, np.int64)
-    wc = (w0, w1, w2)
-    n = 1
-    for a in range(3):
-        ilo[a] = int(math.floor((wc[a] - R - rmap.origin[a]) / h))
-        ihi[a] = int(math.floor((wc[a] + R - rmap.origin[a]) / h))
-        if ihi[a] < 0 or ilo[a] >= rmap.shape[a]:
-            return 0  # the whole ball lies off the map: nothing there is reachable
-        if ilo[a] < 0 or ihi[a] >= rmap.shape[a]:
-            return 2
-        n *= ihi[a] - ilo[a] + 1
-    if n > 4096:
+    # the voxel index ranges in scalars (no per-tip allocation)
+    i0 = int(math.floor((w0 - R - rmap.origin[0]) / h))
+    i1 = int(math.floor((w0 + R - rmap.origin[0]) / h))
+    j0 = int(math.floor((w1 - R - rmap.origin[1]) / h))
+    j1 = int(math.floor((w1 + R - rmap.origin[1]) / h))
+    k0 = int(math.floor((w2 - R - rmap.origin[2]) / h))
+    k1 = int(math.floor((w2 + R - rmap.origin[2]) / h))
+    s0, s1, s2 = rmap.shape[0], rmap.shape[1], rmap.shape[2]
+    # axis by axis: the whole ball off the map (nothing there is reachable), else partly off
+    if i1 < 0 or i0 >= s0:
+        return 0
+    if i0 < 0 or i1 >= s0:
+        return 2
+    if j1 < 0 or j0 >= s1:
+        return 0
+    if j0 < 0 or j1 >= s1:
+        return 2
+    if k1 < 0 or k0 >= s2:
+        return 0
+    if k0 < 0 or k1 >= s2:
+        return 2
+    if (i1 - i0 + 1) * (j1 - j0 + 1) * (k1 - k0 + 1) > 4096:
         return 2
     seen_in = False
     seen_out = False
-    for i in range(ilo[0], ihi[0] + 1):
-        for j in range(ilo[1], ihi[1] + 1):
-            for k in range(ilo[2], ihi[2] + 1):
+    for i in range(i0, i1 + 1):
+        for j in range(j0, j1 + 1):
+            for k in range(k0, k1 + 1):
                 st = rmap.state[i, j, k]
                 if st == 1:
                     seen_in = True
