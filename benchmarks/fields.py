@@ -7,7 +7,10 @@ With ``--scale`` (issue 21): planar 0.25 mm over P1's workspace with the 5 x 5 p
 chunked elementwise planar peer with reachability, and the PHANToM 1.5 task region at 2 mm with
 3 x 3 x 3 ports against the chunked elementwise spatial peer; errplan's whole process, errplan in
 process (all cores) and the peer alternately, medians; CPU ns per (tip x sampled instance) of each;
-targets: planar whole process <= 0.25 x peer, spatial <= 0.5 x peer.
+targets: planar whole process <= 0.25 x peer, spatial <= 0.5 x peer. Also the rho* field (planar,
+``--rho-res``, 0.5 mm by default) against a numpy peer doing a golden-section search over the gain on
+the sampled worst case, and an estimate of the machine's limit (the peer's arithmetic of one instance
+compiled into a tight loop on one core, :func:`machine_limit`).
 
 Each row is measured in this one run, side by side, on this machine:
 
