@@ -7,7 +7,10 @@ With ``--scale`` (issue 21): planar 0.25 mm over P1's workspace with the 5 x 5 p
 chunked elementwise planar peer with reachability, and the PHANToM 1.5 task region at 2 mm with
 3 x 3 x 3 ports against the chunked elementwise spatial peer; errplan's whole process, errplan in
 process (all cores) and the peer alternately, medians; CPU ns per (tip x sampled instance) of each;
-targets: planar whole process <= 0.25 x peer, spatial <= 0.5 x peer.
+targets: planar whole process <= 0.25 x peer, spatial <= 0.5 x peer. Also the rho* field (planar,
+``--rho-res``, 0.5 mm by default) against a numpy peer doing a golden-section search over the gain on
+the sampled worst case, and an estimate of the machine's limit (the peer's arithmetic of one instance
+compiled into a tight loop on one core, :func:`machine_limit`).
 
 Each row is measured in this one run, side by side, on this machine:
 
@@ -47,6 +50,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 PLANAR = REPO / "scenarios" / "beasley2004_port.toml"
 BOX = 0.010
+RHO_RES = 0.0005  # the rho* row's planar grid: 0.5 mm (at 0.25 mm each side takes about 2 minutes a run here)
 SPATIAL = REPO / "scenarios" / "phantom15_spatial.toml"
 
 
@@ -292,6 +296,76 @@ def chunked_planar_peer(y, z, est, L, k, arm, chunk=65536) -> tuple[np.ndarray, 
     return out.reshape(len(y), len(z)), time.perf_counter() - t0
 
 
+def _peer_motion_map(p, est, w, L):
+    """The elementwise peer's ``M = J Jhat^-1`` (entries m00, m01, m10, m11) for the true port ``p``,
+    the estimate and wrists ``w`` (n, 2); NaN where Jhat is singular."""
+    a, b, c, d = _lever(p - w, L)
+    ha, hb, hc, hd = _lever(est - w, L)
+    det = ha * hd - hb * hc
+    det = np.where(np.abs(det) < 1e-12, np.nan, det)
+    ia, ib, ic, id_ = hd / det, -hb / det, -hc / det, ha / det
+    return a * ia + b * ic, a * ib + b * id_, c * ia + d * ic, c * ib + d * id_
+
+
+def _smax_i_minus_k(m, k):
+    """``||I - k M||_2`` of stacked 2 x 2 ``M`` (entries ``m``, each (n, i)) at gains ``k`` (n, 1)."""
+    g00, g01, g10, g11 = 1 - k * m[0], -k * m[1], -k * m[2], 1 - k * m[3]
+    f = g00 ** 2 + g01 ** 2 + g10 ** 2 + g11 ** 2
+    dg = g00 * g11 - g01 * g10
+    return np.sqrt((f + np.sqrt(np.maximum(f * f - 4 * dg * dg, 0))) / 2)
+
+
+def rho_planar_peer(y, z, est, L, k, arm, chunk=16384, iters=40) -> tuple[np.ndarray, float]:
+    """rho* at scale, numpy (issue 21): per tip the sampled motion maps of the 5 x 5 port box (the
+    chunked elementwise peer's, reachability included), then a golden-section search over the gain
+    in [0, 2 / max_i ||M_i||_F] of ``max_i ||I - k M_i||`` (convex in k), ``iters`` steps; the scenario
+    gain is a candidate too, and no contraction (rho >= 1) gives 1. errplan's rho* is this sampled
+    minimum certified by a refined worst case at k*, so it is never below it."""
+    t0 = time.perf_counter()
+    X = np.stack(np.meshgrid(y, z, indexing="ij"), -1).reshape(-1, 2)
+    est = np.asarray(est, float)
+    out = np.full(len(X), np.nan)
+    gr = (np.sqrt(5.0) - 1) / 2
+    old = np.seterr(divide="ignore", invalid="ignore")  # wrists of invalid instances: masked out below
+    for c0 in range(0, len(X), chunk):
+        Xc = X[c0:c0 + chunk]
+        ok = np.ones(len(Xc), bool)
+        ms = []
+        for dy in np.linspace(-BOX, BOX, 5):
+            for dz in np.linspace(-BOX, BOX, 5):
+                p = est + [dy, dz]
+                e = Xc - p
+                r = np.sqrt(e[:, 0] ** 2 + e[:, 1] ** 2)
+                m = (r < L) & (r > 1e-9)
+                w = Xc - L * e / np.where(m, r, 1.0)[:, None]
+                ok &= m & arm.reachable(w)
+                ms.append(_peer_motion_map(p, est, w, L))
+        v = ok & np.all(np.isfinite(np.array([mm[0] for mm in ms])), axis=0)
+        if not v.any():
+            continue
+        M = [np.stack([mm[q][v] for mm in ms], axis=1) for q in range(4)]  # 4 x (n, 25)
+        fro = np.sqrt(np.max(M[0] ** 2 + M[1] ** 2 + M[2] ** 2 + M[3] ** 2, axis=1))
+        a, b = np.zeros(len(fro)), (2 / np.where(fro > 0, fro, 1.0))
+        c, d = b - gr * (b - a), a + gr * (b - a)
+        fc = _smax_i_minus_k(M, c[:, None]).max(axis=1)
+        fd = _smax_i_minus_k(M, d[:, None]).max(axis=1)
+        for _ in range(iters):
+            left = fc < fd
+            b = np.where(left, d, b)
+            a = np.where(left, a, c)
+            nc = np.where(left, b - gr * (b - a), d)
+            nd = np.where(left, c, a + gr * (b - a))
+            new = np.where(left, nc, nd)
+            fn = _smax_i_minus_k(M, new[:, None]).max(axis=1)
+            fd, fc = np.where(left, fc, fn), np.where(left, fn, fd)
+            c, d = nc, nd
+        kk = 0.5 * (a + b)
+        rho = np.minimum(_smax_i_minus_k(M, kk[:, None]).max(axis=1), _smax_i_minus_k(M, np.full((len(kk), 1), k)).max(axis=1))
+        out[c0 + np.flatnonzero(v)] = np.minimum(rho, 1.0)
+    np.seterr(**old)
+    return out.reshape(len(y), len(z)), time.perf_counter() - t0
+
+
 def chunked_spatial_peer(axes, est, L, k, box, samples, chunk=8) -> tuple[np.ndarray, float]:
     """The elementwise spatial peer (:func:`numpy_spatial_elementwise`) over slabs of ``chunk``
     planes of the first axis (no reachability, as that peer)."""
@@ -301,7 +375,98 @@ def chunked_spatial_peer(axes, est, L, k, box, samples, chunk=8) -> tuple[np.nda
     return np.concatenate(parts, axis=0), time.perf_counter() - t0
 
 
-def at_scale(tmp: Path, repeat: int) -> list[str]:
+def machine_limit(n_tips: int = 200_000) -> dict[str, float]:
+    """An estimate of this machine's limit: CPU ns per (tip x instance) of the bare arithmetic of one
+    sampled instance (the lever wrist, ``M = J Jhat^-1``, the largest singular value of ``I - k M``) in a
+    tight compiled loop on one core, no reachability, no search: planar (2 x 2, conformal parts) and
+    spatial (3 x 3, cofactor inverse, trigonometric eigenvalue). A field's sampled pass cannot cost
+    less per instance; its refinement and reachability come on top."""
+    import numba
+
+    @numba.njit(cache=False, fastmath=False)
+    def planar(X, P, est, L, k):
+        acc = 0.0
+        for i in range(X.shape[0]):
+            for j in range(P.shape[0]):
+                e0, e1 = X[i, 0] - P[j, 0], X[i, 1] - P[j, 1]
+                r = np.sqrt(e0 * e0 + e1 * e1)
+                w0, w1 = X[i, 0] - L * e0 / r, X[i, 1] - L * e1 / r
+                h = L / (2.0 * (L - r))
+                n1r, n1i = -h * (e1 * e1 - e0 * e0) / (r * r), 2.0 * h * e0 * e1 / (r * r)
+                dy, dz = est[0] - w0, est[1] - w1
+                rho2 = dy * dy + dz * dz
+                h2 = L / (2.0 * np.sqrt(rho2))
+                m2 = 1.0 - h2
+                n2r, n2i = -h2 * (dz * dz - dy * dy) / rho2, 2.0 * h2 * dz * dy / rho2
+                det = m2 * m2 - n2r * n2r - n2i * n2i
+                imr, inr, ini = m2 / det, -n2r / det, -n2i / det
+                m1 = 1.0 - h
+                mr = m1 * imr + n1r * inr + n1i * ini
+                mi = n1i * inr - n1r * ini
+                nr = m1 * inr + n1r * imr
+                ni = m1 * ini + n1i * imr
+                acc += np.sqrt((1 - k * mr) ** 2 + (k * mi) ** 2) + k * np.sqrt(nr * nr + ni * ni)
+        return acc
+
+    @numba.njit(cache=False, fastmath=False, inline="always")
+    def lever3(d0, d1, d2, L):
+        rho = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        sc, u0, u1, u2 = L / rho, d0 / rho, d1 / rho, d2 / rho
+        return (1 - sc + sc * u0 * u0, sc * u0 * u1, sc * u0 * u2, sc * u1 * u0, 1 - sc + sc * u1 * u1, sc * u1 * u2,
+                sc * u2 * u0, sc * u2 * u1, 1 - sc + sc * u2 * u2)
+
+    @numba.njit(cache=False, fastmath=False)
+    def spatial(X, P, est, L, k):
+        acc = 0.0
+        for i in range(X.shape[0]):
+            for j in range(P.shape[0]):
+                e0, e1, e2 = X[i, 0] - P[j, 0], X[i, 1] - P[j, 1], X[i, 2] - P[j, 2]
+                r = np.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
+                w0, w1, w2 = X[i, 0] - L * e0 / r, X[i, 1] - L * e1 / r, X[i, 2] - L * e2 / r
+                j00, j01, j02, j10, j11, j12, j20, j21, j22 = lever3(P[j, 0] - w0, P[j, 1] - w1, P[j, 2] - w2, L)
+                h00, h01, h02, h10, h11, h12, h20, h21, h22 = lever3(est[0] - w0, est[1] - w1, est[2] - w2, L)
+                c00, c01, c02 = h11 * h22 - h12 * h21, h12 * h20 - h10 * h22, h10 * h21 - h11 * h20
+                idet = 1.0 / (h00 * c00 + h01 * c01 + h02 * c02)
+                i00, i01, i02 = c00 * idet, (h02 * h21 - h01 * h22) * idet, (h01 * h12 - h02 * h11) * idet
+                i10, i11, i12 = c01 * idet, (h00 * h22 - h02 * h20) * idet, (h02 * h10 - h00 * h12) * idet
+                i20, i21, i22 = c02 * idet, (h01 * h20 - h00 * h21) * idet, (h00 * h11 - h01 * h10) * idet
+                g00 = 1 - k * (j00 * i00 + j01 * i10 + j02 * i20)
+                g01 = -k * (j00 * i01 + j01 * i11 + j02 * i21)
+                g02 = -k * (j00 * i02 + j01 * i12 + j02 * i22)
+                g10 = -k * (j10 * i00 + j11 * i10 + j12 * i20)
+                g11 = 1 - k * (j10 * i01 + j11 * i11 + j12 * i21)
+                g12 = -k * (j10 * i02 + j11 * i12 + j12 * i22)
+                g20 = -k * (j20 * i00 + j21 * i10 + j22 * i20)
+                g21 = -k * (j20 * i01 + j21 * i11 + j22 * i21)
+                g22 = 1 - k * (j20 * i02 + j21 * i12 + j22 * i22)
+                a00 = g00 * g00 + g10 * g10 + g20 * g20
+                a11 = g01 * g01 + g11 * g11 + g21 * g21
+                a22 = g02 * g02 + g12 * g12 + g22 * g22
+                a01 = g00 * g01 + g10 * g11 + g20 * g21
+                a02 = g00 * g02 + g10 * g12 + g20 * g22
+                a12 = g01 * g02 + g11 * g12 + g21 * g22
+                q = (a00 + a11 + a22) / 3
+                pp = np.sqrt(((a00 - q) ** 2 + (a11 - q) ** 2 + (a22 - q) ** 2 + 2 * (a01 * a01 + a02 * a02 + a12 * a12)) / 6)
+                ip = 1.0 / pp if pp > 0 else 1.0
+                b00, b11, b22, b01, b02, b12 = (a00 - q) * ip, (a11 - q) * ip, (a22 - q) * ip, a01 * ip, a02 * ip, a12 * ip
+                dB = b00 * (b11 * b22 - b12 * b12) - b01 * (b01 * b22 - b12 * b02) + b02 * (b01 * b12 - b11 * b02)
+                acc += np.sqrt(max(q + 2 * pp * np.cos(np.arccos(min(1.0, max(-1.0, dB / 2))) / 3), 0.0))
+        return acc
+
+    rng = np.random.default_rng(0)
+    out = {}
+    for name, f, d, m in (("planar", planar, 2, 25), ("spatial", spatial, 3, 27)):
+        est = np.array([0.0, 0.0, 0.16])[-d:]
+        P = est + rng.uniform(-0.005, 0.005, (m, d))
+        X = est + np.concatenate([np.zeros((n_tips, d - 1)), np.full((n_tips, 1), 0.12)], 1) + rng.uniform(-0.08, 0.08, (n_tips, d))
+        f(X[:2], P, est, 0.32, 1.0)
+        c0 = time.process_time()
+        f(X, P, est, 0.32, 1.0)
+        out[name] = (time.process_time() - c0) / (n_tips * m) * 1e9
+    return out
+
+
+def at_scale(tmp: Path, repeat: int, rho_res: float = RHO_RES) -> list[str]:
     """Issue 21's two problems, errplan (whole process and in process) and its peer alternately in
     one run: planar 0.25 mm over P1's workspace with a 5 x 5 port box (the chunked planar peer,
     reachability included), spatial PHANToM 1.5 task region at 2 mm with 3 x 3 x 3 ports (the
@@ -325,32 +490,48 @@ def at_scale(tmp: Path, repeat: int) -> list[str]:
                                             scp.controller.gain, arm)),
             ("spatial", sco, [str(so)],
              lambda mf: chunked_spatial_peer(mf.axes, sco.port.estimate, sco.instrument.length,
-                                             sco.controller.gain, [u.port_x, u.port_y, u.port_z], 3))):
+                                             sco.controller.gain, [u.port_x, u.port_y, u.port_z], 3)),
+            ("planar rho*", scp, [str(sp), "--resolution", str(rho_res)],
+             lambda mf: rho_planar_peer(mf.y, mf.z, scp.port.estimate, scp.instrument.length,
+                                        scp.controller.gain, arm))):
         t_cli, cpu_cli, t_in, t_peer, cpu_peer = [], [], [], [], []
+        metric = "rho_star" if name == "planar rho*" else "G_norm"
+        res_in = {"planar": 0.00025, "planar rho*": rho_res}.get(name)
         for _ in range(repeat):
             c0 = os.times()
-            t_cli.append(run_cli([*cli_args, "--out", str(tmp / f"{name}.npz"), "--metrics", "G_norm"]))
+            t_cli.append(run_cli([*cli_args, "--out", str(tmp / f"{name}.npz"), "--metrics", metric]))
             c1 = os.times()
             cpu_cli.append(c1.children_user + c1.children_system - c0.children_user - c0.children_system)
             mf = MetricField.load(tmp / f"{name}.npz")
             t0 = time.perf_counter()
-            compute_fields(scen, 0.00025 if name == "planar" else None, metrics=("G_norm",), workers=None)
+            compute_fields(scen, res_in, metrics=(metric,), workers=None)
             t_in.append(time.perf_counter() - t0)
             c0 = time.process_time()
             worst, tp = peer(mf)
             cpu_peer.append(time.process_time() - c0)
             t_peer.append(tp)
+        mine = mf.rho_star if metric == "rho_star" else mf.G_norm
         both = mf.valid & np.isfinite(worst)
-        diff = np.abs(worst[both] - mf.G_norm[both])
-        below = float(np.max((worst[both] - mf.G_norm[both]) / np.maximum(1, worst[both])))
+        diff = np.abs(worst[both] - mine[both])
+        # G_norm: the peer's sampled worst case never above errplan's; rho*: errplan's certified rho* never
+        # below the peer's sampled minimum (the peer's golden section stops within about 1e-8 of it)
+        below = float(np.max((worst[both] - mine[both]) / np.maximum(1, worst[both])))
         same_valid = float(np.mean(mf.valid == np.isfinite(worst)))
-        n, m = mf.valid.size, 25 if name == "planar" else 27
+        n, m = mf.valid.size, 27 if name == "spatial" else 25
         med = statistics.median
         res[name] = med(t_cli) / med(t_peer)
-        lines.append(f"| {name} | {n:,} ({int(mf.valid.sum()):,} valid) | {med(t_cli):.2f} ({med(cpu_cli):.1f} CPU) | "
+        label = {"planar": "planar 0.25 mm, 5 x 5", "spatial": "spatial 2 mm, 3 x 3 x 3",
+                 "planar rho*": f"planar rho* {rho_res * 1000:g} mm, 5 x 5"}[name]
+        lines.append(f"| {label} | {n:,} ({int(mf.valid.sum()):,} valid) | {med(t_cli):.2f} ({med(cpu_cli):.1f} CPU) | "
                      f"{med(t_in):.2f} | {med(t_peer):.2f} | {res[name]:.2f} | "
                      f"{med(cpu_cli) / (n * m) * 1e9:.0f} | {med(cpu_peer) / (n * m) * 1e9:.0f} | "
                      f"{np.mean(diff <= 1e-3) * 100:.2f} % / {below:.1e} / {same_valid * 100:.2f} % |")
+    lim = machine_limit()
+    lines.append("")
+    lines.append(f"machine limit (bare arithmetic of one sampled instance, compiled, one core, CPU ns per tip x instance): "
+                 f"planar {lim['planar']:.0f}, spatial {lim['spatial']:.0f}; at that cost on both cores the sampled pass alone "
+                 f"would take planar 0.25 mm {lim['planar'] * 3_104_200 * 25 / 2e9:.2f} s, spatial 2 mm "
+                 f"{lim['spatial'] * 1_185_921 * 27 / 2e9:.2f} s of wall time")
     head = ["| problem | grid tips | errplan whole process, s (CPU s) | errplan in process, s | peer in process, s | "
             "ratio whole/peer | errplan CPU ns per tip x instance | peer CPU ns per tip x instance | "
             "agree within 1e-3 / peer above errplan by at most / same validity |", "|---|---|---|---|---|---|---|---|---|"]
@@ -368,13 +549,14 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--quick", action="store_true", help="fewer scaling points")
+    ap.add_argument("--rho-res", type=float, default=RHO_RES, help="--scale: the rho* row's planar grid spacing, m")
     ap.add_argument("--scale", action="store_true",
                     help="only issue 21's problems at scale (planar 0.25 mm, spatial 2 mm) and their targets")
     a = ap.parse_args()
     if a.scale:
         load0 = os.getloadavg()[0]
         with tempfile.TemporaryDirectory() as d:
-            lines, res = at_scale(Path(d), a.repeat)
+            lines, res = at_scale(Path(d), a.repeat, a.rho_res)
         print(f"{os.cpu_count()} cores, load average (1 min) {load0:.2f} before, {os.getloadavg()[0]:.2f} after the run; medians of "
               f"{a.repeat}, errplan and peer alternately")
         print()
@@ -383,7 +565,7 @@ def main() -> int:
         print()
         print(f"targets (planar <= 0.25, spatial <= 0.5): planar {res['planar']:.2f} "
               f"{'met' if res['planar'] <= 0.25 else 'NOT met'}, spatial {res['spatial']:.2f} "
-              f"{'met' if res['spatial'] <= 0.5 else 'NOT met'}")
+              f"{'met' if res['spatial'] <= 0.5 else 'NOT met'}; rho* (no target set) {res['planar rho*']:.2f}")
         return 0 if ok else 1
     from errplan.fields import MetricField, compute_fields
     from errplan.api import load_scenario

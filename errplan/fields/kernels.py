@@ -24,6 +24,7 @@ from numba import literally
 from ..jit import njit
 
 from ..kinematics.urdf import reach_point
+from ..kinematics.urdf.chain import _locate
 from ..linalg import _smax3, inv3, phi_max3
 
 NEWTON = 8  # Newton iterations of the beam's port-position equation (as kinematics.shaft)
@@ -98,6 +99,87 @@ def _planar_reachable(arm, w0, w1):
                 and arm[10] - tol <= s <= arm[11] + tol):
             return True
     return False
+
+
+@njit(cache=True, error_model="numpy")
+def _cos_beta(rho, l1, l2):
+    """cos of the angle at the base between link 1 and the base->wrist line (law of cosines)."""
+    return min(1.0, max(-1.0, (rho * rho + l1 * l1 - l2 * l2) / (2.0 * l1 * rho)))
+
+
+@njit(cache=True, error_model="numpy")
+def _tip_reach2(x, base_port, lo, hi, L, arm):
+    """Reachability of every wrist the error set can need at planar tip ``x``, certified at once:
+    1 when some elbow branch keeps q2, q1 and q1 + q2 inside their limits, 1e-9 rad clear of them,
+    for every wrist in the disc that holds all of them; else 2 (check instance by instance with
+    :func:`_planar_reachable`, as before). Then each instance's exact test would say reachable: the
+    same answers, without one reachability test per instance.
+
+    The disc: centre the lever wrist through the box centre, radius ``(L / r_min) delta + L atan(t_max
+    L^2 / 12)`` as :func:`_tip_reach`. Over it, with d the base->wrist vector (|d| in
+    [rho_c - R, rho_c + R]): q2 = s acos(c(|d|)) - h2 (c the elbow's cosine, monotone in |d|),
+    q1 = angle(d) - s beta(|d|) - h1 (angle(d) within asin(R / rho_c) of its centre value, beta the
+    law-of-cosines angle, its cosine monotone on each side of sqrt(l1^2 - l2^2)), q1 + q2 within the
+    sum of the two ranges. Centre values by the exact test's own arctangents (so the same branch of
+    the angle), offsets by the monotone end values."""
+    if not (arm.shape[0] >= 26 and arm[25] == 1.0):
+        return 2
+    pc0 = base_port[0] + 0.5 * (lo[0] + hi[0])
+    pc1 = base_port[1] + 0.5 * (lo[1] + hi[1])
+    delta = 0.5 * math.sqrt((hi[0] - lo[0]) ** 2 + (hi[1] - lo[1]) ** 2)
+    e0, e1 = x[0] - pc0, x[1] - pc1
+    r = math.sqrt(e0 * e0 + e1 * e1)
+    rmin = r - delta
+    if not (rmin > 0.0 and r < L):
+        return 2
+    tmax = max(abs(lo[2]), abs(hi[2])) if lo.shape[0] > 2 else 0.0
+    R = L / rmin * delta + L * math.atan(tmax * L * L / 12.0) + 1e-9
+    dy = x[0] - L * e0 / r - arm[0]
+    dz = x[1] - L * e1 / r - arm[1]
+    l1, l2 = arm[2], arm[3]
+    rc = math.sqrt(dy * dy + dz * dz)
+    if not rc > 2.0 * R:
+        return 2
+    ra, rb = rc - R, rc + R
+    den = 2.0 * l1 * l2
+    ca = (ra * ra - l1 * l1 - l2 * l2) / den
+    cb = (rb * rb - l1 * l1 - l2 * l2) / den
+    cc = (rc * rc - l1 * l1 - l2 * l2) / den
+    if not (ca > -1.0 + 1e-9 and cb < 1.0 - 1e-9):
+        return 2
+    # beta over [ra, rb]: its cosine at the ends and at sqrt(l1^2 - l2^2) when that lies inside
+    kb_lo = min(_cos_beta(ra, l1, l2), _cos_beta(rb, l1, l2))
+    kb_hi = max(_cos_beta(ra, l1, l2), _cos_beta(rb, l1, l2))
+    if l1 > l2:
+        rs = math.sqrt(l1 * l1 - l2 * l2)
+        if ra < rs < rb:
+            kb_lo = min(kb_lo, _cos_beta(rs, l1, l2))
+    bc = math.acos(_cos_beta(rc, l1, l2))
+    db_lo, db_hi = math.acos(kb_hi) - bc, math.acos(kb_lo) - bc  # beta - beta_c
+    gc = math.acos(cc)
+    dg_lo, dg_hi = math.acos(cb) - gc, math.acos(ca) - gc  # acos(c) - acos(c_c): c grows with |d|
+    dth = math.asin(R / rc)
+    sn = math.sqrt(1.0 - cc * cc)
+    ch1, sh1, ch2, sh2 = arm[12], arm[13], arm[14], arm[15]
+    m = 1e-9
+    for sgn in (1.0, -1.0):
+        s_d = sgn * sn
+        x2, y2 = cc * ch2 + s_d * sh2, s_d * ch2 - cc * sh2
+        vz, vy = l1 + l2 * cc, l2 * s_d
+        rz, ry = dz * vz + dy * vy, dy * vz - dz * vy
+        x1, y1 = rz * ch1 + ry * sh1, ry * ch1 - rz * sh1
+        q2 = math.atan2(y2, x2)
+        q1 = math.atan2(y1, x1)
+        if sgn > 0:
+            q2lo, q2hi = q2 + dg_lo, q2 + dg_hi
+            q1lo, q1hi = q1 - dth - db_hi, q1 + dth - db_lo
+        else:
+            q2lo, q2hi = q2 - dg_hi, q2 - dg_lo
+            q1lo, q1hi = q1 - dth + db_lo, q1 + dth + db_hi
+        if (arm[8] + m <= q2lo and q2hi <= arm[9] - m and arm[6] + m <= q1lo and q1hi <= arm[7] - m
+                and arm[10] + m <= q1lo + q2lo and q1hi + q2hi <= arm[11] - m):
+            return 1
+    return 2
 
 
 def planar_arm_params(arm) -> np.ndarray:
@@ -245,7 +327,7 @@ def _flexed_J3(w, p, L, tvec, a, J, S):
 
 
 @njit(cache=True, error_model="numpy", inline="always", literal_args="d")
-def instance(d, x, theta, base_port, est, L, arm, Mb, jm, S, V):
+def instance(d, x, theta, base_port, est, L, arm, Mb, Pb, jm, S, V, full, known):
     """``M = J Jhat^-1`` of one error instance at tip ``x`` into ``Mb[jm]`` (d x d). Returns
     ``(ok, w0, w1, w2)``: ``ok`` False where the shaft does not pass the port, the controller's
     Jacobian is singular or (planar) the arm cannot place the wrist; in 3-D the wrist ``w`` is
@@ -262,13 +344,14 @@ def instance(d, x, theta, base_port, est, L, arm, Mb, jm, S, V):
     of a certified tip (benchmarks/fields.py).
     """
     if d == 2:
-        return _instance2(x, theta, base_port, est, L, arm, Mb, jm, S, V), 0.0, 0.0, 0.0
-    return _instance3(x, theta, base_port, est, L, Mb, jm, S, V)
+        return _instance2(x, theta, base_port, est, L, arm, Mb, jm, S, V, known), 0.0, 0.0, 0.0
+    return _instance3(x, theta, base_port, est, L, Mb, Pb, jm, S, V, full)
 
 
 @njit(cache=True, error_model="numpy")
-def _instance2(x, theta, base_port, est, L, arm, Mb, jm, S, V):
-    """The planar instance: conformal parts of J and Jhat in real arithmetic."""
+def _instance2(x, theta, base_port, est, L, arm, Mb, jm, S, V, known):
+    """The planar instance: conformal parts of J and Jhat in real arithmetic (``known``: the tip's
+    wrists are certified reachable, :func:`_tip_reach2`)."""
     if True:
         # Conformal parts (errplan.metrics) in real arithmetic: mu = mr + i mi, nu = nr + i ni.
         p0, p1 = base_port[0] + theta[0], base_port[1] + theta[1]
@@ -284,7 +367,7 @@ def _instance2(x, theta, base_port, est, L, arm, Mb, jm, S, V):
             ir = 1.0 / r
             w0 = x[0] - L * e0 * ir
             w1 = x[1] - L * e1 * ir
-            if not _planar_reachable(arm, w0, w1):
+            if not (known or _planar_reachable(arm, w0, w1)):
                 return False
             h = L / (2.0 * (L - r))
             m1r, m1i = 1.0 - h, 0.0
@@ -296,7 +379,7 @@ def _instance2(x, theta, base_port, est, L, arm, Mb, jm, S, V):
             phi = math.atan2(e0, e1) - math.atan(t * a * b / 3.0)
             w0 = x[0] - L * math.sin(phi)
             w1 = x[1] - L * math.cos(phi)
-            if not _planar_reachable(arm, w0, w1):
+            if not (known or _planar_reachable(arm, w0, w1)):
                 return False
             m1r, m1i, n1r, n1i = _flexed_parts2(w0, w1, p0, p1, L, t, a)
         # the controller's lever through the estimate: mu2 real, nu2 = -h2 (d_z - i d_y)^2 / rho^2
@@ -326,8 +409,17 @@ def _instance2(x, theta, base_port, est, L, arm, Mb, jm, S, V):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _instance3(x, theta, base_port, est, L, Mb, jm, S, V):
-    """The spatial instance: the 3-D lever in closed form, or the flexed shaft under a load."""
+def _instance3(x, theta, base_port, est, L, Mb, Pb, jm, S, V, full):
+    """The spatial instance: the 3-D lever in closed form, or the flexed shaft under a load.
+
+    The lever's ``M`` also goes into ``Pb[jm]`` in reduced form (:func:`gval`): ``n = u x v`` is a
+    singular vector of ``I - k M`` for every k (``P n = Ph n = n``), so ``I - k M`` splits into
+    ``1 - k (1 - s)(1 + c)`` along n and a 2 x 2 block on span{u, v}; in the basis (u, e) of that
+    plane (``v = (u.v) u + |u x v| e``) ``P = diag(0, 1)``, ``Ph = w w^T`` with ``w = (-|u x v|, u.v)``,
+    so the block of M is ``[[1 + c sv^2, -c sv cu], [-(1 - s) c sv cu, (1 - s)(1 + c cu^2)]]``
+    (``cu = u.v``, ``sv = |u x v|``). Under a load ``Pb[jm, 0]`` is NaN (the full 3 x 3 form). The
+    lever's full ``M`` is written only with ``full`` (|phi_max| and the motion maps need it; ||G|| at
+    any gain needs only ``Pb``)."""
     p0, p1, p2 = base_port[0] + theta[0], base_port[1] + theta[1], base_port[2] + theta[2]
     e0, e1, e2 = x[0] - p0, x[1] - p1, x[2] - p2
     r = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
@@ -354,7 +446,7 @@ def _instance3(x, theta, base_port, est, L, Mb, jm, S, V):
         # M = (I - s P)(I + c Ph) = I + c Ph - s P - s c P Ph, with P Ph = I - u u^T - v v^T + (u.v) u v^T
         uv = u0 * v0 + u1 * v1 + u2 * v2
         sc = s_ * c
-        for i in range(3):
+        for i in range(3 if full else 0):
             ui = u0 if i == 0 else (u1 if i == 1 else u2)
             vi = v0 if i == 0 else (v1 if i == 1 else v2)
             for j in range(3):
@@ -365,7 +457,16 @@ def _instance3(x, theta, base_port, est, L, Mb, jm, S, V):
                 Ph = dij - vi * vj
                 PPh = dij - ui * uj - vi * vj + uv * ui * vj
                 Mb[jm, i, j] = dij + c * Ph - s_ * P - sc * PPh
+        n0, n1, n2 = u1 * v2 - u2 * v1, u2 * v0 - u0 * v2, u0 * v1 - u1 * v0
+        sv = math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+        oms = 1.0 - s_
+        Pb[jm, 0] = 1.0 + c * sv * sv
+        Pb[jm, 1] = -c * sv * uv
+        Pb[jm, 2] = -oms * c * sv * uv
+        Pb[jm, 3] = oms * (1.0 + c * uv * uv)
+        Pb[jm, 4] = oms * (1.0 + c)
         return True, w0, w1, w2
+    Pb[jm, 0] = math.nan
     # A lateral load: the bending plane holds the port->tip line e1 and e2(psi); in it the planar
     # beam with load tau (docs/physics.md): chord c = cos(alpha) e1 - sin(alpha) e2, wrist x - L c.
     p = V[0]
@@ -416,6 +517,31 @@ def _instance3(x, theta, base_port, est, L, Mb, jm, S, V):
 
 
 @njit(cache=True, error_model="numpy")
+def _lever_out(x, grid, base_port, L, rmap):
+    """True when some unloaded sampled instance (``grid[j, 3] == 0`` or no load axis) certainly fails at
+    tip ``x`` (3-D): the shaft misses the port (the instance's own test) or its lever wrist lies off
+    the reachability map or in a voxel certified out (:func:`reach_point`'s first answers). The
+    cheapest exact test of an uncertified tip, before any instance is computed: the tip is then
+    invalid, as the search would find at that instance."""
+    na = grid.shape[1]
+    for j in range(grid.shape[0]):
+        if na > 3 and grid[j, 3] != 0.0:
+            continue
+        e0 = x[0] - (base_port[0] + grid[j, 0])
+        e1 = x[1] - (base_port[1] + grid[j, 1])
+        e2 = x[2] - (base_port[2] + grid[j, 2])
+        r = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
+        if not (r > 1e-9 and r < L):
+            return True
+        ir = 1.0 / r  # the wrist in _instance3's arithmetic, to the last bit
+        u0, u1, u2 = e0 * ir, e1 * ir, e2 * ir
+        ix, iy, iz = _locate(rmap, x[0] - L * u0, x[1] - L * u1, x[2] - L * u2)
+        if ix < 0 or rmap.state[ix, iy, iz] == 0:
+            return True
+    return False
+
+
+@njit(cache=True, error_model="numpy")
 def _tip_reach(x, base_port, lo, hi, L, rmap):
     """Reachability of every wrist the error set can need at tip ``x`` (3-D), from the map alone:
     1 all certified in, 0 all out (or off the map), 2 unknown (check instance by instance).
@@ -437,25 +563,34 @@ def _tip_reach(x, base_port, lo, hi, L, rmap):
     R = L / rmin * delta + L * math.atan(max(abs(lo[3]), abs(hi[3])) * L * L / 12.0) + 1e-9
     w0, w1, w2 = x[0] - L * e0 / r, x[1] - L * e1 / r, x[2] - L * e2 / r
     h = rmap.h
-    ilo = np.empty(3, np.int64)
-    ihi = np.empty(3, np.int64)
-    wc = (w0, w1, w2)
-    n = 1
-    for a in range(3):
-        ilo[a] = int(math.floor((wc[a] - R - rmap.origin[a]) / h))
-        ihi[a] = int(math.floor((wc[a] + R - rmap.origin[a]) / h))
-        if ihi[a] < 0 or ilo[a] >= rmap.shape[a]:
-            return 0  # the whole ball lies off the map: nothing there is reachable
-        if ilo[a] < 0 or ihi[a] >= rmap.shape[a]:
-            return 2
-        n *= ihi[a] - ilo[a] + 1
-    if n > 4096:
+    # the voxel index ranges in scalars (no per-tip allocation)
+    i0 = int(math.floor((w0 - R - rmap.origin[0]) / h))
+    i1 = int(math.floor((w0 + R - rmap.origin[0]) / h))
+    j0 = int(math.floor((w1 - R - rmap.origin[1]) / h))
+    j1 = int(math.floor((w1 + R - rmap.origin[1]) / h))
+    k0 = int(math.floor((w2 - R - rmap.origin[2]) / h))
+    k1 = int(math.floor((w2 + R - rmap.origin[2]) / h))
+    s0, s1, s2 = rmap.shape[0], rmap.shape[1], rmap.shape[2]
+    # axis by axis: the whole ball off the map (nothing there is reachable), else partly off
+    if i1 < 0 or i0 >= s0:
+        return 0
+    if i0 < 0 or i1 >= s0:
+        return 2
+    if j1 < 0 or j0 >= s1:
+        return 0
+    if j0 < 0 or j1 >= s1:
+        return 2
+    if k1 < 0 or k0 >= s2:
+        return 0
+    if k0 < 0 or k1 >= s2:
+        return 2
+    if (i1 - i0 + 1) * (j1 - j0 + 1) * (k1 - k0 + 1) > 4096:
         return 2
     seen_in = False
     seen_out = False
-    for i in range(ilo[0], ihi[0] + 1):
-        for j in range(ilo[1], ihi[1] + 1):
-            for k in range(ilo[2], ihi[2] + 1):
+    for i in range(i0, i1 + 1):
+        for j in range(j0, j1 + 1):
+            for k in range(k0, k1 + 1):
                 st = rmap.state[i, j, k]
                 if st == 1:
                     seen_in = True
@@ -482,6 +617,28 @@ def gnorm(d, Mb, j, k):
     return _smax3(1.0 - k * Mb[j, 0, 0], -k * Mb[j, 0, 1], -k * Mb[j, 0, 2],
                   -k * Mb[j, 1, 0], 1.0 - k * Mb[j, 1, 1], -k * Mb[j, 1, 2],
                   -k * Mb[j, 2, 0], -k * Mb[j, 2, 1], 1.0 - k * Mb[j, 2, 2])
+
+
+@njit(cache=True, error_model="numpy", literal_args="d")
+def gval(d, Mb, Pb, j, k):
+    """``||I - k M||_2`` of instance ``j`` as :func:`gnorm`, from the reduced form in ``Pb[j]`` where
+    :func:`_instance3` left one (the 3-D lever): ``max(|1 - k Pb[j, 4]|, sigma_max(I - k B))`` with
+    ``B = [[Pb[j, 0], Pb[j, 1]], [Pb[j, 2], Pb[j, 3]]]``, the 2 x 2 value by its conformal parts
+    (``|mu| + |nu|``): no eigenvalue cubic, no trigonometry."""
+    if d == 2:
+        return gnorm(2, Mb, j, k)
+    b00 = Pb[j, 0]
+    if not b00 == b00:
+        return gnorm(3, Mb, j, k)
+    g00 = 1.0 - k * b00
+    g01 = -k * Pb[j, 1]
+    g10 = -k * Pb[j, 2]
+    g11 = 1.0 - k * Pb[j, 3]
+    a = 0.5 * (g00 + g11)
+    b = 0.5 * (g10 - g01)
+    c = 0.5 * (g00 - g11)
+    e = 0.5 * (g01 + g10)
+    return max(abs(1.0 - k * Pb[j, 4]), math.sqrt(a * a + b * b) + math.sqrt(c * c + e * e))
 
 
 @njit(cache=True, error_model="numpy")
@@ -529,8 +686,8 @@ def phi_bound(Mb, j):
 
 # ----------------------------------------------------------------------------- the search
 @njit(cache=True, error_model="numpy", literal_args="d")
-def _poll_value(d, which, Mb, j, k):
-    return gnorm(d, Mb, j, k) if which == 0 else _phimax(d, Mb, j)
+def _poll_value(d, which, Mb, Pb, j, k):
+    return gval(d, Mb, Pb, j, k) if which == 0 else _phimax(d, Mb, j)
 
 
 @njit(cache=True, error_model="numpy")
@@ -623,7 +780,7 @@ def _peak_raise(vals, j, pos, stride, counts, periodic, na):
 
 @njit(cache=True, error_model="numpy", literal_args="d")
 def _pattern(d, which, k, x, th, best, step0, lo, hi, active, periodic, refine, extra, base_port, est, L, arm,
-             chain, rmap, M, S, V, cand, known):
+             chain, rmap, M, P1, S, V, cand, known):
     """Coordinate pattern search for the maximum of metric ``which`` (0: ||G|| at gain k, 1: |phi_max|)
     from ``th`` (updated in place) with value ``best``. Returns ``(best, ok)``; ``ok`` is False as
     soon as a polled instance cannot reach the tip (robust validity)."""
@@ -646,12 +803,12 @@ def _pattern(d, which, k, x, th, best, step0, lo, hi, active, periodic, refine, 
                         if v == th[ax]:
                             continue  # clipped back onto the centre: a worst case on the box face
                     cand[ax] = v
-                    ok, w0, w1, w2 = instance(d, x, cand, base_port, est, L, arm, M, 0, S, V)
+                    ok, w0, w1, w2 = instance(d, x, cand, base_port, est, L, arm, M, P1, 0, S, V, which == 1, known)
                     if not (ok and (d == 2 or known or reach_point(chain, rmap, w0, w1, w2))):
                         return best, False
                     if which == 1 and d == 3 and phi_bound(M, 0) <= best:
                         continue  # this instance cannot raise the worst |phi_max|
-                    f = _poll_value(d, which, M, 0, k)
+                    f = _poll_value(d, which, M, P1, 0, k)
                     if f > best:
                         best = f
                         for i in range(na):
@@ -662,7 +819,7 @@ def _pattern(d, which, k, x, th, best, step0, lo, hi, active, periodic, refine, 
 
 
 @njit(cache=True, error_model="numpy", literal_args="d")
-def _golden(d, Ms, idx, na_, kmax, iters):
+def _golden(d, Ms, Pb, idx, na_, kmax, iters):
     """``min over k in [0, kmax] of max_{i in idx[:na_]} ||I - k Ms[i]||`` by golden section (convex in k)."""
     gr = (math.sqrt(5.0) - 1.0) / 2.0
     a, b = 0.0, kmax
@@ -670,26 +827,26 @@ def _golden(d, Ms, idx, na_, kmax, iters):
     fc = 0.0
     fd = 0.0
     for q in range(na_):
-        fc = max(fc, gnorm(d, Ms, idx[q], c))
-        fd = max(fd, gnorm(d, Ms, idx[q], e))
+        fc = max(fc, gval(d, Ms, Pb, idx[q], c))
+        fd = max(fd, gval(d, Ms, Pb, idx[q], e))
     for _ in range(iters):
         if fc < fd:
             b, e, fd = e, c, fc
             c = b - gr * (b - a)
             fc = 0.0
             for q in range(na_):
-                fc = max(fc, gnorm(d, Ms, idx[q], c))
+                fc = max(fc, gval(d, Ms, Pb, idx[q], c))
         else:
             a, c, fc = c, e, fd
             e = a + gr * (b - a)
             fd = 0.0
             for q in range(na_):
-                fd = max(fd, gnorm(d, Ms, idx[q], e))
+                fd = max(fd, gval(d, Ms, Pb, idx[q], e))
     return 0.5 * (a + b)
 
 
 @njit(cache=True, error_model="numpy", literal_args="d")
-def _golden_gain(d, Ms, m, iters, k0, idx):
+def _golden_gain(d, Ms, Pb, m, iters, k0, idx):
     """``min over k > 0 of max_i ||I - k M_i||`` over the m sampled instances; ``(rho, k)``,
     ``(1, 0)`` where no gain contracts.
 
@@ -708,7 +865,7 @@ def _golden_gain(d, Ms, m, iters, k0, idx):
     kmax = 2.0 / amax if amax > 0 else 1.0
     jw, vw = 0, -1.0
     for i in range(m):
-        v = gnorm(d, Ms, i, k0)
+        v = gval(d, Ms, Pb, i, k0)
         if v > vw:
             jw, vw = i, v
     idx[0] = jw
@@ -716,13 +873,13 @@ def _golden_gain(d, Ms, m, iters, k0, idx):
     kk = 0.0
     rho = 1.0
     while True:
-        kk = _golden(d, Ms, idx, n_act, kmax, iters)
+        kk = _golden(d, Ms, Pb, idx, n_act, kmax, iters)
         act = 0.0
         for q in range(n_act):
-            act = max(act, gnorm(d, Ms, idx[q], kk))
+            act = max(act, gval(d, Ms, Pb, idx[q], kk))
         jw, vw = -1, act
         for i in range(m):
-            v = gnorm(d, Ms, i, kk)
+            v = gval(d, Ms, Pb, i, kk)
             if v > vw * (1.0 + 1e-13) + 1e-15:
                 jw, vw = i, v
         rho = vw
@@ -770,7 +927,9 @@ def _search(d, X, grid, counts, active, periodic, lo, hi, step0, base_port, est,
     vals_g = np.empty(m)
     vals_p = np.empty(m)
     Ms = np.empty((m, d, d))
+    Pbs = np.empty((m, 5))
     M = np.empty((1, d, d))
+    P1 = np.empty((1, 5))
     S = np.zeros((8, 3, 3))
     V = np.zeros((8, 3))
     th = np.empty(na)
@@ -783,6 +942,7 @@ def _search(d, X, grid, counts, active, periodic, lo, hi, step0, base_port, est,
     _sample_table(counts, periodic, na, m, pos, stride, nbr)
     # 3-D with a load: samples at tau = 0 repeat along the direction axis psi (the last one)
     dup = d == 3 and na == 5 and counts[4] > 1
+    full = want_phi or want_rho  # the sampled M themselves (|phi_max|, rho*'s gain bracket), not only ||G||
     for ii in range(n):
         x = X[ii]
         ok = True
@@ -791,19 +951,25 @@ def _search(d, X, grid, counts, active, periodic, lo, hi, step0, base_port, est,
             tr = _tip_reach(x, base_port, lo, hi, L, rmap)
             ok = tr != 0
             known = tr == 1
+            if tr == 2:
+                ok = not _lever_out(x, grid, base_port, L, rmap)
+        else:
+            known = _tip_reach2(x, base_port, lo, hi, L, arm) == 1
         for j in range(m if ok else 0):
             if dup and grid[j, 3] == 0.0 and j % counts[4] != 0:
                 j0 = j - j % counts[4]  # the same instance: tau = 0 has no direction
                 for a in range(d):
                     for b in range(d):
                         Ms[j, a, b] = Ms[j0, a, b]
+                for a in range(5):
+                    Pbs[j, a] = Pbs[j0, a]
                 vals_g[j] = vals_g[j0]
                 continue
-            okj, w0, w1, w2 = instance(d, x, grid[j], base_port, est, L, arm, Ms, j, S, V)
+            okj, w0, w1, w2 = instance(d, x, grid[j], base_port, est, L, arm, Ms, Pbs, j, S, V, full, known)
             if not (okj and (d == 2 or known or reach_point(chain, rmap, w0, w1, w2))):
                 ok = False
                 break
-            vals_g[j] = gnorm(d, Ms, j, k)
+            vals_g[j] = gval(d, Ms, Pbs, j, k)
         if ok and want_phi:
             if d == 2:
                 for j in range(m):
@@ -847,7 +1013,7 @@ def _search(d, X, grid, counts, active, periodic, lo, hi, step0, base_port, est,
                 for i in range(na):
                     th[i] = grid[start, i]
                 b, ok = _pattern(d, which, k, x, th, vals[start], step0, lo, hi, active, periodic, refine, extra,
-                                 base_port, est, L, arm, chain, rmap, M, S, V, cand, known)
+                                 base_port, est, L, arm, chain, rmap, M, P1, S, V, cand, known)
                 if not ok:
                     break
                 best_all = max(best_all, b)
@@ -865,19 +1031,19 @@ def _search(d, X, grid, counts, active, periodic, lo, hi, step0, base_port, est,
         out_g[ii] = results[0]
         out_p[ii] = results[1] if want_phi else np.nan
         if want_rho:
-            rs, ks = _golden_gain(d, Ms, m, 60, k, idx)
+            rs, ks = _golden_gain(d, Ms, Pbs, m, 60, k, idx)
             if ks > 0:
                 # certify at k*: the refined worst case over the continuous set at that gain
                 jbest = 0
                 vbest = -1.0
                 for j in range(m):
-                    v = gnorm(d, Ms, j, ks)
+                    v = gval(d, Ms, Pbs, j, ks)
                     if v > vbest:
                         vbest, jbest = v, j
                 for i in range(na):
                     th[i] = grid[jbest, i]
                 ref, ok = _pattern(d, 0, ks, x, th, vbest, step0, lo, hi, active, periodic, refine, extra,
-                                   base_port, est, L, arm, chain, rmap, M, S, V, cand, known)
+                                   base_port, est, L, arm, chain, rmap, M, P1, S, V, cand, known)
                 rs = max(rs, ref) if ok else 1.0
             else:
                 rs = 1.0
@@ -916,8 +1082,9 @@ def _maps3(X, TH, base_port, est, L, arm, chain, rmap, out_M, out_ok):
 def _motion_maps(d, X, TH, base_port, est, L, arm, chain, rmap, out_M, out_ok):
     S = np.zeros((8, 3, 3))
     V = np.zeros((8, 3))
+    Pb = np.empty((X.shape[0], 5))
     for i in range(X.shape[0]):
-        ok, w0, w1, w2 = instance(d, X[i], TH[i], base_port, est, L, arm, out_M, i, S, V)
+        ok, w0, w1, w2 = instance(d, X[i], TH[i], base_port, est, L, arm, out_M, Pb, i, S, V, True, False)
         ok = ok and (d == 2 or reach_point(chain, rmap, w0, w1, w2))
         out_ok[i] = ok
         if not ok:
