@@ -11,11 +11,15 @@ How: numba's ``FunctionCache.load_overload`` is wrapped here; a ``None`` result 
 is a compile about to start.
 
 Constant arguments are compile-time constants. numba compiles a kernel once per distinct argument types,
-and a constant passed from compiled code (``instance(d, ...)`` with ``d`` the literal ``2``) is a type of
+and a constant passed from compiled code (``gval(d, ...)`` with ``d`` the literal ``2``) is a type of
 its own, ``Literal[int](2)``; but numba prunes a branch only on constants it can see, not on such an
 argument, so ``if d == 2: planar else: spatial`` compiled both. errplan's kernels run a pass of their own
 (:class:`LiteralArgsAreConstants`, through numba's ``pipeline_class`` option) that turns an integer or
 boolean literal argument into a constant before numba prunes: the planar search compiles no 3-D code.
+A function forced inline (``inline="always"``) is inlined before that pruning, branches and all: a
+dispatch on ``d`` belongs in the caller, not in an inlined helper. The fields' entry kernels take no ``d``:
+each is compiled from a copy of the function with ``d`` a constant of its globals
+(:func:`errplan.fields.kernels._per_dim`).
 
 The lowest layer: numba and the standard library only.
 """

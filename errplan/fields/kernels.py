@@ -2,7 +2,7 @@
 ``rho*`` over a bounded error set, tip by tip, for the planar arm (``d = 2``, closed forms through
 conformal parts) and for any URDF arm (``d = 3``).
 
-One search serves both dimensions; only the physics of one error instance (:func:`instance`)
+One search serves both dimensions; only the physics of one error instance (:func:`_instance2`, :func:`_instance3`)
 branches on ``d``. The search is the method of :mod:`errplan.fields` (the numpy reference in
 :mod:`.search`): the error box sampled on a grid, the worst sample refined by a coordinate
 pattern search (step halved ``refine`` times, polls a box face clips skipped, further passes while
@@ -19,7 +19,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import literally
+import types as _pytypes
 
 from ..jit import njit
 
@@ -326,26 +326,24 @@ def _flexed_J3(w, p, L, tvec, a, J, S):
             J[i, j] = (1.0 if i == j else 0.0) + L * (v * dbeta + cb * S[1, i, j] + sb * S[3, i, j])
 
 
-@njit(cache=True, error_model="numpy", inline="always", literal_args="d")
-def instance(d, x, theta, base_port, est, L, arm, Mb, Pb, jm, S, V, full, known):
-    """``M = J Jhat^-1`` of one error instance at tip ``x`` into ``Mb[jm]`` (d x d). Returns
-    ``(ok, w0, w1, w2)``: ``ok`` False where the shaft does not pass the port, the controller's
-    Jacobian is singular or (planar) the arm cannot place the wrist; in 3-D the wrist ``w`` is
-    returned and the caller checks its reachability (:func:`reach_point`) unless :func:`_tip_reach`
-    certified the tip. ``S`` (8, 3, 3) and ``V`` (8, 3) are scratch. This and :func:`_instance3` are the
-    only kernels forced inline: a call would reference-count every array argument, which costs more
-    than the arithmetic in the 3-D search (about 10 % of a spatial field without it). Every other kernel
-    here was inline too; that doubled the first run's compile for no measurable run time (the planar
-    fields' first run: 105 s before, about 60 s now with the split dispatch of :func:`worst_case_tile`).
-
-    Why the 3-D reachability check is the caller's: an inlined function that takes the chain and
-    the reachability map (ten arrays) and uses them behind a branch keeps their reference counts
-    (atomic increments) on every call even when the branch is never taken; that doubled the cost
-    of a certified tip (benchmarks/fields.py).
-    """
-    if d == 2:
-        return _instance2(x, theta, base_port, est, L, arm, Mb, jm, S, V, known), 0.0, 0.0, 0.0
-    return _instance3(x, theta, base_port, est, L, Mb, Pb, jm, S, V, full)
+# One error instance: ``M = J Jhat^-1`` at tip ``x`` into ``Mb[jm]`` (d x d), :func:`_instance2` in the
+# plane, :func:`_instance3` in 3-D; ``(ok, w0, w1, w2)``: ``ok`` False where the shaft does not pass the
+# port, the controller's Jacobian is singular or (planar) the arm cannot place the wrist; in 3-D the wrist
+# ``w`` is returned and the caller checks its reachability (:func:`reach_point`) unless :func:`_tip_reach`
+# certified the tip. ``S`` (8, 3, 3) and ``V`` (8, 3) are scratch.
+#
+# :func:`_instance3` is the only kernel forced inline: a call would reference-count every array argument,
+# which costs more than the arithmetic in the 3-D search (about 10 % of a spatial field without it).
+# Every other kernel here was inline too; that doubled the first run's compile for no measurable run time.
+# The callers branch on the dimension themselves (``if d == 2: _instance2(...) else: _instance3(...)``
+# with ``d`` a constant): numba inlines an ``inline="always"`` function before it prunes the branches of
+# the inlined code, so a dispatching ``instance(d, ...)`` forced inline made the planar kernels inline
+# (and then drop) the whole 3-D instance at every call site, about 2 s of compile each.
+#
+# Why the 3-D reachability check is the caller's: an inlined function that takes the chain and the
+# reachability map (ten arrays) and uses them behind a branch keeps their reference counts (atomic
+# increments) on every call even when the branch is never taken; that doubled the cost of a certified
+# tip (benchmarks/fields.py).
 
 
 @njit(cache=True, error_model="numpy")
@@ -803,7 +801,10 @@ def _pattern(d, which, k, x, th, best, step0, lo, hi, active, periodic, refine, 
                         if v == th[ax]:
                             continue  # clipped back onto the centre: a worst case on the box face
                     cand[ax] = v
-                    ok, w0, w1, w2 = instance(d, x, cand, base_port, est, L, arm, M, P1, 0, S, V, which == 1, known)
+                    if d == 2:  # the branch here, not in an inlined instance(): see instance()
+                        ok, w0, w1, w2 = _instance2(x, cand, base_port, est, L, arm, M, 0, S, V, known), 0.0, 0.0, 0.0
+                    else:
+                        ok, w0, w1, w2 = _instance3(x, cand, base_port, est, L, M, P1, 0, S, V, which == 1)
                     if not (ok and (d == 2 or known or reach_point(chain, rmap, w0, w1, w2))):
                         return best, False
                     if which == 1 and d == 3 and phi_bound(M, 0) <= best:
@@ -905,23 +906,11 @@ def worst_case_tile(X, *args) -> None:
     (_tile2 if X.shape[1] == 2 else _tile3)(X, *args)
 
 
-@njit(cache=True, error_model="numpy")
-def _tile2(X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L, k, arm, chain, rmap,
+def _search(X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L, k, arm, chain, rmap,
             refine, extra, second_start, want_phi, want_rho, out_valid, out_g, out_p, out_rho, out_k):
-    _search(literally(2), X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L, k, arm, chain, rmap,
-            refine, extra, second_start, want_phi, want_rho, out_valid, out_g, out_p, out_rho, out_k)
-
-
-@njit(cache=True, error_model="numpy")
-def _tile3(X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L, k, arm, chain, rmap,
-            refine, extra, second_start, want_phi, want_rho, out_valid, out_g, out_p, out_rho, out_k):
-    _search(literally(3), X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L, k, arm, chain, rmap,
-            refine, extra, second_start, want_phi, want_rho, out_valid, out_g, out_p, out_rho, out_k)
-
-
-@njit(cache=True, error_model="numpy", literal_args="d")
-def _search(d, X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L, k, arm, chain, rmap,
-            refine, extra, second_start, want_phi, want_rho, out_valid, out_g, out_p, out_rho, out_k):
+    """The search of :func:`worst_case_tile`; compiled once per dimension (:func:`_per_dim`: ``_tile2``,
+    ``_tile3``), ``d`` a constant of the module globals there."""
+    d = _D
     n = X.shape[0]
     m, na = grid.shape
     vals_g = np.empty(m)
@@ -965,7 +954,10 @@ def _search(d, X, grid, counts, active, periodic, lo, hi, step0, base_port, est,
                     Pbs[j, a] = Pbs[j0, a]
                 vals_g[j] = vals_g[j0]
                 continue
-            okj, w0, w1, w2 = instance(d, x, grid[j], base_port, est, L, arm, Ms, Pbs, j, S, V, full, known)
+            if d == 2:
+                okj, w0, w1, w2 = _instance2(x, grid[j], base_port, est, L, arm, Ms, j, S, V, known), 0.0, 0.0, 0.0
+            else:
+                okj, w0, w1, w2 = _instance3(x, grid[j], base_port, est, L, Ms, Pbs, j, S, V, full)
             if not (okj and (d == 2 or known or reach_point(chain, rmap, w0, w1, w2))):
                 ok = False
                 break
@@ -1068,26 +1060,40 @@ def motion_maps(X, TH, base_port, est, L, arm, chain, rmap, out_M, out_ok) -> No
     (_maps2 if X.shape[1] == 2 else _maps3)(X, TH, base_port, est, L, arm, chain, rmap, out_M, out_ok)
 
 
-@njit(cache=True, error_model="numpy")
-def _maps2(X, TH, base_port, est, L, arm, chain, rmap, out_M, out_ok):
-    _motion_maps(literally(2), X, TH, base_port, est, L, arm, chain, rmap, out_M, out_ok)
-
-
-@njit(cache=True, error_model="numpy")
-def _maps3(X, TH, base_port, est, L, arm, chain, rmap, out_M, out_ok):
-    _motion_maps(literally(3), X, TH, base_port, est, L, arm, chain, rmap, out_M, out_ok)
-
-
-@njit(cache=True, error_model="numpy", literal_args="d")
-def _motion_maps(d, X, TH, base_port, est, L, arm, chain, rmap, out_M, out_ok):
+def _motion_maps(X, TH, base_port, est, L, arm, chain, rmap, out_M, out_ok):
+    """:func:`motion_maps`' loop; compiled once per dimension (``_maps2``, ``_maps3``) as :func:`_search`."""
+    d = _D
     S = np.zeros((8, 3, 3))
     V = np.zeros((8, 3))
     Pb = np.empty((X.shape[0], 5))
     for i in range(X.shape[0]):
-        ok, w0, w1, w2 = instance(d, X[i], TH[i], base_port, est, L, arm, out_M, Pb, i, S, V, True, False)
+        if d == 2:
+            ok, w0, w1, w2 = _instance2(X[i], TH[i], base_port, est, L, arm, out_M, i, S, V, False), 0.0, 0.0, 0.0
+        else:
+            ok, w0, w1, w2 = _instance3(X[i], TH[i], base_port, est, L, out_M, Pb, i, S, V, True)
         ok = ok and (d == 2 or reach_point(chain, rmap, w0, w1, w2))
         out_ok[i] = ok
         if not ok:
             for a in range(d):
                 for b in range(d):
                     out_M[i, a, b] = np.nan
+
+
+_D = 0  # the dimension of a kernel made by _per_dim (there a constant of its own globals)
+
+
+def _per_dim(f, d: int):
+    """``f`` compiled for dimension ``d``: a copy of the function whose globals hold ``_D = d``, so that
+    ``d = _D`` is a compile-time constant (numba freezes global numbers): the branches of the other
+    dimension are pruned, callees taking ``d`` get the literal. An entry compiled straight from Python,
+    not a wrapper passing ``literally(d)`` to a kernel with ``d`` an argument: such a wrapper linked and
+    optimized the whole search a second time (about 4 s of a cold 3-D compile, 3 s of a planar one)."""
+    g = _pytypes.FunctionType(f.__code__, dict(f.__globals__, _D=d), f"{f.__name__}{d}", f.__defaults__,
+                              f.__closure__)
+    g.__qualname__ = g.__name__  # its own entry in numba's disk cache
+    g.__doc__ = f.__doc__
+    return njit(cache=True, error_model="numpy")(g)
+
+
+_tile2, _tile3 = _per_dim(_search, 2), _per_dim(_search, 3)
+_maps2, _maps3 = _per_dim(_motion_maps, 2), _per_dim(_motion_maps, 3)

@@ -10,7 +10,11 @@ from ...jit import njit
 from .model import IK_TOL, LIMIT_TOL, TWO_PI
 
 
-@njit(cache=True, inline="always")
+# Helpers on tuples of scalars (_mm, _column, _dot) are real calls, not forced inline: LLVM inlines them
+# all the same (no arrays, no reference counts), while numba's own inlining typed and lowered a copy at
+# each of their 18 call sites in _fkjacz3 and _solve (about 2 s of the first run's compile). Helpers that
+# take the chain or the map (namedtuples of arrays) stay inline: a call would reference-count them.
+@njit(cache=True)
 def _mm(A, B):
     return (A[0] * B[0] + A[1] * B[3] + A[2] * B[6], A[0] * B[1] + A[1] * B[4] + A[2] * B[7],
             A[0] * B[2] + A[1] * B[5] + A[2] * B[8],
@@ -63,7 +67,7 @@ def _zaxis(chain, i, R):
             R[6] * ax + R[7] * ay + R[8] * az)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _column(jt, z, o, w):
     if jt == 0:
         d0, d1, d2 = w[0] - o[0], w[1] - o[1], w[2] - o[2]
@@ -114,7 +118,7 @@ def jac_point(chain, q, outJ33):
         outJ33[r, 2] = c2[r]
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _dot(a, b):
     return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
