@@ -279,21 +279,27 @@ def chunked_planar_peer(y, z, est, L, k, arm, chunk=65536) -> tuple[np.ndarray, 
     for c0 in range(0, len(X), chunk):
         Xc = X[c0:c0 + chunk]
         worst = np.full(len(Xc), -np.inf)
-        for dy in np.linspace(-BOX, BOX, 5):
-            for dz in np.linspace(-BOX, BOX, 5):
-                p = est + [dy, dz]
-                e = Xc - p
-                r = np.sqrt(e[:, 0] ** 2 + e[:, 1] ** 2)
-                m = (r < L) & (r > 1e-9)
-                w = Xc - L * e / np.where(m, r, 1.0)[:, None]
-                m &= arm.reachable(w)
-                x, w = Xc[m], w[m]
-                g = _peer_g_norm(p, est, w, L, k)
-                full = np.full(len(Xc), np.nan)  # an unreachable instance invalidates the tip
-                full[m] = g
-                worst = np.maximum(worst, full)
+        for p, w, m in _peer_instances(Xc, est, L, arm):
+            g = _peer_g_norm(p, est, w[m], L, k)
+            full = np.full(len(Xc), np.nan)  # an unreachable instance invalidates the tip
+            full[m] = g
+            worst = np.maximum(worst, full)
         out[c0:c0 + chunk] = worst
     return out.reshape(len(y), len(z)), time.perf_counter() - t0
+
+
+def _peer_instances(Xc, est, L, arm):
+    """The planar peers' port instances (the 5 x 5 box around ``est``): for each, the true port ``p``, the
+    lever wrists ``w`` (n, 2) of the tips ``Xc`` and where the instance is valid ``m`` (the shaft reaches
+    the tip through the port and the arm reaches the wrist)."""
+    for dy in np.linspace(-BOX, BOX, 5):
+        for dz in np.linspace(-BOX, BOX, 5):
+            p = est + [dy, dz]
+            e = Xc - p
+            r = np.sqrt(e[:, 0] ** 2 + e[:, 1] ** 2)
+            m = (r < L) & (r > 1e-9)
+            w = Xc - L * e / np.where(m, r, 1.0)[:, None]
+            yield p, w, m & np.asarray(arm.reachable(w), bool)
 
 
 def _peer_motion_map(p, est, w, L):
@@ -331,15 +337,9 @@ def rho_planar_peer(y, z, est, L, k, arm, chunk=16384, iters=40) -> tuple[np.nda
         Xc = X[c0:c0 + chunk]
         ok = np.ones(len(Xc), bool)
         ms = []
-        for dy in np.linspace(-BOX, BOX, 5):
-            for dz in np.linspace(-BOX, BOX, 5):
-                p = est + [dy, dz]
-                e = Xc - p
-                r = np.sqrt(e[:, 0] ** 2 + e[:, 1] ** 2)
-                m = (r < L) & (r > 1e-9)
-                w = Xc - L * e / np.where(m, r, 1.0)[:, None]
-                ok &= m & arm.reachable(w)
-                ms.append(_peer_motion_map(p, est, w, L))
+        for p, w, m in _peer_instances(Xc, est, L, arm):
+            ok &= m
+            ms.append(_peer_motion_map(p, est, w, L))
         v = ok & np.all(np.isfinite(np.array([mm[0] for mm in ms])), axis=0)
         if not v.any():
             continue
