@@ -11,8 +11,11 @@ run are those of any later one. A warm cache starts nothing; a failed or killed 
 command compiles that part itself. ``ERRPLAN_WARMUP=0`` turns it off; it needs 2 cores.
 
 Parts (each compiles, or loads, the kernels of one step at the argument types the step passes):
-``fields2``/``fields3`` (the worst-case search and the motion maps), ``plan2``/``plan3`` (the planner's
-cell walks), ``gains3`` (the 3-D gains: ``||I - k M||`` grids, cuts, inverses, inverse kinematics).
+``fields2``/``fields3`` (the worst-case search with the exact |phi_max|, and the motion maps),
+``fields2g``/``fields3g`` (the search without it: the planner's and the demo's spatial fields),
+``plan2``/``plan3`` (the planner's cell walks), ``gains3`` (the 3-D gains: ``||I - k M||`` grids, cuts,
+inverses, inverse kinematics), ``anatomy`` (the robust clearance of ``[anatomy]``: its scenario checks,
+the planner's motion checks, the gains' and the replays' clearances).
 """
 from __future__ import annotations
 
@@ -31,10 +34,10 @@ ENV = "ERRPLAN_WARMUP"
 _STATE: dict = {"proc": None, "status": None, "parts": ()}
 
 
-def _fields(d: int) -> None:
-    """The search and the motion maps of dimension ``d``, each run once on no tips with arguments of the
-    types :mod:`errplan.fields.compute` passes (a URDF arm's chain and reachability map are placeholders
-    of the same numba types, so no scenario is needed)."""
+def _fields(d: int, phi: bool = True) -> None:
+    """The search (with the exact |phi_max| or without) and the motion maps of dimension ``d``, each run
+    once on no tips with arguments of the types :mod:`errplan.fields.compute` passes (a URDF arm's chain
+    and reachability map are placeholders of the same numba types, so no scenario is needed)."""
     import numpy as np
 
     from ..fields.compute import EXTRA_PASSES, SECOND_START, _no_chain
@@ -45,7 +48,7 @@ def _fields(d: int) -> None:
     f, b, v, X = np.zeros(na), np.zeros(na, bool), np.zeros(d), np.zeros((0, d))
     out = [np.zeros(0, bool)] + [np.zeros(0) for _ in range(4)]
     worst_case_tile(X, np.zeros((1, na)), np.ones(na, np.int64), b, b.copy(), f, f.copy(), f.copy(), v, v.copy(),
-                    1.0, 1.0, np.zeros(16), chain, rmap, 1, EXTRA_PASSES, SECOND_START, True, True, *out)
+                    1.0, 1.0, np.zeros(16), chain, rmap, 1, EXTRA_PASSES, SECOND_START, phi, True, *out)
     motion_maps(X, np.zeros((0, na)), v, v.copy(), 1.0, np.zeros(16), chain, rmap, np.zeros((0, d, d)),
                 np.zeros(0, bool))
 
@@ -85,8 +88,29 @@ def _gains3() -> None:
     _ik_many(chain, rmap, W, np.zeros((0, 1)), False, np.zeros((0, 1)), np.zeros(0, np.bool_))
 
 
-_PARTS = {"fields2": lambda: _fields(2), "fields3": lambda: _fields(3), "plan2": lambda: _plan(2),
-          "plan3": lambda: _plan(3), "gains3": _gains3}
+def _anatomy() -> None:
+    """The clearance kernels of :mod:`errplan.anatomy`, each run once on a small anatomy of every convex
+    obstacle shape inside an ellipsoid body wall (a mesh's triangles are convex pieces of the same types;
+    the mesh wall's kernels are compiled as callees of the batch)."""
+    import numpy as np
+
+    from ..anatomy.model import build
+    from ..scenario import Anatomy, BodyWall, Obstacle
+
+    an = Anatomy(0.004, (Obstacle("s", "sphere", center=(0.0, 0.0, 0.1), radius=0.01),
+                         Obstacle("c", "capsule", a=(0.03, 0.0, 0.1), b=(0.05, 0.0, 0.1), radius=0.005),
+                         Obstacle("b", "box", center=(-0.03, 0.0, 0.1), half_extents=(0.01, 0.01, 0.01))),
+                 BodyWall("ellipsoid", center=(0.0, 0.0, 0.1), radii=(0.2, 0.2, 0.2)))
+    m = build(an, np.array([[0.0, 0.0, -0.05], [0.001, 0.0, -0.05]]))
+    a, b = np.array([[0.0, 0.05, 0.1]]), np.array([[0.0, 0.06, 0.12]])
+    m.tip(a), m.motion(a, b, 0.001), m.tip_clear(a), m.motion_clear(a, b)
+    m.motion_ok(*a[0], *b[0]), m.checker()(*a[0], *b[0])
+    m.wall_depth(a), m.wall_gap(a[0]), m.inside(a)
+
+
+_PARTS = {"fields2": lambda: _fields(2), "fields3": lambda: _fields(3), "fields2g": lambda: _fields(2, False),
+          "fields3g": lambda: _fields(3, False), "plan2": lambda: _plan(2), "plan3": lambda: _plan(3),
+          "gains3": _gains3, "anatomy": _anatomy}
 
 
 def _cold(parts: Sequence[str]) -> bool:
@@ -95,11 +119,15 @@ def _cold(parts: Sequence[str]) -> bool:
 
     entries = []
     for p in parts:
-        d = p[-1]
+        d = p[6] if p.startswith("fields") else p[-1]
         if p.startswith("fields"):
             from ..fields import kernels
 
-            entries += [getattr(kernels, f"_tile{d}")]
+            entries += [kernels._TILES[int(p[6]), not p.endswith("g")]]
+        elif p == "anatomy":
+            from ..anatomy import distance
+
+            entries += [distance.clearance_batch, distance.motion_clearance1]
         elif p.startswith("plan"):
             from ..planning import cellwalk
 

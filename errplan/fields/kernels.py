@@ -807,9 +807,12 @@ def _pattern(d, which, k, x, th, best, step0, lo, hi, active, periodic, refine, 
                         ok, w0, w1, w2 = _instance3(x, cand, base_port, est, L, M, P1, 0, S, V, which == 1)
                     if not (ok and (d == 2 or known or reach_point(chain, rmap, w0, w1, w2))):
                         return best, False
-                    if which == 1 and d == 3 and phi_bound(M, 0) <= best:
-                        continue  # this instance cannot raise the worst |phi_max|
-                    f = _poll_value(d, which, M, P1, 0, k)
+                    if _PHI:
+                        if which == 1 and d == 3 and phi_bound(M, 0) <= best:
+                            continue  # this instance cannot raise the worst |phi_max|
+                        f = _poll_value(d, which, M, P1, 0, k)
+                    else:  # the copy without |phi_max| (_pattern_g)
+                        f = gval(d, M, P1, 0, k)
                     if f > best:
                         best = f
                         for i in range(na):
@@ -900,16 +903,18 @@ def worst_case_tile(X, *args) -> None:
     Writes ``out_valid`` (robustly reachable), ``out_g`` (worst ||G|| at gain ``k``), ``out_p``
     (worst |phi_max|, if ``want_phi``), ``out_rho``/``out_k`` (rho*, k*, if ``want_rho``; rho*
     certified by a refined worst case at k*, the scenario gain used where it does better).
-    One search for both dimensions; the dimension is picked here, in Python, so that a command
-    compiles the search of its own dimension only (a compiled dispatch typed both).
+    One search for both dimensions and both uses; the copy is picked here, in Python, so that a command
+    compiles only the search of its own dimension (a compiled dispatch typed both), and without the exact
+    |phi_max| unless it asks for it (its search is a fifth of a cold 3-D compile).
     """
-    (_tile2 if X.shape[1] == 2 else _tile3)(X, *args)
+    _TILES[X.shape[1], bool(args[_WANT_PHI])](X, *args)
 
 
 def _search(X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L, k, arm, chain, rmap,
             refine, extra, second_start, want_phi, want_rho, out_valid, out_g, out_p, out_rho, out_k):
-    """The search of :func:`worst_case_tile`; compiled once per dimension (:func:`_per_dim`: ``_tile2``,
-    ``_tile3``), ``d`` a constant of the module globals there."""
+    """The search of :func:`worst_case_tile`; compiled once per dimension and use (:func:`_per_dim`:
+    ``_tile2``, ``_tile3`` with |phi_max|, ``_tile2g``, ``_tile3g`` without), ``d`` and ``_PHI`` constants of
+    the module globals there. ``want_phi`` is read in Python (:func:`worst_case_tile` picks the copy)."""
     d = _D
     n = X.shape[0]
     m, na = grid.shape
@@ -931,7 +936,7 @@ def _search(X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L,
     _sample_table(counts, periodic, na, m, pos, stride, nbr)
     # 3-D with a load: samples at tau = 0 repeat along the direction axis psi (the last one)
     dup = d == 3 and na == 5 and counts[4] > 1
-    full = want_phi or want_rho  # the sampled M themselves (|phi_max|, rho*'s gain bracket), not only ||G||
+    full = _PHI or want_rho  # the sampled M themselves (|phi_max|, rho*'s gain bracket), not only ||G||
     for ii in range(n):
         x = X[ii]
         ok = True
@@ -962,7 +967,7 @@ def _search(X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L,
                 ok = False
                 break
             vals_g[j] = gval(d, Ms, Pbs, j, k)
-        if ok and want_phi:
+        if _PHI and ok:
             if d == 2:
                 for j in range(m):
                     vals_p[j] = _phimax(d, Ms, j)
@@ -980,7 +985,7 @@ def _search(X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L,
                         continue
                     vals_p[j] = _phimax(d, Ms, j)
                     best_exact = max(best_exact, vals_p[j])
-        for which in range((2 if want_phi else 1) if ok else 0):
+        for which in range((2 if _PHI else 1) if ok else 0):
             vals = vals_g if which == 0 else vals_p
             jbest = 0
             for j in range(1, m):
@@ -1004,8 +1009,12 @@ def _search(X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L,
                     continue
                 for i in range(na):
                     th[i] = grid[start, i]
-                b, ok = _pattern(d, which, k, x, th, vals[start], step0, lo, hi, active, periodic, refine, extra,
-                                 base_port, est, L, arm, chain, rmap, M, P1, S, V, cand, known)
+                if _PHI:
+                    b, ok = _pattern(d, which, k, x, th, vals[start], step0, lo, hi, active, periodic, refine, extra,
+                                     base_port, est, L, arm, chain, rmap, M, P1, S, V, cand, known)
+                else:
+                    b, ok = _pattern_g(d, which, k, x, th, vals[start], step0, lo, hi, active, periodic, refine,
+                                       extra, base_port, est, L, arm, chain, rmap, M, P1, S, V, cand, known)
                 if not ok:
                     break
                 best_all = max(best_all, b)
@@ -1021,7 +1030,7 @@ def _search(X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L,
             continue
         out_valid[ii] = True
         out_g[ii] = results[0]
-        out_p[ii] = results[1] if want_phi else np.nan
+        out_p[ii] = results[1] if _PHI else np.nan
         if want_rho:
             rs, ks = _golden_gain(d, Ms, Pbs, m, 60, k, idx)
             if ks > 0:
@@ -1034,8 +1043,12 @@ def _search(X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L,
                         vbest, jbest = v, j
                 for i in range(na):
                     th[i] = grid[jbest, i]
-                ref, ok = _pattern(d, 0, ks, x, th, vbest, step0, lo, hi, active, periodic, refine, extra,
-                                   base_port, est, L, arm, chain, rmap, M, P1, S, V, cand, known)
+                if _PHI:
+                    ref, ok = _pattern(d, 0, ks, x, th, vbest, step0, lo, hi, active, periodic, refine, extra,
+                                       base_port, est, L, arm, chain, rmap, M, P1, S, V, cand, known)
+                else:
+                    ref, ok = _pattern_g(d, 0, ks, x, th, vbest, step0, lo, hi, active, periodic, refine, extra,
+                                         base_port, est, L, arm, chain, rmap, M, P1, S, V, cand, known)
                 rs = max(rs, ref) if ok else 1.0
             else:
                 rs = 1.0
@@ -1080,20 +1093,32 @@ def _motion_maps(X, TH, base_port, est, L, arm, chain, rmap, out_M, out_ok):
 
 
 _D = 0  # the dimension of a kernel made by _per_dim (there a constant of its own globals)
+_PHI = True  # whether a search copy computes |phi_max| (_pattern_g and _per_dim(..., phi=False): False)
 
 
-def _per_dim(f, d: int):
+def _copy(f, name: str, **consts):
+    """A copy of the plain function ``f`` named ``name`` (its own entry in numba's disk cache) whose globals
+    hold ``consts``: module numbers that numba freezes as compile-time constants, pruning the branches
+    they decide."""
+    g = _pytypes.FunctionType(f.__code__, dict(f.__globals__, **consts), name, f.__defaults__, f.__closure__)
+    g.__qualname__ = g.__name__
+    g.__doc__ = f.__doc__
+    return g
+
+
+def _per_dim(f, d: int, phi: bool = True):
     """``f`` compiled for dimension ``d``: a copy of the function whose globals hold ``_D = d``, so that
     ``d = _D`` is a compile-time constant (numba freezes global numbers): the branches of the other
     dimension are pruned, callees taking ``d`` get the literal. An entry compiled straight from Python,
     not a wrapper passing ``literally(d)`` to a kernel with ``d`` an argument: such a wrapper linked and
     optimized the whole search a second time (about 4 s of a cold 3-D compile, 3 s of a planar one)."""
-    g = _pytypes.FunctionType(f.__code__, dict(f.__globals__, _D=d), f"{f.__name__}{d}", f.__defaults__,
-                              f.__closure__)
-    g.__qualname__ = g.__name__  # its own entry in numba's disk cache
-    g.__doc__ = f.__doc__
-    return njit(cache=True, error_model="numpy")(g)
+    return njit(cache=True, error_model="numpy")(_copy(f, f"{f.__name__}{d}{'' if phi else 'g'}", _D=d, _PHI=phi))
 
 
+#: the pattern search without |phi_max| (``which`` is 0): the search copies without it call this one
+_pattern_g = njit(cache=True, error_model="numpy", literal_args="d")(_copy(_pattern.py_func, "_pattern_g", _PHI=False))
 _tile2, _tile3 = _per_dim(_search, 2), _per_dim(_search, 3)
+_tile2g, _tile3g = _per_dim(_search, 2, phi=False), _per_dim(_search, 3, phi=False)
+_TILES = {(2, True): _tile2, (3, True): _tile3, (2, False): _tile2g, (3, False): _tile3g}
+_WANT_PHI = _search.__code__.co_varnames.index("want_phi") - 1  # its place in worst_case_tile's *args
 _maps2, _maps3 = _per_dim(_motion_maps, 2), _per_dim(_motion_maps, 3)

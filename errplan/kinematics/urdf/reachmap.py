@@ -457,31 +457,32 @@ def _build_map(chain, K, M2, jlo, djoint, ncell, faces, origin, h, shape, sub, b
         u = cq[k]
         c = parent[u]
         for j in range(fcnt[c]):
-            fd[u, j] = fd[c, j]
+            fd[u, j, 0], fd[u, j, 1], fd[u, j, 2] = fd[c, j, 0], fd[c, j, 1], fd[c, j, 2]
             fdist[u, j] = fdist[c, j] + 1.0
         fcnt[u] = fcnt[c]
     seedless = 0
-    total = 0
     for c in range(ncel):
-        if cflag[c] != 0:
-            total += fcnt[c]
-            if fcnt[c] == 0:
-                seedless += 1
-    seed_ptr = np.zeros(ncel + 1, np.int64)
-    seeds = np.empty((total, 3))
-    pos = 0
-    for c in range(ncel):
-        seed_ptr[c] = pos
+        if cflag[c] != 0 and fcnt[c] == 0:
+            seedless += 1
         if cflag[c] == 0:
-            continue
-        n = fcnt[c]
-        order = np.argsort(fdist[c, :n])
-        for k in range(n):
-            seeds[pos] = fd[c, order[k]]
-            pos += 1
-    seed_ptr[ncel] = pos
+            fcnt[c] = 0
     stats = np.array([n_leaf, n_crit, conflicts, seedless, n_face], np.int64)
-    return state.reshape((nx, ny, nz)), seed_ptr, seeds, stats
+    return state.reshape((nx, ny, nz)), fd, fdist, fcnt, stats
+
+
+def _seed_lists(fd: np.ndarray, fdist: np.ndarray, fcnt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The seeds of every seed cell in one array, nearest first: ``seed_ptr`` (ncel + 1,) and ``seeds``
+    (n, 3) from :func:`_build_map`'s per-cell tables (``fcnt[c]`` seeds of cell ``c`` in ``fd[c]``, their
+    distances in ``fdist[c]``). A stable sort (ties keep the order they were found in); done here, not in
+    the kernel, where a sort costs seconds of first-run compile."""
+    S2 = fd.shape[1]
+    used = np.arange(S2) < fcnt[:, None]
+    key = np.where(used, fdist, np.inf)
+    order = np.argsort(key, axis=1, kind="stable")
+    seeds = np.take_along_axis(fd, order[:, :, None], axis=1)[used]  # used is a prefix of every row
+    seed_ptr = np.zeros(len(fcnt) + 1, np.int64)
+    np.cumsum(fcnt, out=seed_ptr[1:])
+    return seed_ptr, np.ascontiguousarray(seeds)
 
 
 # ============================================================================ the map of an arm
@@ -650,9 +651,9 @@ def build_map(arm) -> ReachMap:
     cshape = np.ceil((bmax - bmin) / H).astype(np.int64) + 2
     origin = 0.5 * (bmin + bmax) - 0.5 * H * cshape      # >= half a seed cell of margin
     shape = cshape * p.sub
-    state, seed_ptr, seeds, stats = _build_map(ch, K, _det_bound(arm), jlo, djoint, ncell,
-                                               _faces(arm, wrap), origin, h, shape, p.sub,
-                                               p.beta, p.max_depth, p.seeds, p.tau)
+    state, fd, fdist, fcnt, stats = _build_map(ch, K, _det_bound(arm), jlo, djoint, ncell, _faces(arm, wrap),
+                                               origin, h, shape, p.sub, p.beta, p.max_depth, p.seeds, p.tau)
+    seed_ptr, seeds = _seed_lists(fd, fdist, fcnt)
     arm.map_info.update(K=K, coarse_cells=int(np.prod(ncell)), leaves=int(stats[0]),
                          singular_leaves=int(stats[1]), face_patches=int(stats[4]), conflicts=int(stats[2]), seedless=int(stats[3]))
     return ReachMap(origin, h, shape, state, int(p.sub), seed_ptr, seeds)
