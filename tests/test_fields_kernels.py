@@ -6,13 +6,17 @@
 - A planar tip certified reachable at once (``_tip_reach2``) has every wrist the error set can need
   reachable by the exact per-instance test and by ``Arm.reachable``: sampled port offsets and loads,
   the box corners included.
+- The search compiled without the exact |phi_max| (issue 17: the planner's and the demo's fields) gives
+  bit for bit the ``||G||``, rho*, k* and validity of the search with it, planar and spatial.
 """
 from __future__ import annotations
 
 import numpy as np
 
 from conftest import SCENARIOS
-from errplan.api import load_scenario
+import pytest
+
+from errplan.api import compute_fields, load_scenario
 from errplan.fields.errorset import error_set
 from errplan.fields.kernels import _instance3, _planar_reachable, _tip_reach2, gnorm, gval, planar_arm_params
 from errplan.kinematics import arm_for
@@ -81,3 +85,19 @@ def test_planar_tip_certificate_implies_every_wrist_reachable():
         wrists = np.array(wrists)
         assert all(_planar_reachable(p, w[0], w[1]) for w in wrists), t
         assert arm.reachable(wrists).all(), t
+
+
+@pytest.mark.parametrize("name, res", [("beasley2004_bounded.toml", 0.01), ("phantom15_spatial.toml", 0.012)])
+def test_the_search_without_phi_max_is_the_search_with_it(name, res):
+    from errplan.fields import kernels
+
+    sc = load_scenario(SCENARIOS / name)
+    without = compute_fields(sc, res, metrics=("G_norm", "rho_star"), workers=1)
+    with_phi = compute_fields(sc, res, metrics=("G_norm", "phi_max", "rho_star"), workers=1)
+    assert without.phi_max is None and np.isfinite(with_phi.phi_max[with_phi.valid]).all()
+    assert with_phi.valid.sum() > 100
+    for a in ("valid", "G_norm", "rho_star", "k_star"):
+        assert np.array_equal(getattr(without, a), getattr(with_phi, a), equal_nan=a != "valid"), a
+    d = sc.dim
+    assert kernels._TILES[d, False] is not kernels._TILES[d, True]
+    assert kernels._TILES[d, False].signatures and kernels._TILES[d, True].signatures  # both copies ran

@@ -38,3 +38,16 @@ def test_turned_off_or_warm_it_starts_nothing_and_waits_for_nothing(monkeypatch)
     monkeypatch.setenv(warmup.ENV, "1")
     subprocess.run([sys.executable, "-m", "errplan.cli.warmup", "/dev/null", "plan2"], check=True, timeout=600)
     assert warmup.start(["plan2"]) is False  # the cache is warm: nothing to do
+
+
+def test_the_anatomy_part_compiles_the_clearance_kernels_a_scenario_calls(tmp_path):
+    """The part's placeholder anatomy calls the kernels with the argument types a scenario's checks, the
+    planner and the replays pass (one specialization each, so the run loads them instead of compiling)."""
+    from errplan.anatomy import distance
+
+    subprocess.run([sys.executable, "-m", "errplan.cli.warmup", str(tmp_path / "s"), "anatomy"], check=True,
+                   capture_output=True, timeout=900)
+    assert not warmup._cold(["anatomy"])
+    warmup._anatomy()  # in this process: loaded from the cache, one signature each
+    assert len(distance.clearance_batch.signatures) == 1
+    assert len(distance.motion_clearance1.signatures) == 1
