@@ -215,7 +215,8 @@ def plan_query(cm: CostMap, start, goal, settings: PlannerSettings | None = None
     direct = path_report(cm, np.array([start, goal]), workspace_map)
     if math.dist(start, goal) < 1e-12:  # nothing to plan
         return QueryPlan(name, start, goal, direct, direct, st.planner, st.seed, 0, "planner", 0.0, 0.0, 0.0)
-    t_end = t_begin + (st.time * (1 - st.refine_share) if st.refine else st.time)
+    t_search = st.time * (1 - st.refine_share) if st.refine else st.time
+    t_end = t_begin + t_search
     cap = st.iteration_cap(cm.dim)
     # Reseed before anything draws from the RNG so that each query is a function of the seed,
     # whatever was planned before in this process.
@@ -228,13 +229,14 @@ def plan_query(cm: CostMap, start, goal, settings: PlannerSettings | None = None
     first = None
     status = ""
     if not math.isfinite(bound):
-        first, used, why, status = ompl_adapter.search(cm, start, goal, st.planner, None, cap, t_end, first_only=True)
+        first, used, why, status = ompl_adapter.search(cm, start, goal, st.planner, None, cap, t_end, first_only=True,
+                                                         budget=t_search)
         if first is None:
             raise _no_path(name, st, start, goal, t_begin, used, status)
         bound = cm.path_cost(first)[1]
     box = search_box(cm, start, goal, bound)
     raw, n, why, status = ompl_adapter.search(cm, start, goal, st.planner, box, max(cap - used, 1), t_end,
-                                              first_only=False)
+                                              first_only=False, budget=t_search)
     used += n
     if raw is None:
         raw = first
