@@ -14,7 +14,8 @@ Parts (each compiles, or loads, the kernels of one step at the argument types th
 ``fields2``/``fields3`` (the worst-case search with the exact |phi_max|, and the motion maps),
 ``fields2g``/``fields3g`` (the search without it: the planner's and the demo's spatial fields),
 ``plan2``/``plan3`` (the planner's cell walks), ``gains3`` (the 3-D gains: ``||I - k M||`` grids, cuts,
-inverses, inverse kinematics), ``anatomy`` (the robust clearance of ``[anatomy]``: its scenario checks,
+inverses, inverse kinematics), ``urdf`` (a URDF arm's kinematics and its reachability map's build: what
+loading a spatial scenario compiles), ``anatomy`` (the robust clearance of ``[anatomy]``: its scenario checks,
 the planner's motion checks, the gains' and the replays' clearances).
 """
 from __future__ import annotations
@@ -88,6 +89,28 @@ def _gains3() -> None:
     _ik_many(chain, rmap, W, np.zeros((0, 1)), False, np.zeros((0, 1)), np.zeros(0, np.bool_))
 
 
+def _urdf() -> None:
+    """A URDF arm's kernels: forward kinematics, Jacobians, reachability, inverse kinematics and the
+    reachability map's build, each run once on nothing with a placeholder chain of the types a real arm
+    passes (the map kernels on an empty joint box)."""
+    import numpy as np
+
+    from ..fields.compute import _no_chain
+    from ..kinematics.urdf.chain import _fk_many, _ik_many, _jac_many, _reach_many
+    from ..kinematics.urdf.reachmap import _build_map, _coarse_bbox
+
+    chain, rmap = _no_chain()
+    Q, W = np.zeros((0, 3)), np.zeros((0, 3))
+    _fk_many(chain, Q, np.zeros((0, 3)))
+    _jac_many(chain, Q, np.zeros((0, 3, 3)))
+    _reach_many(chain, rmap, W, np.zeros(0, np.bool_))
+    _ik_many(chain, rmap, W, Q, True, Q.copy(), np.zeros(0, np.bool_))
+    v, n0 = np.zeros(3), np.zeros(3, np.int64)
+    _coarse_bbox(chain, 1.0, v, v.copy(), n0)
+    _build_map(chain, 1.0, np.zeros((3, 3)), v, v.copy(), n0, np.zeros((0, 13)), v.copy(), 1.0,
+               np.ones(3, np.int64), 1, 1.0, 1, 1, 1e-9)
+
+
 def _anatomy() -> None:
     """The clearance kernels of :mod:`errplan.anatomy`, each run once on a small anatomy of every convex
     obstacle shape inside an ellipsoid body wall (a mesh's triangles are convex pieces of the same types;
@@ -110,7 +133,7 @@ def _anatomy() -> None:
 
 _PARTS = {"fields2": lambda: _fields(2), "fields3": lambda: _fields(3), "fields2g": lambda: _fields(2, False),
           "fields3g": lambda: _fields(3, False), "plan2": lambda: _plan(2), "plan3": lambda: _plan(3),
-          "gains3": _gains3, "anatomy": _anatomy}
+          "gains3": _gains3, "anatomy": _anatomy, "urdf": _urdf}
 
 
 def _cold(parts: Sequence[str]) -> bool:
@@ -124,6 +147,10 @@ def _cold(parts: Sequence[str]) -> bool:
             from ..fields import kernels
 
             entries += [kernels._TILES[int(p[6]), not p.endswith("g")]]
+        elif p == "urdf":
+            from ..kinematics.urdf import reachmap
+
+            entries += [reachmap._build_map]
         elif p == "anatomy":
             from ..anatomy import distance
 
