@@ -30,6 +30,7 @@ import sys
 from typing import Callable, Iterable
 
 import numba
+import numpy as np
 from numba.core import caching, ir, types
 from numba.core.compiler import CompilerBase, DefaultPassBuilder
 from numba.core.compiler_machinery import FunctionPass, register_pass
@@ -110,6 +111,13 @@ def njit(*args, literal_args: Iterable[str] = (), **options) -> Callable:
     if len(args) == 1 and callable(args[0]):
         return wrap(args[0])
     return wrap
+
+
+def kernel_array(a: np.ndarray) -> np.ndarray:
+    """``a`` as a writeable C array, copied only when it is not one already. numba types a read-only
+    array (a broadcast view) apart from a writeable one and compiles a kernel once more for it; passing
+    every kernel argument built from a caller's array through here keeps one specialization per kernel."""
+    return np.require(a, requirements=("C", "W"))
 
 
 def cached(dispatcher) -> bool:

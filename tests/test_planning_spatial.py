@@ -440,3 +440,17 @@ def test_plan_scenario_on_a_spatial_scenario(P):
                          P.mf.rho_star[20], P.mf.k_star[20], {"resolution": 0.005})
     with pytest.raises(ErrplanError, match="the fields are 2-D but the scenario is 3-D"):
         costmap_for(sc, planar)
+
+
+def test_fmt_samples_come_from_the_settings_not_the_clock(P, monkeypatch):
+    """FMT*'s sample set is sized from the search's nominal budget, so a loaded machine (less time left
+    when the search starts) draws the same samples."""
+    from errplan.planning import ompl_adapter
+
+    seen = []
+    real = ompl_adapter.make_planner
+    monkeypatch.setattr(ompl_adapter, "make_planner", lambda name, si, t: (seen.append(t), real(name, si, t))[1])
+    st = replace(P.settings, planner="FMT", seed=1)
+    plan_query(P.cm, (-0.05, -0.05, 0.30), (0.05, 0.04, 0.38), st, "q")
+    nominal = st.time * (1 - st.refine_share) if st.refine else st.time
+    assert seen and all(t == nominal for t in seen), (seen, nominal)

@@ -912,3 +912,24 @@ def test_from_robot():
     assert np.array_equal(arm.forward(q), ref.forward(q))
     assert np.array_equal(arm.chain.A, ref.chain.A) and np.array_equal(arm.chain.lo, ref.chain.lo)
     assert arm.chain.A.tolist()[-1] == [0.0, 1.0, 1.0] and arm.chain.lo[-1] == -0.3 and arm.chain.hi[-1] == 2.8
+
+
+def test_seed_lists_keep_every_seed_nearest_first_ties_in_found_order():
+    """The reachability map's seed lists (numpy, out of the build kernel) against a plain loop: per cell,
+    exactly its ``fcnt`` seeds, sorted by distance, equal distances in the order they were found."""
+    from errplan.kinematics.urdf.reachmap import _seed_lists
+
+    rng = np.random.default_rng(3)
+    ncel, S2 = 200, 8
+    fd = rng.normal(size=(ncel, S2, 3))
+    fdist = rng.integers(0, 4, size=(ncel, S2)).astype(np.float32)  # many ties
+    fcnt = rng.integers(0, S2 + 1, size=ncel)
+    fdist[np.arange(S2) >= fcnt[:, None]] = -1.0  # stale values past the count must be ignored
+    ptr, seeds = _seed_lists(fd, fdist, fcnt)
+    pos = 0
+    for c in range(ncel):
+        ref = [fd[c, k] for k in sorted(range(fcnt[c]), key=lambda k: (fdist[c, k], k))]
+        assert ptr[c] == pos and ptr[c + 1] == pos + fcnt[c]
+        assert np.array_equal(seeds[pos:pos + fcnt[c]], np.reshape(ref, (-1, 3)))
+        pos += fcnt[c]
+    assert len(seeds) == pos == fcnt.sum() and seeds.flags.c_contiguous

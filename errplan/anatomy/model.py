@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import ScenarioError
+from ..jit import kernel_array
 from . import distance as _d
 
 
@@ -82,11 +83,9 @@ class ShaftClearance:
         a = np.asarray(a, float)
         b = np.asarray(b, float)
         shape = np.broadcast_shapes(a.shape[:-1], b.shape[:-1])
-        # writeable C arrays always (a broadcast view is read-only, and numba compiles a read-only
-        # argument as a specialization of its own: one compile of the batch serves every call)
-        A = np.require(np.broadcast_to(a, shape + (3,)).reshape(-1, 3), requirements=("C", "W"))
-        B = np.require(np.broadcast_to(b, shape + (3,)).reshape(-1, 3), requirements=("C", "W"))
-        E = np.require(np.broadcast_to(np.asarray(extra, float), shape).reshape(-1), requirements=("C", "W"))
+        A = kernel_array(np.broadcast_to(a, shape + (3,)).reshape(-1, 3))  # one specialization of the batch
+        B = kernel_array(np.broadcast_to(b, shape + (3,)).reshape(-1, 3))
+        E = kernel_array(np.broadcast_to(np.asarray(extra, float), shape).reshape(-1))
         out = np.empty(len(A))
         if len(A) == 0:
             return out.reshape(shape)

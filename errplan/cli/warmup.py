@@ -146,7 +146,7 @@ def _cold(parts: Sequence[str]) -> bool:
         if p.startswith("fields"):
             from ..fields import kernels
 
-            entries += [kernels._TILES[int(p[6]), not p.endswith("g")]]
+            entries += [kernels._TILES[int(d), not p.endswith("g")]]
         elif p == "urdf":
             from ..kinematics.urdf import reachmap
 

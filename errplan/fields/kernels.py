@@ -21,7 +21,7 @@ import math
 import numpy as np
 import types as _pytypes
 
-from ..jit import njit
+from ..jit import kernel_array, njit
 
 from ..kinematics.urdf import reach_point
 from ..kinematics.urdf.chain import _locate
@@ -913,8 +913,8 @@ def worst_case_tile(X, *args) -> None:
 def _search(X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L, k, arm, chain, rmap,
             refine, extra, second_start, want_phi, want_rho, out_valid, out_g, out_p, out_rho, out_k):
     """The search of :func:`worst_case_tile`; compiled once per dimension and use (:func:`_per_dim`:
-    ``_tile2``, ``_tile3`` with |phi_max|, ``_tile2g``, ``_tile3g`` without), ``d`` and ``_PHI`` constants of
-    the module globals there. ``want_phi`` is read in Python (:func:`worst_case_tile` picks the copy)."""
+    ``_tile2``, ``_tile3`` with |phi_max|, ``_tile2g``, ``_tile3g`` without), ``d``, ``_PHI`` and the pattern
+    search ``_PAT`` constants of the module globals there. ``want_phi`` is read in Python (:func:`worst_case_tile` picks the copy)."""
     d = _D
     n = X.shape[0]
     m, na = grid.shape
@@ -1009,12 +1009,8 @@ def _search(X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L,
                     continue
                 for i in range(na):
                     th[i] = grid[start, i]
-                if _PHI:
-                    b, ok = _pattern(d, which, k, x, th, vals[start], step0, lo, hi, active, periodic, refine, extra,
-                                     base_port, est, L, arm, chain, rmap, M, P1, S, V, cand, known)
-                else:
-                    b, ok = _pattern_g(d, which, k, x, th, vals[start], step0, lo, hi, active, periodic, refine,
-                                       extra, base_port, est, L, arm, chain, rmap, M, P1, S, V, cand, known)
+                b, ok = _PAT(d, which, k, x, th, vals[start], step0, lo, hi, active, periodic, refine, extra,
+                             base_port, est, L, arm, chain, rmap, M, P1, S, V, cand, known)
                 if not ok:
                     break
                 best_all = max(best_all, b)
@@ -1043,12 +1039,8 @@ def _search(X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L,
                         vbest, jbest = v, j
                 for i in range(na):
                     th[i] = grid[jbest, i]
-                if _PHI:
-                    ref, ok = _pattern(d, 0, ks, x, th, vbest, step0, lo, hi, active, periodic, refine, extra,
-                                       base_port, est, L, arm, chain, rmap, M, P1, S, V, cand, known)
-                else:
-                    ref, ok = _pattern_g(d, 0, ks, x, th, vbest, step0, lo, hi, active, periodic, refine, extra,
-                                         base_port, est, L, arm, chain, rmap, M, P1, S, V, cand, known)
+                ref, ok = _PAT(d, 0, ks, x, th, vbest, step0, lo, hi, active, periodic, refine, extra,
+                               base_port, est, L, arm, chain, rmap, M, P1, S, V, cand, known)
                 rs = max(rs, ref) if ok else 1.0
             else:
                 rs = 1.0
@@ -1068,8 +1060,7 @@ def motion_maps(X, TH, base_port, est, L, arm, chain, rmap, out_M, out_ok) -> No
     ``TH[i]`` at tip ``X[i]``; invalid rows of ``out_M`` are NaN. The dimension is picked in Python.
     Read-only inputs (broadcast views) are copied: numba types a read-only array apart, and one
     specialization (one compile) serves every caller."""
-    X = X if X.flags.writeable else X.copy()
-    TH = TH if TH.flags.writeable else TH.copy()
+    X, TH = kernel_array(X), kernel_array(TH)
     (_maps2 if X.shape[1] == 2 else _maps3)(X, TH, base_port, est, L, arm, chain, rmap, out_M, out_ok)
 
 
@@ -1112,11 +1103,13 @@ def _per_dim(f, d: int, phi: bool = True):
     dimension are pruned, callees taking ``d`` get the literal. An entry compiled straight from Python,
     not a wrapper passing ``literally(d)`` to a kernel with ``d`` an argument: such a wrapper linked and
     optimized the whole search a second time (about 4 s of a cold 3-D compile, 3 s of a planar one)."""
-    return njit(cache=True, error_model="numpy")(_copy(f, f"{f.__name__}{d}{'' if phi else 'g'}", _D=d, _PHI=phi))
+    return njit(cache=True, error_model="numpy")(_copy(f, f"{f.__name__}{d}{'' if phi else 'g'}", _D=d, _PHI=phi,
+                                                       _PAT=_pattern if phi else _pattern_g))
 
 
 #: the pattern search without |phi_max| (``which`` is 0): the search copies without it call this one
 _pattern_g = njit(cache=True, error_model="numpy", literal_args="d")(_copy(_pattern.py_func, "_pattern_g", _PHI=False))
+_PAT = _pattern  # the pattern search a search copy calls (_per_dim: _pattern_g in the copies without |phi_max|)
 _tile2, _tile3 = _per_dim(_search, 2), _per_dim(_search, 3)
 _tile2g, _tile3g = _per_dim(_search, 2, phi=False), _per_dim(_search, 3, phi=False)
 _TILES = {(2, True): _tile2, (3, True): _tile3, (2, False): _tile2g, (3, False): _tile3g}

@@ -9,6 +9,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from ... import packages
+from ...jit import kernel_array
 from ...errors import ErrplanError, ScenarioError
 from ...scenario import CoupledLimit
 from .chain import _fk_many, _ik_many, _jac_many, _reach_many
@@ -16,12 +17,6 @@ from .description import read_chain, rpy_matrix
 from .model import GRAVITY, ChainData, MapParams, ReachMap
 from .reachmap import reach_map_of
 
-
-
-def _kernel_array(a: np.ndarray) -> np.ndarray:
-    """``a`` as a writeable C array (a copy only when needed): numba compiles a read-only argument (a
-    broadcast view) as a specialization of its own, so every caller passes the one type."""
-    return np.require(a, requirements=("C", "W"))
 
 class UrdfArm:
     """A serial arm from a URDF whose three actuated joints place the wrist (module docstring).
@@ -119,7 +114,7 @@ class UrdfArm:
         q = np.asarray(q, dtype=float)
         if q.shape[-1:] != (self.n,):
             raise ValueError(f"joint vectors must have shape (..., {self.n}), got {q.shape}")
-        return _kernel_array(q.reshape(-1, self.n)), q.shape[:-1]
+        return kernel_array(q.reshape(-1, self.n)), q.shape[:-1]
 
     def forward(self, q) -> np.ndarray:
         """Wrist position (..., 3), world frame, for joint values ``q`` (..., n)."""
@@ -193,7 +188,7 @@ class UrdfArm:
         w = np.asarray(w, dtype=float)
         if w.shape[-1:] != (3,):
             raise ValueError(f"points must have shape (..., 3), got {w.shape}")
-        return _kernel_array(w.reshape(-1, 3)), w.shape[:-1]
+        return kernel_array(w.reshape(-1, 3)), w.shape[:-1]
 
     def reachable(self, w) -> np.ndarray:
         """Mask (...) of wrists ``w`` (..., 3) reachable within all limits (the map, exact IK at its
@@ -217,7 +212,7 @@ class UrdfArm:
         if near is None:
             _ik_many(chain, rmap, W, np.empty((len(W), self.n)), False, Q, ok)
         else:
-            N = _kernel_array(np.broadcast_to(np.asarray(near, float), lead + (self.n,)).reshape(-1, self.n))
+            N = kernel_array(np.broadcast_to(np.asarray(near, float), lead + (self.n,)).reshape(-1, self.n))
             _ik_many(chain, rmap, W, N, True, Q, ok)
         return Q.reshape(lead + (self.n,)), ok.reshape(lead)
 
