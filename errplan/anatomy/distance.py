@@ -263,12 +263,17 @@ def shaft_clearance(H, nh, cap_a, cap_b, cap_r, pts, npts, prad, pball, clusters
     lb = np.empty(nc)
     for c in range(nc):
         lb[c] = _cone_lb(cball[c, 0], cball[c, 1], cball[c, 2], cap_a, cap_b, cap_r[0], cap_r[1]) - cball[c, 3]
-    order = np.argsort(lb)
     best = 1e300
-    for oi in range(nc):
-        c = order[oi]
+    for _ in range(nc):
+        # the cluster of smallest bound not yet seen (found by a scan: a sort would add seconds to a first
+        # run's compile, and the loop ends after the few clusters whose bound beats the best distance)
+        c = 0
+        for cc in range(1, nc):
+            if lb[cc] < lb[c]:
+                c = cc
         if lb[c] >= best:
             break
+        lb[c] = np.inf
         for p in range(clusters[c], clusters[c + 1]):
             lp = _cone_lb(pball[p, 0], pball[p, 1], pball[p, 2], cap_a, cap_b, cap_r[0], cap_r[1]) - pball[p, 3]
             if lp >= best:
