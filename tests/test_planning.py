@@ -435,6 +435,34 @@ def test_same_seed_same_path(port):
         assert np.array_equal(d.planned.path, e.planned.path)
 
 
+def test_a_slower_machine_plans_the_same_path(port, monkeypatch):
+    """The iteration cap ends the search, not the clock: on a machine so much slower that the search
+    takes longer than its share of the budget (the clock runs that much faster here), the plan is the
+    same. With the hard stop at the budget itself, such a search was cut by the clock: a busy second
+    core changed the bounded scenario's plan of this query."""
+    import time
+
+    from errplan.planning.plan import HARD_STOP
+
+    q = {q.name: q for q in port.sc.queries}["across-deep"]
+    st = port.settings
+    a = plan_query(port.cm, q.start, q.goal, st)
+    if a.stopped_by == "time":
+        pytest.skip("the machine was too slow to reach the iteration cap within the hard stop")
+    share = st.time * (1 - st.refine_share)
+    # the slowed search takes halfway between its share of the budget and the hard stop
+    factor = (1 + HARD_STOP) / 2 * share / a.time_solve
+    assert factor > 1
+    real = time.perf_counter
+    t0 = real()
+    monkeypatch.setattr(time, "perf_counter", lambda: t0 + factor * (real() - t0))
+    b = plan_query(port.cm, q.start, q.goal, st)
+    assert b.time_solve > share  # past where the search used to be stopped
+    assert b.stopped_by == a.stopped_by == "iterations"
+    assert b.iterations == a.iterations
+    assert np.array_equal(a.planned.path, b.planned.path)
+
+
 def test_cost_recomputed_on_independent_finer_fields(port):
     """What an outside check does: recompute the returned path's cost with its own fields (here the
     scenario's fields computed again at 1 mm, integrated by dense sampling)."""
