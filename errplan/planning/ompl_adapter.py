@@ -38,8 +38,9 @@ DEFAULT_PLANNER = "BITstar"
 # Iterations (planner termination checks) per second of budget, per dimension: the planner stops
 # after ``time * (1 - refine_share) * rate`` iterations or at its deadline, whichever comes first.
 # The iteration cap makes a run a function of the seed (on the reference machine, 2 shared cores,
-# it is reached in about half the search time; benchmarks/planning.py); the deadline bounds it on
-# slower machines, and QueryPlan.stopped_by says which one ended the search.
+# it is reached in 30-85 % of the search's share of the budget; benchmarks/planning.py); the deadline
+# (errplan.planning.plan.HARD_STOP times that share) bounds it on slower or loaded machines, and
+# QueryPlan.stopped_by says which one ended the search.
 ITERATION_RATE = {"BITstar": 10000, "RRTstar": 250, "InformedRRTstar": 250, "SORRTstar": 250,
                   "FMT": 2000, "BFMT": 2000, "RRTConnect": 2000}
 ITERATION_RATE_SPATIAL = {"BITstar": 5000, "RRTstar": 800, "InformedRRTstar": 800, "SORRTstar": 800,

@@ -42,7 +42,8 @@ class PlannerSettings:
     """How to search: OMPL planner name, time budget per query (s), seed, iteration cap, refinement.
 
     ``iterations`` (default ``time * (1 - refine_share) * iteration_rate(planner, dim)``) caps the
-    planner's iterations so a run depends only on the seed while the cap is reached within ``time``.
+    planner's iterations so a run depends only on the seed while the cap is reached before the hard stop
+    (:data:`HARD_STOP` times the search's share of ``time``).
     """
 
     planner: str = DEFAULT_PLANNER
