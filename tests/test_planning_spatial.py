@@ -310,7 +310,7 @@ def test_grid_reference(P):
 
 
 # ----------------------------------------------------------------------------- quality
-def _check_plan(P, qp, ref, budget=2.0):
+def _check_plan(P, qp, ref, budget=None):
     cm = P.cm
     assert qp.planned.valid and qp.planned.in_workspace
     assert cm.path_ok(qp.planned.path)
@@ -321,7 +321,11 @@ def _check_plan(P, qp, ref, budget=2.0):
     if qp.direct.valid:
         assert qp.planned.cost <= qp.direct.cost * (1 + 1e-12)
     assert _inside_usable(P.mf, _ok_nodes(P), _dense(qp.planned.path, cm.h / 10), cm.h).all()
-    assert qp.time_total <= budget  # speed is measured in benchmarks/planning.py; this is the bar
+    # the hard stop (HARD_STOP budgets) and slack for a loaded machine; speed is measured in
+    # benchmarks/planning.py, this is the bar
+    from errplan.planning.plan import HARD_STOP
+
+    assert qp.time_total <= (HARD_STOP * P.settings.time + 0.5 if budget is None else budget)
 
 
 def test_random_queries_are_near_the_grid_optimum(P):
