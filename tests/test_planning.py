@@ -446,8 +446,6 @@ def test_a_slower_machine_plans_the_same_path(port, monkeypatch):
     bounded scenario's plan of this query."""
     import time
 
-    from errplan.planning.plan import HARD_STOP
-
     q = {q.name: q for q in port.sc.queries}["across-deep"]
     st = port.settings
     real, readings = time.perf_counter, [0]

@@ -32,6 +32,7 @@ from errplan.errors import ErrplanError, InfeasibleError
 from errplan.fields import MetricField
 from errplan.planning import (PLANNERS, CostMap, PlannerSettings, costmap_for, make_objective, make_space_information,
                               plan_query, plan_scenario, refine_path)
+from errplan.planning.plan import HARD_STOP
 from errplan.planning.reference import GridGraph, angular_bound, grid_optimum, moves, segment_cost
 from errplan.scenario import Query
 from errplan.api import load_scenario
@@ -323,8 +324,6 @@ def _check_plan(P, qp, ref, budget=None):
     assert _inside_usable(P.mf, _ok_nodes(P), _dense(qp.planned.path, cm.h / 10), cm.h).all()
     # the hard stop (HARD_STOP budgets) and slack for a loaded machine; speed is measured in
     # benchmarks/planning.py, this is the bar
-    from errplan.planning.plan import HARD_STOP
-
     assert qp.time_total <= (HARD_STOP * P.settings.time + 0.5 if budget is None else budget)
 
 

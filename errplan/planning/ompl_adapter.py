@@ -38,7 +38,7 @@ DEFAULT_PLANNER = "BITstar"
 # Iterations (planner termination checks) per second of budget, per dimension: the planner stops
 # after ``time * (1 - refine_share) * rate`` iterations or at its deadline, whichever comes first.
 # The iteration cap makes a run a function of the seed (on the reference machine, 2 shared cores,
-# it is reached in 30-85 % of the search's share of the budget; benchmarks/planning.py); the deadline
+# it is reached in 35-125 % of the search's share of the budget, as the machine's speed varies); the deadline
 # (errplan.planning.plan.HARD_STOP times that share) bounds it on slower or loaded machines, and
 # QueryPlan.stopped_by says which one ended the search.
 ITERATION_RATE = {"BITstar": 10000, "RRTstar": 250, "InformedRRTstar": 250, "SORRTstar": 250,

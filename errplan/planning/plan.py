@@ -33,7 +33,8 @@ GRID_SEED = {2: False, 3: True}
 # makes the plan a function of the seed; the search stops at this many times its share of the budget,
 # and the refinement at this many budgets, only when the machine is too slow or too loaded to reach the
 # cap (then ``stopped_by`` is "time" and the plan depends on the machine). At 1 (the budget itself) a
-# busy second core was enough to change a planar plan: BIT* reaches its cap at 85 % of its share there.
+# busy second core was enough to change a planar plan: over one day on the reference machine BIT*
+# reached its cap in 35-125 % of its share of the budget on the bundled planar queries.
 HARD_STOP = 2.0
 
 
