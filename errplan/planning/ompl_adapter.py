@@ -216,15 +216,15 @@ def check_planner(name: str) -> None:
 
 
 def search(cm, start, goal, planner_name: str, box, cap: int, t_end: float,
-           first_only: bool, budget: float | None = None) -> tuple[np.ndarray | None, int, str, str]:
+           first_only: bool, budget: float) -> tuple[np.ndarray | None, int, str, str]:
     """One OMPL search in ``box`` (flat ``(lo, hi)`` per axis, None: the grid):
     ``(path (n, d) or None, iterations, stopped_by, status)``.
 
     Stops after ``cap`` iterations, at ``t_end`` (a ``time.perf_counter()`` value), when the
     informed sampler stalls (``HEURISTIC_CALLS_PER_ITERATION``) or, with ``first_only``, at the
     first exact solution. ``budget`` (s): the search's nominal time, which sizes FMT*'s sample set (a
-    function of the settings, not of the clock: the same samples on a loaded machine); default the time
-    left until ``t_end``.
+    function of the settings, not of the clock: the same samples on a loaded machine; ``t_end`` is the
+    hard stop, later than the budget).
     """
     ob, og, _ = _ompl()
     d = cm.dim
@@ -238,7 +238,7 @@ def search(cm, start, goal, planner_name: str, box, cap: int, t_end: float,
         g[k] = float(goal[k])
     ss.setStartAndGoalStates(s, g)
     ss.setOptimizationObjective(obj)
-    planner = make_planner(planner_name, si, budget if budget is not None else max(t_end - _time.perf_counter(), 0.0))
+    planner = make_planner(planner_name, si, budget)
     ss.setPlanner(planner)
     pdef = ss.getProblemDefinition()
     obj.deadline = t_end
