@@ -8,6 +8,9 @@
   the box corners included.
 - The search compiled without the exact |phi_max| (issue 17: the planner's and the demo's fields) gives
   bit for bit the ``||G||``, rho*, k* and validity of the search with it, planar and spatial.
+- The straight-shaft instances computed in bulk (vectorized, ``_levers2``/``_levers3``) equal the
+  one-at-a-time instances to the last bit, and the worst-||G|| refinement run as lanes
+  (``_pattern_lanes``) ends every search where the one-at-a-time pattern search ends it.
 """
 from __future__ import annotations
 
@@ -101,3 +104,123 @@ def test_the_search_without_phi_max_is_the_search_with_it(name, res):
     d = sc.dim
     assert kernels._TILES[d, False] is not kernels._TILES[d, True]
     assert kernels._TILES[d, False].signatures and kernels._TILES[d, True].signatures  # both copies ran
+
+
+def _port_box(tmp_path, name):
+    """A bundled scenario with a pure port box (no load axis): the case the bulk kernels and the lanes take."""
+    import re
+
+    text = (SCENARIOS / name).read_text(encoding="utf-8")
+    if name.startswith("beasley2004"):
+        text = text.replace("\n[sensors]", "\n[uncertainty]\nport_y = [-0.01, 0.01]\nport_z = [-0.01, 0.01]\nsamples = 5\n"
+                            "\n[sensors]", 1)
+    else:
+        text = re.sub(r"^tip_force_over_ei = .*$", "", text, flags=re.M)
+        text = text.replace('urdf = "phantom15.urdf"', f'urdf = "{(SCENARIOS / "phantom15.urdf").as_posix()}"')
+    path = tmp_path / name
+    path.write_text(text, encoding="utf-8")
+    sc = load_scenario(path)
+    es, _ = error_set(sc)
+    assert not es.active[sc.dim:].any()
+    return sc, es
+
+
+@pytest.mark.parametrize("name", ["beasley2004_port.toml", "phantom15_spatial.toml"])
+def test_straight_shafts_in_bulk_equal_the_instances(tmp_path, name):
+    """The vectorized straight-shaft kernels (_levers2/_levers3) give each instance's ||G||, wrist and
+    validity to the last bit of the one-at-a-time instance and gval: tips near and far, offsets from
+    zero to beyond the box, tips the shaft cannot reach."""
+    from errplan.fields.compute import _kernel_args
+    from errplan.fields.kernels import _instance2, _levers2, _levers3
+
+    sc, es = _port_box(tmp_path, name)
+    d = sc.dim
+    ka = _kernel_args(sc, es, None)
+    base, est, L = ka["base_port"], ka["est"], ka["L"]
+    rng = np.random.default_rng(5)
+    n = 4000
+    X = base + rng.uniform(-1.1, 1.1, (n, d)) * L
+    X[::7] = base + rng.normal(0, 1e-10, (len(X[::7]), d))  # at the port: r below 1e-9
+    G = rng.uniform(-0.02, 0.02, (d, n)) * (rng.random(n) < 0.9)
+    XS = np.ascontiguousarray(X.T)
+    O = np.empty((7 if d == 2 else 4, n))
+    ok = np.empty(n, bool)
+    Mb, Pb, S, V = np.empty((1, d, d)), np.empty((1, 5)), np.zeros((8, 3, 3)), np.zeros((8, 3))
+    for k in (1.0, 0.37):
+        (_levers2 if d == 2 else _levers3)(XS, np.ascontiguousarray(G), n, base, est, L, k, O, ok)
+        agree = 0
+        for j in range(n):
+            theta = np.zeros(3 if d == 2 else 5)
+            theta[:d] = G[:, j]
+            if d == 2:
+                okj = _instance2(X[j], theta, base, est, L, ka["arm"], Mb, 0, S, V, True)
+                w = Mb  # the wrist is not returned in the plane: compare it through the bulk one below
+            else:
+                okj, *w = _instance3(X[j], theta, base, est, L, Mb, Pb, 0, S, V, False)
+            assert ok[j] == okj, (j, X[j], theta)
+            if okj:
+                assert O[0, j] == gval(d, Mb, Pb, 0, k), (j, k)
+                if d == 3:
+                    assert tuple(O[1:4, j]) == tuple(w)
+                else:
+                    assert (O[3, j], O[4, j], O[5, j], O[6, j]) == (Mb[0, 0, 0], Mb[0, 0, 1], Mb[0, 1, 0], Mb[0, 1, 1])
+                agree += 1
+        assert agree > n // 4
+        assert (~ok).sum() > n // 20
+
+
+@pytest.mark.parametrize("name", ["beasley2004_port.toml", "phantom15_spatial.toml"])
+def test_the_refinement_in_lanes_is_each_search_alone(tmp_path, name):
+    """_pattern_lanes runs many worst-||G|| pattern searches together; each ends with the value and the
+    validity that the one-at-a-time pattern search (_pattern) gives from the same start: starts on the
+    sample grid and inside the box, tips inside and at the edge of the robust workspace (some polls
+    fail there), certified and uncertified tips."""
+    from errplan.fields.compute import _kernel_args
+    from errplan.fields.kernels import _instance2, _pattern, _pattern_lanes
+    from errplan.fields.search import EXTRA_PASSES, REFINE_LEVELS
+
+    sc, es = _port_box(tmp_path, name)
+    d = sc.dim
+    ka = _kernel_args(sc, es, None)
+    base, est, L, arm, chain, rmap = ka["base_port"], ka["est"], ka["L"], ka["arm"], ka["chain"], ka["rmap"]
+    valid = compute_fields(sc, 0.02 if d == 2 else 0.03, metrics=("G_norm",), workers=1)
+    axes = [valid.y, valid.z] if d == 2 else [valid.x, valid.y, valid.z]
+    P = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, d)
+    inside = P[valid.valid.reshape(-1)]
+    rng = np.random.default_rng(9)
+    # tips of the robust workspace and tips up to a grid step outside it (polls fail there)
+    X = np.concatenate([inside[rng.choice(len(inside), 300)],
+                        inside[rng.choice(len(inside), 200)] + rng.normal(0, 0.02, (200, d))])
+    ns = len(X)
+    grid = ka["grid"]
+    na = grid.shape[1]
+    TH = np.empty((na, ns))
+    for s in range(ns):
+        TH[:, s] = grid[rng.integers(len(grid))] if s % 2 else rng.uniform(es.lo_arr, es.hi_arr)
+    TH[d:] = 0.0
+    k = float(sc.controller.gain)
+    Mb, Pb, S, V = np.empty((1, d, d)), np.empty((1, 5)), np.zeros((8, 3, 3)), np.zeros((8, 3))
+    best = np.empty(ns)
+    known = rng.random(ns) < 0.25  # a quarter as if certified (no reachability test), the rest the exact test
+    for s in range(ns):
+        if d == 2:
+            _instance2(X[s], TH[:, s], base, est, L, arm, Mb, 0, S, V, True)
+        else:
+            _instance3(X[s], TH[:, s], base, est, L, Mb, Pb, 0, S, V, False)
+        best[s] = gval(d, Mb, Pb, 0, k)
+    best = np.where(np.isfinite(best), best, 0.0)
+    alone = []
+    for s in range(ns):
+        th = TH[:, s].copy()
+        alone.append(_pattern(d, 0, k, X[s], th, best[s], ka["step0"], es.lo_arr, es.hi_arr, es.active, es.periodic,
+                              REFINE_LEVELS, EXTRA_PASSES, base, est, L, arm, chain, rmap, Mb, Pb, S, V,
+                              np.empty(na), known[s]))
+    b_l, live = best.copy(), np.ones(ns, bool)
+    _pattern_lanes(d, k, ns, np.ascontiguousarray(X.T), np.ascontiguousarray(TH[:d]), b_l, known, live,
+                   ka["step0"], es.lo_arr, es.hi_arr, es.active, es.periodic, REFINE_LEVELS, EXTRA_PASSES,
+                   base, est, L, arm, chain, rmap, np.empty((7 if d == 2 else 4, ns)), np.empty(ns, bool))
+    oks = np.array([a[1] for a in alone])
+    assert np.array_equal(live, oks)
+    assert np.array_equal(b_l[oks], np.array([a[0] for a in alone])[oks])
+    assert 100 < oks.sum() < ns  # both kinds present
+    assert (b_l[oks] > best[oks]).mean() > 0.5  # the refinement climbed

@@ -25,7 +25,10 @@ from .search import EXTRA_PASSES, REFINE_LEVELS, SECOND_START, Progress, _refine
 
 DEFAULT_METRICS = ("G_norm", "phi_hat_max", "phi_max")
 ALL_METRICS = ("G_norm", "phi_hat_max", "phi_max", "rho_star")
-TILE_POINTS = 4096  # tips per tile (a few hundred ms of compiled work), more tiles than workers
+TILE_POINTS = 4096  # tips per tile at least (tens of ms of compiled work)...
+TILE_POINTS_MAX = 16384  # ...and at most; in between, about 16 tiles per worker (each tile costs a kernel
+# dispatch and a result shipped back: at 0.25 mm over P1's workspace 674 tiles of 4096 took 2.6 s on 2
+# workers, 169 of 16384 2.1 s). A tip's values do not depend on its tile.
 BYTES_PER_POINT = 96  # grid coordinates, flags and the output arrays, per grid point
 MAX_GRID_POINTS = 4_000_000  # a larger grid is a mistake more often than a wish: one clear error
 
@@ -142,6 +145,13 @@ def run_tile(job: FieldJob, span: tuple[int, int]) -> dict[str, np.ndarray]:
                         out["valid"], out["G_norm"], out["phi_max"], out["rho_star"], out["k_star"])
         return out
     return _numpy_tile(job.evaluator, X, job.k, job.samples, job.refine, job.want_rho)
+
+
+def _field_tile(job: FieldJob, span: tuple[int, int]) -> dict[str, np.ndarray]:
+    """:func:`run_tile` keeping only the arrays the field asked for (a worker ships less back)."""
+    out = run_tile(job, span)
+    drop = (() if job.want_phi else ("phi_max",)) + (() if job.want_rho else ("rho_star", "k_star"))
+    return {key: a for key, a in out.items() if key not in drop}
 
 
 #: bytes of kept motion maps per chunk of tips when rho* needs them (3-D flexion: instances x noise corners)
@@ -276,14 +286,15 @@ def compute_fields(sc, resolution: float | None = None, rho_star: bool = False, 
                    samples: int | None = None, refine: int = REFINE_LEVELS,
                    progress: Progress | None = None, metrics: tuple[str, ...] | None = None,
                    workers: int | None = 1, scheduler: str | None = None,
-                   tile_points: int = TILE_POINTS) -> MetricField:
+                   tile_points: int | None = None) -> MetricField:
     """Worst-case fields of a scenario on its tip grid (docs/interfaces.md "fields npz", "3-D fields npz").
 
     ``metrics``: names of ALL_METRICS to compute (default G_norm, phi_hat_max, phi_max, plus
-    rho_star with ``rho_star``); ``valid`` is always computed. ``workers``/``scheduler``: where the
+    rho_star with ``rho_star``); ``valid`` is always computed. ``tile_points``: tips per tile (default: about 16
+    tiles per worker, TILE_POINTS to TILE_POINTS_MAX). ``workers``/``scheduler``: where the
     tiles run (:func:`errplan.cluster.map_tasks`); the arrays do not depend on it.
     """
-    from ..cluster import map_tasks
+    from ..cluster import default_workers, map_tasks
 
     names = tuple(metrics) if metrics else parse_metrics(None, rho_star)
     if rho_star and "rho_star" not in names:
@@ -295,18 +306,35 @@ def compute_fields(sc, resolution: float | None = None, rho_star: bool = False, 
         raise ErrplanError(f"resolution = {resolution!r}: expected a grid spacing > 0 m")
     es, jac_effects = error_set(sc)
     axes = tip_grid(sc, es, res)
-    P = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, sc.dim)
+    shape = tuple(len(a) for a in axes)
+    n_points = math.prod(shape)
     # Cheap prefilter: a robustly valid tip is within the shaft length of every port of the box,
-    # in particular of its corners (the same strict test each instance applies).
+    # in particular of its corners (the same strict test each instance applies). The squared distance
+    # is summed axis by axis over the grid's broadcast axes (the same sum, term by term, as over the
+    # points' coordinates, without forming them all).
     L = sc.instrument.length
-    near = np.ones(len(P), bool)
+    near = np.ones(shape, bool)
+    d2 = np.empty(shape)  # one buffer for every corner
     for port in es.port_corners():
-        near &= np.sqrt(np.sum((P - port) ** 2, axis=-1)) < L
+        sq = [((a - port[i]) ** 2).reshape([-1 if j == i else 1 for j in range(len(axes))])
+              for i, a in enumerate(axes)]
+        np.add(sq[0], sq[1], out=d2)
+        for t in sq[2:]:
+            d2 += t
+        np.sqrt(d2, out=d2)
+        near &= d2 < L
     cand = np.flatnonzero(near)
+
+    def points(mask: np.ndarray) -> np.ndarray:
+        """The tips (n, d) where the grid mask ``mask`` (shape) holds, in flat order."""
+        return np.stack([np.broadcast_to(a.reshape([-1 if j == i else 1 for j in range(len(axes))]), shape)[mask]
+                         for i, a in enumerate(axes)], axis=-1)
+
+    Pc = points(near)
     k = float(sc.controller.gain)
     compiled = sc.controller.jacobian == "rigid" and not jac_effects
     if compiled:
-        job = FieldJob(P[cand], k, want_phi, want_rho, refine, samples, _kernel_args(sc, es, samples))
+        job = FieldJob(Pc, k, want_phi, want_rho, refine, samples, _kernel_args(sc, es, samples))
     else:
         from .evaluator import Evaluator, SpatialEffectsEvaluator, SpatialFlexionEvaluator
 
@@ -316,7 +344,10 @@ def compute_fields(sc, resolution: float | None = None, rho_star: bool = False, 
             ev = SpatialFlexionEvaluator.from_scenario(sc)
         else:
             ev = SpatialEffectsEvaluator.from_scenario(sc)
-        job = FieldJob(P[cand], k, want_phi, want_rho, refine, samples, None, ev)
+        job = FieldJob(Pc, k, want_phi, want_rho, refine, samples, None, ev)
+    if tile_points is None:
+        per = len(cand) // (16 * (default_workers() if workers is None else max(1, int(workers))))
+        tile_points = min(TILE_POINTS_MAX, max(TILE_POINTS, per))
     spans = [(i, min(i + tile_points, len(cand))) for i in range(0, len(cand), tile_points)]
 
     def tick(done, total):
@@ -327,11 +358,10 @@ def compute_fields(sc, resolution: float | None = None, rho_star: bool = False, 
         # the kernel compiled (or loaded from the disk cache) once here, before the workers fork: one
         # compile for all of them and one first-run notice (errplan.jit), not one per worker
         run_tile(job, (0, 1))
-    parts = map_tasks(run_tile, job, spans, workers=workers, scheduler=scheduler, progress=tick)
-    shape = tuple(len(a) for a in axes)
+    parts = map_tasks(_field_tile, job, spans, workers=workers, scheduler=scheduler, progress=tick)
 
     def scatter(key, fill=np.nan, dtype=float):
-        a = np.full(len(P), fill, dtype=dtype)
+        a = np.full(n_points, fill, dtype=dtype)
         if parts:
             a[cand] = np.concatenate([p[key] for p in parts])
         return a.reshape(shape)
@@ -346,7 +376,7 @@ def compute_fields(sc, resolution: float | None = None, rho_star: bool = False, 
         clearance = np.full(shape, np.nan)
         flat = valid.reshape(-1)
         reach = np.flatnonzero(flat)
-        cl = model.tip(P[reach])
+        cl = model.tip(points(valid))
         clearance.reshape(-1)[reach] = cl
         blocked = reach[cl < model.required]
         flat[blocked] = False
