@@ -216,11 +216,15 @@ def test_the_refinement_in_lanes_is_each_search_alone(tmp_path, name):
                               REFINE_LEVELS, EXTRA_PASSES, base, est, L, arm, chain, rmap, Mb, Pb, S, V,
                               np.empty(na), known[s]))
     b_l, live = best.copy(), np.ones(ns, bool)
+    # each search its own tip here (owner s): the completed results are the searches' own
+    out_valid, out_g, out_p, out_r, out_k = np.ones(ns, bool), np.empty(ns), np.empty(ns), np.empty(ns), np.empty(ns)
     _pattern_lanes(d, k, ns, np.ascontiguousarray(X.T), np.ascontiguousarray(TH[:d]), b_l, known, live,
-                   ka["step0"], es.lo_arr, es.hi_arr, es.active, es.periodic, REFINE_LEVELS, EXTRA_PASSES,
-                   base, est, L, arm, chain, rmap, np.empty((7 if d == 2 else 4, ns)), np.empty(ns, bool))
+                   np.arange(ns), ka["step0"], es.lo_arr, es.hi_arr, es.active, es.periodic, REFINE_LEVELS,
+                   EXTRA_PASSES, base, est, L, arm, chain, rmap, np.empty((7 if d == 2 else 4, ns)),
+                   np.empty(ns, bool), False, out_valid, out_g, out_p, out_r, out_k)
     oks = np.array([a[1] for a in alone])
-    assert np.array_equal(live, oks)
+    assert np.array_equal(live, oks) and np.array_equal(out_valid, oks)
     assert np.array_equal(b_l[oks], np.array([a[0] for a in alone])[oks])
+    assert np.array_equal(out_g[oks], b_l[oks]) and np.isnan(out_g[~oks]).all()
     assert 100 < oks.sum() < ns  # both kinds present
     assert (b_l[oks] > best[oks]).mean() > 0.5  # the refinement climbed

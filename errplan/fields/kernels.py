@@ -947,8 +947,8 @@ def _pattern(d, which, k, x, th, best, step0, lo, hi, active, periodic, refine, 
 
 
 @njit(cache=True, error_model="numpy", literal_args="d")
-def _pattern_lanes(d, k, ns, XS, TH, best, known, live, step0, lo, hi, active, periodic, refine, extra,
-                   base_port, est, L, arm, chain, rmap, O, okl):
+def _pattern_lanes(d, k, ns, XS, TH, best, known, live, owner, step0, lo, hi, active, periodic, refine, extra,
+                   base_port, est, L, arm, chain, rmap, O, okl, want_rho, out_valid, out_g, out_p, out_rho, out_k):
     """:func:`_pattern`'s search for the worst ||G|| (``which`` 0), run for ``ns`` searches at once, each
     from its own centre ``TH[:, s]`` (d, ns) with value ``best[s]`` at tip ``XS[:, s]``: every poll of
     the pattern is made for all searches still going by :func:`_levers2`/:func:`_levers3` (vectorized),
@@ -957,7 +957,11 @@ def _pattern_lanes(d, k, ns, XS, TH, best, known, live, step0, lo, hi, active, p
     every poll is a lever. ``live[s]`` ends False if a poll fails (the tip is not robustly valid), as
     :func:`_pattern`'s ``ok``; ``known[s]``: the tip's wrists are certified reachable. Between passes
     the searches that stopped climbing leave the lanes, so a further pass costs only what still climbs.
-    ``O``, ``okl``: the kernels' outputs (at least ns columns)."""
+    ``O``, ``okl``: the kernels' outputs (at least ns columns).
+
+    Then the tips' results are completed as :func:`_search` does after its own searches: tip
+    ``owner[s]`` gets the worst of its starts (its searches are consecutive), or is invalid if one
+    of them failed; rho* is taken against that worst case (:func:`_rho_final`)."""
     na = step0.shape[0]
     # working lanes: the searches still going, packed at the front (idx: their search)
     idx = np.arange(ns)
@@ -1034,6 +1038,27 @@ def _pattern_lanes(d, k, ns, XS, TH, best, known, live, step0, lo, hi, active, p
         nw = m_
         if nw == 0:
             break
+    s0 = 0
+    while s0 < ns:
+        i_ = owner[s0]
+        s1 = s0
+        ok_ = True
+        best_all = -math.inf
+        while s1 < ns and owner[s1] == i_:
+            ok_ = ok_ and live[s1]
+            best_all = max(best_all, best[s1])
+            s1 += 1
+        if not ok_:
+            out_valid[i_] = False
+            out_g[i_] = np.nan
+            out_p[i_] = np.nan
+            out_rho[i_] = np.nan
+            out_k[i_] = np.nan
+        elif out_valid[i_]:  # (not when its |phi_max| search failed)
+            out_g[i_] = best_all
+            if want_rho:
+                out_rho[i_], out_k[i_] = _rho_final(best_all, out_rho[i_], out_k[i_], k)
+        s0 = s1
 
 
 @njit(cache=True, error_model="numpy", literal_args="d")
@@ -1119,38 +1144,6 @@ def _rho_final(g, rs, ks, k):
     if rs >= 1.0:
         rs, ks = 1.0, 0.0
     return rs, ks
-
-
-@njit(cache=True, error_model="numpy", literal_args="d")
-def _lanes_done(d, k, ns, XS, TH, bestL, knownL, liveL, step0, lo, hi, active, periodic, refine, extra,
-                base_port, est, L, arm, chain, rmap, OL, okL, ownerL, want_rho, out_valid,
-                out_g, out_p, out_rho, out_k):
-    """Run a block's recorded worst-||G|| searches together (:func:`_pattern_lanes`), then complete
-    their tips' results as :func:`_search` does after its own: the worst of a tip's starts, or the tip
-    invalid if one of them failed; rho* against that worst case (:func:`_rho_final`)."""
-    _pattern_lanes(d, k, ns, XS, TH, bestL, knownL, liveL, step0, lo, hi, active, periodic, refine,
-                   extra, base_port, est, L, arm, chain, rmap, OL, okL)
-    s0 = 0
-    while s0 < ns:  # a tip's searches are consecutive: jbest's, then j2's
-        i_ = ownerL[s0]
-        s1 = s0
-        ok_ = True
-        best_all = -math.inf
-        while s1 < ns and ownerL[s1] == i_:
-            ok_ = ok_ and liveL[s1]
-            best_all = max(best_all, bestL[s1])
-            s1 += 1
-        if not ok_:
-            out_valid[i_] = False
-            out_g[i_] = np.nan
-            out_p[i_] = np.nan
-            out_rho[i_] = np.nan
-            out_k[i_] = np.nan
-        elif out_valid[i_]:  # (not when its |phi_max| search failed)
-            out_g[i_] = best_all
-            if want_rho:
-                out_rho[i_], out_k[i_] = _rho_final(best_all, out_rho[i_], out_k[i_], k)
-        s0 = s1
 
 
 def worst_case_tile(X, *args) -> None:
@@ -1240,13 +1233,15 @@ def _search(X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L,
     corners = corners[:nc]
     XT = np.empty((d, nl))  # the tip, once per sampled straight instance (_levers2/_levers3 take one per lane)
     ns = 0
-    for ii in range(n):
-        x = X[ii]
-        if ns > 0 and ii % LANE_TIPS == 0:  # the previous block's refinements, together
-            _lanes_done(d, k, ns, XS, TH, bestL, knownL, liveL, step0, lo, hi, active, periodic, refine, extra,
-                        base_port, est, L, arm, chain, rmap, OL, okL, ownerL, want_rho, out_valid,
-                        out_g, out_p, out_rho, out_k)
+    for ii in range(n + 1):
+        if ns > 0 and (ii == n or ii % LANE_TIPS == 0):  # the previous block's refinements, together
+            _pattern_lanes(d, k, ns, XS, TH, bestL, knownL, liveL, ownerL, step0, lo, hi, active, periodic,
+                           refine, extra, base_port, est, L, arm, chain, rmap, OL, okL, want_rho, out_valid,
+                           out_g, out_p, out_rho, out_k)
             ns = 0
+        if ii == n:
+            break
+        x = X[ii]
         ok = True
         known = False
         if d == 3:
@@ -1393,10 +1388,6 @@ def _search(X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L,
         else:
             out_rho[ii] = np.nan
             out_k[ii] = np.nan
-    if ns > 0:
-        _lanes_done(d, k, ns, XS, TH, bestL, knownL, liveL, step0, lo, hi, active, periodic, refine, extra,
-                    base_port, est, L, arm, chain, rmap, OL, okL, ownerL, want_rho, out_valid,
-                    out_g, out_p, out_rho, out_k)
 
 
 def motion_maps(X, TH, base_port, est, L, arm, chain, rmap, out_M, out_ok) -> None:
