@@ -353,6 +353,55 @@ def _flexed_J3(w, p, L, tvec, a, J, S):
 
 
 @njit(cache=True, error_model="numpy")
+def _straight2(x0, x1, e0, e1, r, L):
+    """Straight planar shaft at tip x, port->tip vector e (|e| = r): the lever's wrist and J's conformal
+    parts (kinematics.shaft.lever_parts): mu = 1 - L/(2 rho), nu = -(L/(2 rho)) n_c^2 with
+    n_c = (e_z - i e_y)/r and rho = |p - w| = L - r on the line. ``(w0, w1, m1r, m1i, n1r, n1i)``."""
+    ir = 1.0 / r
+    w0 = x0 - L * e0 * ir
+    w1 = x1 - L * e1 * ir
+    h = L / (2.0 * (L - r))
+    return w0, w1, 1.0 - h, 0.0, -h * (e1 * e1 - e0 * e0) * ir * ir, 2.0 * h * e0 * e1 * ir * ir
+
+
+@njit(cache=True, error_model="numpy")
+def _est_inverse2(est0, est1, w0, w1, L):
+    """The controller's lever through the estimate at wrist w (mu2 real, nu2 = -h2 (d_z - i d_y)^2 /
+    rho^2): whether Jhat is regular (|det| > RCOND times its scale) and the conformal parts of Jhat^-1,
+    (conj(mu2), -nu2) / det: ``(regular, imr, inr, ini)``."""
+    dy, dz = est0 - w0, est1 - w1
+    rho2 = dy * dy + dz * dz
+    h2 = L / (2.0 * math.sqrt(rho2))
+    m2 = 1.0 - h2
+    n2r = -h2 * (dz * dz - dy * dy) / rho2
+    n2i = 2.0 * h2 * dz * dy / rho2
+    nn2 = n2r * n2r + n2i * n2i
+    det = m2 * m2 - nn2
+    return abs(det) > RCOND * (m2 * m2 + nn2), m2 / det, -n2r / det, -n2i / det
+
+
+@njit(cache=True, error_model="numpy")
+def _compose2(m1r, m1i, n1r, n1i, imr, inr, ini):
+    """M = J Jhat^-1 from the conformal parts of J and of Jhat^-1 (mu = mu1 imu + nu1 conj(inu),
+    nu = mu1 inu + nu1 conj(imu)): its entries ``(M00, M01, M10, M11)``."""
+    mr = m1r * imr + n1r * inr + n1i * ini
+    mi = m1i * imr + n1i * inr - n1r * ini
+    nr = m1r * inr - m1i * ini + n1r * imr
+    ni = m1r * ini + m1i * inr + n1i * imr
+    return mr + nr, ni - mi, mi + ni, mr - nr
+
+
+@njit(cache=True, error_model="numpy")
+def _gnorm2(a00, a01, a10, a11, k):
+    """||I - k M||_2 of a planar M: |1 - k mu| + k |nu| from its conformal parts."""
+    mr = 0.5 * (a00 + a11)
+    mi = 0.5 * (a10 - a01)
+    nr = 0.5 * (a00 - a11)
+    ni = 0.5 * (a01 + a10)
+    return math.sqrt((1.0 - k * mr) ** 2 + (k * mi) ** 2) + k * math.sqrt(nr * nr + ni * ni)
+
+
+@njit(cache=True, error_model="numpy")
 def _instance2(x, theta, base_port, est, L, arm, Mb, jm, S, V, known):
     """The planar instance: conformal parts of J and Jhat in real arithmetic (``known``: the tip's
     wrists are certified reachable, :func:`_tip_reach2`)."""
@@ -365,18 +414,9 @@ def _instance2(x, theta, base_port, est, L, arm, Mb, jm, S, V, known):
             return False
         t = theta[2]
         if t == 0.0:
-            # Straight shaft: the lever's wrist, and J through its conformal parts
-            # (kinematics.shaft.lever_parts): mu = 1 - L/(2 rho), nu = -(L/(2 rho)) n_c^2 with
-            # n_c = (e_z - i e_y)/r and rho = |p - w| = L - r on the line.
-            ir = 1.0 / r
-            w0 = x[0] - L * e0 * ir
-            w1 = x[1] - L * e1 * ir
+            w0, w1, m1r, m1i, n1r, n1i = _straight2(x[0], x[1], e0, e1, r, L)
             if not (known or _planar_reachable(arm, w0, w1)):
                 return False
-            h = L / (2.0 * (L - r))
-            m1r, m1i = 1.0 - h, 0.0
-            n1r = -h * (e1 * e1 - e0 * e0) * ir * ir
-            n1i = 2.0 * h * e0 * e1 * ir * ir
         else:
             b = _solve_b(r, L, t)
             a = L - b
@@ -386,30 +426,60 @@ def _instance2(x, theta, base_port, est, L, arm, Mb, jm, S, V, known):
             if not (known or _planar_reachable(arm, w0, w1)):
                 return False
             m1r, m1i, n1r, n1i = _flexed_parts2(w0, w1, p0, p1, L, t, a)
-        # the controller's lever through the estimate: mu2 real, nu2 = -h2 (d_z - i d_y)^2 / rho^2
-        dy, dz = est[0] - w0, est[1] - w1
-        rho2 = dy * dy + dz * dz
-        h2 = L / (2.0 * math.sqrt(rho2))
-        m2 = 1.0 - h2
-        n2r = -h2 * (dz * dz - dy * dy) / rho2
-        n2i = 2.0 * h2 * dz * dy / rho2
-        nn2 = n2r * n2r + n2i * n2i
-        det = m2 * m2 - nn2
-        if not abs(det) > RCOND * (m2 * m2 + nn2):
+        regular, imr, inr, ini = _est_inverse2(est[0], est[1], w0, w1, L)
+        if not regular:
             return False
-        # inverse parts (conj(mu2), -nu2) / det; mu = mu1 imu + nu1 conj(inu), nu = mu1 inu + nu1 conj(imu)
-        imr = m2 / det
-        inr, ini = -n2r / det, -n2i / det
-        mr = m1r * imr + n1r * inr + n1i * ini
-        mi = m1i * imr + n1i * inr - n1r * ini
-        nr = m1r * inr - m1i * ini + n1r * imr
-        ni = m1r * ini + m1i * inr + n1i * imr
-        Mb[jm, 0, 0] = mr + nr
-        Mb[jm, 1, 1] = mr - nr
-        Mb[jm, 1, 0] = mi + ni
-        Mb[jm, 0, 1] = ni - mi
+        Mb[jm, 0, 0], Mb[jm, 0, 1], Mb[jm, 1, 0], Mb[jm, 1, 1] = _compose2(m1r, m1i, n1r, n1i, imr, inr, ini)
         return True
     return False
+
+
+@njit(cache=True, error_model="numpy")
+def _lever3(x0, x1, x2, e0, e1, e2, r, est0, est1, est2, L):
+    """Straight 3-D shaft at tip x, port->tip vector e (|e| = r) (docs/physics.md "Lever in 3-D"):
+    J = I - s P, P = I - u u^T, u = e / r and s = L / (L - r) on the line; Jhat = I - sh Ph through the
+    estimate, so Jhat^-1 = I + c Ph with c = sh / (1 - sh) (P is a projector): no inversion. Jhat is
+    singular when det(Jhat) = (1 - sh)^2 is below RCOND times its scale ||Jhat||_F^3 ~ (1 + 2 (1 - sh)^2)^1.5.
+    ``(regular, w0, w1, w2, u0, u1, u2, v0, v1, v2, s, c, u.v, |u x v|)``."""
+    ir = 1.0 / r
+    u0, u1, u2 = e0 * ir, e1 * ir, e2 * ir
+    w0, w1, w2 = x0 - L * u0, x1 - L * u1, x2 - L * u2
+    s_ = L / (L - r)
+    d0, d1, d2 = est0 - w0, est1 - w1, est2 - w2
+    rho = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+    sh = L / rho
+    one = 1.0 - sh
+    sc = 1.0 + 2.0 * one * one
+    regular = one * one > RCOND * (sc * math.sqrt(sc))  # (a power call would not vectorize in _levers3)
+    c = sh / one
+    v0, v1, v2 = d0 / rho, d1 / rho, d2 / rho
+    uv = u0 * v0 + u1 * v1 + u2 * v2
+    n0, n1, n2 = u1 * v2 - u2 * v1, u2 * v0 - u0 * v2, u0 * v1 - u1 * v0
+    sv = math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+    return regular, w0, w1, w2, u0, u1, u2, v0, v1, v2, s_, c, uv, sv
+
+
+@njit(cache=True, error_model="numpy")
+def _lever_block3(s_, c, uv, sv):
+    """The lever's M in reduced form (:func:`gval`): its 2 x 2 block on span{u, v} in the basis (u, e)
+    and its value along u x v."""
+    oms = 1.0 - s_
+    return 1.0 + c * sv * sv, -c * sv * uv, -oms * c * sv * uv, oms * (1.0 + c * uv * uv), oms * (1.0 + c)
+
+
+@njit(cache=True, error_model="numpy")
+def _gval_block(b00, b01, b10, b11, b4, k):
+    """``||I - k M||_2`` from the reduced form: ``max(|1 - k b4|, sigma_max(I - k B))``, the 2 x 2 value by
+    its conformal parts (|mu| + |nu|)."""
+    g00 = 1.0 - k * b00
+    g01 = -k * b01
+    g10 = -k * b10
+    g11 = 1.0 - k * b11
+    a = 0.5 * (g00 + g11)
+    b = 0.5 * (g10 - g01)
+    c = 0.5 * (g00 - g11)
+    e = 0.5 * (g01 + g10)
+    return max(abs(1.0 - k * b4), math.sqrt(a * a + b * b) + math.sqrt(c * c + e * e))
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -431,24 +501,11 @@ def _instance3(x, theta, base_port, est, L, Mb, Pb, jm, S, V, full):
         return False, 0.0, 0.0, 0.0
     tau = theta[3]
     if tau == 0.0:
-        # Straight shaft (docs/physics.md "Lever in 3-D"): J = I - s P, P = I - u u^T, u = e / r and
-        # s = L / (L - r) on the line; Jhat = I - sh Ph through the estimate, so
-        # Jhat^-1 = I + c Ph with c = sh / (1 - sh) (P is a projector): no inversion.
-        ir = 1.0 / r
-        u0, u1, u2 = e0 * ir, e1 * ir, e2 * ir
-        w0, w1, w2 = x[0] - L * u0, x[1] - L * u1, x[2] - L * u2
-        s_ = L / (L - r)
-        d0, d1, d2 = est[0] - w0, est[1] - w1, est[2] - w2
-        rho = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
-        sh = L / rho
-        # det(Jhat) = (1 - sh)^2: singular relative to its scale ||Jhat||_F^3 ~ (1 + 2 (1 - sh)^2)^1.5
-        one = 1.0 - sh
-        if not one * one > RCOND * (1.0 + 2.0 * one * one) ** 1.5:
+        regular, w0, w1, w2, u0, u1, u2, v0, v1, v2, s_, c, uv, sv = _lever3(
+            x[0], x[1], x[2], e0, e1, e2, r, est[0], est[1], est[2], L)
+        if not regular:
             return False, 0.0, 0.0, 0.0
-        c = sh / one
-        v0, v1, v2 = d0 / rho, d1 / rho, d2 / rho
         # M = (I - s P)(I + c Ph) = I + c Ph - s P - s c P Ph, with P Ph = I - u u^T - v v^T + (u.v) u v^T
-        uv = u0 * v0 + u1 * v1 + u2 * v2
         sc = s_ * c
         for i in range(3 if full else 0):
             ui = u0 if i == 0 else (u1 if i == 1 else u2)
@@ -461,14 +518,7 @@ def _instance3(x, theta, base_port, est, L, Mb, Pb, jm, S, V, full):
                 Ph = dij - vi * vj
                 PPh = dij - ui * uj - vi * vj + uv * ui * vj
                 Mb[jm, i, j] = dij + c * Ph - s_ * P - sc * PPh
-        n0, n1, n2 = u1 * v2 - u2 * v1, u2 * v0 - u0 * v2, u0 * v1 - u1 * v0
-        sv = math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
-        oms = 1.0 - s_
-        Pb[jm, 0] = 1.0 + c * sv * sv
-        Pb[jm, 1] = -c * sv * uv
-        Pb[jm, 2] = -oms * c * sv * uv
-        Pb[jm, 3] = oms * (1.0 + c * uv * uv)
-        Pb[jm, 4] = oms * (1.0 + c)
+        Pb[jm, 0], Pb[jm, 1], Pb[jm, 2], Pb[jm, 3], Pb[jm, 4] = _lever_block3(s_, c, uv, sv)
         return True, w0, w1, w2
     Pb[jm, 0] = math.nan
     # A lateral load: the bending plane holds the port->tip line e1 and e2(psi); in it the planar
@@ -522,12 +572,11 @@ def _instance3(x, theta, base_port, est, L, Mb, Pb, jm, S, V, full):
 
 # ----------------------------------------------------------------------------- straight shafts in bulk
 # The sampled instances of a rigid shaft (no lateral load) at one tip, all at once: one loop over the
-# instances' port offsets (structure of arrays: ``G`` (d, n), a row per coordinate) with no branch and no
-# call, which LLVM vectorizes (four instances per AVX2 instruction): about 23 ns an instance in 3-D
-# against 125 ns one by one through _instance3 and gval (benchmarks/fields.py). The arithmetic is that of
-# _instance2 / _instance3 and gval, operation for operation, so the values are the same to the last bit;
-# only the singularity test takes ``s * sqrt(s)`` for ``s ** 1.5`` (a power call does not vectorize).
-# Reachability stays the caller's (a tip's certificate, or the exact test per wrist).
+# instances' port offsets (structure of arrays: ``G`` (d, n), a row per coordinate) with no branch, which
+# LLVM vectorizes (four instances per AVX2 instruction; the scalar helpers it calls, _straight2 ...
+# _gval_block, are inlined by LLVM): about 23 ns an instance in 3-D against 125 ns one by one through
+# _instance3 and gval. The helpers are those of _instance2 / _instance3 and gval, so the values are the
+# same to the last bit. Reachability stays the caller's (a tip's certificate, or the exact test per wrist).
 
 
 @njit(cache=True, error_model="numpy")
@@ -542,34 +591,11 @@ def _levers2(XS, G, n, base_port, est, L, k, O, ok):
         p0, p1 = b0 + G[0, j], b1 + G[1, j]
         e0, e1 = x0 - p0, x1 - p1
         r = math.sqrt(e0 * e0 + e1 * e1)
-        ir = 1.0 / r
-        w0 = x0 - L * e0 * ir
-        w1 = x1 - L * e1 * ir
-        h = L / (2.0 * (L - r))
-        m1r, m1i = 1.0 - h, 0.0
-        n1r = -h * (e1 * e1 - e0 * e0) * ir * ir
-        n1i = 2.0 * h * e0 * e1 * ir * ir
-        dy, dz = est[0] - w0, est[1] - w1
-        rho2 = dy * dy + dz * dz
-        h2 = L / (2.0 * math.sqrt(rho2))
-        m2 = 1.0 - h2
-        n2r = -h2 * (dz * dz - dy * dy) / rho2
-        n2i = 2.0 * h2 * dz * dy / rho2
-        nn2 = n2r * n2r + n2i * n2i
-        det = m2 * m2 - nn2
-        ok[j] = (r > 1e-9) & (r < L) & (abs(det) > RCOND * (m2 * m2 + nn2))
-        imr = m2 / det
-        inr, ini = -n2r / det, -n2i / det
-        mr = m1r * imr + n1r * inr + n1i * ini
-        mi = m1i * imr + n1i * inr - n1r * ini
-        nr = m1r * inr - m1i * ini + n1r * imr
-        ni = m1r * ini + m1i * inr + n1i * imr
-        a00, a11, a10, a01 = mr + nr, mr - nr, mi + ni, ni - mi
-        cr = 0.5 * (a00 + a11)
-        ci = 0.5 * (a10 - a01)
-        dr = 0.5 * (a00 - a11)
-        di = 0.5 * (a01 + a10)
-        O[0, j] = math.sqrt((1.0 - k * cr) ** 2 + (k * ci) ** 2) + k * math.sqrt(dr * dr + di * di)
+        w0, w1, m1r, m1i, n1r, n1i = _straight2(x0, x1, e0, e1, r, L)
+        regular, imr, inr, ini = _est_inverse2(est[0], est[1], w0, w1, L)
+        ok[j] = (r > 1e-9) & (r < L) & regular
+        a00, a01, a10, a11 = _compose2(m1r, m1i, n1r, n1i, imr, inr, ini)
+        O[0, j] = _gnorm2(a00, a01, a10, a11, k)
         O[1, j] = w0
         O[2, j] = w1
         O[3, j] = a00
@@ -589,31 +615,11 @@ def _levers3(XS, G, n, base_port, est, L, k, O, ok):
         p0, p1, p2 = b0 + G[0, j], b1 + G[1, j], b2 + G[2, j]
         e0, e1, e2 = x0 - p0, x1 - p1, x2 - p2
         r = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
-        ir = 1.0 / r
-        u0, u1, u2 = e0 * ir, e1 * ir, e2 * ir
-        w0, w1, w2 = x0 - L * u0, x1 - L * u1, x2 - L * u2
-        s_ = L / (L - r)
-        d0, d1, d2 = est[0] - w0, est[1] - w1, est[2] - w2
-        rho = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
-        sh = L / rho
-        one = 1.0 - sh
-        sc = 1.0 + 2.0 * one * one
-        ok[j] = (r > 1e-9) & (r < L) & (one * one > RCOND * (sc * math.sqrt(sc)))
-        c = sh / one
-        v0, v1, v2 = d0 / rho, d1 / rho, d2 / rho
-        uv = u0 * v0 + u1 * v1 + u2 * v2
-        n0, n1, n2 = u1 * v2 - u2 * v1, u2 * v0 - u0 * v2, u0 * v1 - u1 * v0
-        sv = math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
-        oms = 1.0 - s_
-        g00 = 1.0 - k * (1.0 + c * sv * sv)
-        g01 = -k * (-c * sv * uv)
-        g10 = -k * (-oms * c * sv * uv)
-        g11 = 1.0 - k * (oms * (1.0 + c * uv * uv))
-        a = 0.5 * (g00 + g11)
-        b = 0.5 * (g10 - g01)
-        cc = 0.5 * (g00 - g11)
-        e = 0.5 * (g01 + g10)
-        O[0, j] = max(abs(1.0 - k * (oms * (1.0 + c))), math.sqrt(a * a + b * b) + math.sqrt(cc * cc + e * e))
+        regular, w0, w1, w2, u0, u1, u2, v0, v1, v2, s_, c, uv, sv = _lever3(
+            x0, x1, x2, e0, e1, e2, r, est[0], est[1], est[2], L)
+        ok[j] = (r > 1e-9) & (r < L) & regular
+        b00, b01, b10, b11, b4 = _lever_block3(s_, c, uv, sv)
+        O[0, j] = _gval_block(b00, b01, b10, b11, b4, k)
         O[1, j] = w0
         O[2, j] = w1
         O[3, j] = w2
@@ -731,11 +737,7 @@ def gnorm(d, Mb, j, k):
     """``||I - k M||_2`` of ``M = Mb[j]``: ``|1 - k mu| + k |nu|`` in the plane, the closed-form
     sigma_max in 3-D. ``d`` (2 or 3) is a compile-time constant in the search: one branch is compiled."""
     if d == 2:
-        mr = 0.5 * (Mb[j, 0, 0] + Mb[j, 1, 1])
-        mi = 0.5 * (Mb[j, 1, 0] - Mb[j, 0, 1])
-        nr = 0.5 * (Mb[j, 0, 0] - Mb[j, 1, 1])
-        ni = 0.5 * (Mb[j, 0, 1] + Mb[j, 1, 0])
-        return math.sqrt((1.0 - k * mr) ** 2 + (k * mi) ** 2) + k * math.sqrt(nr * nr + ni * ni)
+        return _gnorm2(Mb[j, 0, 0], Mb[j, 0, 1], Mb[j, 1, 0], Mb[j, 1, 1], k)
     return _smax3(1.0 - k * Mb[j, 0, 0], -k * Mb[j, 0, 1], -k * Mb[j, 0, 2],
                   -k * Mb[j, 1, 0], 1.0 - k * Mb[j, 1, 1], -k * Mb[j, 1, 2],
                   -k * Mb[j, 2, 0], -k * Mb[j, 2, 1], 1.0 - k * Mb[j, 2, 2])
@@ -752,15 +754,7 @@ def gval(d, Mb, Pb, j, k):
     b00 = Pb[j, 0]
     if not b00 == b00:
         return gnorm(3, Mb, j, k)
-    g00 = 1.0 - k * b00
-    g01 = -k * Pb[j, 1]
-    g10 = -k * Pb[j, 2]
-    g11 = 1.0 - k * Pb[j, 3]
-    a = 0.5 * (g00 + g11)
-    b = 0.5 * (g10 - g01)
-    c = 0.5 * (g00 - g11)
-    e = 0.5 * (g01 + g10)
-    return max(abs(1.0 - k * Pb[j, 4]), math.sqrt(a * a + b * b) + math.sqrt(c * c + e * e))
+    return _gval_block(b00, Pb[j, 1], Pb[j, 2], Pb[j, 3], Pb[j, 4], k)
 
 
 @njit(cache=True, error_model="numpy")
@@ -900,6 +894,16 @@ def _peak_raise(vals, j, pos, stride, counts, periodic, na):
     return out
 
 
+@njit(cache=True, error_model="numpy")
+def _poll_coord(t, step, lo, hi, periodic):
+    """A pattern-search poll's coordinate: ``t + step`` wrapped into [lo, hi) on a periodic axis, else
+    clipped into [lo, hi]."""
+    v = t + step
+    if periodic:
+        return lo + (v - lo) % (hi - lo)
+    return min(max(v, lo), hi)
+
+
 @njit(cache=True, error_model="numpy", literal_args="d")
 def _pattern(d, which, k, x, th, best, step0, lo, hi, active, periodic, refine, extra, base_port, est, L, arm,
              chain, rmap, M, P1, S, V, cand, known):
@@ -917,13 +921,9 @@ def _pattern(d, which, k, x, th, best, step0, lo, hi, active, periodic, refine, 
                 for sgn in (-1.0, 1.0):
                     for i in range(na):
                         cand[i] = th[i]
-                    v = th[ax] + sgn * h
-                    if periodic[ax]:
-                        v = lo[ax] + (v - lo[ax]) % (hi[ax] - lo[ax])
-                    else:
-                        v = min(max(v, lo[ax]), hi[ax])
-                        if v == th[ax]:
-                            continue  # clipped back onto the centre: a worst case on the box face
+                    v = _poll_coord(th[ax], sgn * h, lo[ax], hi[ax], periodic[ax])
+                    if not periodic[ax] and v == th[ax]:
+                        continue  # clipped back onto the centre: a worst case on the box face
                     cand[ax] = v
                     if d == 2:  # the branch here, not in an inlined instance(): see instance()
                         ok, w0, w1, w2 = _instance2(x, cand, base_port, est, L, arm, M, 0, S, V, known), 0.0, 0.0, 0.0
@@ -991,12 +991,7 @@ def _pattern_lanes(d, k, ns, XS, TH, best, known, live, owner, step0, lo, hi, ac
                 h = step0[ax] / 2.0 ** level
                 for sgn in (-1.0, 1.0):
                     for q in range(nw):
-                        v = Tw[ax, q] + sgn * h
-                        if periodic[ax]:
-                            v = lo[ax] + (v - lo[ax]) % (hi[ax] - lo[ax])
-                        else:
-                            v = min(max(v, lo[ax]), hi[ax])
-                        Cw[ax, q] = v
+                        Cw[ax, q] = _poll_coord(Tw[ax, q], sgn * h, lo[ax], hi[ax], periodic[ax])
                     if d == 2:
                         _levers2(Xw, Cw, nw, base_port, est, L, k, O, okl)
                     else:
