@@ -12,6 +12,7 @@ dask cluster, identical arrays either way). A tile runs the compiled kernel
 from __future__ import annotations
 
 import math
+import threading
 from dataclasses import dataclass
 from typing import Any
 
@@ -308,6 +309,18 @@ def compute_fields(sc, resolution: float | None = None, rho_star: bool = False, 
     axes = tip_grid(sc, es, res)
     shape = tuple(len(a) for a in axes)
     n_points = math.prod(shape)
+    k = float(sc.controller.gain)
+    compiled = sc.controller.jacobian == "rigid" and not jac_effects
+    kargs = _kernel_args(sc, es, samples) if compiled else None
+    loader = None
+    if compiled:
+        # The kernel is loaded from the disk cache (or compiled) in a thread while the grid is filtered
+        # below, before any worker forks: one load or compile for all of them and one first-run notice
+        # (errplan.jit). numba's load runs much of its time outside the GIL (LLVM), the filter in numpy.
+        first = np.array([[a[0] for a in axes]], float)
+        loader = threading.Thread(target=run_tile, args=(FieldJob(first, k, want_phi, want_rho, refine, samples,
+                                                                  kargs), (0, 1)), daemon=True)
+        loader.start()
     # Cheap prefilter: a robustly valid tip is within the shaft length of every port of the box,
     # in particular of its corners (the same strict test each instance applies). The squared distance
     # is summed axis by axis over the grid's broadcast axes (the same sum, term by term, as over the
@@ -331,10 +344,8 @@ def compute_fields(sc, resolution: float | None = None, rho_star: bool = False, 
                          for i, a in enumerate(axes)], axis=-1)
 
     Pc = points(near)
-    k = float(sc.controller.gain)
-    compiled = sc.controller.jacobian == "rigid" and not jac_effects
     if compiled:
-        job = FieldJob(Pc, k, want_phi, want_rho, refine, samples, _kernel_args(sc, es, samples))
+        job = FieldJob(Pc, k, want_phi, want_rho, refine, samples, kargs)
     else:
         from .evaluator import Evaluator, SpatialEffectsEvaluator, SpatialFlexionEvaluator
 
@@ -354,10 +365,8 @@ def compute_fields(sc, resolution: float | None = None, rho_star: bool = False, 
         if progress:
             progress(done / total, f"tile {done}/{total}")
 
-    if compiled and len(cand) and (workers != 1 or scheduler):
-        # the kernel compiled (or loaded from the disk cache) once here, before the workers fork: one
-        # compile for all of them and one first-run notice (errplan.jit), not one per worker
-        run_tile(job, (0, 1))
+    if loader is not None:
+        loader.join()
     parts = map_tasks(_field_tile, job, spans, workers=workers, scheduler=scheduler, progress=tick)
 
     def scatter(key, fill=np.nan, dtype=float):
