@@ -78,3 +78,27 @@ def test_cli_workers_give_the_same_npz(tmp_path):
         assert r.returncode == 0, r.stderr
         outs.append(MetricField.load(out))
     _same(*outs)
+
+
+def test_tile_sizes_and_the_kernel_loader_change_nothing_but_time(monkeypatch, capsys):
+    """The default tiles (about 16 per worker) give the arrays of small explicit tiles; a failure while
+    the kernel loads in its thread is raised in the caller, once, not printed by the thread."""
+    from errplan.fields import compute
+
+    sc = load_scenario(ROOT / "scenarios" / "beasley2004_port.toml")
+    small = compute_fields(sc, 0.01, metrics=("G_norm",), workers=1, tile_points=97)
+    auto = compute_fields(sc, 0.01, metrics=("G_norm",), workers=2)
+    for a in ("valid", "G_norm"):
+        assert np.array_equal(getattr(small, a), getattr(auto, a), equal_nan=True), a
+
+    real = compute.run_tile
+
+    def failing(job, span):
+        if span == (0, 1) and len(job.X) == 1:
+            raise ValueError("the kernel would not load")
+        return real(job, span)
+
+    monkeypatch.setattr(compute, "run_tile", failing)
+    with pytest.raises(ValueError, match="would not load"):
+        compute_fields(sc, 0.01, metrics=("G_norm",), workers=1)
+    assert "Exception in thread" not in capsys.readouterr().err

@@ -312,14 +312,20 @@ def compute_fields(sc, resolution: float | None = None, rho_star: bool = False, 
     k = float(sc.controller.gain)
     compiled = sc.controller.jacobian == "rigid" and not jac_effects
     kargs = _kernel_args(sc, es, samples) if compiled else None
-    loader = None
+    loader, load_errors = None, []
     if compiled:
         # The kernel is loaded from the disk cache (or compiled) in a thread while the grid is filtered
         # below, before any worker forks: one load or compile for all of them and one first-run notice
         # (errplan.jit). numba's load runs much of its time outside the GIL (LLVM), the filter in numpy.
-        first = np.array([[a[0] for a in axes]], float)
-        loader = threading.Thread(target=run_tile, args=(FieldJob(first, k, want_phi, want_rho, refine, samples,
-                                                                  kargs), (0, 1)), daemon=True)
+        first = FieldJob(np.array([[a[0] for a in axes]], float), k, want_phi, want_rho, refine, samples, kargs)
+
+        def load():
+            try:
+                run_tile(first, (0, 1))
+            except BaseException as e:  # raised in the caller's thread, below
+                load_errors.append(e)
+
+        loader = threading.Thread(target=load, daemon=True)
         loader.start()
     # Cheap prefilter: a robustly valid tip is within the shaft length of every port of the box,
     # in particular of its corners (the same strict test each instance applies). The squared distance
@@ -367,6 +373,8 @@ def compute_fields(sc, resolution: float | None = None, rho_star: bool = False, 
 
     if loader is not None:
         loader.join()
+        if load_errors:
+            raise load_errors[0]
     parts = map_tasks(_field_tile, job, spans, workers=workers, scheduler=scheduler, progress=tick)
 
     def scatter(key, fill=np.nan, dtype=float):
