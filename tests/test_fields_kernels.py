@@ -154,7 +154,6 @@ def test_straight_shafts_in_bulk_equal_the_instances(tmp_path, name):
             theta[:d] = G[:, j]
             if d == 2:
                 okj = _instance2(X[j], theta, base, est, L, ka["arm"], Mb, 0, S, V, True)
-                w = Mb  # the wrist is not returned in the plane: compare it through the bulk one below
             else:
                 okj, *w = _instance3(X[j], theta, base, est, L, Mb, Pb, 0, S, V, False)
             assert ok[j] == okj, (j, X[j], theta)
@@ -164,6 +163,9 @@ def test_straight_shafts_in_bulk_equal_the_instances(tmp_path, name):
                     assert tuple(O[1:4, j]) == tuple(w)
                 else:
                     assert (O[3, j], O[4, j], O[5, j], O[6, j]) == (Mb[0, 0, 0], Mb[0, 0, 1], Mb[0, 1, 0], Mb[0, 1, 1])
+                # the wrist is the lever's: L back from the tip along the port->tip line
+                e = X[j] - (base + G[:, j])
+                assert np.allclose(O[1:d + 1, j], X[j] - L * e / np.linalg.norm(e), rtol=0, atol=1e-15)
                 agree += 1
         assert agree > n // 4
         assert (~ok).sum() > n // 20

@@ -638,8 +638,8 @@ def _corners_out2(x, grid, corners, base_port, L, arm):
         r = math.sqrt(e0 * e0 + e1 * e1)
         if not (r > 1e-9 and r < L):
             return True
-        ir = 1.0 / r  # the wrist in _instance2's arithmetic, to the last bit
-        if not _planar_reachable(arm, x[0] - L * e0 * ir, x[1] - L * e1 * ir):
+        w0, w1, _, _, _, _ = _straight2(x[0], x[1], e0, e1, r, L)  # the instance's wrist, to the last bit
+        if not _planar_reachable(arm, w0, w1):
             return True
     return False
 
@@ -904,6 +904,12 @@ def _poll_coord(t, step, lo, hi, periodic):
     return min(max(v, lo), hi)
 
 
+@njit(cache=True, error_model="numpy")
+def _climbing(best, before):
+    """A pattern-search pass raised the worst case by more than 1e-7 (relative): another pass follows."""
+    return best - before > 1e-7 * max(1.0, abs(best))
+
+
 @njit(cache=True, error_model="numpy", literal_args="d")
 def _pattern(d, which, k, x, th, best, step0, lo, hi, active, periodic, refine, extra, base_port, est, L, arm,
              chain, rmap, M, P1, S, V, cand, known):
@@ -941,7 +947,7 @@ def _pattern(d, which, k, x, th, best, step0, lo, hi, active, periodic, refine, 
                         best = f
                         for i in range(na):
                             th[i] = cand[i]
-        if not best - before > 1e-7 * max(1.0, abs(best)):
+        if not _climbing(best, before):
             break
     return best, True
 
@@ -1020,7 +1026,7 @@ def _pattern_lanes(d, k, ns, XS, TH, best, known, live, owner, step0, lo, hi, ac
             o = idx[q]
             best[o] = bw[q]
             live[o] = lw[q]
-            if lw[q] and bw[q] - bef[q] > 1e-7 * max(1.0, abs(bw[q])):
+            if lw[q] and _climbing(bw[q], bef[q]):
                 idx[m_] = o
                 for a in range(d):
                     Xw[a, m_] = Xw[a, q]
@@ -1183,10 +1189,11 @@ def _search(X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L,
     dup = d == 3 and na == 5 and counts[4] > 1
     full = _PHI or want_rho  # the sampled M themselves (|phi_max|, rho*'s gain bracket), not only ||G||
     # the straight-shaft samples (no load), all at once per tip (_levers2/_levers3): lever[j] their column
-    # in G, -1 for a loaded sample; in 3-D only where the search needs no M (_levers3 forms none)
+    # in G, -1 for a loaded sample; in 3-D only where the search needs no M (``bulk``: _levers3 forms none)
+    bulk = d == 2 or not full
     lever = np.full(m, -1, np.int64)
     nl = 0
-    for j in range(m if d == 2 or not full else 0):
+    for j in range(m):
         if na <= d or grid[j, d] == 0.0:
             lever[j] = nl
             nl += 1
@@ -1200,11 +1207,9 @@ def _search(X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L,
     # The refinement of the worst ||G|| as lanes (_pattern_lanes), LANE_TIPS tips at a time, where every
     # instance the pattern can poll is a straight shaft (no load axis active, none sampled): each tip's
     # searches are recorded in the sampling pass, run together after it, then its results completed.
-    lanes = True
+    lanes = nl == m
     for a in range(d, na):
         lanes = lanes and not active[a]
-    for j in range(m):
-        lanes = lanes and (na <= d or grid[j, d] == 0.0)
     nsl = 2 * LANE_TIPS if lanes else 0
     XS = np.empty((d, nsl))
     TH = np.empty((d, nsl))
@@ -1248,7 +1253,7 @@ def _search(X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L,
         else:
             ok = not _corners_out2(x, grid, corners, base_port, L, arm)
             known = ok and _tip_reach2(x, base_port, lo, hi, L, arm) == 1
-        if ok and nl > 0:
+        if ok and bulk and nl > 0:
             for q in range(nl):
                 for a in range(d):
                     XT[a, q] = x[a]
@@ -1257,7 +1262,7 @@ def _search(X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L,
             else:
                 _levers3(XT, G, nl, base_port, est, L, k, O, okl)
         for j in range(m if ok else 0):
-            q = lever[j]
+            q = lever[j] if bulk else -1
             if q >= 0:
                 okj = okl[q]
                 if okj and not known:
