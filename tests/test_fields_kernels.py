@@ -173,12 +173,12 @@ def test_straight_shafts_in_bulk_equal_the_instances(tmp_path, name):
 
 @pytest.mark.parametrize("name", ["beasley2004_port.toml", "phantom15_spatial.toml"])
 def test_the_refinement_in_lanes_is_each_search_alone(tmp_path, name):
-    """_pattern_lanes runs many worst-||G|| pattern searches together; each ends with the value and the
+    """_pattern_lanes (through the lanes' entry, _lanes_tile) runs many worst-||G|| pattern searches together; each ends with the value and the
     validity that the one-at-a-time pattern search (_pattern) gives from the same start: starts on the
     sample grid and inside the box, tips inside and at the edge of the robust workspace (some polls
     fail there), certified and uncertified tips."""
     from errplan.fields.compute import _kernel_args
-    from errplan.fields.kernels import _instance2, _pattern, _pattern_lanes
+    from errplan.fields.kernels import LANE_TIPS, _LANE_TILES, _instance2, _pattern
     from errplan.fields.search import EXTRA_PASSES, REFINE_LEVELS
 
     sc, es = _port_box(tmp_path, name)
@@ -194,6 +194,7 @@ def test_the_refinement_in_lanes_is_each_search_alone(tmp_path, name):
     X = np.concatenate([inside[rng.choice(len(inside), 300)],
                         inside[rng.choice(len(inside), 200)] + rng.normal(0, 0.02, (200, d))])
     ns = len(X)
+    assert ns > LANE_TIPS
     grid = ka["grid"]
     na = grid.shape[1]
     TH = np.empty((na, ns))
@@ -220,10 +221,10 @@ def test_the_refinement_in_lanes_is_each_search_alone(tmp_path, name):
     b_l, live = best.copy(), np.ones(ns, bool)
     # each search its own tip here (owner s): the completed results are the searches' own
     out_valid, out_g, out_p, out_r, out_k = np.ones(ns, bool), np.empty(ns), np.empty(ns), np.empty(ns), np.empty(ns)
-    _pattern_lanes(d, k, ns, np.ascontiguousarray(X.T), np.ascontiguousarray(TH[:d]), b_l, known, live,
-                   np.arange(ns), ka["step0"], es.lo_arr, es.hi_arr, es.active, es.periodic, REFINE_LEVELS,
-                   EXTRA_PASSES, base, est, L, arm, chain, rmap, np.empty((7 if d == 2 else 4, ns)),
-                   np.empty(ns, bool), False, out_valid, out_g, out_p, out_r, out_k)
+    # through the lanes' entry: 500 tips, two blocks of LANE_TIPS
+    _LANE_TILES[d](ns, np.ascontiguousarray(X.T), np.ascontiguousarray(TH[:d]), b_l, known, live, np.arange(ns),
+                   ka["step0"], es.lo_arr, es.hi_arr, es.active, es.periodic, REFINE_LEVELS, EXTRA_PASSES, base,
+                   est, L, k, arm, chain, rmap, False, out_valid, out_g, out_p, out_r, out_k)
     oks = np.array([a[1] for a in alone])
     assert np.array_equal(live, oks) and np.array_equal(out_valid, oks)
     assert np.array_equal(b_l[oks], np.array([a[0] for a in alone])[oks])

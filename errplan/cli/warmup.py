@@ -13,6 +13,7 @@ command compiles that part itself. ``ERRPLAN_WARMUP=0`` turns it off; it needs 2
 Parts (each compiles, or loads, the kernels of one step at the argument types the step passes):
 ``fields2``/``fields3`` (the worst-case search with the exact |phi_max|, and the motion maps),
 ``fields2g``/``fields3g`` (the search without it: the planner's and the demo's spatial fields),
+``lanes2``/``lanes3`` (the worst-||G|| refinement as lanes, for error sets without a load),
 ``plan2``/``plan3`` (the planner's cell walks), ``gains3`` (the 3-D gains: ``||I - k M||`` grids, cuts,
 inverses, inverse kinematics), ``urdf`` (a URDF arm's kinematics and its reachability map's build: what
 loading a spatial scenario compiles), ``anatomy`` (the robust clearance of ``[anatomy]``: its scenario checks,
@@ -52,6 +53,21 @@ def _fields(d: int, phi: bool = True) -> None:
                     1.0, 1.0, np.zeros(16), chain, rmap, 1, EXTRA_PASSES, SECOND_START, phi, True, *out)
     motion_maps(X, np.zeros((0, na)), v, v.copy(), 1.0, np.zeros(16), chain, rmap, np.zeros((0, d, d)),
                 np.zeros(0, bool))
+
+
+def _lanes(d: int) -> None:
+    """The worst-||G|| refinement as lanes of dimension ``d`` (error sets without a load), run on none with
+    arguments of the types :mod:`errplan.fields.compute` passes (as :func:`_fields`)."""
+    import numpy as np
+
+    from ..fields.compute import EXTRA_PASSES, SECOND_START, _no_chain
+    from ..fields.kernels import load_lanes
+
+    na = 3 if d == 2 else 5
+    chain, rmap = _no_chain()
+    f, b, v = np.zeros(na), np.zeros(na, bool), np.zeros(d)
+    load_lanes(d, np.zeros((1, na)), np.ones(na, np.int64), b, b.copy(), f, f.copy(), f.copy(), v, v.copy(), 1.0,
+               1.0, np.zeros(16), chain, rmap, 1, EXTRA_PASSES, SECOND_START, True, True)
 
 
 def _plan(d: int) -> None:
@@ -132,7 +148,8 @@ def _anatomy() -> None:
 
 
 _PARTS = {"fields2": lambda: _fields(2), "fields3": lambda: _fields(3), "fields2g": lambda: _fields(2, False),
-          "fields3g": lambda: _fields(3, False), "plan2": lambda: _plan(2), "plan3": lambda: _plan(3),
+          "fields3g": lambda: _fields(3, False), "lanes2": lambda: _lanes(2), "lanes3": lambda: _lanes(3),
+          "plan2": lambda: _plan(2), "plan3": lambda: _plan(3),
           "gains3": _gains3, "anatomy": _anatomy, "urdf": _urdf}
 
 
@@ -147,6 +164,10 @@ def _cold(parts: Sequence[str]) -> bool:
             from ..fields import kernels
 
             entries += [kernels._TILES[int(d), not p.endswith("g")]]
+        elif p.startswith("lanes"):
+            from ..fields import kernels
+
+            entries += [kernels._LANE_TILES[int(d)]]
         elif p == "urdf":
             from ..kinematics.urdf import reachmap
 

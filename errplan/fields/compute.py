@@ -139,13 +139,18 @@ def run_tile(job: FieldJob, span: tuple[int, int]) -> dict[str, np.ndarray]:
         n = len(X)
         out = {"valid": np.zeros(n, bool), "G_norm": np.empty(n), "phi_max": np.empty(n),
                "rho_star": np.empty(n), "k_star": np.empty(n)}
-        kk = job.kernel
-        worst_case_tile(X, kk["grid"], kk["counts"], kk["active"], kk["periodic"], kk["lo"], kk["hi"], kk["step0"],
-                        kk["base_port"], kk["est"], kk["L"], job.k, kk["arm"], kk["chain"], kk["rmap"],
-                        job.refine, EXTRA_PASSES, SECOND_START, job.want_phi, job.want_rho,
-                        out["valid"], out["G_norm"], out["phi_max"], out["rho_star"], out["k_star"])
+        worst_case_tile(X, *_tile_args(job), out["valid"], out["G_norm"], out["phi_max"], out["rho_star"],
+                        out["k_star"])
         return out
     return _numpy_tile(job.evaluator, X, job.k, job.samples, job.refine, job.want_rho)
+
+
+def _tile_args(job: FieldJob) -> tuple:
+    """The compiled search's arguments after the tips and before the outputs (:func:`worst_case_tile`)."""
+    kk = job.kernel
+    return (kk["grid"], kk["counts"], kk["active"], kk["periodic"], kk["lo"], kk["hi"], kk["step0"],
+            kk["base_port"], kk["est"], kk["L"], job.k, kk["arm"], kk["chain"], kk["rmap"], job.refine,
+            EXTRA_PASSES, SECOND_START, job.want_phi, job.want_rho)
 
 
 def _field_tile(job: FieldJob, span: tuple[int, int]) -> dict[str, np.ndarray]:
@@ -322,6 +327,9 @@ def compute_fields(sc, resolution: float | None = None, rho_star: bool = False, 
         def load():
             try:
                 run_tile(first, (0, 1))
+                from .kernels import load_lanes
+
+                load_lanes(first.X.shape[1], *_tile_args(first))  # where the error set needs them
             except BaseException as e:  # raised in the caller's thread, below
                 load_errors.append(e)
 

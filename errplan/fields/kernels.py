@@ -953,9 +953,9 @@ def _pattern(d, which, k, x, th, best, step0, lo, hi, active, periodic, refine, 
 
 
 @njit(cache=True, error_model="numpy", literal_args="d")
-def _pattern_lanes(d, k, ns, XS, TH, best, known, live, owner, step0, lo, hi, active, periodic, refine, extra,
+def _pattern_lanes(d, k, s0, s1, XS, TH, best, known, live, owner, step0, lo, hi, active, periodic, refine, extra,
                    base_port, est, L, arm, chain, rmap, O, okl, want_rho, out_valid, out_g, out_p, out_rho, out_k):
-    """:func:`_pattern`'s search for the worst ||G|| (``which`` 0), run for ``ns`` searches at once, each
+    """:func:`_pattern`'s search for the worst ||G|| (``which`` 0), run for searches ``s0`` to ``s1 - 1`` at once, each
     from its own centre ``TH[:, s]`` (d, ns) with value ``best[s]`` at tip ``XS[:, s]``: every poll of
     the pattern is made for all searches still going by :func:`_levers2`/:func:`_levers3` (vectorized),
     then each search takes it or not exactly as :func:`_pattern` would, so that each ends where it
@@ -963,14 +963,15 @@ def _pattern_lanes(d, k, ns, XS, TH, best, known, live, owner, step0, lo, hi, ac
     every poll is a lever. ``live[s]`` ends False if a poll fails (the tip is not robustly valid), as
     :func:`_pattern`'s ``ok``; ``known[s]``: the tip's wrists are certified reachable. Between passes
     the searches that stopped climbing leave the lanes, so a further pass costs only what still climbs.
-    ``O``, ``okl``: the kernels' outputs (at least ns columns).
+    ``O``, ``okl``: the kernels' outputs (at least ``s1 - s0`` columns).
 
     Then the tips' results are completed as :func:`_search` does after its own searches: tip
     ``owner[s]`` gets the worst of its starts (its searches are consecutive), or is invalid if one
     of them failed; rho* is taken against that worst case (:func:`_rho_final`)."""
     na = step0.shape[0]
+    ns = s1 - s0
     # working lanes: the searches still going, packed at the front (idx: their search)
-    idx = np.arange(ns)
+    idx = np.arange(s0, s1)
     Xw = np.empty((d, ns))
     Tw = np.empty((d, ns))
     Cw = np.empty((d, ns))
@@ -980,12 +981,12 @@ def _pattern_lanes(d, k, ns, XS, TH, best, known, live, owner, step0, lo, hi, ac
     lw = np.empty(ns, np.bool_)
     for s in range(ns):
         for a in range(d):
-            Xw[a, s] = XS[a, s]
-            Tw[a, s] = TH[a, s]
-            Cw[a, s] = TH[a, s]
-        bw[s] = best[s]
-        kw[s] = known[s]
-        lw[s] = live[s]
+            Xw[a, s] = XS[a, s0 + s]
+            Tw[a, s] = TH[a, s0 + s]
+            Cw[a, s] = TH[a, s0 + s]
+        bw[s] = best[s0 + s]
+        kw[s] = known[s0 + s]
+        lw[s] = live[s0 + s]
     nw = ns
     for pass_ in range(1 + extra):
         for q in range(nw):
@@ -1039,16 +1040,16 @@ def _pattern_lanes(d, k, ns, XS, TH, best, known, live, owner, step0, lo, hi, ac
         nw = m_
         if nw == 0:
             break
-    s0 = 0
-    while s0 < ns:
-        i_ = owner[s0]
-        s1 = s0
+    t0 = s0
+    while t0 < s1:
+        i_ = owner[t0]
+        t1 = t0
         ok_ = True
         best_all = -math.inf
-        while s1 < ns and owner[s1] == i_:
-            ok_ = ok_ and live[s1]
-            best_all = max(best_all, best[s1])
-            s1 += 1
+        while t1 < s1 and owner[t1] == i_:
+            ok_ = ok_ and live[t1]
+            best_all = max(best_all, best[t1])
+            t1 += 1
         if not ok_:
             out_valid[i_] = False
             out_g[i_] = np.nan
@@ -1059,7 +1060,7 @@ def _pattern_lanes(d, k, ns, XS, TH, best, known, live, owner, step0, lo, hi, ac
             out_g[i_] = best_all
             if want_rho:
                 out_rho[i_], out_k[i_] = _rho_final(best_all, out_rho[i_], out_k[i_], k)
-        s0 = s1
+        t0 = t1
 
 
 @njit(cache=True, error_model="numpy", literal_args="d")
@@ -1157,12 +1158,75 @@ def worst_case_tile(X, *args) -> None:
     One search for both dimensions and both uses; the copy is picked here, in Python, so that a command
     compiles only the search of its own dimension (a compiled dispatch typed both), and without the exact
     |phi_max| unless it asks for it (its search is a fifth of a cold 3-D compile).
+
+    Where the error set is straight shafts only (no load axis active), the search records the starts of
+    its worst-||G|| refinements and :func:`_lanes_tile` (an entry of its own per dimension) runs
+    them as lanes afterwards (:func:`run_lanes`): a command whose error sets all carry a load never compiles
+    the lanes.
     """
-    _TILES[X.shape[1], bool(args[_WANT_PHI])](X, *args)
+    d, n = X.shape[1], X.shape[0]
+    lanes = _Lanes(d, n)
+    _TILES[d, bool(args[_WANT_PHI])](X, *args, *lanes.bufs)
+    if lanes.count[0] > 0:
+        run_lanes(lanes, *args)
+
+
+class _Lanes:
+    """The buffers in which a search records its lanes' starts (:func:`_search`, :func:`_lanes_tile`): at
+    most two per tip."""
+
+    def __init__(self, d: int, n: int):
+        ns = 2 * n
+        self.d = d
+        self.count = np.zeros(1, np.int64)
+        self.bufs = (np.empty((d, ns)), np.empty((d, ns)), np.empty(ns), np.empty(ns, np.bool_),
+                     np.empty(ns, np.bool_), np.empty(ns, np.int64), self.count)
+
+
+def run_lanes(lanes: _Lanes, grid, counts, active, periodic, lo, hi, step0, base_port, est, L, k, arm, chain,
+              rmap, refine, extra, second_start, want_phi, want_rho, out_valid, out_g, out_p, out_rho, out_k):
+    """The recorded lanes of a tile (:func:`_lanes_tile`), in the copy of its dimension."""
+    XS, TH, best, known, live, owner, count = lanes.bufs
+    _LANE_TILES[lanes.d](int(count[0]), XS, TH, best, known, live, owner, step0, lo, hi, active, periodic,
+                         refine, extra, base_port, est, L, k, arm, chain, rmap, want_rho, out_valid, out_g,
+                         out_p, out_rho, out_k)
+
+
+def load_lanes(d: int, grid, counts, active, *args) -> None:
+    """Load (or compile) the lanes of dimension ``d`` now if the error set (``grid``, ``active``: the
+    search's arguments) can use them: straight shafts only (:func:`_search`'s ``lanes``). Run on no
+    searches, with the search's own arguments (one specialization)."""
+    if not (grid.shape[1] > d and (np.any(grid[:, d] != 0.0) or np.any(active[d:]))):
+        out = [np.zeros(0, bool)] + [np.zeros(0) for _ in range(4)]
+        run_lanes(_Lanes(d, 0), grid, counts, active, *args, *out)
+
+
+def _lanes_tile(ns, XS, TH, best, known, live, owner, step0, lo, hi, active, periodic, refine, extra,
+                base_port, est, L, k, arm, chain, rmap, want_rho, out_valid, out_g, out_p, out_rho, out_k):
+    """The ``ns`` worst-||G|| refinements a search recorded (:func:`_search`), as lanes
+    (:func:`_pattern_lanes`), LANE_TIPS tips at a time (a tip's searches are consecutive and stay in one
+    block); compiled once per dimension (:func:`_per_dim`: ``_lanes_tile2``, ``_lanes_tile3``)."""
+    d = _D
+    O = np.empty((7 if d == 2 else 4, 2 * LANE_TIPS))
+    okl = np.empty(2 * LANE_TIPS, np.bool_)
+    s0 = 0
+    while s0 < ns:
+        s1 = s0
+        tips = 0
+        while s1 < ns and tips < LANE_TIPS:
+            i_ = owner[s1]
+            while s1 < ns and owner[s1] == i_:
+                s1 += 1
+            tips += 1
+        _pattern_lanes(d, k, s0, s1, XS, TH, best, known, live, owner, step0, lo, hi, active, periodic, refine,
+                       extra, base_port, est, L, arm, chain, rmap, O, okl, want_rho, out_valid, out_g, out_p,
+                       out_rho, out_k)
+        s0 = s1
 
 
 def _search(X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L, k, arm, chain, rmap,
-            refine, extra, second_start, want_phi, want_rho, out_valid, out_g, out_p, out_rho, out_k):
+            refine, extra, second_start, want_phi, want_rho, out_valid, out_g, out_p, out_rho, out_k,
+            XS, TH, bestL, knownL, liveL, ownerL, nlanes):
     """The search of :func:`worst_case_tile`; compiled once per dimension and use (:func:`_per_dim`:
     ``_tile2``, ``_tile3`` with |phi_max|, ``_tile2g``, ``_tile3g`` without), ``d``, ``_PHI`` and the pattern
     search ``_PAT`` constants of the module globals there. ``want_phi`` is read in Python (:func:`worst_case_tile` picks the copy)."""
@@ -1204,21 +1268,13 @@ def _search(X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L,
                 G[a, lever[j]] = grid[j, a]
     O = np.empty((7 if d == 2 else 4, nl))
     okl = np.empty(nl, np.bool_)
-    # The refinement of the worst ||G|| as lanes (_pattern_lanes), LANE_TIPS tips at a time, where every
-    # instance the pattern can poll is a straight shaft (no load axis active, none sampled): each tip's
-    # searches are recorded in the sampling pass, run together after it, then its results completed.
+    # The refinement of the worst ||G|| as lanes where every instance the pattern can poll is a straight
+    # shaft (no load axis active, none sampled): each tip's searches are recorded here (XS, TH, bestL,
+    # knownL, liveL, ownerL; nlanes[0] of them) and run together afterwards, then its results completed
+    # (_lanes_tile, an entry of its own: worst_case_tile).
     lanes = nl == m
     for a in range(d, na):
         lanes = lanes and not active[a]
-    nsl = 2 * LANE_TIPS if lanes else 0
-    XS = np.empty((d, nsl))
-    TH = np.empty((d, nsl))
-    OL = np.empty((7 if d == 2 else 4, nsl))
-    okL = np.empty(nsl, np.bool_)
-    bestL = np.empty(nsl)
-    knownL = np.empty(nsl, np.bool_)
-    liveL = np.empty(nsl, np.bool_)
-    ownerL = np.empty(nsl, np.int64)
     # planar: the straight samples at the corners of the port box, whose wrists are tested first
     corners = np.empty(m, np.int64)
     nc = 0
@@ -1233,14 +1289,7 @@ def _search(X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L,
     corners = corners[:nc]
     XT = np.empty((d, nl))  # the tip, once per sampled straight instance (_levers2/_levers3 take one per lane)
     ns = 0
-    for ii in range(n + 1):
-        if ns > 0 and (ii == n or ii % LANE_TIPS == 0):  # the previous block's refinements, together
-            _pattern_lanes(d, k, ns, XS, TH, bestL, knownL, liveL, ownerL, step0, lo, hi, active, periodic,
-                           refine, extra, base_port, est, L, arm, chain, rmap, OL, okL, want_rho, out_valid,
-                           out_g, out_p, out_rho, out_k)
-            ns = 0
-        if ii == n:
-            break
+    for ii in range(n):
         x = X[ii]
         ok = True
         known = False
@@ -1334,7 +1383,7 @@ def _search(X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L,
             for start in (jbest, j2):
                 if start < 0:
                     continue
-                if lanes and which == 0:  # run with the block's other searches after the sampling pass
+                if lanes and which == 0:  # run with the other searches afterwards (_lanes_tile)
                     for a in range(d):
                         XS[a, ns] = x[a]
                         TH[a, ns] = grid[start, a]
@@ -1383,11 +1432,12 @@ def _search(X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L,
                 rs = 1.0
             if not lanes:
                 rs, ks = _rho_final(results[0], rs, ks, k)
-            out_rho[ii] = rs  # with lanes: completed below, once the worst ||G|| is known
+            out_rho[ii] = rs  # with lanes: completed by _lanes_tile, once the worst ||G|| is known
             out_k[ii] = ks
         else:
             out_rho[ii] = np.nan
             out_k[ii] = np.nan
+    nlanes[0] = ns
 
 
 def motion_maps(X, TH, base_port, est, L, arm, chain, rmap, out_M, out_ok) -> None:
@@ -1448,5 +1498,6 @@ _PAT = _pattern  # the pattern search a search copy calls (_per_dim: _pattern_g 
 _tile2, _tile3 = _per_dim(_search, 2), _per_dim(_search, 3)
 _tile2g, _tile3g = _per_dim(_search, 2, phi=False), _per_dim(_search, 3, phi=False)
 _TILES = {(2, True): _tile2, (3, True): _tile3, (2, False): _tile2g, (3, False): _tile3g}
+_LANE_TILES = {2: _per_dim(_lanes_tile, 2), 3: _per_dim(_lanes_tile, 3)}
 _WANT_PHI = _search.__code__.co_varnames.index("want_phi") - 1  # its place in worst_case_tile's *args
 _maps2, _maps3 = _per_dim(_motion_maps, 2), _per_dim(_motion_maps, 3)
