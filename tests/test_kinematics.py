@@ -369,3 +369,26 @@ def test_flexion_controller_in_plane_x0_equals_planar():
                                                        np.array([1.0, 0, 0]), emb(direction_derivative(aw))),
                                             emb(direction(at)), L3)
     assert np.max(np.abs(J3o[:, 0, 1:])) > 1e-4
+
+
+def test_spatial_flexed_tip_of_one_point_is_the_vectorized_one_bit_for_bit():
+    """``flexed_tip`` of one wrist, port and load (plain floats: a simulation step's call) gives the bits
+    of the vectorized model, for loads normal, oblique, axial (no bend) and zero, wrists far from and at
+    the port (numpy's nan there, no exception)."""
+    import warnings
+
+    rng = np.random.default_rng(4)
+    n = 3000
+    W = rng.normal(0.0, 0.15, (n, 3))
+    P = rng.normal(0.0, 0.05, (n, 3))
+    T = rng.normal(0.0, 1.5, (n, 3))
+    T[::5] = 0.0
+    T[1::7] = 2.0 * (P - W)[1::7]  # along the shaft: no bend
+    P[::97] = W[::97]  # the wrist at the port
+    L = 0.32
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        ref = shaft._spatial_geometry(W, P, L, T)["tip"]
+        one = np.array([shaft.flexed_tip(W[i], P[i], L, T[i]) for i in range(n)])
+    assert np.isnan(ref[::97]).all()
+    assert np.array_equal(one, ref, equal_nan=True)

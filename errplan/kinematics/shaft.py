@@ -21,6 +21,8 @@ closed form by implicit differentiation and checked against casadi AD in the tes
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from .arm import angle_of, direction, direction_derivative
@@ -126,8 +128,45 @@ def flexed_geometry(w: np.ndarray, p: np.ndarray, L: float, t) -> dict[str, np.n
 def flexed_tip(w: np.ndarray, p: np.ndarray, L: float, t) -> np.ndarray:
     """Tip of the flexed shaft (P2 eqs. 6, 7, 10, 18); in space ``t`` is the world load vector."""
     if np.shape(w)[-1] == 3:
+        if np.shape(w) == (3,) and np.shape(p) == (3,) and np.shape(t) == (3,):
+            try:
+                return _spatial_tip1(w, p, float(L), t)
+            except (ZeroDivisionError, OverflowError, ValueError):  # numpy's inf/nan (and warnings) below
+                pass
         return _spatial_geometry(w, p, L, t)["tip"]
     return flexed_geometry(w, p, L, t)["tip"]
+
+
+def _spatial_tip1(w, p, L: float, t) -> np.ndarray:
+    """:func:`_spatial_geometry`'s tip for one wrist, port and load, in plain floats: the same operations
+    in the same order (numpy's sums of three terms add left to right; sqrt is exact; the trigonometry is
+    the C library's, as numpy's without wide SIMD), the same bits; a simulation step calls it once per
+    tip, where numpy's per-call cost was most of the calibration's time."""
+    w0, w1, w2 = (float(v) for v in w)
+    p0, p1, p2 = (float(v) for v in p)
+    t0, t1, t2 = (float(v) for v in t)
+    d0, d1, d2 = p0 - w0, p1 - w1, p2 - w2
+    rho = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+    u0, u1, u2 = d0 / rho, d1 / rho, d2 / rho
+    tu = t0 * u0 + t1 * u1 + t2 * u2
+    q0, q1, q2 = t0 - tu * u0, t1 - tu * u1, t2 - tu * u2
+    tau = math.sqrt(q0 * q0 + q1 * q1 + q2 * q2)
+    if tau > 0:
+        n0, n1, n2 = q0 / tau, q1 / tau, q2 / tau
+        a = rho  # _solve_a: Newton from a = rho
+        for _ in range(_NEWTON_ITERS):
+            la = L - a
+            s = tau * la ** 2 / 3.0
+            ds = -2.0 * tau * la / 3.0
+            g = 1.0 + s * s
+            a = a - (a * a * g - rho * rho) / (2.0 * a * g + 2.0 * a * a * s * ds)
+    else:
+        n0 = n1 = n2 = 0.0
+        a = rho
+    b = L - a
+    beta = math.atan(tau * b * b / 3.0)
+    c, sn = math.cos(beta), math.sin(beta)
+    return np.array([w0 + L * (c * u0 + sn * n0), w1 + L * (c * u1 + sn * n1), w2 + L * (c * u2 + sn * n2)])
 
 
 def _spatial_geometry(w, p, L: float, t) -> dict[str, np.ndarray]:
