@@ -80,6 +80,13 @@ def test_cli_workers_give_the_same_npz(tmp_path):
     _same(*outs)
 
 
+@pytest.mark.parametrize("bad", [0, -4, 2.5, True, "64"])
+def test_a_tile_size_that_is_not_a_positive_count_is_one_clear_error(bad):
+    sc = load_scenario(ROOT / "scenarios" / "beasley2004_port.toml")
+    with pytest.raises(ErrplanError, match=r"^tile_points = .*: expected a whole number of tips >= 1"):
+        compute_fields(sc, 0.01, metrics=("G_norm",), workers=1, tile_points=bad)
+
+
 def test_tile_sizes_and_the_kernel_loader_change_nothing_but_time(monkeypatch, capsys):
     """The default tiles (about 16 per worker) give the arrays of small explicit tiles; a failure while
     the kernel loads in its thread is raised in the caller, once, not printed by the thread."""

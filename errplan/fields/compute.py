@@ -310,6 +310,10 @@ def compute_fields(sc, resolution: float | None = None, rho_star: bool = False, 
     res = float(resolution or sc.fields.resolution)
     if not (res > 0 and math.isfinite(res)):
         raise ErrplanError(f"resolution = {resolution!r}: expected a grid spacing > 0 m")
+    if tile_points is not None and (isinstance(tile_points, bool) or not isinstance(tile_points, (int, np.integer))
+                                    or tile_points < 1):
+        raise ErrplanError(f"tile_points = {tile_points!r}: expected a whole number of tips >= 1 (or None: "
+                           "about 16 tiles per worker)")
     es, jac_effects = error_set(sc)
     axes = tip_grid(sc, es, res)
     shape = tuple(len(a) for a in axes)
