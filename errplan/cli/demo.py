@@ -105,8 +105,11 @@ def run(args) -> int:
         path = Path(args.scenario)
         sc = load_scenario(path)
         jobs = [(lambda: sc, path, False)]
-        if sc.dim == 3:  # a first run compiles the planner's and the gains' kernels meanwhile
+        # a first run compiles the planner's (and in 3-D the gains') kernels meanwhile
+        if sc.dim == 3:
             warmup.start(("plan3", "gains3") + (("anatomy",) if sc.anatomy is not None else ()))
+        else:
+            warmup.start(("plan2",))
     else:
         path = bundled_scenario()
         if not BUNDLED_SPATIAL.exists():
