@@ -231,3 +231,41 @@ def test_the_refinement_in_lanes_is_each_search_alone(tmp_path, name):
     assert np.array_equal(out_g[oks], b_l[oks]) and np.isnan(out_g[~oks]).all()
     assert 100 < oks.sum() < ns  # both kinds present
     assert (b_l[oks] > best[oks]).mean() > 0.5  # the refinement climbed
+
+
+@pytest.mark.parametrize("name, box, straight", [("beasley2004_port.toml", False, True),
+                                                  ("beasley2004_bounded.toml", False, False),
+                                                  ("phantom15_spatial.toml", False, False),
+                                                  ("phantom15_spatial.toml", True, True),
+                                                  ("beasley2004_bounded.toml", "fixed load", False)])
+def test_the_lanes_load_where_and_only_where_the_search_records_lanes(tmp_path, monkeypatch, name, box, straight):
+    """``load_lanes`` (the loader thread's: compile or load the lanes' entry before the workers fork) reads
+    the error set as the compiled search does: it loads the lanes exactly when the search records some
+    (straight shafts only: a port error alone) and never for an error set with a tip load (no compile the
+    command cannot use)."""
+    from errplan.fields import compute, kernels
+
+    if box == "fixed load":  # a load known exactly: no load axis active, every sample loaded
+        path = tmp_path / name
+        path.write_text((SCENARIOS / name).read_text(encoding="utf-8").replace(
+            "tip_force_over_ei = [-1.0, 1.0]", "tip_force_over_ei = [0.5, 0.5]"), encoding="utf-8")
+        sc = load_scenario(path)
+        es, _ = error_set(sc)
+        assert not es.active[sc.dim:].any()
+    elif box:
+        sc, es = _port_box(tmp_path, name)
+    else:
+        sc = load_scenario(SCENARIOS / name)
+        es, _ = error_set(sc)
+    valid = compute_fields(sc, 0.02 if sc.dim == 2 else 0.03, metrics=("G_norm",), workers=1)
+    axes = [valid.y, valid.z] if sc.dim == 2 else [valid.x, valid.y, valid.z]
+    P = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, sc.dim)[valid.valid.reshape(-1)]
+    job = compute.FieldJob(np.ascontiguousarray(P[:50]), float(sc.controller.gain), False, False, 2, None,
+                           compute._kernel_args(sc, es, None))
+    lanes = kernels._Lanes(sc.dim, len(job.X))
+    out = [np.zeros(len(job.X), bool)] + [np.empty(len(job.X)) for _ in range(4)]
+    kernels._TILES[sc.dim, False](job.X, *compute._tile_args(job), *out, *lanes.bufs)
+    loaded = []
+    monkeypatch.setattr(kernels, "run_lanes", lambda *a: loaded.append(a))
+    kernels.load_lanes(sc.dim, *compute._tile_args(job))
+    assert (lanes.count[0] > 0) == bool(loaded) == straight

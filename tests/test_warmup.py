@@ -76,3 +76,16 @@ def test_the_urdf_part_compiles_what_loading_a_spatial_scenario_compiles(tmp_pat
     for f in (chain._fk_many, chain._jac_many, chain._reach_many, chain._ik_many, reachmap._coarse_bbox,
               reachmap._build_map):
         assert len(f.signatures) == 1, (f, f.signatures)
+
+
+def test_the_lanes_part_compiles_what_a_port_box_field_runs():
+    """The ``lanes2`` part's placeholder arguments have the types a field of a pure port box passes: after
+    both, the lanes' entry has one specialization (the command loads what the part compiled)."""
+    from conftest import SCENARIOS
+    from errplan.api import compute_fields, load_scenario
+    from errplan.fields import kernels
+
+    warmup._lanes(2)
+    f = compute_fields(load_scenario(SCENARIOS / "beasley2004_port.toml"), 0.01, metrics=("G_norm",), workers=1)
+    assert f.valid.sum() > 100
+    assert len(kernels._LANE_TILES[2].signatures) == 1

@@ -36,38 +36,44 @@ ENV = "ERRPLAN_WARMUP"
 _STATE: dict = {"proc": None, "status": None, "parts": ()}
 
 
-def _fields(d: int, phi: bool = True) -> None:
-    """The search (with the exact |phi_max| or without) and the motion maps of dimension ``d``, each run
-    once on no tips with arguments of the types :mod:`errplan.fields.compute` passes (a URDF arm's chain
-    and reachability map are placeholders of the same numba types, so no scenario is needed)."""
+def _search_args(d: int, phi: bool = True) -> tuple:
+    """Arguments of the compiled search of dimension ``d`` (those between the tips and the outputs of
+    :func:`errplan.fields.kernels.worst_case_tile`), of the types :mod:`errplan.fields.compute` passes (a
+    URDF arm's chain and reachability map are placeholders of the same numba types, so no scenario is
+    needed)."""
     import numpy as np
 
     from ..fields.compute import EXTRA_PASSES, SECOND_START, _no_chain
+
+    na = 3 if d == 2 else 5
+    chain, rmap = _no_chain()
+    f, b, v = np.zeros(na), np.zeros(na, bool), np.zeros(d)
+    return (np.zeros((1, na)), np.ones(na, np.int64), b, b.copy(), f, f.copy(), f.copy(), v, v.copy(), 1.0, 1.0,
+            np.zeros(16), chain, rmap, 1, EXTRA_PASSES, SECOND_START, phi, True)
+
+
+def _fields(d: int, phi: bool = True) -> None:
+    """The search (with the exact |phi_max| or without) and the motion maps of dimension ``d``, each run
+    once on no tips (:func:`_search_args`)."""
+    import numpy as np
+
+    from ..fields.compute import _no_chain
     from ..fields.kernels import motion_maps, worst_case_tile
 
     na = 3 if d == 2 else 5
     chain, rmap = _no_chain()
-    f, b, v, X = np.zeros(na), np.zeros(na, bool), np.zeros(d), np.zeros((0, d))
+    v, X = np.zeros(d), np.zeros((0, d))
     out = [np.zeros(0, bool)] + [np.zeros(0) for _ in range(4)]
-    worst_case_tile(X, np.zeros((1, na)), np.ones(na, np.int64), b, b.copy(), f, f.copy(), f.copy(), v, v.copy(),
-                    1.0, 1.0, np.zeros(16), chain, rmap, 1, EXTRA_PASSES, SECOND_START, phi, True, *out)
+    worst_case_tile(X, *_search_args(d, phi), *out)
     motion_maps(X, np.zeros((0, na)), v, v.copy(), 1.0, np.zeros(16), chain, rmap, np.zeros((0, d, d)),
                 np.zeros(0, bool))
 
 
 def _lanes(d: int) -> None:
-    """The worst-||G|| refinement as lanes of dimension ``d`` (error sets without a load), run on none with
-    arguments of the types :mod:`errplan.fields.compute` passes (as :func:`_fields`)."""
-    import numpy as np
-
-    from ..fields.compute import EXTRA_PASSES, SECOND_START, _no_chain
+    """The worst-||G|| refinement as lanes of dimension ``d`` (error sets without a load), run on none."""
     from ..fields.kernels import load_lanes
 
-    na = 3 if d == 2 else 5
-    chain, rmap = _no_chain()
-    f, b, v = np.zeros(na), np.zeros(na, bool), np.zeros(d)
-    load_lanes(d, np.zeros((1, na)), np.ones(na, np.int64), b, b.copy(), f, f.copy(), f.copy(), v, v.copy(), 1.0,
-               1.0, np.zeros(16), chain, rmap, 1, EXTRA_PASSES, SECOND_START, True, True)
+    load_lanes(d, *_search_args(d))
 
 
 def _plan(d: int) -> None:

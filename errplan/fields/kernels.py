@@ -1229,7 +1229,10 @@ def _search(X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L,
             XS, TH, bestL, knownL, liveL, ownerL, nlanes):
     """The search of :func:`worst_case_tile`; compiled once per dimension and use (:func:`_per_dim`:
     ``_tile2``, ``_tile3`` with |phi_max|, ``_tile2g``, ``_tile3g`` without), ``d``, ``_PHI`` and the pattern
-    search ``_PAT`` constants of the module globals there. ``want_phi`` is read in Python (:func:`worst_case_tile` picks the copy)."""
+    search ``_PAT`` constants of the module globals there. ``want_phi`` is read in Python (:func:`worst_case_tile` picks the copy).
+    ``XS``, ``TH``, ``bestL``, ``knownL``, ``liveL``, ``ownerL`` (room for two per tip, :class:`_Lanes`): where
+    the error set is straight shafts only, the starts of the worst-||G|| refinements, left for
+    :func:`_lanes_tile`; ``nlanes[0]``: how many."""
     d = _D
     n = X.shape[0]
     m, na = grid.shape
