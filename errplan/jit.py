@@ -160,3 +160,36 @@ def _load_overload_or_announce(self, sig, target_context):
 
 if getattr(caching.FunctionCache.load_overload, "__name__", "") != "_load_overload_or_announce":
     caching.FunctionCache.load_overload = _load_overload_or_announce
+
+
+def _defer_blas_check() -> None:
+    """Skip the scipy import that numba's array-math module makes when it is first imported.
+
+    ``numba.np.arraymath`` checks at import time that scipy's BLAS is present
+    (``numba.np.linalg.ensure_blas``). The check imports all of ``scipy.linalg``: about 0.2 s at the
+    start of every process, measured here. Kernels loaded from the cache never need scipy. A compile
+    that types ``np.dot`` or ``np.linalg`` calls the real check again. The BLAS routines themselves are
+    bound from ``scipy.linalg.cython_blas`` on first call (numba's helper library). errplan depends on
+    scipy, so the check would pass anyway.
+
+    The module is therefore imported here with the import-time check replaced. The real check is put
+    back before numba uses it again. With a numba whose module is already loaded, or that has no such
+    check, this does nothing.
+    """
+    if "numba.np.arraymath" in sys.modules:
+        return
+    try:
+        from numba.np import linalg as nla
+    except ImportError:  # pragma: no cover - another numba layout: keep its own behaviour
+        return
+    real = getattr(nla, "ensure_blas", None)
+    if real is None:  # pragma: no cover
+        return
+    nla.ensure_blas = lambda: None
+    try:
+        import numba.np.arraymath  # noqa: F401
+    finally:
+        nla.ensure_blas = real
+
+
+_defer_blas_check()

@@ -59,3 +59,22 @@ def test_njit_is_numbas_with_a_disk_cache():
 
     assert twice(np.float64(3.0)) == 6.0 and half(1.0) == 0.5
     assert type(twice._cache).__name__ == "FunctionCache" and half.targetoptions["error_model"] == "numpy"
+
+
+def test_starting_errplan_skips_numbas_blas_import_and_keeps_blas_working():
+    """errplan.jit defers numba's import-time BLAS check (which imports all of scipy.linalg, about 0.3 s of
+    every command's start). Loading numba's array math then imports no scipy.linalg, numba still
+    believes BLAS is there, the real check is back for compiles, and a new kernel that needs BLAS
+    compiles and runs."""
+    code = (
+        "import sys, errplan.jit, numba, numpy as np\n"
+        "import numba.np.arraymath as am, numba.np.linalg as nla\n"
+        "assert 'scipy.linalg' not in sys.modules, 'scipy.linalg imported'\n"
+        "assert am._HAVE_BLAS\n"
+        "assert nla.ensure_blas.__name__ == 'ensure_blas'\n"
+        "f = numba.njit(lambda a, b: np.dot(a, b))\n"
+        "a = np.arange(6.0).reshape(2, 3)\n"
+        "assert np.array_equal(f(a, a.T), a @ a.T)\n"
+        "print('ok')\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr[-2000:]
