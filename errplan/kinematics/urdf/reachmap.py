@@ -533,15 +533,17 @@ def _read_cache(arm, path: Path, key: str) -> ReachMap | None:
                 return None
     except Exception:  # missing, truncated, not an npz, wrong fields: rebuild
         return None
-    origin, h, shape, state, sub, seed_ptr, seeds = arrs
+    origin, h, shape, state, depth, sub, seed_ptr, seeds = arrs
     shape = shape.astype(np.int64)
     if (origin.shape != (3,) or h.shape != () or sub.shape != () or shape.shape != (3,)
             or state.dtype != np.uint8 or state.shape != tuple(shape) or int(sub) < 1
+            or depth.dtype != np.uint8 or depth.shape != state.shape
             or np.any(shape % int(sub)) or seed_ptr.shape != (int(np.prod(shape // int(sub))) + 1,)
             or seeds.ndim != 2 or seeds.shape[1] != arm.n or seed_ptr[-1] != len(seeds)
             or np.any(np.diff(seed_ptr) < 0) or seed_ptr[0] != 0 or not np.isfinite(h) or h <= 0):
         return None
-    return ReachMap(origin.astype(float), float(h), shape, np.ascontiguousarray(state), int(sub),
+    return ReachMap(origin.astype(float), float(h), shape, np.ascontiguousarray(state), np.ascontiguousarray(depth),
+                    int(sub),
                     seed_ptr.astype(np.int64), np.ascontiguousarray(seeds, dtype=float))
 
 def _write_cache(arm, path: Path, key: str, rmap: ReachMap) -> None:
@@ -656,4 +658,21 @@ def build_map(arm) -> ReachMap:
     seed_ptr, seeds = _seed_lists(fd, fdist, fcnt)
     arm.map_info.update(K=K, coarse_cells=int(np.prod(ncell)), leaves=int(stats[0]),
                          singular_leaves=int(stats[1]), face_patches=int(stats[4]), conflicts=int(stats[2]), seedless=int(stats[3]))
-    return ReachMap(origin, h, shape, state, int(p.sub), seed_ptr, seeds)
+    return ReachMap(origin, h, shape, state, state_depth(state), int(p.sub), seed_ptr, seeds)
+
+
+def state_depth(state: np.ndarray) -> np.ndarray:
+    """:attr:`ReachMap.depth` of a voxel state array: per out or in voxel the chessboard distance to
+    the nearest voxel of another state (scipy's distance transform, capped at 255), 0 on the boundary."""
+    from scipy.ndimage import distance_transform_cdt
+
+    depth = np.zeros(state.shape, np.uint8)
+    for s in (0, 1):
+        same = state == s
+        if same.all():  # nothing else in the map: as far as the map reaches
+            depth[...] = 255
+            continue
+        if same.any():
+            d = distance_transform_cdt(same, metric="chessboard")
+            depth[same] = np.minimum(d[same], 255)
+    return depth
