@@ -99,6 +99,10 @@ def njit(*args, literal_args: Iterable[str] = (), **options) -> Callable:
     pipeline_class = options.pop("pipeline_class", Compiler)
     locals_ = options.pop("locals", {})
     targetoptions = dict(options, nopython=True, boundscheck=options.get("boundscheck"))
+    # No C-callable wrapper: numba builds one beside every compiled specialization (besides the one Python
+    # calls), for ``cfunc`` use and first-class function values, neither of which errplan makes. Skipping it
+    # takes about 5 to 10 % off a cold compile (measured on the planar search and the URDF kernels).
+    targetoptions.setdefault("no_cfunc_wrapper", True)
     keep = frozenset([literal_args] if isinstance(literal_args, str) else literal_args)
 
     def wrap(f):

@@ -57,8 +57,13 @@ def test_njit_is_numbas_with_a_disk_cache():
     def half(x):
         return x / 2.0
 
-    assert twice(np.float64(3.0)) == 6.0 and half(1.0) == 0.5
+    @jit.njit
+    def both(x):
+        return half(twice(x))  # a compiled caller of compiled callees, none with a C-callable wrapper
+
+    assert twice(np.float64(3.0)) == 6.0 and half(1.0) == 0.5 and both(5.0) == 5.0
     assert type(twice._cache).__name__ == "FunctionCache" and half.targetoptions["error_model"] == "numpy"
+    assert all(f.targetoptions["no_cfunc_wrapper"] for f in (twice, half, both))
 
 
 def test_starting_errplan_skips_numbas_blas_import_and_keeps_blas_working():
