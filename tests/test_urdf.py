@@ -933,3 +933,25 @@ def test_seed_lists_keep_every_seed_nearest_first_ties_in_found_order():
         assert np.array_equal(seeds[pos:pos + fcnt[c]], np.reshape(ref, (-1, 3)))
         pos += fcnt[c]
     assert len(seeds) == pos == fcnt.sum() and seeds.flags.c_contiguous
+
+
+def test_the_maps_depth_is_the_chessboard_distance_to_another_state_by_brute_force():
+    """ReachMap.depth against a brute-force search on random voxel states (blobs of in and out with a
+    boundary between): every out or in voxel's depth is the smallest chessboard distance to a voxel of
+    another state, so that a cube of half-width below it holds only its state; 0 on the boundary."""
+    from errplan.kinematics.urdf.reachmap import state_depth
+
+    rng = np.random.default_rng(7)
+    for shape in [(9, 7, 5), (6, 6, 6), (12, 3, 4)]:
+        raw = rng.random(shape)
+        state = np.where(raw < 0.45, 0, np.where(raw > 0.6, 1, 2)).astype(np.uint8)
+        state[: shape[0] // 2] = 1  # a larger in region, so that depths above 1 occur
+        state[shape[0] // 2, : shape[1] // 2] = 0
+        depth = state_depth(state)
+        idx = np.argwhere(np.ones(shape, bool))
+        for v in idx:
+            s = state[tuple(v)]
+            other = idx[state.reshape(-1) != s]
+            want = 0 if s == 2 else (255 if not len(other) else int(np.abs(other - v).max(axis=1).min()))
+            assert depth[tuple(v)] == want, (shape, tuple(v), s, depth[tuple(v)], want)
+    assert state_depth(np.ones((3, 4, 5), np.uint8)).min() == 255  # all in: nothing else in the map
