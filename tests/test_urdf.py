@@ -955,3 +955,37 @@ def test_the_maps_depth_is_the_chessboard_distance_to_another_state_by_brute_for
             want = 0 if s == 2 else (255 if not len(other) else int(np.abs(other - v).max(axis=1).min()))
             assert depth[tuple(v)] == want, (shape, tuple(v), s, depth[tuple(v)], want)
     assert state_depth(np.ones((3, 4, 5), np.uint8)).min() == 255  # all in: nothing else in the map
+
+
+@pytest.mark.parametrize("which", ["phantom", "ur5", "panda", "toy"])
+def test_the_iks_newton_frame_is_the_chain_turned_back_by_joint_0(which, request, toy_path):
+    """The inverse kinematics' Newton steps take the residual and the Jacobian from the product of
+    exponentials (chain._local3), in the frame turned back by joint 0's own motion. Against pinocchio's
+    world wrist and Jacobian at random configurations and targets: the same |t - f(q)|, J^T J and
+    J^T (t - f(q)), and the frame's residual turned forward again is t - f(q) (the toy arm has a
+    prismatic joint, a held joint and a rotated base)."""
+    from errplan.kinematics.urdf.chain import _local3
+
+    if which == "toy":
+        arm = load_toy(toy_path)
+        path, frame, joints, held = toy_path, "tool", ["j1", "j2", "j3"], {"roll": TOY_ROLL}
+    else:
+        arm = request.getfixturevalue(which)
+        if which in ARMS:
+            path, frame, joints, held = erd_path(which), ARMS[which]["wrist"], ARMS[which]["joints"], ARMS[which]["fixed_joints"]
+        else:
+            path, frame, joints, held = PHANTOM, "wrist", None, None
+    q = random_q(arm, 100, 11, feasible=False)
+    W, J = pin_world(path, frame, arm.base_position, arm.base_rpy, q, joints, held)
+    rng = np.random.default_rng(5)
+    T = W + rng.normal(scale=0.05, size=W.shape)
+    z0, o0 = arm.chain.screw[0, :3], arm.chain.screw[0, 3:]
+    for qk, tk, wk, jk in zip(q, T, W, J):
+        r, c0, c1, c2 = _local3(arm.chain, qk[0], qk[1], qk[2], tk[0], tk[1], tk[2])
+        r, Jl = np.array(r), np.array([c0, c1, c2]).T
+        rw = tk - wk
+        assert abs(np.linalg.norm(r) - np.linalg.norm(rw)) <= 1e-14
+        assert np.allclose(Jl.T @ Jl, jk.T @ jk, rtol=0, atol=1e-13)
+        assert np.allclose(Jl.T @ r, jk.T @ rw, rtol=0, atol=1e-13)
+        R0 = rot(z0, qk[0]) if arm.chain.jtype[0] == 0 else np.eye(3)
+        assert np.allclose(R0 @ r, rw, rtol=0, atol=1e-14) and np.allclose(R0 @ Jl, jk, rtol=0, atol=1e-14)

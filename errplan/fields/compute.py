@@ -221,7 +221,7 @@ def _no_chain():
     from ..kinematics.urdf import ChainData, ReachMap
 
     chain = ChainData(np.zeros((1, 4, 4)), np.zeros((1, 3)), np.zeros(1, np.int64), np.zeros((1, 1)), np.zeros(1),
-                      np.zeros(1))
+                      np.zeros(1), np.zeros((2, 6)))
     like = {"origin": np.zeros(3), "h": 1.0, "shape": np.ones(3, np.int64), "state": np.zeros((1, 1, 1), np.uint8),
             "depth": np.zeros((1, 1, 1), np.uint8), "sub": 1, "seed_ptr": np.zeros(2, np.int64), "seeds": np.zeros((1, 1))}
     rmap = ReachMap(**{f: like[f] for f in ReachMap._fields})

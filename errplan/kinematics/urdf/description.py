@@ -19,7 +19,7 @@ import numpy as np
 from ...errors import ScenarioError
 from ...inputs import read_bytes
 from ...scenario import CoupledLimit
-from .model import ChainData, MapParams
+from .model import ChainData, MapParams, chain_screws
 
 
 def rpy_matrix(rpy) -> np.ndarray:
@@ -368,7 +368,7 @@ def read_chain(urdf: str | Path, joints: Sequence[str], wrist: str, base_positio
             ax, jtype[k] = S[3:], 0
         axes[k] = ax / np.linalg.norm(ax)
     chain = ChainData(np.ascontiguousarray(T), axes, jtype, np.ascontiguousarray(np.array(rows, float)),
-                      np.array(lo_r, float), np.array(hi_r, float))
+                      np.array(lo_r, float), np.array(hi_r, float), chain_screws(T, axes))
 
     # ---- drawing points (joint and fixed-joint origins on the chain), per moving segment
     path_frames = []

@@ -26,7 +26,10 @@ class ChainData(NamedTuple):
     ``T[i]`` child frame of joint i-1 -> frame of joint i, ``T[n]`` child frame of joint n-1 ->
     wrist link origin. ``axis`` (n, 3) unit joint axes in their joint frames; ``jtype`` (n,) int64,
     0 revolute, 1 prismatic. Limit rows ``lo <= A q <= hi``: ``A`` (m, n), the first n rows are the
-    box limits (identity), then the coupled limits.
+    box limits (identity), then the coupled limits. ``screw`` (n+1, 6): the same chain as a product of
+    exponentials, ``f(q) = E_0(q_0) ... E_{n-1}(q_{n-1}) w0``: row i < n holds joint i's world axis and
+    a point on it (its frame's origin) at q = 0, row n[:3] the wrist ``w0`` at q = 0 (the inverse
+    kinematics' Newton steps use it, :func:`errplan.kinematics.urdf.chain._local3`).
     """
 
     T: np.ndarray
@@ -35,6 +38,20 @@ class ChainData(NamedTuple):
     A: np.ndarray
     lo: np.ndarray
     hi: np.ndarray
+    screw: np.ndarray
+
+
+def chain_screws(T: np.ndarray, axis: np.ndarray) -> np.ndarray:
+    """:attr:`ChainData.screw` from the fixed transforms ``T`` (n+1, 4, 4) and joint-frame axes (n, 3)."""
+    n = axis.shape[0]
+    out = np.zeros((n + 1, 6))
+    G = np.asarray(T[0], float)
+    for i in range(n):
+        out[i, :3] = G[:3, :3] @ axis[i]
+        out[i, 3:] = G[:3, 3]
+        G = G @ T[i + 1]
+    out[n, :3] = G[:3, 3]
+    return out
 
 
 class ReachMap(NamedTuple):
