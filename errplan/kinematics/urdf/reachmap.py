@@ -423,7 +423,7 @@ def _build_map(chain, K, M2, jlo, djoint, ncell, faces, origin, h, shape, sub, b
         if cflag[c] == 0:
             continue
         for k in range(scnt[c]):
-            _add_seed(fd, fdist, fcnt, c, sd[c, k, 0], sd[c, k, 1], sd[c, k, 2], float(sdist[c, k]), tau)
+            _add_seed(fd, fdist, fcnt, c, sd[c, k, 0], sd[c, k, 1], sd[c, k, 2], np.float64(sdist[c, k]), tau)
         if cflag[c] == 1 and fcnt[c] > 0:
             continue
         kz = c % cz
