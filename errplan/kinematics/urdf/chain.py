@@ -177,6 +177,7 @@ def _screw_move(chain, i, q, c, s, v0, v1, v2):
 
 @njit(cache=True)
 def _cs(chain, i, q):
+    """Cosine and sine of joint i's angle q (1, 0 for a prismatic joint: it turns nothing)."""
     return (math.cos(q), math.sin(q)) if chain.jtype[i] == 0 else (1.0, 0.0)
 
 
@@ -186,7 +187,7 @@ def _local3(chain, q0, q1, q2, t0, t1, t2):
     back by joint 0's own motion (``E_0(q_0)^-1``, a rotation or a shift). Newton's ``J^T J``, ``J^T r``
     and ``|r|`` are the same in that frame as in the world. The product of exponentials on
     :attr:`ChainData.screw` gets them with five vector rotations, about half the arithmetic of
-    :func:`_fkjac3`'s six matrix products. The same chain: tests hold it to :func:`_fkjac3` and pinocchio.
+    :func:`_fkjac3`'s six matrix products. The same chain: tests/test_urdf.py holds it to pinocchio.
     Revolute joint i's column is ``z_i x (f - o_i)``, prismatic ``z_i``, with joint 0's axis and point
     fixed in this frame, joint 1's at their zero-configuration place, joint 2's moved by joint 1."""
     Z = chain.screw
