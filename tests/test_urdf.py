@@ -957,18 +957,27 @@ def test_the_maps_depth_is_the_chessboard_distance_to_another_state_by_brute_for
     assert state_depth(np.ones((3, 4, 5), np.uint8)).min() == 255  # all in: nothing else in the map
 
 
-@pytest.mark.parametrize("which", ["phantom", "ur5", "panda", "toy"])
-def test_the_iks_newton_frame_is_the_chain_turned_back_by_joint_0(which, request, toy_path):
+@pytest.mark.parametrize("which", ["phantom", "ur5", "panda", "toy", "toy_p1", "toy_p0"])
+def test_the_iks_newton_frame_is_the_chain_turned_back_by_joint_0(which, request, toy_path, tmp_path):
     """The inverse kinematics' Newton steps take the residual and the Jacobian from the product of
     exponentials (chain._local3), in the frame turned back by joint 0's own motion. Against pinocchio's
     world wrist and Jacobian at random configurations and targets: the same |t - f(q)|, J^T J and
     J^T (t - f(q)), and the frame's residual turned forward again is t - f(q) (the toy arm has a
-    prismatic joint, a held joint and a rotated base)."""
+    prismatic joint, a held joint and a rotated base; its variants make joint 1, then joint 0, prismatic
+    too)."""
     from errplan.kinematics.urdf.chain import _local3
 
-    if which == "toy":
-        arm = load_toy(toy_path)
-        path, frame, joints, held = toy_path, "tool", ["j1", "j2", "j3"], {"roll": TOY_ROLL}
+    if which.startswith("toy"):
+        path = toy_path
+        if which != "toy":
+            text = toy_text("prismatic", -0.1, 0.2)
+            if which == "toy_p0":
+                text = text.replace('<joint name="j1" type="revolute">', '<joint name="j1" type="prismatic">')
+            path = tmp_path / f"{which}.urdf"
+            path.write_text(text)
+        arm = load_toy(path)
+        assert list(arm.chain.jtype) == {"toy": [0, 0, 1], "toy_p1": [0, 1, 1], "toy_p0": [1, 1, 1]}[which]
+        frame, joints, held = "tool", ["j1", "j2", "j3"], {"roll": TOY_ROLL}
     else:
         arm = request.getfixturevalue(which)
         if which in ARMS:
@@ -989,3 +998,68 @@ def test_the_iks_newton_frame_is_the_chain_turned_back_by_joint_0(which, request
         assert np.allclose(Jl.T @ r, jk.T @ rw, rtol=0, atol=1e-13)
         R0 = rot(z0, qk[0]) if arm.chain.jtype[0] == 0 else np.eye(3)
         assert np.allclose(R0 @ r, rw, rtol=0, atol=1e-14) and np.allclose(R0 @ Jl, jk, rtol=0, atol=1e-14)
+
+
+def test_a_tips_map_certificate_is_the_voxel_by_voxel_answer():
+    """_tip_reach's one-lookup certificate (ReachMap.depth) against the answer read voxel by voxel in
+    Python: on random maps of in, out and boundary blobs, for random tips, port boxes and loads whose
+    wrist-ball cubes hold up to a few hundred voxels, the same 1 (all in), 0 (all out) or 2."""
+    from errplan.fields.kernels import _tip_reach
+    from errplan.kinematics.urdf.model import ReachMap
+    from errplan.kinematics.urdf.reachmap import state_depth
+
+    rng = np.random.default_rng(21)
+    shape = (24, 22, 20)
+    h = 0.01
+    origin = np.array([-0.12, -0.11, -0.10])
+    seen = {0: 0, 1: 0, 2: 0}
+    for trial in range(6):
+        # smooth random field: blobs of in (high), out (low), a boundary band between
+        f = rng.normal(size=shape)
+        for ax in range(3):
+            for _ in range(3):
+                f = (f + np.roll(f, 1, axis=ax) + np.roll(f, -1, axis=ax)) / 3.0
+        state = np.where(f > 0.04, 1, np.where(f < -0.04, 0, 2)).astype(np.uint8)
+        state[:9] = 1  # a large in region and a large out one: depths well above 1
+        state[-9:] = 0
+        depth = state_depth(state)
+        rmap = ReachMap(origin, h, np.array(shape, np.int64), state, depth, 1, np.zeros(2, np.int64),
+                        np.zeros((1, 3)))
+        L = 0.3
+        for _ in range(2500):
+            half = rng.uniform(0.0, 0.004, 3)
+            lo = np.array([-half[0], -half[1], -half[2], 0.0, 0.0])
+            hi = np.array([half[0], half[1], half[2], rng.choice([0.0, 0.3]), 2 * np.pi])
+            base_port = rng.uniform(-0.05, 0.05, 3) + np.array([0.0, 0.0, 0.2])
+            x = base_port + rng.normal(size=3) * 0.06
+            got = _tip_reach(x, base_port, lo, hi, L, rmap)
+            # the same arithmetic, then every voxel of the cube read (as before the depth lookup)
+            pc = base_port + 0.5 * (lo[:3] + hi[:3])
+            delta = 0.5 * math.sqrt((hi[0] - lo[0]) ** 2 + (hi[1] - lo[1]) ** 2 + (hi[2] - lo[2]) ** 2)
+            e = x - pc
+            r = math.sqrt(e[0] * e[0] + e[1] * e[1] + e[2] * e[2])
+            rmin = r - delta
+            if not (rmin > 0.0 and r < L):
+                assert got == 2
+                continue
+            R = L / rmin * delta + L * math.atan(max(abs(lo[3]), abs(hi[3])) * L * L / 12.0) + 1e-9
+            w = [x[i] - L * e[i] / r for i in range(3)]
+            span = [(int(math.floor((w[i] - R - origin[i]) / h)), int(math.floor((w[i] + R - origin[i]) / h)))
+                    for i in range(3)]
+            off = None  # axis by axis: the whole ball off the map (0: nothing there is reachable), else partly (2)
+            for (a, b), n in zip(span, shape):
+                if b < 0 or a >= n:
+                    off = 0
+                    break
+                if a < 0 or b >= n:
+                    off = 2
+                    break
+            if off is not None:
+                assert got == off
+                continue
+            cube = state[span[0][0]:span[0][1] + 1, span[1][0]:span[1][1] + 1, span[2][0]:span[2][1] + 1]
+            assert cube.size <= 4096
+            want = 1 if (cube == 1).all() else (0 if (cube == 0).all() else 2)
+            assert got == want, (trial, x, got, want)
+            seen[want] += 1
+    assert min(seen.values()) > 100, seen  # every answer occurs often

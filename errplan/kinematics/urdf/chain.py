@@ -12,7 +12,7 @@ from .model import IK_TOL, LIMIT_TOL, TWO_PI
 
 # Helpers on tuples of scalars (_mm, _column, _dot) are real calls, not forced inline: LLVM inlines them
 # all the same (no arrays, no reference counts), while numba's own inlining typed and lowered a copy at
-# each of their 18 call sites in _fkjacz3 and _solve (about 2 s of the first run's compile). Helpers that
+# each of their call sites in _fkjacz3, _solve and _local3 (about 2 s of the first run's compile). Helpers that
 # take the chain or the map (namedtuples of arrays) stay inline: a call would reference-count them.
 @njit(cache=True)
 def _mm(A, B):
@@ -176,9 +176,9 @@ def _screw_move(chain, i, q, c, s, v0, v1, v2):
 
 
 @njit(cache=True)
-def _cs(chain, i, q):
-    """Cosine and sine of joint i's angle q (1, 0 for a prismatic joint: it turns nothing)."""
-    return (math.cos(q), math.sin(q)) if chain.jtype[i] == 0 else (1.0, 0.0)
+def _cs(jt, q):
+    """Cosine and sine of a joint's angle q (1, 0 for a prismatic joint, ``jt`` 1: it turns nothing)."""
+    return (math.cos(q), math.sin(q)) if jt == 0 else (1.0, 0.0)
 
 
 @njit(cache=True)
@@ -192,9 +192,9 @@ def _local3(chain, q0, q1, q2, t0, t1, t2):
     fixed in this frame, joint 1's at their zero-configuration place, joint 2's moved by joint 1."""
     Z = chain.screw
     jt = chain.jtype
-    c0, s0 = _cs(chain, 0, q0)
-    c1, s1 = _cs(chain, 1, q1)
-    c2, s2 = _cs(chain, 2, q2)
+    c0, s0 = _cs(jt[0], q0)
+    c1, s1 = _cs(jt[1], q1)
+    c2, s2 = _cs(jt[2], q2)
     v = _screw_move(chain, 2, q2, c2, s2, Z[3, 0], Z[3, 1], Z[3, 2])
     v = _screw_move(chain, 1, q1, c1, s1, v[0], v[1], v[2])
     if jt[1] == 0:

@@ -538,6 +538,7 @@ def _read_cache(arm, path: Path, key: str) -> ReachMap | None:
     if (origin.shape != (3,) or h.shape != () or sub.shape != () or shape.shape != (3,)
             or state.dtype != np.uint8 or state.shape != tuple(shape) or int(sub) < 1
             or depth.dtype != np.uint8 or depth.shape != state.shape
+            or not np.array_equal(depth == 0, state == 2)
             or np.any(shape % int(sub)) or seed_ptr.shape != (int(np.prod(shape // int(sub))) + 1,)
             or seeds.ndim != 2 or seeds.shape[1] != arm.n or seed_ptr[-1] != len(seeds)
             or np.any(np.diff(seed_ptr) < 0) or seed_ptr[0] != 0 or not np.isfinite(h) or h <= 0):
@@ -663,7 +664,8 @@ def build_map(arm) -> ReachMap:
 
 def state_depth(state: np.ndarray) -> np.ndarray:
     """:attr:`ReachMap.depth` of a voxel state array: per out or in voxel the chessboard distance to
-    the nearest voxel of another state (scipy's distance transform, capped at 255), 0 on the boundary."""
+    the nearest voxel of another state (scipy's distance transform, capped at 255), 0 on the boundary.
+    The map's edge is not another state; a state with no other state in the map gets 255."""
     from scipy.ndimage import distance_transform_cdt
 
     depth = np.zeros(state.shape, np.uint8)
