@@ -714,10 +714,11 @@ def _tip_reach(x, base_port, lo, hi, L, rmap):
         return 0
     if k0 < 0 or k1 >= s2:
         return 2
-    # the voxel of w and its depth (ReachMap.depth): a cube within that many steps of it is all of its state
-    ci = int(math.floor((w0 - rmap.origin[0]) / h))
-    cj = int(math.floor((w1 - rmap.origin[1]) / h))
-    ck = int(math.floor((w2 - rmap.origin[2]) / h))
+    # the voxel of w (inside the cube, so on the map) and its depth (ReachMap.depth): a cube within that
+    # many steps of it is all of its state
+    ci, cj, ck = _locate(rmap, w0, w1, w2)
+    if ci < 0:
+        return 2
     st = rmap.state[ci, cj, ck]
     if st == 2:
         return 2

@@ -60,9 +60,9 @@ class ReachMap(NamedTuple):
     Voxel ``(i, j, k)`` is the box ``origin + h * [i, j, k] .. origin + h * [i+1, j+1, k+1]``;
     ``shape`` (3,) int64 the counts, ``state`` (nx, ny, nz) uint8: 0 out, 1 in, 2 boundary.
     ``depth`` (nx, ny, nz) uint8: for an out or in voxel, its chessboard distance in voxels (at most 255)
-    to the nearest voxel of the map in another state (255 when there is none); 0 for a boundary voxel. So every voxel of the
-    map less than ``depth`` steps away along each axis has the voxel's state: a ball's voxels are
-    certified in one lookup (:func:`errplan.fields.kernels._tip_reach`).
+    to the nearest voxel of the map in another state (255 when there is none); 0 for a boundary voxel.
+    So every voxel of the map less than ``depth`` steps away along each axis has the voxel's state: a
+    ball's voxels are certified in one lookup (:func:`errplan.fields.kernels._tip_reach`).
     IK seeds live on a coarser grid of ``sub``^3 voxels per seed cell: the seeds of the cell
     ``c = ((i // sub) * cy + j // sub) * cz + k // sub`` (``cy, cz = shape[1:] // sub``) are
     ``seeds[seed_ptr[c]:seed_ptr[c + 1]]`` (rows of n joint values), nearest first; cells with only

@@ -544,8 +544,7 @@ def _read_cache(arm, path: Path, key: str) -> ReachMap | None:
             or np.any(np.diff(seed_ptr) < 0) or seed_ptr[0] != 0 or not np.isfinite(h) or h <= 0):
         return None
     return ReachMap(origin.astype(float), float(h), shape, np.ascontiguousarray(state), np.ascontiguousarray(depth),
-                    int(sub),
-                    seed_ptr.astype(np.int64), np.ascontiguousarray(seeds, dtype=float))
+                    int(sub), seed_ptr.astype(np.int64), np.ascontiguousarray(seeds, dtype=float))
 
 def _write_cache(arm, path: Path, key: str, rmap: ReachMap) -> None:
     arrs = {f: np.asarray(getattr(rmap, f)) for f in ReachMap._fields}
