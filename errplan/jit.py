@@ -8,7 +8,9 @@ kernel up in that cache and misses, i.e. just before it compiles, errplan prints
 sits silent; a warm run says nothing. ``ERRPLAN_COMPILE_NOTICE=0`` silences it.
 
 How: numba's ``FunctionCache.load_overload`` is wrapped here; a ``None`` result for a function of errplan
-is a compile about to start.
+is a compile about to start. The same wrapper keys each errplan kernel's cache entry on the sources of
+everything it calls as well as its own (:func:`closure_digest`): numba alone checks only the kernel's own
+file, and a kernel whose callee in another file changed would load stale.
 
 Constant arguments are compile-time constants. numba compiles a kernel once per distinct argument types,
 and a constant passed from compiled code (``gval(d, ...)`` with ``d`` the literal ``2``) is a type of
@@ -25,8 +27,10 @@ The lowest layer: numba and the standard library only.
 """
 from __future__ import annotations
 
+import hashlib
 import os
 import sys
+from types import ModuleType
 from typing import Callable, Iterable
 
 import numba
@@ -127,13 +131,82 @@ def kernel_array(a: np.ndarray) -> np.ndarray:
 
 def cached(dispatcher) -> bool:
     """Whether the disk cache holds a kernel compiled from the current source (some specialization)."""
-    cache_file = getattr(getattr(dispatcher, "_cache", None), "_cache_file", None)
+    cache = getattr(dispatcher, "_cache", None)
+    cache_file = getattr(cache, "_cache_file", None)
     if cache_file is None:
         return True  # not cached on disk: nothing to compile ahead
     try:
+        _stamp_closure(cache)
         return bool(cache_file._load_index())
     except Exception:  # an unreadable index is a compile too
         return False
+
+
+#: top-level packages whose kernels are keyed on :func:`closure_digest` (a test adds its own)
+CLOSURE_PACKAGES = {"errplan"}
+
+
+def _code_names(code) -> set[str]:
+    """The global names a function's code reads, nested code (comprehensions, closures) included."""
+    names = set(code.co_names)
+    for c in code.co_consts:
+        if isinstance(c, type(code)):
+            names |= _code_names(c)
+    return names
+
+
+def closure_digest(py_func) -> bytes:
+    """sha256 over the sources of ``py_func`` and of every compiled function it calls, transitively, the
+    plain constants (numbers, strings, tuples, arrays) they read from their module globals, and this
+    module (the compile pipeline).
+
+    numba keys a cached kernel on its own file only: a kernel whose callee in another file changed, or
+    a constant it imported by name, was loaded stale (its old machine code), e.g. after a ``git pull``
+    into an editable install that changed ``chain.py`` but not ``kernels.py``. errplan's kernels are
+    keyed on this digest as well (:func:`_stamp_closure`)."""
+    files = {__file__}
+    consts: list[bytes] = []
+    seen = set()
+    stack = [py_func]
+    while stack:
+        f = stack.pop()
+        code = getattr(f, "__code__", None)
+        if code is None or code in seen:
+            continue
+        seen.add(code)
+        files.add(code.co_filename)
+        glb = getattr(f, "__globals__", {})
+        for name in sorted(_code_names(code)):
+            if name not in glb:
+                continue
+            v = glb[name]
+            if isinstance(v, CPUDispatcher):
+                stack.append(v.py_func)
+            elif isinstance(v, np.ndarray):
+                consts.append(f"{name}={v.dtype}{v.shape}".encode() + np.ascontiguousarray(v).tobytes())
+            elif isinstance(v, (bool, int, float, complex, str, bytes, tuple, np.generic)):
+                consts.append(f"{name}={v!r}".encode())
+            elif isinstance(v, ModuleType) and v.__name__.split(".")[0] in CLOSURE_PACKAGES:
+                files.add(getattr(v, "__file__", None) or "")
+    h = hashlib.sha256()
+    for path in sorted(p for p in files if p and os.path.isfile(p)):
+        st = os.stat(path)
+        h.update(caching._hash_source_file(path, st.st_mtime, st.st_size))
+    for c in consts:
+        h.update(c)
+    return h.digest()
+
+
+def _stamp_closure(cache) -> None:
+    """Key an errplan kernel's disk cache on :func:`closure_digest` besides numba's own stamp (once per
+    kernel and process, on its first lookup, when every module it calls into is loaded)."""
+    cf = getattr(cache, "_cache_file", None)
+    py_func = getattr(cache, "_py_func", None)
+    if cf is None or getattr(cf, "_errplan_closure", False):
+        return
+    if getattr(py_func, "__module__", "").split(".")[0] in CLOSURE_PACKAGES:
+        cf._source_stamp = (cf._source_stamp, closure_digest(py_func))
+    cf._errplan_closure = True
 
 
 def set_label(label: str) -> None:
@@ -157,6 +230,7 @@ _load_overload = caching.FunctionCache.load_overload
 
 
 def _load_overload_or_announce(self, sig, target_context):
+    _stamp_closure(self)
     res = _load_overload(self, sig, target_context)
     if res is None and getattr(getattr(self, "_py_func", None), "__module__", "").startswith("errplan"):
         announce()

@@ -83,3 +83,37 @@ def test_starting_errplan_skips_numbas_blas_import_and_keeps_blas_working():
         "print('ok')\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr[-2000:]
+
+
+def test_a_kernel_is_recompiled_when_a_callee_in_another_file_changes(tmp_path):
+    """numba keys a cached kernel on its own file only; errplan's also on the files of everything it
+    calls and the constants they import (jit.closure_digest). Kernel f in a.py calls g in b.py and
+    reads a constant imported from c.py: after b.py or c.py changes, f runs the new code (numba alone
+    loads f's stale machine code, tried); unchanged, f loads from the cache."""
+    pkg = tmp_path / "kpkg"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("")
+    (pkg / "a.py").write_text("from errplan.jit import njit\nfrom .b import g\nfrom .c import K\n\n\n"
+                              "@njit(cache=True)\ndef f(x):\n    return g(x) + K\n")
+    (pkg / "b.py").write_text("from errplan.jit import njit\n\n\n@njit(cache=True)\ndef g(x):\n    return 2.0 * x\n")
+    (pkg / "c.py").write_text("K = 1.0\n")
+    script = ("import sys; sys.path.insert(0, sys.argv[1])\n"
+              "from errplan import jit; jit.CLOSURE_PACKAGES.add('kpkg')\n"
+              "from kpkg.a import f\n"
+              "print(f(1.0), f.stats.cache_hits.get(f.signatures[0], 0) if f.signatures else 0)\n")
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "numba-cache"), ERRPLAN_COMPILE_NOTICE="0")
+
+    def run():
+        out = subprocess.run([sys.executable, "-c", script, str(tmp_path)], capture_output=True, text=True,
+                             env=env, check=True).stdout.split()
+        return float(out[0]), int(out[1])
+
+    assert run() == (3.0, 0)
+    assert run() == (3.0, 1)          # from the cache
+    time.sleep(0.01)
+    (pkg / "b.py").write_text("from errplan.jit import njit\n\n\n@njit(cache=True)\ndef g(x):\n    return 3.0 * x\n")
+    assert run() == (4.0, 0)          # the callee changed: compiled again
+    assert run() == (4.0, 1)
+    (pkg / "c.py").write_text("K = 5.0\n")
+    assert run() == (8.0, 0)          # the imported constant changed
+    assert run() == (8.0, 1)
