@@ -1063,3 +1063,107 @@ def test_a_tips_map_certificate_is_the_voxel_by_voxel_answer():
             assert got == want, (trial, x, got, want)
             seen[want] += 1
     assert min(seen.values()) > 100, seen  # every answer occurs often
+
+
+# ============================================================================ closed-form IK
+LIFT = """<?xml version="1.0"?>
+<robot name="lift">
+  <link name="base"/><link name="carriage"/><link name="upper"/><link name="fore"/><link name="tool"/>
+  <joint name="lift" type="prismatic"><parent link="base"/><child link="carriage"/>
+    <origin xyz="0 0 0.1" rpy="0 0 0"/><axis xyz="0 0.6 0.8"/><limit lower="0" upper="0.3" effort="1" velocity="1"/></joint>
+  <joint name="shoulder" type="revolute"><parent link="carriage"/><child link="upper"/>
+    <origin xyz="0.02 0 0.05" rpy="0.3 0 0.2"/><axis xyz="1 0 0"/><limit lower="-2" upper="2" effort="1" velocity="1"/></joint>
+  <joint name="elbow" type="revolute"><parent link="upper"/><child link="fore"/>
+    <origin xyz="0 0.25 0.01" rpy="0 0 0"/><axis xyz="-1 0 0"/><limit lower="-2.5" upper="2.5" effort="1" velocity="1"/></joint>
+  <joint name="tool_fix" type="fixed"><parent link="fore"/><child link="tool"/><origin xyz="0.03 0.2 0"/></joint>
+</robot>
+"""
+
+
+@njit
+def _closed_many(chain, W, st, Q):
+    for k in range(W.shape[0]):
+        s, q0, q1, q2 = U.chain._ik_parallel(chain, W[k, 0], W[k, 1], W[k, 2])
+        st[k] = s
+        Q[k, 0], Q[k, 1], Q[k, 2] = q0, q1, q2
+
+
+@pytest.mark.parametrize("which", ["phantom", "phantom_cont", "ur5", "lift"])
+def test_closed_form_ik_of_parallel_shoulder_and_elbow(which, request, tmp_path):
+    """chain._ik_parallel (reach_point's answer in boundary voxels where it decides) on chains whose
+    joints 1 and 2 turn about parallel axes: the PHANToM (a coupled limit), the PHANToM with a
+    continuous waist, the UR5 (every range 4 pi: several turns of each joint), and a hand-written arm
+    with a prismatic joint 0 and antiparallel joint axes. Every wrist of a feasible configuration is
+    found, at a configuration within the limits that reaches it to 1e-10; on points in and around the
+    map's boundary voxels, every "unreachable" is unreachable for brute-force IK (many seeds) and
+    every "reachable" is a checked configuration; it leaves at most 2 % to Newton."""
+    if which == "phantom":
+        arm = request.getfixturevalue("phantom")
+    elif which == "phantom_cont":
+        p = tmp_path / "cont.urdf"
+        p.write_text(PHANTOM.read_text().replace('<joint name="waist" type="revolute">',
+                                                 '<joint name="waist" type="continuous">'))
+        arm = UrdfArm.load(p, JOINTS, "wrist", base_position=PHANTOM_BASE, coupled_limits=[SUM])
+        assert arm.limits[0].tolist() == [-math.pi, math.pi]
+    elif which == "ur5":
+        arm = request.getfixturevalue("ur5")
+    else:
+        p = tmp_path / "lift.urdf"
+        p.write_text(LIFT)
+        arm = UrdfArm.load(p, ["lift", "shoulder", "elbow"], "tool")
+        assert list(arm.chain.jtype) == [1, 0, 0]
+    chain, rmap = arm.kernel()
+
+    def solve(W):
+        st, Q = np.empty(len(W), np.int64), np.empty((len(W), 3))
+        _closed_many(chain, np.ascontiguousarray(W), st, Q)
+        return st, Q
+
+    q = random_q(arm, 3000, 41)
+    W = arm.forward(q)
+    st, Q = solve(W)
+    assert (st != 0).all() and (st == 1).mean() >= 0.98
+    ok = st == 1
+    assert arm.within_limits(Q[ok]).all()
+    assert np.max(np.linalg.norm(arm.forward(Q[ok]) - W[ok], axis=-1)) < 1e-10
+    # every branch: with the limits a small window around a random configuration (joint angles anywhere
+    # on the circle), the one solution there is found (either root of joint 0, either elbow, any turn)
+    rng = np.random.default_rng(43)
+    lo0, hi0 = arm.limits[:, 0], arm.limits[:, 1]
+    span = np.where(arm.chain.jtype == 0, [-4.0, -4.0, -4.0], lo0), np.where(arm.chain.jtype == 0, 4.0, hi0)
+    found = 0
+    for qc in span[0] + rng.random((400, 3)) * (span[1] - span[0]):
+        win = chain._replace(A=np.eye(3), lo=qc - 0.01, hi=qc + 0.01)
+        w = arm.forward(qc)[None]
+        st, Q = np.empty(1, np.int64), np.empty((1, 3))
+        _closed_many(win, w, st, Q)
+        if st[0] == 1:
+            found += 1
+            assert np.all(np.abs(Q[0] - qc) <= 0.01) and np.linalg.norm(arm.forward(Q[0]) - w[0]) < 1e-10
+        else:
+            assert st[0] == -1  # never "unreachable"
+    assert found >= 0.98 * 400
+    # points in and near the boundary voxels: the hard ones
+    rng = np.random.default_rng(42)
+    B = np.argwhere(rmap.state == 2)
+    Wb = rmap.origin + (B[rng.integers(0, len(B), 1500)] + rng.random((1500, 3)) * 1.4 - 0.2) * rmap.h
+    st, Q = solve(Wb)
+    assert (st == 1).sum() > 100 and (st == 0).sum() > 100 and (st == -1).mean() <= 0.02
+    ok = st == 1
+    assert arm.within_limits(Q[ok]).all()
+    assert np.max(np.linalg.norm(arm.forward(Q[ok]) - Wb[ok], axis=-1)) < 1e-10
+    assert not brute_reachable(arm, Wb[st == 0]).any()
+    # and reach_point answers by it (Newton where it does not decide): the same on every point
+    assert np.array_equal(arm.reachable(Wb)[st >= 0], st[st >= 0] == 1)
+
+
+def test_closed_form_ik_leaves_other_chains_to_newton(panda, toy_path):
+    """Chains without parallel joints 1 and 2 (the Panda's shoulder joints, the toy arm) are not this
+    closed form's: it returns -1 everywhere, and reach_point's Newton answers as before."""
+    for arm in (panda, load_toy(toy_path)):
+        chain, _ = arm.kernel()
+        W = arm.forward(random_q(arm, 50, 3))
+        st, Q = np.empty(len(W), np.int64), np.empty((len(W), 3))
+        _closed_many(chain, W, st, Q)
+        assert (st == -1).all()
+        assert arm.reachable(W).all()

@@ -28,8 +28,7 @@ import types as _pytypes
 
 from ..jit import kernel_array, njit
 
-from ..kinematics.urdf import reach_point
-from ..kinematics.urdf.chain import _locate
+from ..kinematics.urdf.chain import map_geometry, map_state, reach_boundary
 from ..linalg import _smax3, inv3, phi_max3
 
 NEWTON = 8  # Newton iterations of the beam's port-position equation (as kinematics.shaft)
@@ -652,6 +651,8 @@ def _lever_out(x, grid, base_port, L, rmap):
     cheapest exact test of an uncertified tip, before any instance is computed: the tip is then
     invalid, as the search would find at that instance."""
     na = grid.shape[1]
+    geo = map_geometry(rmap)
+    mst = rmap.state
     for j in range(grid.shape[0]):
         if na > 3 and grid[j, 3] != 0.0:
             continue
@@ -663,8 +664,7 @@ def _lever_out(x, grid, base_port, L, rmap):
             return True
         ir = 1.0 / r  # the wrist in _instance3's arithmetic, to the last bit
         u0, u1, u2 = e0 * ir, e1 * ir, e2 * ir
-        ix, iy, iz = _locate(rmap, x[0] - L * u0, x[1] - L * u1, x[2] - L * u2)
-        if ix < 0 or rmap.state[ix, iy, iz] == 0:
+        if map_state(geo, mst, x[0] - L * u0, x[1] - L * u1, x[2] - L * u2)[0] == 0:
             return True
     return False
 
@@ -692,15 +692,16 @@ def _tip_reach(x, base_port, lo, hi, L, rmap):
         return 2
     R = L / rmin * delta + L * math.atan(max(abs(lo[3]), abs(hi[3])) * L * L / 12.0) + 1e-9
     w0, w1, w2 = x[0] - L * e0 / r, x[1] - L * e1 / r, x[2] - L * e2 / r
-    h = rmap.h
+    geo = map_geometry(rmap)
+    o0, o1, o2, h, s0, s1, s2 = geo
+    mst = rmap.state
     # the voxel index ranges in scalars (no per-tip allocation)
-    i0 = int(math.floor((w0 - R - rmap.origin[0]) / h))
-    i1 = int(math.floor((w0 + R - rmap.origin[0]) / h))
-    j0 = int(math.floor((w1 - R - rmap.origin[1]) / h))
-    j1 = int(math.floor((w1 + R - rmap.origin[1]) / h))
-    k0 = int(math.floor((w2 - R - rmap.origin[2]) / h))
-    k1 = int(math.floor((w2 + R - rmap.origin[2]) / h))
-    s0, s1, s2 = rmap.shape[0], rmap.shape[1], rmap.shape[2]
+    i0 = int(math.floor((w0 - R - o0) / h))
+    i1 = int(math.floor((w0 + R - o0) / h))
+    j0 = int(math.floor((w1 - R - o1) / h))
+    j1 = int(math.floor((w1 + R - o1) / h))
+    k0 = int(math.floor((w2 - R - o2) / h))
+    k1 = int(math.floor((w2 + R - o2) / h))
     # axis by axis: the whole ball off the map (nothing there is reachable), else partly off
     if i1 < 0 or i0 >= s0:
         return 0
@@ -716,11 +717,8 @@ def _tip_reach(x, base_port, lo, hi, L, rmap):
         return 2
     # the voxel of w (inside the cube, so on the map) and its depth (ReachMap.depth): a cube within that
     # many steps of it is all of its state
-    ci, cj, ck = _locate(rmap, w0, w1, w2)
-    if ci < 0:
-        return 2
-    st = rmap.state[ci, cj, ck]
-    if st == 2:
+    st, ci, cj, ck = map_state(geo, mst, w0, w1, w2)
+    if ci < 0 or st == 2:
         return 2
     reach = max(max(ci - i0, i1 - ci), max(max(cj - j0, j1 - cj), max(ck - k0, k1 - ck)))
     if reach < rmap.depth[ci, cj, ck]:
@@ -732,7 +730,7 @@ def _tip_reach(x, base_port, lo, hi, L, rmap):
     for i in range(i0, i1 + 1):
         for j in range(j0, j1 + 1):
             for k in range(k0, k1 + 1):
-                st = rmap.state[i, j, k]
+                st = mst[i, j, k]
                 if st == 1:
                     seen_in = True
                 elif st == 0:
@@ -930,6 +928,8 @@ def _pattern(d, which, k, x, th, best, step0, lo, hi, active, periodic, refine, 
     from ``th`` (updated in place) with value ``best``. Returns ``(best, ok)``; ``ok`` is False as
     soon as a polled instance cannot reach the tip (robust validity)."""
     na = th.shape[0]
+    geo = map_geometry(rmap)  # the map's fields read once (chain.py: a namedtuple's arrays cost per read)
+    mst = rmap.state
     for pass_ in range(1 + extra):
         before = best
         for level in range(1, refine + 1):
@@ -948,7 +948,10 @@ def _pattern(d, which, k, x, th, best, step0, lo, hi, active, periodic, refine, 
                         ok, w0, w1, w2 = _instance2(x, cand, base_port, est, L, arm, M, 0, S, V, known), 0.0, 0.0, 0.0
                     else:
                         ok, w0, w1, w2 = _instance3(x, cand, base_port, est, L, M, P1, 0, S, V, which == 1)
-                    if not (ok and (d == 2 or known or reach_point(chain, rmap, w0, w1, w2))):
+                    if ok and d == 3 and not known:
+                        s_, ix, iy, iz = map_state(geo, mst, w0, w1, w2)
+                        ok = s_ == 1 or (s_ == 2 and reach_boundary(chain, rmap, ix, iy, iz, w0, w1, w2))
+                    if not ok:
                         return best, False
                     if _PHI:
                         if which == 1 and d == 3 and phi_bound(M, 0) <= best:
@@ -1001,6 +1004,8 @@ def _pattern_lanes(d, k, s0, s1, XS, TH, best, known, live, owner, step0, lo, hi
         kw[s] = known[s0 + s]
         lw[s] = live[s0 + s]
     nw = ns
+    geo = map_geometry(rmap)
+    mst = rmap.state
     for pass_ in range(1 + extra):
         for q in range(nw):
             bef[q] = bw[q]
@@ -1026,7 +1031,9 @@ def _pattern_lanes(d, k, s0, s1, XS, TH, best, known, live, owner, step0, lo, hi
                             if d == 2:
                                 okj = _planar_reachable(arm, O[1, q], O[2, q])
                             else:
-                                okj = reach_point(chain, rmap, O[1, q], O[2, q], O[3, q])
+                                w0, w1, w2 = O[1, q], O[2, q], O[3, q]
+                                s_, ix, iy, iz = map_state(geo, mst, w0, w1, w2)
+                                okj = s_ == 1 or (s_ == 2 and reach_boundary(chain, rmap, ix, iy, iz, w0, w1, w2))
                         if not okj:
                             lw[q] = False
                             continue
@@ -1265,6 +1272,8 @@ def _search(X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L,
     stride = np.empty(na, np.int64)
     nbr = np.empty((m, 2 * na), np.int64)
     _sample_table(counts, periodic, na, m, pos, stride, nbr)
+    geo = map_geometry(rmap)  # the map's fields read once (chain.py: a namedtuple's arrays cost per read)
+    mst = rmap.state
     # 3-D with a load: samples at tau = 0 repeat along the direction axis psi (the last one)
     dup = d == 3 and na == 5 and counts[4] > 1
     full = _PHI or want_rho  # the sampled M themselves (|phi_max|, rho*'s gain bracket), not only ||G||
@@ -1334,7 +1343,9 @@ def _search(X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L,
                     if d == 2:
                         okj = _planar_reachable(arm, O[1, q], O[2, q])
                     else:
-                        okj = reach_point(chain, rmap, O[1, q], O[2, q], O[3, q])
+                        w0, w1, w2 = O[1, q], O[2, q], O[3, q]
+                        s_, ix, iy, iz = map_state(geo, mst, w0, w1, w2)
+                        okj = s_ == 1 or (s_ == 2 and reach_boundary(chain, rmap, ix, iy, iz, w0, w1, w2))
                 if not okj:
                     ok = False
                     break
@@ -1355,7 +1366,10 @@ def _search(X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L,
                 okj, w0, w1, w2 = _instance2(x, grid[j], base_port, est, L, arm, Ms, j, S, V, known), 0.0, 0.0, 0.0
             else:
                 okj, w0, w1, w2 = _instance3(x, grid[j], base_port, est, L, Ms, Pbs, j, S, V, full)
-            if not (okj and (d == 2 or known or reach_point(chain, rmap, w0, w1, w2))):
+            if okj and d == 3 and not known:
+                s_, ix, iy, iz = map_state(geo, mst, w0, w1, w2)
+                okj = s_ == 1 or (s_ == 2 and reach_boundary(chain, rmap, ix, iy, iz, w0, w1, w2))
+            if not okj:
                 ok = False
                 break
             vals_g[j] = gval(d, Ms, Pbs, j, k)
@@ -1471,12 +1485,16 @@ def _motion_maps(X, TH, base_port, est, L, arm, chain, rmap, out_M, out_ok):
     S = np.zeros((8, 3, 3))
     V = np.zeros((8, 3))
     Pb = np.empty((X.shape[0], 5))
+    geo = map_geometry(rmap)
+    mst = rmap.state
     for i in range(X.shape[0]):
         if d == 2:
             ok, w0, w1, w2 = _instance2(X[i], TH[i], base_port, est, L, arm, out_M, i, S, V, False), 0.0, 0.0, 0.0
         else:
             ok, w0, w1, w2 = _instance3(X[i], TH[i], base_port, est, L, out_M, Pb, i, S, V, True)
-        ok = ok and (d == 2 or reach_point(chain, rmap, w0, w1, w2))
+        if ok and d == 3:
+            s_, ix, iy, iz = map_state(geo, mst, w0, w1, w2)
+            ok = s_ == 1 or (s_ == 2 and reach_boundary(chain, rmap, ix, iy, iz, w0, w1, w2))
         out_ok[i] = ok
         if not ok:
             for a in range(d):

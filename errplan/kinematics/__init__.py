@@ -39,8 +39,8 @@ def check_scenario(sc) -> None:
     arm = arm_for(sc.robot)
     L = sc.instrument.length
     for key, port in (("[port] position", sc.port.position), ("[port] estimate", sc.port.estimate)):
-        dmin = arm.min_distance_to(port)
-        if dmin >= L:
+        if not arm.nearer_than(port, L):
+            dmin = arm.min_distance_to(port)
             raise ScenarioError(f"{sc.source}: {key} = {list(port)!r}: expected a port the shaft can reach: the "
                                 f"nearest reachable wrist is {dmin:.4f} m away, more than the shaft length "
                                 f"{L:.4f} m (port out of reach)")

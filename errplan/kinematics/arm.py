@@ -192,6 +192,10 @@ class Arm:
         Q = Q[self.within_limits(Q)]
         return self.forward(Q)
 
+    def nearer_than(self, p, r: float) -> bool:
+        """Whether some reachable wrist (of the sampled joint grid) lies closer than ``r`` to ``p``."""
+        return self.min_distance_to(p) < r
+
     def min_distance_to(self, p, n: int = 121) -> float:
         """Distance from point ``p`` to the nearest reachable wrist (sampled joint grid)."""
         w = self.sample_wrists(n)

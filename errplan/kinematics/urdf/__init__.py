@@ -47,12 +47,16 @@ entirely outside, and so does any face-connected set of such voxels. A flood fil
   coarse-cell balls and so outside ``W``. Guarantee: no point of such a voxel is reachable.
 * **in (1)**: connected to a hit voxel. Guarantee: every point of such a voxel is reachable within
   all limits.
-* **boundary (2)**: the rest. :func:`reach_point` answers there with exact IK (:func:`ik_point`:
-  projected Gauss-Newton from the seeds of the voxel's seed cell; a point counts as reached only
-  when ``|f(q) - w| < 1e-10`` with every limit row holding). That answer is as good as the seeds:
-  configurations whose wrist falls in the seed cell or its 26 neighbours (patch and cell centres),
-  one per cluster of nearby configurations, i.e. one per IK branch. Tests compare it with
-  brute-force and closed-form IK.
+* **boundary (2)**: the rest. :func:`reach_point` answers there with exact IK; a point counts as
+  reached only when ``|f(q) - w| < 1e-10`` with every limit row holding. Where joints 1 and 2 turn
+  about parallel axes (the PHANToM, a UR arm's shoulder lift and elbow) the closed form
+  (:func:`chain._ik_parallel`) enumerates every solution, every turn of every joint, and decides
+  but for a margin of 1e-8 m (or 1e-7 rad at a limit) around the workspace's edge and singular
+  arms. Elsewhere, and in that margin, :func:`ik_point`'s projected Gauss-Newton runs from the seeds
+  of the voxel's seed cell. That answer is as good as the seeds: configurations whose wrist falls
+  in the seed cell or its 26 neighbours (patch and cell centres), one per cluster of nearby
+  configurations, i.e. one per IK branch. Tests compare both with brute-force IK and the closed
+  forms written in the tests.
 
 The soundness of in/out rests on the bounds above (rounding is covered by relative slack); the
 build reports ``conflicts`` (an out flood reaching a hit voxel), which must be 0.

@@ -133,7 +133,7 @@ def _box(chain, i, x):
     return min(max(x, lo), hi)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _rows_ok(chain, q0, q1, q2, tol):
     A = chain.A
     for r in range(A.shape[0]):
@@ -294,17 +294,239 @@ def _solve(chain, w0, w1, w2, s0, s1, s2, maxit):
     return ok, q0, q1, q2
 
 
+# The closed form's margins (:func:`_ik_parallel`). A wrist is proved unreachable only when every exact
+# solution misses by more than these; nearer than that, Newton (:func:`_ik_seeds`) decides as before.
+_GAP = 1e-8      # m: 100 x IK_TOL, a height or reach mismatch that no residual below IK_TOL can hide
+_QGAP = 1e-7     # rad or m: a solution this close outside a limit row
+_MERGE = 1e-6    # an acos argument this close to +-1: two solutions about to merge (a singular arm)
+_COND = 0.02     # joint 0's root this ill-conditioned (slope below 2 % of the lever): not proved
+
+
+@njit(cache=True)
+def _turn2(x, y, c, s):
+    """The plane vector (x, y) turned by the angle of cosine c and sine s."""
+    return x * c - y * s, x * s + y * c
+
+
+@njit(cache=True)
+def _wraps(jt, lo, hi, q):
+    """The range of k for which a joint's ``q + 2 pi k`` lies within its box [lo, hi] widened by _QGAP
+    (one value, k = 0, for a prismatic joint, ``jt`` 1); empty (k1 < k0) when none does."""
+    lo = lo - _QGAP
+    hi = hi + _QGAP
+    if jt != 0:
+        return 0, (0 if q >= lo and q <= hi else -1)
+    return int(math.ceil((lo - q) / TWO_PI)), int(math.floor((hi - q) / TWO_PI))
+
+
+@njit(cache=True, inline="always")
+def _try_limits(chain, q0, q1, q2, t0, t1, t2, verify):
+    """Joint values q (mod 2 pi for revolute joints) of an exact solution of f(q) = t: is one of their
+    representatives within every limit? Returns (status, q0, q1, q2): 1 yes (that representative), 0
+    no, by more than _QGAP, -1 nearer than that. A representative moved onto a box limit, or any with
+    ``verify`` (the solution came from a clamped equation), counts only with ``|f(q) - t| < IK_TOL``
+    (ik_point's criterion); an exact one within the limits is a solution to rounding."""
+    lo = chain.lo
+    hi = chain.hi
+    jt = chain.jtype
+    k0a, k0b = _wraps(jt[0], lo[0], hi[0], q0)
+    k1a, k1b = _wraps(jt[1], lo[1], hi[1], q1)
+    k2a, k2b = _wraps(jt[2], lo[2], hi[2], q2)
+    near = False
+    for i0 in range(k0a, min(k0b, k0a + 2) + 1):
+        a0 = q0 + TWO_PI * i0 if jt[0] == 0 else q0
+        for i1 in range(k1a, min(k1b, k1a + 2) + 1):
+            a1 = q1 + TWO_PI * i1
+            for i2 in range(k2a, min(k2b, k2a + 2) + 1):
+                a2 = q2 + TWO_PI * i2
+                b0 = min(max(a0, lo[0]), hi[0])
+                b1 = min(max(a1, lo[1]), hi[1])
+                b2 = min(max(a2, lo[2]), hi[2])
+                exact = b0 == a0 and b1 == a1 and b2 == a2
+                if _rows_ok(chain, b0, b1, b2, LIMIT_TOL):
+                    if exact and not verify:
+                        return 1, b0, b1, b2
+                    r, c0, c1, c2 = _local3(chain, b0, b1, b2, t0, t1, t2)
+                    if r[0] * r[0] + r[1] * r[1] + r[2] * r[2] < IK_TOL * IK_TOL:
+                        return 1, b0, b1, b2
+                    near = True  # moved onto a limit, or a clamped equation: not proved either way
+                elif not exact or _rows_ok(chain, b0, b1, b2, LIMIT_TOL + _QGAP):
+                    near = True
+    return (-1 if near else 0), 0.0, 0.0, 0.0
+
+
+@njit(cache=True)
+def _ik_parallel(chain, t0, t1, t2):
+    """Closed-form inverse kinematics of a 3-joint chain whose joints 1 and 2 turn about parallel axes
+    (the PHANToM's shoulder and elbow, a UR arm's shoulder lift and elbow): those two move the wrist in a
+    plane normal to their axis ``a``, so joint 0 alone must bring the target to the wrist's height
+    along ``a`` (``A cos q0 + B sin q0 = D`` for a revolute joint 0, linear for a prismatic one), and in
+    that plane joints 1 and 2 are a two-link arm (the law of cosines, two elbows). Every exact solution
+    is tried against the limits (:func:`_try_limits`), each joint's as soon as it is known.
+
+    Returns (status, q0, q1, q2): 1 reachable (a configuration within every limit, ``|f(q) - t| <
+    IK_TOL``), 0 unreachable (every exact solution misses the target's height or reach by more than
+    _GAP, or a limit by more than _QGAP: no configuration within the limits comes within IK_TOL of
+    it), -1 not decided here (another chain, a singular arm or a margin case: Newton decides)."""
+    Z = chain.screw
+    jt = chain.jtype
+    if Z.shape[0] != 4 or jt[1] != 0 or jt[2] != 0:
+        return -1, 0.0, 0.0, 0.0
+    a0, a1, a2 = Z[1, 0], Z[1, 1], Z[1, 2]
+    cab = a0 * Z[2, 0] + a1 * Z[2, 1] + a2 * Z[2, 2]
+    if abs(cab) < 1.0 - 1e-12:
+        return -1, 0.0, 0.0, 0.0
+    s2 = 1.0 if cab > 0.0 else -1.0
+    # the plane's basis e, f = a x e (a turn by theta about a maps (x, y) to _turn2(x, y, cos, sin))
+    if abs(a0) <= abs(a1) and abs(a0) <= abs(a2):
+        e0, e1, e2 = 0.0, a2, -a1          # a x (1, 0, 0)
+    elif abs(a1) <= abs(a2):
+        e0, e1, e2 = -a2, 0.0, a0          # a x (0, 1, 0)
+    else:
+        e0, e1, e2 = a1, -a0, 0.0          # a x (0, 0, 1)
+    en = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
+    e0, e1, e2 = e0 / en, e1 / en, e2 / en
+    f0, f1, f2 = a1 * e2 - a2 * e1, a2 * e0 - a0 * e2, a0 * e1 - a1 * e0
+    p0, p1, p2 = Z[1, 3], Z[1, 4], Z[1, 5]                       # on joint 1's axis
+    v0, v1, v2 = Z[2, 3] - p0, Z[2, 4] - p1, Z[2, 5] - p2        # to joint 2's axis
+    w0, w1, w2 = Z[3, 0] - Z[2, 3], Z[3, 1] - Z[2, 4], Z[3, 2] - Z[2, 5]  # on to the wrist
+    hgt = a0 * (Z[3, 0] - p0) + a1 * (Z[3, 1] - p1) + a2 * (Z[3, 2] - p2)
+    x1, y1 = e0 * v0 + e1 * v1 + e2 * v2, f0 * v0 + f1 * v1 + f2 * v2
+    x2, y2 = e0 * w0 + e1 * w1 + e2 * w2, f0 * w0 + f1 * w1 + f2 * w2
+    l1 = math.sqrt(x1 * x1 + y1 * y1)
+    l2 = math.sqrt(x2 * x2 + y2 * y2)
+    if l1 < 1e-9 or l2 < 1e-9:
+        return -1, 0.0, 0.0, 0.0
+    b0, b1, b2 = Z[0, 0], Z[0, 1], Z[0, 2]
+    o0, o1, o2 = Z[0, 3], Z[0, 4], Z[0, 5]
+    ab = a0 * b0 + a1 * b1 + a2 * b2
+    near = False
+    # joint 0's candidates: cosine and sine of q0 = phi -+ dl (revolute), or its one value (prismatic)
+    nq = 1
+    ca = sa = cb = sb = 0.0
+    qp = 0.0
+    if jt[0] == 0:
+        d0, d1, d2 = t0 - o0, t1 - o1, t2 - o2
+        bd = b0 * d0 + b1 * d1 + b2 * d2
+        A = a0 * d0 + a1 * d1 + a2 * d2 - ab * bd
+        B = -(a0 * (b1 * d2 - b2 * d1) + a1 * (b2 * d0 - b0 * d2) + a2 * (b0 * d1 - b1 * d0))
+        D = hgt + a0 * (p0 - o0) + a1 * (p1 - o1) + a2 * (p2 - o2) - ab * bd
+        R = math.sqrt(A * A + B * B)
+        lever = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2) + l1 + l2
+        if R < 1e-9 * lever:
+            return -1, 0.0, 0.0, 0.0          # the target on joint 0's axis, or joint 0 parallel to a
+        if abs(D) - R > _GAP:
+            return 0, 0.0, 0.0, 0.0           # no turn of joint 0 brings the target to the wrist's height
+        c = D / R
+        if abs(c) > 1.0 - _MERGE:
+            near = True
+            c = min(max(c, -1.0), 1.0)
+        sd = math.sqrt(max(0.0, 1.0 - c * c))
+        if R * sd < _COND * lever:
+            near = True
+        cp, sp = A / R, B / R
+        ca, sa = cp * c + sp * sd, sp * c - cp * sd
+        cb, sb = cp * c - sp * sd, sp * c + cp * sd
+        nq = 2 if sd > 0.0 else 1
+    else:
+        if abs(ab) < 1e-6:
+            return -1, 0.0, 0.0, 0.0
+        qp = (a0 * (t0 - p0) + a1 * (t1 - p1) + a2 * (t2 - p2) - hgt) / ab
+    # the elbow's cosine and sine of psi: dot cos(theta) - cr sin(theta) = l1 l2 cos(theta - psi)
+    cps, sps = (x1 * x2 + y1 * y2) / (l1 * l2), -(x1 * y2 - y1 * x2) / (l1 * l2)
+    for iq in range(nq):
+        if jt[0] == 0:
+            c0, s0 = (ca, sa) if iq == 0 else (cb, sb)
+            q0 = math.atan2(s0, c0)
+        else:
+            c0, s0 = 1.0, 0.0
+            q0 = qp
+        k0, k1 = _wraps(jt[0], chain.lo[0], chain.hi[0], q0)
+        if k1 < k0:
+            continue
+        # the target turned back by joint 0 (as _local3), relative to joint 1's axis, in the plane
+        if jt[0] == 0:
+            u = _rodrigues(b0, b1, b2, c0, -s0, t0 - o0, t1 - o1, t2 - o2)
+            u0, u1, u2 = u[0] + o0 - p0, u[1] + o1 - p1, u[2] + o2 - p2
+        else:
+            u0, u1, u2 = t0 - b0 * q0 - p0, t1 - b1 * q0 - p1, t2 - b2 * q0 - p2
+        px, py = e0 * u0 + e1 * u1 + e2 * u2, f0 * u0 + f1 * u1 + f2 * u2
+        rp = math.sqrt(px * px + py * py)
+        if rp > l1 + l2 + _GAP or rp < abs(l1 - l2) - _GAP:
+            continue                          # beyond the two links' reach (with the margin)
+        E = 0.5 * (rp * rp - l1 * l1 - l2 * l2) / (l1 * l2)
+        nearq = near
+        if abs(E) > 1.0 - _MERGE:
+            nearq = True
+            E = min(max(E, -1.0), 1.0)
+        se = math.sqrt(max(0.0, 1.0 - E * E))
+        for ie in range(2 if se > 0.0 else 1):
+            sg = -1.0 if ie == 0 else 1.0    # theta = psi -+ acos(E)
+            ct, stt = cps * E - sg * sps * se, sps * E + sg * cps * se
+            q2 = s2 * math.atan2(stt, ct)
+            k0, k1 = _wraps(jt[2], chain.lo[2], chain.hi[2], q2)
+            if k1 < k0:
+                continue
+            wx, wy = _turn2(x2, y2, ct, stt)
+            wx, wy = wx + x1, wy + y1
+            if wx * wx + wy * wy < 1e-18:
+                near = True                   # the wrist on joint 1's axis: any shoulder angle
+                continue
+            q1 = math.atan2(wx * py - wy * px, wx * px + wy * py)
+            st, r0, r1, r2 = _try_limits(chain, q0, q1, q2, t0, t1, t2, nearq)
+            if st == 1:
+                return 1, r0, r1, r2
+            if st == -1 or nearq:
+                near = True
+    return (-1 if near else 0), 0.0, 0.0, 0.0
+
+
+# Compiled code pays for each read of an array field of a namedtuple (``rmap.state``, ``chain.lo``): a
+# reference count up and down, about 5 ns, which nothing hoists out of a loop. The map's helpers read
+# each field once; loops over many points read the fields before the loop and call the scalar forms
+# (:func:`_voxel`).
+@njit(cache=True)
+def _voxel(o0, o1, o2, h, n0, n1, n2, w0, w1, w2):
+    """Voxel (ix, iy, iz) of w on a map of origin o, spacing h and n voxels per axis; ix = -1 outside
+    the map (NaN is outside)."""
+    fx = (w0 - o0) / h
+    fy = (w1 - o1) / h
+    fz = (w2 - o2) / h
+    if not (fx >= 0.0 and fx < n0 and fy >= 0.0 and fy < n1 and fz >= 0.0 and fz < n2):
+        return -1, 0, 0
+    return int(fx), int(fy), int(fz)
+
+
+@njit(cache=True, inline="always")
+def map_geometry(rmap):
+    """The map's origin, spacing and voxel counts as a tuple of scalars, for :func:`map_state` (read
+    once, before a loop over many points)."""
+    o = rmap.origin
+    n = rmap.shape
+    return o[0], o[1], o[2], rmap.h, n[0], n[1], n[2]
+
+
+@njit(cache=True)
+def map_state(geo, state, w0, w1, w2):
+    """(s, ix, iy, iz): the state of w's voxel (ix, iy, iz) on the map of geometry ``geo``
+    (:func:`map_geometry`) and states ``state``; off the map (NaN is off the map) s = 0 and ix = -1.
+    The loops' form of :func:`reach_point`::
+
+        s, ix, iy, iz = map_state(geo, state, w0, w1, w2)
+        ok = s == 1 or (s == 2 and reach_boundary(chain, rmap, ix, iy, iz, w0, w1, w2))
+    """
+    ix, iy, iz = _voxel(geo[0], geo[1], geo[2], geo[3], geo[4], geo[5], geo[6], w0, w1, w2)
+    if ix < 0:
+        return 0, -1, 0, 0
+    return state[ix, iy, iz], ix, iy, iz
+
+
 @njit(cache=True, inline="always")
 def _locate(rmap, w0, w1, w2):
     """Voxel (ix, iy, iz) of w; ix = -1 outside the map (NaN is outside)."""
-    h = rmap.h
-    fx = (w0 - rmap.origin[0]) / h
-    fy = (w1 - rmap.origin[1]) / h
-    fz = (w2 - rmap.origin[2]) / h
-    if not (fx >= 0.0 and fx < rmap.shape[0] and fy >= 0.0 and fy < rmap.shape[1]
-            and fz >= 0.0 and fz < rmap.shape[2]):
-        return -1, 0, 0
-    return int(fx), int(fy), int(fz)
+    o = rmap.origin
+    n = rmap.shape
+    return _voxel(o[0], o[1], o[2], rmap.h, n[0], n[1], n[2], w0, w1, w2)
 
 
 @njit(cache=True)
@@ -343,15 +565,20 @@ def _ik_voxel(chain, rmap, ix, iy, iz, w0, w1, w2):
 def ik_point(chain, rmap, w0, w1, w2, qout):
     """Exact IK within all limits for wrist (w0, w1, w2) into ``qout`` (3,); returns success.
 
-    Damped Newton from the seeds of the wrist's seed cell (any branch); success only if
-    ``|f(q) - w| < 1e-10`` and every limit row holds. ``qout`` is NaN on failure. A point in a
-    certified-out voxel fails at once.
+    Damped Newton from the seeds of the wrist's seed cell (any branch), then the closed form
+    (:func:`_ik_parallel`, where the chain has one) for a configuration the seeds' branches miss, so
+    that it succeeds wherever :func:`reach_point` says reachable; success only if ``|f(q) - w| <
+    1e-10`` and every limit row holds. ``qout`` is NaN on failure. A point in a certified-out voxel
+    fails at once.
     """
     ix, iy, iz = _locate(rmap, w0, w1, w2)
     ok = False
     q0 = q1 = q2 = 0.0
     if ix >= 0 and rmap.state[ix, iy, iz] != 0:
         ok, q0, q1, q2 = _ik_voxel(chain, rmap, ix, iy, iz, w0, w1, w2)
+        if not ok:  # a configuration the seeds' branches miss (reach_point's closed form finds it)
+            st, q0, q1, q2 = _ik_parallel(chain, w0, w1, w2)
+            ok = st == 1
     if ok:
         qout[0], qout[1], qout[2] = q0, q1, q2
     else:
@@ -370,10 +597,12 @@ def ik_near(chain, rmap, w0, w1, w2, near, qout):
     return ik_point(chain, rmap, w0, w1, w2, qout)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def reach_point(chain, rmap, w0, w1, w2):
     """Is wrist (w0, w1, w2) reachable within all limits? O(1) in certified voxels, exact IK
-    (:func:`ik_point`'s criterion) in boundary voxels. NaN is not reachable."""
+    (:func:`ik_point`'s criterion) in boundary voxels (:func:`reach_boundary`). NaN is not reachable.
+    Loops over many points use :func:`map_state` and :func:`reach_boundary` instead: this function,
+    inlined, reads every field of ``chain`` and ``rmap`` at each call."""
     ix, iy, iz = _locate(rmap, w0, w1, w2)
     if ix < 0:
         return False
@@ -382,8 +611,19 @@ def reach_point(chain, rmap, w0, w1, w2):
         return False
     if s == 1:
         return True
+    return reach_boundary(chain, rmap, ix, iy, iz, w0, w1, w2)
+
+
+@njit(cache=True)
+def reach_boundary(chain, rmap, ix, iy, iz, w0, w1, w2):
+    """:func:`reach_point` in a boundary voxel (ix, iy, iz): the closed form where it decides, else
+    Newton from the seed cell's seeds."""
+    st = _ik_parallel(chain, w0, w1, w2)[0]
+    if st >= 0:
+        return st == 1
     sub = rmap.sub
-    c = ((ix // sub) * (rmap.shape[1] // sub) + iy // sub) * (rmap.shape[2] // sub) + iz // sub
+    n = rmap.shape
+    c = ((ix // sub) * (n[1] // sub) + iy // sub) * (n[2] // sub) + iz // sub
     return _ik_seeds(chain, rmap, c, w0, w1, w2)[0]
 
 
