@@ -133,14 +133,19 @@ def _box(chain, i, x):
     return min(max(x, lo), hi)
 
 
-@njit(cache=True, inline="always")
-def _rows_ok(chain, q0, q1, q2, tol):
-    A = chain.A
+@njit(cache=True)
+def _rows_in(A, lo, hi, q0, q1, q2, tol):
+    """Does q meet every limit row ``lo - tol <= A q <= hi + tol``?"""
     for r in range(A.shape[0]):
         v = A[r, 0] * q0 + A[r, 1] * q1 + A[r, 2] * q2
-        if not (v >= chain.lo[r] - tol and v <= chain.hi[r] + tol):
+        if not (v >= lo[r] - tol and v <= hi[r] + tol):
             return False
     return True
+
+
+@njit(cache=True)
+def _rows_ok(chain, q0, q1, q2, tol):
+    return _rows_in(chain.A, chain.lo, chain.hi, q0, q1, q2, tol)
 
 
 @njit(cache=True, inline="always")
@@ -319,39 +324,44 @@ def _wraps(jt, lo, hi, q):
     return int(math.ceil((lo - q) / TWO_PI)), int(math.floor((hi - q) / TWO_PI))
 
 
-@njit(cache=True, inline="always")
-def _try_limits(chain, q0, q1, q2, t0, t1, t2, verify):
+@njit(cache=True)
+def _verified(chain, q0, q1, q2, t0, t1, t2):
+    """``|f(q) - t| < IK_TOL`` (ik_point's criterion)."""
+    r, c0, c1, c2 = _local3(chain, q0, q1, q2, t0, t1, t2)
+    return r[0] * r[0] + r[1] * r[1] + r[2] * r[2] < IK_TOL * IK_TOL
+
+
+@njit(cache=True)
+def _try_limits(chain, A, lo, hi, jt, q0, q1, q2, t0, t1, t2, verify):
     """Joint values q (mod 2 pi for revolute joints) of an exact solution of f(q) = t: is one of their
-    representatives within every limit? Returns (status, q0, q1, q2): 1 yes (that representative), 0
-    no, by more than _QGAP, -1 nearer than that. A representative moved onto a box limit, or any with
-    ``verify`` (the solution came from a clamped equation), counts only with ``|f(q) - t| < IK_TOL``
-    (ik_point's criterion); an exact one within the limits is a solution to rounding."""
-    lo = chain.lo
-    hi = chain.hi
-    jt = chain.jtype
+    representatives within every limit row (``A``, ``lo``, ``hi``, joint types ``jt``: the chain's, read
+    once by the caller)? Returns (status, q0, q1, q2): 1 yes (that representative), 0 no, by more than
+    _QGAP, -1 nearer than that. A representative moved onto a box limit, or any with ``verify`` (the
+    solution came from a clamped equation), counts only with ``|f(q) - t| < IK_TOL`` (ik_point's
+    criterion); an exact one within the limits is a solution to rounding."""
     k0a, k0b = _wraps(jt[0], lo[0], hi[0], q0)
     k1a, k1b = _wraps(jt[1], lo[1], hi[1], q1)
     k2a, k2b = _wraps(jt[2], lo[2], hi[2], q2)
+    n0 = min(k0b - k0a + 1, 3)
+    n1 = min(k1b - k1a + 1, 3)
+    n2 = min(k2b - k2a + 1, 3)
     near = False
-    for i0 in range(k0a, min(k0b, k0a + 2) + 1):
-        a0 = q0 + TWO_PI * i0 if jt[0] == 0 else q0
-        for i1 in range(k1a, min(k1b, k1a + 2) + 1):
-            a1 = q1 + TWO_PI * i1
-            for i2 in range(k2a, min(k2b, k2a + 2) + 1):
-                a2 = q2 + TWO_PI * i2
-                b0 = min(max(a0, lo[0]), hi[0])
-                b1 = min(max(a1, lo[1]), hi[1])
-                b2 = min(max(a2, lo[2]), hi[2])
-                exact = b0 == a0 and b1 == a1 and b2 == a2
-                if _rows_ok(chain, b0, b1, b2, LIMIT_TOL):
-                    if exact and not verify:
-                        return 1, b0, b1, b2
-                    r, c0, c1, c2 = _local3(chain, b0, b1, b2, t0, t1, t2)
-                    if r[0] * r[0] + r[1] * r[1] + r[2] * r[2] < IK_TOL * IK_TOL:
-                        return 1, b0, b1, b2
-                    near = True  # moved onto a limit, or a clamped equation: not proved either way
-                elif not exact or _rows_ok(chain, b0, b1, b2, LIMIT_TOL + _QGAP):
-                    near = True
+    for c in range(max(n0, 0) * max(n1, 0) * max(n2, 0)):  # every representative, at most 3 per joint
+        a0 = q0 + TWO_PI * (k0a + c // (n1 * n2)) if jt[0] == 0 else q0
+        a1 = q1 + TWO_PI * (k1a + (c // n2) % n1)
+        a2 = q2 + TWO_PI * (k2a + c % n2)
+        b0 = min(max(a0, lo[0]), hi[0])
+        b1 = min(max(a1, lo[1]), hi[1])
+        b2 = min(max(a2, lo[2]), hi[2])
+        exact = b0 == a0 and b1 == a1 and b2 == a2
+        if _rows_in(A, lo, hi, b0, b1, b2, LIMIT_TOL):
+            if exact and not verify:
+                return 1, b0, b1, b2
+            if _verified(chain, b0, b1, b2, t0, t1, t2):
+                return 1, b0, b1, b2
+            near = True  # moved onto a limit, or a clamped equation: not proved either way
+        elif not exact or _rows_in(A, lo, hi, b0, b1, b2, LIMIT_TOL + _QGAP):
+            near = True
     return (-1 if near else 0), 0.0, 0.0, 0.0
 
 
@@ -400,6 +410,7 @@ def _ik_parallel(chain, t0, t1, t2):
     b0, b1, b2 = Z[0, 0], Z[0, 1], Z[0, 2]
     o0, o1, o2 = Z[0, 3], Z[0, 4], Z[0, 5]
     ab = a0 * b0 + a1 * b1 + a2 * b2
+    A_, lo_, hi_ = chain.A, chain.lo, chain.hi
     near = False
     # joint 0's candidates: cosine and sine of q0 = phi -+ dl (revolute), or its one value (prismatic)
     nq = 1
@@ -441,7 +452,7 @@ def _ik_parallel(chain, t0, t1, t2):
         else:
             c0, s0 = 1.0, 0.0
             q0 = qp
-        k0, k1 = _wraps(jt[0], chain.lo[0], chain.hi[0], q0)
+        k0, k1 = _wraps(jt[0], lo_[0], hi_[0], q0)
         if k1 < k0:
             continue
         # the target turned back by joint 0 (as _local3), relative to joint 1's axis, in the plane
@@ -464,7 +475,7 @@ def _ik_parallel(chain, t0, t1, t2):
             sg = -1.0 if ie == 0 else 1.0    # theta = psi -+ acos(E)
             ct, stt = cps * E - sg * sps * se, sps * E + sg * cps * se
             q2 = s2 * math.atan2(stt, ct)
-            k0, k1 = _wraps(jt[2], chain.lo[2], chain.hi[2], q2)
+            k0, k1 = _wraps(jt[2], lo_[2], hi_[2], q2)
             if k1 < k0:
                 continue
             wx, wy = _turn2(x2, y2, ct, stt)
@@ -473,7 +484,7 @@ def _ik_parallel(chain, t0, t1, t2):
                 near = True                   # the wrist on joint 1's axis: any shoulder angle
                 continue
             q1 = math.atan2(wx * py - wy * px, wx * px + wy * py)
-            st, r0, r1, r2 = _try_limits(chain, q0, q1, q2, t0, t1, t2, nearq)
+            st, r0, r1, r2 = _try_limits(chain, A_, lo_, hi_, jt, q0, q1, q2, t0, t1, t2, nearq)
             if st == 1:
                 return 1, r0, r1, r2
             if st == -1 or nearq:
