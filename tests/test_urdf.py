@@ -693,6 +693,35 @@ def test_sampling_and_distance(phantom):
     assert phantom.min_distance_to(far) == pytest.approx(np.min(np.linalg.norm(phantom.sample_wrists() - far, axis=-1)))
 
 
+@pytest.mark.parametrize("which", ["phantom", "ur5"])
+def test_nearer_than_agrees_with_the_sampled_distance(which, request):
+    """UrdfArm.nearer_than (the scenario check that the shaft reaches the port; the map's certified
+    voxels answer, else the sampled distance): never "no" where a sampled reachable wrist lies within r,
+    never "yes" where no point of a non-out voxel does; a wrist's own neighbourhood is near, a point
+    10 m off is not."""
+    arm = request.getfixturevalue(which)
+    _, rm = arm.kernel()
+    rng = np.random.default_rng(17)
+    lo, hi = workspace_box(arm, margin=0.3)
+    S = arm.sample_wrists(41)
+    corners = rm.origin + rm.h * np.argwhere(rm.state != 0)
+    answers = set()
+    for p, r in zip(lo + rng.random((60, 3)) * (hi - lo), rng.uniform(0.005, 0.3, 60)):
+        got = arm.nearer_than(p, r)
+        answers.add(got)
+        if np.min(np.linalg.norm(S - p, axis=-1)) < r:
+            assert got
+        # the nearest point of any voxel not certified out
+        d = np.linalg.norm(np.maximum(np.maximum(corners - p, p - (corners + rm.h)), 0.0), axis=-1)
+        if np.min(d) >= r:
+            assert not got
+    assert answers == {True, False}
+    w = arm.forward(random_q(arm, 5, 3))
+    for wk in w:
+        assert arm.nearer_than(wk + [0.004, 0.0, 0.0], 0.005)
+    assert not arm.nearer_than(w[0] + 10.0, 0.3)
+
+
 def test_resolve_uri(monkeypatch, tmp_path):
     """package:// mesh URIs: package_path (relative to the URDF), then ROS_PACKAGE_PATH, then the
     description packages installed in the environment (example-robot-data's own meshes); a miss is None."""
