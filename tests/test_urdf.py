@@ -1196,3 +1196,57 @@ def test_closed_form_ik_leaves_other_chains_to_newton(panda, toy_path):
         _closed_many(chain, W, st, Q)
         assert (st == -1).all()
         assert arm.reachable(W).all()
+
+
+def _two_link_chain(l1, l2, lo, hi, A=None, axis0=(0.0, 0.0, 1.0), jt0=0, shoulder=0.0):
+    """ChainData of joint 0 about (or along) axis0, then two parallel joints about y, links along x."""
+    from errplan.kinematics.urdf.model import ChainData, chain_screws
+
+    T = np.tile(np.eye(4), (4, 1, 1))
+    T[1, 0, 3], T[2, 0, 3], T[3, 0, 3] = shoulder, l1, l2
+    axis = np.array([axis0, [0.0, 1.0, 0.0], [0.0, 1.0, 0.0]])
+    A = np.eye(3) if A is None else np.asarray(A, float)
+    return ChainData(T, axis, np.array([jt0, 0, 0], np.int64), A, np.array(lo, float), np.array(hi, float),
+                     chain_screws(T, axis))
+
+
+def _fk(chain, q):
+    out = np.empty(3)
+    U.chain.fk_point(chain, np.asarray(q, float), out)
+    return out
+
+
+def test_closed_form_ik_never_proves_unreachable_what_a_limit_configuration_reaches():
+    """The review's cases (each returned 0, or a wrong configuration, before the margins were scaled):
+    - a coupled row met only on turns beyond the first three of a 4 pi box: found, or left to Newton;
+    - an elbow nearly straight, its limit 2e-7 to 1e-6 rad past the exact solution; a nearly folded
+      elbow with the shoulder's limit 3e-7 past it; a prismatic joint 0 tilted 1e-4 rad off the
+      normal, its limit 1e-6 m past: configurations within the limits reach to 1e-10 m, so never 0;
+    - huge or infinite limits: a configuration near the principal turn, checked to reach."""
+    P = 4 * math.pi
+    ch = _two_link_chain(0.1, 0.08, [-P, -P, -P, 9.0], [P, P, P, 10.0], A=np.vstack([np.eye(3), [[0, 1, 1]]]))
+    q = np.array([0.5, 8.9, 0.6])
+    st, *qf = U.chain._ik_parallel(ch, *_fk(ch, q))
+    assert st != 0
+    if st == 1:
+        assert 9.0 <= qf[1] + qf[2] <= 10.0 and np.linalg.norm(_fk(ch, qf) - _fk(ch, q)) < 1e-10
+    l = 0.1
+    th = math.acos(1 - 2e-6)
+    t = _fk(_two_link_chain(l, l, [-3] * 3, [3] * 3), [0.3, 0.2, th])
+    for dq in (2e-7, 5e-7, 1e-6):
+        assert U.chain._ik_parallel(_two_link_chain(l, l, [-3, -3, th + dq], [3, 3, 3]), *t)[0] != 0
+    rp = 2e-4
+    thf = math.acos((rp ** 2 - 2 * l * l) / (2 * l * l))
+    t = _fk(_two_link_chain(l, l, [-3] * 3, [3, 3, 3.2], shoulder=0.3), [0.3, 0.5, thf])
+    assert U.chain._ik_parallel(_two_link_chain(l, l, [-3, 0.5 + 3e-7, 0.0], [3, 3, 3.2], shoulder=0.3), *t)[0] != 0
+    eps = 1e-4
+    tilt = _two_link_chain(l, l, [0.0, -3, -3], [1.0, 3, 3], axis0=(math.cos(eps), math.sin(eps), 0.0), jt0=1)
+    q = np.array([0.0, 0.4, -0.8])
+    t = _fk(tilt, q) + [0.0, -5e-11, 0.0]
+    assert np.linalg.norm(_fk(tilt, q) - t) < 1e-10 and U.chain._ik_parallel(tilt, *t)[0] != 0
+    q = np.array([0.5, 0.4, 0.6])
+    for L in (1e10, 1e16, np.inf):
+        ch = _two_link_chain(0.1, 0.08, [-L] * 3, [L] * 3)
+        st, *qf = U.chain._ik_parallel(ch, *_fk(ch, q))
+        assert st == 1 and np.all(np.abs(qf) <= math.pi + 1e-12)
+        assert np.linalg.norm(_fk(ch, qf) - _fk(ch, q)) < 1e-10

@@ -50,9 +50,8 @@ entirely outside, and so does any face-connected set of such voxels. A flood fil
 * **boundary (2)**: the rest. :func:`reach_point` answers there with exact IK; a point counts as
   reached only when ``|f(q) - w| < 1e-10`` with every limit row holding. Where joints 1 and 2 turn
   about parallel axes (the PHANToM, a UR arm's shoulder lift and elbow) the closed form
-  (:func:`chain._ik_parallel`) enumerates every solution, every turn of every joint, and decides
-  but for a margin of 1e-8 m (or 1e-7 rad at a limit) around the workspace's edge and singular
-  arms. Elsewhere, and in that margin, :func:`ik_point`'s projected Gauss-Newton runs from the seeds
+  (:func:`chain._ik_parallel`) enumerates every solution and the turns of every joint, and decides
+  but within 1e-4 rad (or m) of a limit, 1e-8 m of the workspace's edge, and near singular arms. Elsewhere, and in that margin, :func:`ik_point`'s projected Gauss-Newton runs from the seeds
   of the voxel's seed cell. That answer is as good as the seeds: configurations whose wrist falls
   in the seed cell or its 26 neighbours (patch and cell centres), one per cluster of nearby
   configurations, i.e. one per IK branch. Tests compare both with brute-force IK and the closed

@@ -299,12 +299,17 @@ def _solve(chain, w0, w1, w2, s0, s1, s2, maxit):
     return ok, q0, q1, q2
 
 
-# The closed form's margins (:func:`_ik_parallel`). A wrist is proved unreachable only when every exact
-# solution misses by more than these; nearer than that, Newton (:func:`_ik_seeds`) decides as before.
-_GAP = 1e-8      # m: 100 x IK_TOL, a height or reach mismatch that no residual below IK_TOL can hide
-_QGAP = 1e-7     # rad or m: a solution this close outside a limit row
-_MERGE = 1e-6    # an acos argument this close to +-1: two solutions about to merge (a singular arm)
-_COND = 0.02     # joint 0's root this ill-conditioned (slope below 2 % of the lever): not proved
+# The closed form's margins (:func:`_ik_parallel`). It proves a wrist unreachable only where every exact
+# solution misses by more than these and the arm is well conditioned there: then a target error of
+# IK_TOL moves the solutions by about 1e-5 (rad or m) at most, a tenth of _QGAP, so no configuration
+# within the limits comes within IK_TOL of the wrist. Elsewhere Newton (:func:`_ik_seeds`) decides.
+_GAP = 1e-8      # m: a height or reach mismatch (100 x IK_TOL)
+_QGAP = 1e-4     # rad or m: a solution this close outside a limit row
+_SINE = 1e-2     # an elbow's (or joint 0's root's) sine below this: two solutions near their merge
+_COND = 0.02     # joint 0's root's slope below 2 % of the lever
+_FOLD = 1e-3     # the wrist this close to joint 1's axis (relative to l1 + l2): the shoulder's angle
+_TILT = 1e-2     # a prismatic joint 0 this close to normal to the turning joints' axis
+_TURNS = 1e3     # rad: a representative q + 2 pi k beyond this is checked (its rounding grows with k)
 
 
 @njit(cache=True)
@@ -316,12 +321,26 @@ def _turn2(x, y, c, s):
 @njit(cache=True)
 def _wraps(jt, lo, hi, q):
     """The range of k for which a joint's ``q + 2 pi k`` lies within its box [lo, hi] widened by _QGAP
-    (one value, k = 0, for a prismatic joint, ``jt`` 1); empty (k1 < k0) when none does."""
+    (one value, k = 0, for a prismatic joint, ``jt`` 1); empty (k1 < k0) when none does. Infinite
+    limits give +-1e9."""
     lo = lo - _QGAP
     hi = hi + _QGAP
     if jt != 0:
         return 0, (0 if q >= lo and q <= hi else -1)
-    return int(math.ceil((lo - q) / TWO_PI)), int(math.floor((hi - q) / TWO_PI))
+    return (int(math.ceil(min(max((lo - q) / TWO_PI, -1e9), 1e9))),
+            int(math.floor(min(max((hi - q) / TWO_PI, -1e9), 1e9))))
+
+
+@njit(cache=True)
+def _nearest3(ka, kb):
+    """Up to three consecutive turns within [ka, kb] nearest k = 0: the first s, how many n, and the
+    offset of the one to try first (k = 0 when it is among them): turn i is ``s + (first + i) % n``."""
+    n = kb - ka + 1
+    if n <= 0:
+        return 0, 0, 0
+    s = ka if n <= 3 else min(max(-1, ka), kb - 2)
+    n = min(n, 3)
+    return s, n, min(max(-s, 0), n - 1)
 
 
 @njit(cache=True)
@@ -342,20 +361,21 @@ def _try_limits(chain, A, lo, hi, jt, q0, q1, q2, t0, t1, t2, verify):
     k0a, k0b = _wraps(jt[0], lo[0], hi[0], q0)
     k1a, k1b = _wraps(jt[1], lo[1], hi[1], q1)
     k2a, k2b = _wraps(jt[2], lo[2], hi[2], q2)
-    n0 = min(k0b - k0a + 1, 3)
-    n1 = min(k1b - k1a + 1, 3)
-    n2 = min(k2b - k2a + 1, 3)
-    near = False
-    for c in range(max(n0, 0) * max(n1, 0) * max(n2, 0)):  # every representative, at most 3 per joint
-        a0 = q0 + TWO_PI * (k0a + c // (n1 * n2)) if jt[0] == 0 else q0
-        a1 = q1 + TWO_PI * (k1a + (c // n2) % n1)
-        a2 = q2 + TWO_PI * (k2a + c % n2)
+    s0, n0, f0 = _nearest3(k0a, k0b)
+    s1, n1, f1 = _nearest3(k1a, k1b)
+    s2, n2, f2 = _nearest3(k2a, k2b)
+    # more turns within a box than tried: with coupled rows, one of the others might meet them
+    near = A.shape[0] > 3 and (k0b - k0a > 2 or k1b - k1a > 2 or k2b - k2a > 2)
+    for c in range(n0 * n1 * n2):  # the representatives, at most 3 per joint, nearest the found angle
+        a0 = q0 + TWO_PI * (s0 + (f0 + c // (n1 * n2)) % n0) if jt[0] == 0 else q0
+        a1 = q1 + TWO_PI * (s1 + (f1 + c // n2) % n1)
+        a2 = q2 + TWO_PI * (s2 + (f2 + c) % n2)
         b0 = min(max(a0, lo[0]), hi[0])
         b1 = min(max(a1, lo[1]), hi[1])
         b2 = min(max(a2, lo[2]), hi[2])
         exact = b0 == a0 and b1 == a1 and b2 == a2
         if _rows_in(A, lo, hi, b0, b1, b2, LIMIT_TOL):
-            if exact and not verify:
+            if exact and not verify and max(abs(a0), max(abs(a1), abs(a2))) <= _TURNS:
                 return 1, b0, b1, b2
             if _verified(chain, b0, b1, b2, t0, t1, t2):
                 return 1, b0, b1, b2
@@ -376,8 +396,10 @@ def _ik_parallel(chain, t0, t1, t2):
 
     Returns (status, q0, q1, q2): 1 reachable (a configuration within every limit, ``|f(q) - t| <
     IK_TOL``), 0 unreachable (every exact solution misses the target's height or reach by more than
-    _GAP, or a limit by more than _QGAP: no configuration within the limits comes within IK_TOL of
-    it), -1 not decided here (another chain, a singular arm or a margin case: Newton decides)."""
+    _GAP, or a limit by more than _QGAP, where the arm is well conditioned: no configuration within
+    the limits comes within IK_TOL of it), -1 not decided here (another chain; an elbow nearly
+    straight or folded, a wrist near joint 1's axis, joint 0 ill-conditioned, a solution within the
+    margins; coupled limits over more turns than tried: Newton decides)."""
     Z = chain.screw
     jt = chain.jtype
     if Z.shape[0] != 4 or jt[1] != 0 or jt[2] != 0:
@@ -429,11 +451,10 @@ def _ik_parallel(chain, t0, t1, t2):
         if abs(D) - R > _GAP:
             return 0, 0.0, 0.0, 0.0           # no turn of joint 0 brings the target to the wrist's height
         c = D / R
-        if abs(c) > 1.0 - _MERGE:
-            near = True
+        if abs(c) > 1.0:
             c = min(max(c, -1.0), 1.0)
         sd = math.sqrt(max(0.0, 1.0 - c * c))
-        if R * sd < _COND * lever:
+        if sd < _SINE or R * sd < _COND * lever:
             near = True
         cp, sp = A / R, B / R
         ca, sa = cp * c + sp * sd, sp * c - cp * sd
@@ -442,6 +463,7 @@ def _ik_parallel(chain, t0, t1, t2):
     else:
         if abs(ab) < 1e-6:
             return -1, 0.0, 0.0, 0.0
+        near = abs(ab) < _TILT
         qp = (a0 * (t0 - p0) + a1 * (t1 - p1) + a2 * (t2 - p2) - hgt) / ab
     # the elbow's cosine and sine of psi: dot cos(theta) - cr sin(theta) = l1 l2 cos(theta - psi)
     cps, sps = (x1 * x2 + y1 * y2) / (l1 * l2), -(x1 * y2 - y1 * x2) / (l1 * l2)
@@ -466,11 +488,9 @@ def _ik_parallel(chain, t0, t1, t2):
         if rp > l1 + l2 + _GAP or rp < abs(l1 - l2) - _GAP:
             continue                          # beyond the two links' reach (with the margin)
         E = 0.5 * (rp * rp - l1 * l1 - l2 * l2) / (l1 * l2)
-        nearq = near
-        if abs(E) > 1.0 - _MERGE:
-            nearq = True
-            E = min(max(E, -1.0), 1.0)
+        E = min(max(E, -1.0), 1.0)
         se = math.sqrt(max(0.0, 1.0 - E * E))
+        nearq = near or se < _SINE or rp < _FOLD * (l1 + l2)
         for ie in range(2 if se > 0.0 else 1):
             sg = -1.0 if ie == 0 else 1.0    # theta = psi -+ acos(E)
             ct, stt = cps * E - sg * sps * se, sps * E + sg * cps * se
