@@ -1239,6 +1239,12 @@ def test_closed_form_ik_never_proves_unreachable_what_a_limit_configuration_reac
     thf = math.acos((rp ** 2 - 2 * l * l) / (2 * l * l))
     t = _fk(_two_link_chain(l, l, [-3] * 3, [3, 3, 3.2], shoulder=0.3), [0.3, 0.5, thf])
     assert U.chain._ik_parallel(_two_link_chain(l, l, [-3, 0.5 + 3e-7, 0.0], [3, 3, 3.2], shoulder=0.3), *t)[0] != 0
+    # a straight elbow of short links whose limit lies past _QGAP: both elbows fail the limit's quick test,
+    # yet the elbow held at its limit reaches to 5e-11 m (the ill-conditioned elbow must leave it to Newton)
+    short = _two_link_chain(0.005, 0.005, [-3, -3, 2e-4], [3, 3, 3])
+    t = _fk(short, [0.3, 0.2, 0.0])
+    assert np.linalg.norm(_fk(short, [0.3, 0.2 - 1e-4, 2e-4]) - t) < 1e-10
+    assert U.chain._ik_parallel(short, *t)[0] != 0
     eps = 1e-4
     tilt = _two_link_chain(l, l, [0.0, -3, -3], [1.0, 3, 3], axis0=(math.cos(eps), math.sin(eps), 0.0), jt0=1)
     q = np.array([0.0, 0.4, -0.8])

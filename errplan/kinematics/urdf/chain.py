@@ -450,9 +450,7 @@ def _ik_parallel(chain, t0, t1, t2):
             return -1, 0.0, 0.0, 0.0          # the target on joint 0's axis, or joint 0 parallel to a
         if abs(D) - R > _GAP:
             return 0, 0.0, 0.0, 0.0           # no turn of joint 0 brings the target to the wrist's height
-        c = D / R
-        if abs(c) > 1.0:
-            c = min(max(c, -1.0), 1.0)
+        c = min(max(D / R, -1.0), 1.0)
         sd = math.sqrt(max(0.0, 1.0 - c * c))
         if sd < _SINE or R * sd < _COND * lever:
             near = True
@@ -491,6 +489,7 @@ def _ik_parallel(chain, t0, t1, t2):
         E = min(max(E, -1.0), 1.0)
         se = math.sqrt(max(0.0, 1.0 - E * E))
         nearq = near or se < _SINE or rp < _FOLD * (l1 + l2)
+        near = nearq  # an ill-conditioned elbow or shoulder: undecided unless a configuration checks out
         for ie in range(2 if se > 0.0 else 1):
             sg = -1.0 if ie == 0 else 1.0    # theta = psi -+ acos(E)
             ct, stt = cps * E - sg * sps * se, sps * E + sg * cps * se
@@ -507,7 +506,7 @@ def _ik_parallel(chain, t0, t1, t2):
             st, r0, r1, r2 = _try_limits(chain, A_, lo_, hi_, jt, q0, q1, q2, t0, t1, t2, nearq)
             if st == 1:
                 return 1, r0, r1, r2
-            if st == -1 or nearq:
+            if st == -1:
                 near = True
     return (-1 if near else 0), 0.0, 0.0, 0.0
 
@@ -552,14 +551,6 @@ def map_state(geo, state, w0, w1, w2):
     return state[ix, iy, iz], ix, iy, iz
 
 
-@njit(cache=True, inline="always")
-def _locate(rmap, w0, w1, w2):
-    """Voxel (ix, iy, iz) of w; ix = -1 outside the map (NaN is outside)."""
-    o = rmap.origin
-    n = rmap.shape
-    return _voxel(o[0], o[1], o[2], rmap.h, n[0], n[1], n[2], w0, w1, w2)
-
-
 @njit(cache=True)
 def _ik_seeds(chain, rmap, c, w0, w1, w2):
     S = rmap.seeds
@@ -602,10 +593,10 @@ def ik_point(chain, rmap, w0, w1, w2, qout):
     1e-10`` and every limit row holds. ``qout`` is NaN on failure. A point in a certified-out voxel
     fails at once.
     """
-    ix, iy, iz = _locate(rmap, w0, w1, w2)
+    s, ix, iy, iz = map_state(map_geometry(rmap), rmap.state, w0, w1, w2)
     ok = False
     q0 = q1 = q2 = 0.0
-    if ix >= 0 and rmap.state[ix, iy, iz] != 0:
+    if s != 0:
         ok, q0, q1, q2 = _ik_voxel(chain, rmap, ix, iy, iz, w0, w1, w2)
         if not ok:  # a configuration the seeds' branches miss (reach_point's closed form finds it)
             st, q0, q1, q2 = _ik_parallel(chain, w0, w1, w2)
@@ -628,21 +619,14 @@ def ik_near(chain, rmap, w0, w1, w2, near, qout):
     return ik_point(chain, rmap, w0, w1, w2, qout)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def reach_point(chain, rmap, w0, w1, w2):
     """Is wrist (w0, w1, w2) reachable within all limits? O(1) in certified voxels, exact IK
     (:func:`ik_point`'s criterion) in boundary voxels (:func:`reach_boundary`). NaN is not reachable.
-    Loops over many points use :func:`map_state` and :func:`reach_boundary` instead: this function,
-    inlined, reads every field of ``chain`` and ``rmap`` at each call."""
-    ix, iy, iz = _locate(rmap, w0, w1, w2)
-    if ix < 0:
-        return False
-    s = rmap.state[ix, iy, iz]
-    if s == 0:
-        return False
-    if s == 1:
-        return True
-    return reach_boundary(chain, rmap, ix, iy, iz, w0, w1, w2)
+    Loops over many points read the map once and use :func:`map_state` and :func:`reach_boundary`
+    (:func:`_reach_many`): a call reads every field of ``chain`` and ``rmap``."""
+    s, ix, iy, iz = map_state(map_geometry(rmap), rmap.state, w0, w1, w2)
+    return s == 1 or (s == 2 and reach_boundary(chain, rmap, ix, iy, iz, w0, w1, w2))
 
 
 @njit(cache=True)
@@ -673,8 +657,12 @@ def _jac_many(chain, Q, out):
 
 @njit(cache=True)
 def _reach_many(chain, rmap, Wp, out):
+    geo = map_geometry(rmap)
+    mst = rmap.state
     for k in range(Wp.shape[0]):
-        out[k] = reach_point(chain, rmap, Wp[k, 0], Wp[k, 1], Wp[k, 2])
+        w0, w1, w2 = Wp[k, 0], Wp[k, 1], Wp[k, 2]
+        s, ix, iy, iz = map_state(geo, mst, w0, w1, w2)
+        out[k] = s == 1 or (s == 2 and reach_boundary(chain, rmap, ix, iy, iz, w0, w1, w2))
 
 
 @njit(cache=True)
