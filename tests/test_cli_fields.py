@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -55,6 +56,21 @@ def test_fields_command_subprocess_success(tmp_path):
     assert r.returncode == 0, r.stderr
     assert "share with worst-case ||G|| < 1" in r.stdout
     assert out.exists() and not (tmp_path / "f.npz.part").exists()
+
+
+def test_program_exit_after_ompl_prints_nothing(tmp_path):
+    """The errplan program skips the final garbage collection (errplan.cli.entry) only while OMPL is not
+    loaded: OMPL's bindings print a page of "leaked" warnings at exit for objects left uncollected, which
+    every `errplan plan` and `errplan demo` printed for a while. The real exit path of a command that
+    returns, with OMPL loaded as a planning command loads it: nothing on stderr."""
+    out = tmp_path / "f.npz"
+    code = ("import sys; import ompl.base, ompl.geometric; from errplan.cli import entry; "
+            f"sys.argv = ['errplan', 'fields', {str(SCENARIOS / 'beasley2004_port.toml')!r}, '--out', "
+            f"{str(out)!r}, '--resolution', '0.01']; entry()")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+                       env=dict(os.environ, ERRPLAN_COMPILE_NOTICE="0"))
+    assert r.returncode == 0 and out.exists(), r.stderr[:500]
+    assert "leaked" not in r.stderr, r.stderr[:500]
 
 
 @pytest.mark.parametrize("args,needle", [
