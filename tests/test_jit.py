@@ -66,6 +66,80 @@ def test_njit_is_numbas_with_a_disk_cache():
     assert all(f.targetoptions["no_cfunc_wrapper"] for f in (twice, half, both))
 
 
+def test_compiled_callers_call_a_wrapperless_twin_and_python_gets_its_own():
+    """A kernel called only from compiled code is compiled once, without the Python wrapper (its twin,
+    jit.Dispatcher._native); Python calling it compiles the wrapped version then, and both give the
+    same numbers."""
+    @jit.njit(cache=False)
+    def inner(a, k):
+        return a[k] * 2.0 + a.shape[0]
+
+    @jit.njit(cache=False)
+    def outer(a):
+        s = 0.0
+        for k in range(a.shape[0]):
+            s += inner(a, k)
+        return s
+
+    a = np.arange(4.0)
+    assert outer(a) == 2.0 * a.sum() + 16.0
+    twin = inner._native()
+    assert not inner.signatures  # Python never called it: no wrapped version was compiled
+    assert twin.signatures and twin.targetoptions["no_cpython_wrapper"] and twin._native() is None
+    assert twin.py_func.__code__ is inner.py_func.__code__ and twin.__name__ == "inner__native"
+    assert inner(a, 3) == 10.0 and len(inner.signatures) == 1  # now it has its own
+    assert outer(a + 1.0) == 2.0 * (a + 1.0).sum() + 16.0  # the caller still links the twin
+    assert inner._native() is twin and len(twin.signatures) == 1
+
+
+def _types_of(disp):
+    """What numba inferred for a compiled kernel: the type of every variable and of every call."""
+    ann = disp.overloads[disp.signatures[0]].type_annotation
+    return (sorted((k, str(v)) for k, v in ann.typemap.items()),
+            sorted((str(k), str(v)) for k, v in ann.calltypes.items()))
+
+
+def test_remembered_call_types_are_the_ones_numba_finds():
+    """jit._memoize_call_types keeps numba's answer to "how does this built-in or overloaded function
+    type on these arguments". A kernel with arithmetic of mixed types, math, numpy constructors, builtins
+    and tuples types the same with numba's own search (first) as with the remembered answers (twice,
+    the second time all from the memo); a call no template accepts still fails as numba fails it."""
+    import math
+
+    import numba
+    from numba.core import errors
+    from numba.core.types import functions as fn
+
+    memo = fn.BaseFunction.get_call_type
+    assert memo._errplan_memo
+
+    def kernel(x, n, flag):
+        out = np.zeros((n, 3))
+        idx = np.empty(n, np.int64)
+        t = (1.0, 2, True)
+        for i in range(n):
+            v = math.sqrt(abs(x[i % x.shape[0]])) + i / 3 + (i // 2) * t[0] - t[1]
+            out[i, 0] = min(v, 2.5) if flag else max(v, -1.0)
+            out[i, 1] = math.atan2(v, 1.0 + i) ** 2
+            out[i, 2] = np.float32(v) * 2
+            idx[i] = int(v) % 7
+        return out.sum() + idx.sum() + (n > 2) + np.isnan(x).sum()
+
+    args = (np.linspace(-1.0, 1.0, 5), 6, True)
+    found = []
+    for method in (memo.__wrapped__, memo, memo):
+        fn.BaseFunction.get_call_type = method
+        try:
+            d = numba.njit(cache=False)(kernel)  # a new dispatcher: typed afresh
+            found.append((d(*args), _types_of(d)))
+        finally:
+            fn.BaseFunction.get_call_type = memo
+    assert found[0] == found[1] == found[2]
+    bad = numba.njit(cache=False)(lambda s: math.sqrt(s))
+    with pytest.raises(errors.TypingError, match="sqrt"):
+        bad("text")
+
+
 def test_starting_errplan_skips_numbas_blas_import_and_keeps_blas_working():
     """errplan.jit defers numba's import-time BLAS check (which imports all of scipy.linalg, 0.3-0.4 s of
     every command's start). Loading numba's array math then imports no scipy.linalg, numba still

@@ -86,6 +86,14 @@ def run_scenario(sc, path: Path, rec: Path | None, quiet: bool, *, spatial_demo:
             "timing_s": {"fields": t_fields, "plan": t_plan, "gains_simulation_record": t_pipe, "total": total}}
 
 
+def _load_spatial_demo():
+    """The bundled spatial PHANToM, once a first run's warm-up has compiled the arm's kinematics."""
+    from ..api import load_scenario
+
+    warmup.wait("arm")
+    return load_scenario(BUNDLED_SPATIAL)
+
+
 def _load_anatomy_demo():
     """The bundled abdomen, once a first run's warm-up has compiled the anatomy's kernels (its checks need
     them; compiling them here too would only duplicate the work)."""
@@ -115,12 +123,15 @@ def run(args) -> int:
         if not BUNDLED_SPATIAL.exists():
             raise ErrplanError(f"{BUNDLED_SPATIAL}: the bundled spatial demo scenario is missing (pass --scenario FILE)")
         # A first run (issue 17): this process compiles the planar kernels, runs the planar part, then
-        # loads the spatial scenario (compiling the URDF arm's kernels, building its reachability map)
-        # and runs it; meanwhile a second process compiles what the later parts need, in the order they
-        # need it (errplan.cli.warmup). The bundled scenarios are loaded when their turn comes.
-        warmup.start(("plan2", "fields3g", "gains3", "plan3", "anatomy"))
+        # loads the spatial scenario (compiling the reachability map's build, building the map) and runs
+        # it; meanwhile a second process compiles what the later parts need, in the order they need it
+        # (errplan.cli.warmup): the arm's kinematics first (a few seconds, so that this process finds
+        # them), the spatial search (the longest, ready about when this process has built the map), the
+        # planner's and the gains' kernels in the order a scenario's steps call them, the anatomy's. The
+        # bundled scenarios are loaded when their turn comes.
+        warmup.start(("plan2", "arm", "fields3g", "plan3", "gains3", "anatomy"))
         sc = load_scenario(path)
-        jobs = [(lambda: sc, path, False), (lambda: load_scenario(BUNDLED_SPATIAL), BUNDLED_SPATIAL, True)]
+        jobs = [(lambda: sc, path, False), (_load_spatial_demo, BUNDLED_SPATIAL, True)]
         if BUNDLED_ANATOMY.exists():
             jobs.append((_load_anatomy_demo, BUNDLED_ANATOMY, "own"))
     rec = check_output("--record", args.record)

@@ -16,7 +16,8 @@ Parts (each compiles, or loads, the kernels of one step at the argument types th
 ``lanes2``/``lanes3`` (the worst-||G|| refinement as lanes, for error sets without a load),
 ``plan2``/``plan3`` (the planner's cell walks), ``gains3`` (the 3-D gains: ``||I - k M||`` grids, cuts,
 inverses, inverse kinematics), ``urdf`` (a URDF arm's kinematics and its reachability map's build: what
-loading a spatial scenario compiles), ``anatomy`` (the robust clearance of ``[anatomy]``: its scenario checks,
+loading a spatial scenario compiles), ``arm`` (of those, the forward kinematics and Jacobians only),
+``anatomy`` (the robust clearance of ``[anatomy]``: its scenario checks,
 the planner's motion checks, the gains' and the replays' clearances).
 """
 from __future__ import annotations
@@ -111,6 +112,20 @@ def _gains3() -> None:
     _ik_many(chain, rmap, W, np.zeros((0, 1)), False, np.zeros((0, 1)), np.zeros(0, np.bool_))
 
 
+def _arm() -> None:
+    """A URDF arm's forward kinematics and Jacobians, run once on nothing with a placeholder chain (the
+    first of the kernels loading a spatial scenario compiles; their callees are the map build's too)."""
+    import numpy as np
+
+    from ..fields.compute import _no_chain
+    from ..kinematics.urdf.chain import _fk_many, _jac_many
+
+    chain, _ = _no_chain()
+    Q = np.zeros((0, 3))
+    _fk_many(chain, Q, np.zeros((0, 3)))
+    _jac_many(chain, Q, np.zeros((0, 3, 3)))
+
+
 def _urdf() -> None:
     """A URDF arm's kernels: forward kinematics, Jacobians, reachability, inverse kinematics and the
     reachability map's build, each run once on nothing with a placeholder chain of the types a real arm
@@ -156,7 +171,7 @@ def _anatomy() -> None:
 _PARTS = {"fields2": lambda: _fields(2), "fields3": lambda: _fields(3), "fields2g": lambda: _fields(2, False),
           "fields3g": lambda: _fields(3, False), "lanes2": lambda: _lanes(2), "lanes3": lambda: _lanes(3),
           "plan2": lambda: _plan(2), "plan3": lambda: _plan(3),
-          "gains3": _gains3, "anatomy": _anatomy, "urdf": _urdf}
+          "gains3": _gains3, "anatomy": _anatomy, "urdf": _urdf, "arm": _arm}
 
 
 def _cold(parts: Sequence[str]) -> bool:
@@ -178,6 +193,10 @@ def _cold(parts: Sequence[str]) -> bool:
             from ..kinematics.urdf import reachmap
 
             entries += [reachmap._build_map]
+        elif p == "arm":
+            from ..kinematics.urdf import chain
+
+            entries += [chain._fk_many, chain._jac_many]
         elif p == "anatomy":
             from ..anatomy import distance
 
