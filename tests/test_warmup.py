@@ -78,6 +78,30 @@ def test_the_urdf_part_compiles_what_loading_a_spatial_scenario_compiles(tmp_pat
         assert len(f.signatures) == 1, (f, f.signatures)
 
 
+def test_the_arm_part_compiles_the_kinematics_a_spatial_scenario_calls(tmp_path):
+    """A first demo's warm-up starts with the arm's kinematics (errplan.cli.demo), so that the command,
+    loading the spatial scenario, compiles only the reachability map's build: after the part, the PHANToM's
+    forward kinematics, Jacobians and reachability test have the placeholder's types (one each)."""
+    import numpy as np
+
+    from conftest import SCENARIOS
+    from errplan.kinematics import arm_for
+    from errplan.kinematics.urdf import chain
+
+    subprocess.run([sys.executable, "-m", "errplan.cli.warmup", str(tmp_path / "s"), "arm"], check=True,
+                   capture_output=True, timeout=900)
+    assert not warmup._cold(["arm"])
+    from errplan.api import load_scenario
+
+    arm = arm_for(load_scenario(SCENARIOS / "phantom15_spatial.toml").robot)
+    q = np.zeros((4, arm.n))
+    w = arm.forward(q)
+    arm.jacobian(q), arm.reachable(w)
+    warmup._arm()
+    for f in (chain._fk_many, chain._jac_many, chain._reach_many):
+        assert len(f.signatures) == 1, (f, f.signatures)
+
+
 def test_the_lanes_part_compiles_what_a_port_box_field_runs():
     """The ``lanes2`` part's placeholder arguments have the types a field of a pure port box passes: after
     both, the lanes' entry has one specialization (the command loads what the part compiled)."""

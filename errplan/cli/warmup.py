@@ -16,7 +16,7 @@ Parts (each compiles, or loads, the kernels of one step at the argument types th
 ``lanes2``/``lanes3`` (the worst-||G|| refinement as lanes, for error sets without a load),
 ``plan2``/``plan3`` (the planner's cell walks), ``gains3`` (the 3-D gains: ``||I - k M||`` grids, cuts,
 inverses, inverse kinematics), ``urdf`` (a URDF arm's kinematics and its reachability map's build: what
-loading a spatial scenario compiles), ``arm`` (of those, the forward kinematics and Jacobians only),
+loading a spatial scenario compiles), ``arm`` (of those, all but the map's build),
 ``anatomy`` (the robust clearance of ``[anatomy]``: its scenario checks,
 the planner's motion checks, the gains' and the replays' clearances).
 """
@@ -113,17 +113,19 @@ def _gains3() -> None:
 
 
 def _arm() -> None:
-    """A URDF arm's forward kinematics and Jacobians, run once on nothing with a placeholder chain (the
-    first of the kernels loading a spatial scenario compiles; their callees are the map build's too)."""
+    """A URDF arm's forward kinematics, Jacobians and reachability test, run once on nothing with a
+    placeholder chain: what a spatial scenario's load and run call besides the map's build (their callees
+    are the build's and the spatial search's too)."""
     import numpy as np
 
     from ..fields.compute import _no_chain
-    from ..kinematics.urdf.chain import _fk_many, _jac_many
+    from ..kinematics.urdf.chain import _fk_many, _jac_many, _reach_many
 
-    chain, _ = _no_chain()
+    chain, rmap = _no_chain()
     Q = np.zeros((0, 3))
     _fk_many(chain, Q, np.zeros((0, 3)))
     _jac_many(chain, Q, np.zeros((0, 3, 3)))
+    _reach_many(chain, rmap, np.zeros((0, 3)), np.zeros(0, np.bool_))
 
 
 def _urdf() -> None:
