@@ -23,7 +23,7 @@ dispatch on ``d`` belongs in the caller, not in an inlined helper. The fields' e
 each is compiled from a copy of the function with ``d`` a constant of its globals
 (:func:`errplan.fields.kernels._per_dim`).
 
-Two measures make a first run's compile shorter, neither changing the machine code of a kernel: compiled
+Two measures make a first run's compile shorter, neither changing what a kernel computes: compiled
 callers call wrapperless twins of their callees (:class:`Dispatcher`), and numba's typing of a built-in
 or overloaded call is remembered per function and argument types (:func:`_memoize_call_types`).
 Together about a quarter off the URDF arm's and the planar search's cold compile (23 -> 17 s on the

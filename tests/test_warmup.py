@@ -81,12 +81,13 @@ def test_the_urdf_part_compiles_what_loading_a_spatial_scenario_compiles(tmp_pat
 def test_the_arm_part_compiles_the_kinematics_a_spatial_scenario_calls(tmp_path):
     """A first demo's warm-up starts with the arm's kinematics (errplan.cli.demo), so that the command,
     loading the spatial scenario, compiles only the reachability map's build: after the part, the PHANToM's
-    forward kinematics, Jacobians and reachability test have the placeholder's types (one each)."""
+    forward kinematics, Jacobians, reachability test and map bounding box have the placeholder's types
+    (one specialization each)."""
     import numpy as np
 
     from conftest import SCENARIOS
     from errplan.kinematics import arm_for
-    from errplan.kinematics.urdf import chain
+    from errplan.kinematics.urdf import chain, reachmap
 
     subprocess.run([sys.executable, "-m", "errplan.cli.warmup", str(tmp_path / "s"), "arm"], check=True,
                    capture_output=True, timeout=900)
@@ -97,8 +98,9 @@ def test_the_arm_part_compiles_the_kinematics_a_spatial_scenario_calls(tmp_path)
     q = np.zeros((4, arm.n))
     w = arm.forward(q)
     arm.jacobian(q), arm.reachable(w)
+    reachmap.build_map(arm)  # its coarse bounding box too
     warmup._arm()
-    for f in (chain._fk_many, chain._jac_many, chain._reach_many):
+    for f in (chain._fk_many, chain._jac_many, chain._reach_many, reachmap._coarse_bbox):
         assert len(f.signatures) == 1, (f, f.signatures)
 
 

@@ -113,19 +113,22 @@ def _gains3() -> None:
 
 
 def _arm() -> None:
-    """A URDF arm's forward kinematics, Jacobians and reachability test, run once on nothing with a
-    placeholder chain: what a spatial scenario's load and run call besides the map's build (their callees
-    are the build's and the spatial search's too)."""
+    """A URDF arm's forward kinematics, Jacobians and reachability test and the map's coarse bounding box,
+    run once on nothing with a placeholder chain: what a spatial scenario's load and run call besides the
+    map's build (their callees are the build's and the spatial search's too)."""
     import numpy as np
 
     from ..fields.compute import _no_chain
     from ..kinematics.urdf.chain import _fk_many, _jac_many, _reach_many
+    from ..kinematics.urdf.reachmap import _coarse_bbox
 
     chain, rmap = _no_chain()
     Q = np.zeros((0, 3))
     _fk_many(chain, Q, np.zeros((0, 3)))
     _jac_many(chain, Q, np.zeros((0, 3, 3)))
     _reach_many(chain, rmap, np.zeros((0, 3)), np.zeros(0, np.bool_))
+    v, n0 = np.zeros(3), np.zeros(3, np.int64)
+    _coarse_bbox(chain, 1.0, v, v.copy(), n0)
 
 
 def _urdf() -> None:
