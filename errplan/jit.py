@@ -42,7 +42,7 @@ from typing import Callable, Iterable
 
 import numba
 import numpy as np
-from numba.core import caching, ir, types
+from numba.core import caching, ir, sigutils, types
 from numba.core.compiler import CompilerBase, DefaultPassBuilder
 from numba.core.compiler_machinery import FunctionPass, register_pass
 from numba.core.registry import CPUDispatcher
@@ -142,7 +142,7 @@ class Dispatcher(CPUDispatcher):
         """The compiled function a compiled caller links (numba's lowering of a call asks the callee's
         dispatcher): the twin's, where the caller was typed against it (:meth:`get_call_template`)."""
         twin = self.__dict__.get("_twin")
-        if twin is not None and tuple(sig) in twin.overloads:
+        if twin is not None and tuple(sigutils.normalize_signature(sig)[0]) in twin.overloads:
             return twin.get_overload(sig)
         return super().get_overload(sig)
 
