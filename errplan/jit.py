@@ -113,11 +113,7 @@ class Dispatcher(CPUDispatcher):
             return None
         twin = self.__dict__.get("_twin")
         if twin is None:
-            f = self.py_func
-            g = _pytypes.FunctionType(f.__code__, f.__globals__, f"{f.__name__}__native", f.__defaults__,
-                                      f.__closure__)
-            g.__qualname__ = f"{f.__qualname__}__native"
-            g.__doc__ = f.__doc__
+            g = copy_function(self.py_func, f"{self.py_func.__name__}__native")
             opts = dict(self.targetoptions, no_cpython_wrapper=True)
             twin = type(self)(py_func=g, locals=self.locals, targetoptions=opts,
                               pipeline_class=self._compiler.pipeline_class)
@@ -145,6 +141,17 @@ class Dispatcher(CPUDispatcher):
         if twin is not None and tuple(sigutils.normalize_signature(sig)[0]) in twin.overloads:
             return twin.get_overload(sig)
         return super().get_overload(sig)
+
+
+def copy_function(f, name: str, **consts):
+    """A copy of the plain function ``f`` named ``name`` (its own entry in numba's disk cache), reading the
+    same globals, or a copy of them that holds ``consts``: module numbers that numba freezes as compile-time
+    constants, pruning the branches they decide (:func:`errplan.fields.kernels._per_dim`)."""
+    glb = dict(f.__globals__, **consts) if consts else f.__globals__
+    g = _pytypes.FunctionType(f.__code__, glb, name, f.__defaults__, f.__closure__)
+    g.__qualname__ = name
+    g.__doc__ = f.__doc__
+    return g
 
 
 def njit(*args, literal_args: Iterable[str] = (), **options) -> Callable:

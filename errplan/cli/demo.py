@@ -16,6 +16,7 @@ With ``--scenario F`` only that scenario runs (planar or spatial), recorded to `
 from __future__ import annotations
 
 import time
+from functools import partial
 from pathlib import Path
 
 from ..errors import ErrplanError
@@ -86,21 +87,14 @@ def run_scenario(sc, path: Path, rec: Path | None, quiet: bool, *, spatial_demo:
             "timing_s": {"fields": t_fields, "plan": t_plan, "gains_simulation_record": t_pipe, "total": total}}
 
 
-def _load_spatial_demo():
-    """The bundled spatial PHANToM, once a first run's warm-up has compiled the arm's kinematics."""
+def _load_when_compiled(part: str, path: Path):
+    """A bundled scenario, loaded once a first run's warm-up has compiled ``part``: its load calls those
+    kernels (the arm's kinematics; the anatomy's clearances for its checks), and compiling them here too
+    would only duplicate the work."""
     from ..api import load_scenario
 
-    warmup.wait("arm")
-    return load_scenario(BUNDLED_SPATIAL)
-
-
-def _load_anatomy_demo():
-    """The bundled abdomen, once a first run's warm-up has compiled the anatomy's kernels (its checks need
-    them; compiling them here too would only duplicate the work)."""
-    from ..api import load_scenario
-
-    warmup.wait("anatomy")
-    return load_scenario(BUNDLED_ANATOMY)
+    warmup.wait(part)
+    return load_scenario(path)
 
 
 def run(args) -> int:
@@ -131,9 +125,10 @@ def run(args) -> int:
         # bundled scenarios are loaded when their turn comes.
         warmup.start(("plan2", "arm", "fields3g", "plan3", "gains3", "anatomy"))
         sc = load_scenario(path)
-        jobs = [(lambda: sc, path, False), (_load_spatial_demo, BUNDLED_SPATIAL, True)]
+        jobs = [(lambda: sc, path, False),
+                (partial(_load_when_compiled, "arm", BUNDLED_SPATIAL), BUNDLED_SPATIAL, True)]
         if BUNDLED_ANATOMY.exists():
-            jobs.append((_load_anatomy_demo, BUNDLED_ANATOMY, "own"))
+            jobs.append((partial(_load_when_compiled, "anatomy", BUNDLED_ANATOMY), BUNDLED_ANATOMY, "own"))
     rec = check_output("--record", args.record)
     check_output("--json", args.json)
     recs = [rec] + [spatial_record_path(rec, tag) if rec else None for tag in ("3d", "abdomen")[:len(jobs) - 1]]

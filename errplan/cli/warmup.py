@@ -199,9 +199,9 @@ def _cold(parts: Sequence[str]) -> bool:
 
             entries += [reachmap._build_map]
         elif p == "arm":
-            from ..kinematics.urdf import chain
+            from ..kinematics.urdf import chain, reachmap
 
-            entries += [chain._fk_many, chain._jac_many]
+            entries += [chain._fk_many, chain._jac_many, chain._reach_many, reachmap._coarse_bbox]
         elif p == "anatomy":
             from ..anatomy import distance
 

@@ -24,9 +24,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import types as _pytypes
 
-from ..jit import kernel_array, njit
+from ..jit import copy_function, kernel_array, njit
 
 from ..kinematics.urdf.chain import map_geometry, map_state, reach_boundary
 from ..linalg import _smax3, inv3, phi_max3
@@ -1506,28 +1505,19 @@ _D = 0  # the dimension of a kernel made by _per_dim (there a constant of its ow
 _PHI = True  # whether a search copy computes |phi_max| (_pattern_g and _per_dim(..., phi=False): False)
 
 
-def _copy(f, name: str, **consts):
-    """A copy of the plain function ``f`` named ``name`` (its own entry in numba's disk cache) whose globals
-    hold ``consts``: module numbers that numba freezes as compile-time constants, pruning the branches
-    they decide."""
-    g = _pytypes.FunctionType(f.__code__, dict(f.__globals__, **consts), name, f.__defaults__, f.__closure__)
-    g.__qualname__ = g.__name__
-    g.__doc__ = f.__doc__
-    return g
-
-
 def _per_dim(f, d: int, phi: bool = True):
     """``f`` compiled for dimension ``d``: a copy of the function whose globals hold ``_D = d``, so that
     ``d = _D`` is a compile-time constant (numba freezes global numbers): the branches of the other
     dimension are pruned, callees taking ``d`` get the literal. An entry compiled straight from Python,
     not a wrapper passing ``literally(d)`` to a kernel with ``d`` an argument: such a wrapper linked and
     optimized the whole search a second time (about 4 s of a cold 3-D compile, 3 s of a planar one)."""
-    return njit(cache=True, error_model="numpy")(_copy(f, f"{f.__name__}{d}{'' if phi else 'g'}", _D=d, _PHI=phi,
-                                                       _PAT=_pattern if phi else _pattern_g))
+    g = copy_function(f, f"{f.__name__}{d}{'' if phi else 'g'}", _D=d, _PHI=phi, _PAT=_pattern if phi else _pattern_g)
+    return njit(cache=True, error_model="numpy")(g)
 
 
 #: the pattern search without |phi_max| (``which`` is 0): the search copies without it call this one
-_pattern_g = njit(cache=True, error_model="numpy", literal_args="d")(_copy(_pattern.py_func, "_pattern_g", _PHI=False))
+_pattern_g = njit(cache=True, error_model="numpy", literal_args="d")(
+    copy_function(_pattern.py_func, "_pattern_g", _PHI=False))
 _PAT = _pattern  # the pattern search a search copy calls (_per_dim: _pattern_g in the copies without |phi_max|)
 _tile2, _tile3 = _per_dim(_search, 2), _per_dim(_search, 3)
 _tile2g, _tile3g = _per_dim(_search, 2, phi=False), _per_dim(_search, 3, phi=False)
