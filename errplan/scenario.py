@@ -335,10 +335,46 @@ def _get(ctx: _Ctx, t: Mapping[str, Any], key: str, where: str, default: Any = .
     return default
 
 
+# ----------------------------------------------------------------------------- the keys of every table
+#: Every key each scenario table accepts, as data: the parser checks tables against these
+#: (:func:`_check_keys`), and the scenario reference of the documentation is generated from them.
+#: ``"[robot]"`` is a planar arm, ``"[robot] urdf"`` a spatial one; ``"[uncertainty] 3-D"`` holds the keys
+#: a spatial scenario adds. ``[[tolerance]]`` keys per kind: :data:`TOLERANCE_KEYS`; ``[effects.NAME]``:
+#: :data:`EFFECT_PARAMS`.
+TABLE_KEYS: dict[str, tuple[str, ...]] = {
+    "": ("name", "description", "robot", "instrument", "port", "controller", "uncertainty",
+         "sensors", "fields", "planner", "query", "tolerance", "effects", "anatomy"),
+    "[robot]": ("base", "link_lengths", "home_angles", "joint_limits", "joint_sum_limits"),
+    "[robot] urdf": ("urdf", "package_path", "joints", "wrist", "base_position", "base_rpy", "joint_limits",
+                     "fixed_joints", "coupled_limits"),
+    "[robot] coupled_limits": ("joints", "coeffs", "range"),
+    "[instrument]": ("length", "flexural_rigidity"),
+    "[port]": ("position", "estimate"),
+    "[controller]": ("gain", "jacobian"),
+    "[uncertainty]": ("port_y", "port_z", "tip_force_over_ei", "sensor_noise", "samples"),
+    "[uncertainty] 3-D": ("port_x",),
+    "sensor_noise": ("position", "angle"),
+    "[sensors]": ("tracker_sigma", "encoder_sigma"),
+    "[fields]": ("resolution", "region"),
+    "[planner]": ("metric", "weight", "planner", "time", "seed", "certifiable", "certify_margin"),
+    "[[query]]": ("name", "start", "goal"),
+    "[[tolerance]]": ("name", "kind"),
+    "[anatomy]": ("clearance", "obstacle", "body_wall"),
+    "[[anatomy.obstacle]]": ("name", "shape"),
+    "[anatomy.body_wall] ellipsoid": ("shape", "center", "radii"),
+    "[anatomy.body_wall] mesh": ("shape", "file", "scale", "position", "rpy"),
+}
+#: ``[[anatomy.obstacle]]`` keys per ``shape`` (besides ``name`` and ``shape``).
+OBSTACLE_KEYS: dict[str, tuple[str, ...]] = {
+    "sphere": ("center", "radius"), "capsule": ("a", "b", "radius"),
+    "box": ("center", "half_extents", "rpy"), "mesh": ("file", "scale", "position", "rpy"),
+}
+
+
 # ----------------------------------------------------------------------------- parsing
 def _robot(ctx: _Ctx, t: Mapping[str, Any]) -> Robot:
     w = "[robot] "
-    _check_keys(ctx, t, ("base", "link_lengths", "home_angles", "joint_limits", "joint_sum_limits"), w)
+    _check_keys(ctx, t, TABLE_KEYS["[robot]"], w)
     d = Robot()
     base = _pair(ctx, _get(ctx, t, "base", w, list(d.base)), w + "base")
     ll = _pair(ctx, _get(ctx, t, "link_lengths", w, list(d.link_lengths)), w + "link_lengths")
@@ -355,7 +391,7 @@ def _robot(ctx: _Ctx, t: Mapping[str, Any]) -> Robot:
 
 def _instrument(ctx: _Ctx, t: Mapping[str, Any]) -> Instrument:
     w = "[instrument] "
-    _check_keys(ctx, t, ("length", "flexural_rigidity"), w)
+    _check_keys(ctx, t, TABLE_KEYS["[instrument]"], w)
     length = _num(ctx, _get(ctx, t, "length", w), w + "length", positive=True)
     ei = t.get("flexural_rigidity")
     return Instrument(length, None if ei is None else _num(ctx, ei, w + "flexural_rigidity", positive=True))
@@ -363,7 +399,7 @@ def _instrument(ctx: _Ctx, t: Mapping[str, Any]) -> Instrument:
 
 def _port(ctx: _Ctx, t: Mapping[str, Any], d: int = 2) -> Port:
     w = "[port] "
-    _check_keys(ctx, t, ("position", "estimate"), w)
+    _check_keys(ctx, t, TABLE_KEYS["[port]"], w)
     pos = _vec(ctx, _get(ctx, t, "position", w), w + "position", d)
     est = _vec(ctx, _get(ctx, t, "estimate", w, list(pos)), w + "estimate", d)
     return Port(pos, est)
@@ -372,8 +408,7 @@ def _port(ctx: _Ctx, t: Mapping[str, Any], d: int = 2) -> Port:
 def _urdf_robot(ctx: _Ctx, t: Mapping[str, Any], base_dir: Path) -> UrdfRobot:
     """``[robot]`` of a spatial scenario (interfaces.md "Spatial scenarios")."""
     w = "[robot] "
-    _check_keys(ctx, t, ("urdf", "package_path", "joints", "wrist", "base_position", "base_rpy", "joint_limits",
-                         "fixed_joints", "coupled_limits"), w)
+    _check_keys(ctx, t, TABLE_KEYS["[robot] urdf"], w)
     urdf = _get(ctx, t, "urdf", w)
     if not isinstance(urdf, str) or not urdf:
         raise ctx.fail(w + "urdf", urdf, "the path of a URDF file (relative to the scenario file) or a "
@@ -431,7 +466,7 @@ def _urdf_robot(ctx: _Ctx, t: Mapping[str, Any], base_dir: Path) -> UrdfRobot:
         key = w + f"coupled_limits[{i}]"
         if not isinstance(c, dict):
             raise ctx.fail(key, c, "a table { joints = [...], coeffs = [...], range = [lo, hi] }")
-        _check_keys(ctx, c, ("joints", "coeffs", "range"), key + ".")
+        _check_keys(ctx, c, TABLE_KEYS["[robot] coupled_limits"], key + ".")
         cj = _get(ctx, c, "joints", key + ".")
         if not isinstance(cj, list) or not cj or not all(j in joints for j in cj):
             raise ctx.fail(key + ".joints", cj, f"a list of actuated joints ({', '.join(joints)})")
@@ -448,7 +483,7 @@ def _urdf_robot(ctx: _Ctx, t: Mapping[str, Any], base_dir: Path) -> UrdfRobot:
 
 def _controller(ctx: _Ctx, t: Mapping[str, Any]) -> Controller:
     w = "[controller] "
-    _check_keys(ctx, t, ("gain", "jacobian"), w)
+    _check_keys(ctx, t, TABLE_KEYS["[controller]"], w)
     gain = _num(ctx, _get(ctx, t, "gain", w, 1.0), w + "gain", positive=True)
     jac = _get(ctx, t, "jacobian", w, "rigid")
     if jac not in JACOBIANS:
@@ -459,7 +494,7 @@ def _controller(ctx: _Ctx, t: Mapping[str, Any]) -> Controller:
 def _noise(ctx: _Ctx, v: Any, key: str) -> SensorNoise:
     if not isinstance(v, dict):
         raise ctx.fail(key, v, "a table {position = m, angle = rad}")
-    _check_keys(ctx, v, ("position", "angle"), key + ".")
+    _check_keys(ctx, v, TABLE_KEYS["sensor_noise"], key + ".")
     return SensorNoise(
         _num(ctx, v.get("position", 0.0), key + ".position", nonneg=True),
         _num(ctx, v.get("angle", 0.0), key + ".angle", nonneg=True),
@@ -468,8 +503,7 @@ def _noise(ctx: _Ctx, v: Any, key: str) -> SensorNoise:
 
 def _uncertainty(ctx: _Ctx, t: Mapping[str, Any], d: int = 2) -> Uncertainty:
     w = "[uncertainty] "
-    allowed = ("port_y", "port_z", "tip_force_over_ei", "sensor_noise", "samples")
-    _check_keys(ctx, t, allowed + (("port_x",) if d == 3 else ()), w)
+    _check_keys(ctx, t, TABLE_KEYS["[uncertainty]"] + (TABLE_KEYS["[uncertainty] 3-D"] if d == 3 else ()), w)
     px = _pair(ctx, t["port_x"], w + "port_x", ordered=True) if "port_x" in t else None
     py = _pair(ctx, t["port_y"], w + "port_y", ordered=True) if "port_y" in t else None
     pz = _pair(ctx, t["port_z"], w + "port_z", ordered=True) if "port_z" in t else None
@@ -486,7 +520,7 @@ def _uncertainty(ctx: _Ctx, t: Mapping[str, Any], d: int = 2) -> Uncertainty:
 
 def _sensors(ctx: _Ctx, t: Mapping[str, Any]) -> Sensors:
     w = "[sensors] "
-    _check_keys(ctx, t, ("tracker_sigma", "encoder_sigma"), w)
+    _check_keys(ctx, t, TABLE_KEYS["[sensors]"], w)
     return Sensors(
         _num(ctx, t.get("tracker_sigma", 0.0002), w + "tracker_sigma", nonneg=True),
         _num(ctx, t.get("encoder_sigma", 0.0), w + "encoder_sigma", nonneg=True),
@@ -495,7 +529,7 @@ def _sensors(ctx: _Ctx, t: Mapping[str, Any]) -> Sensors:
 
 def _fields(ctx: _Ctx, t: Mapping[str, Any], d: int = 2) -> Fields:
     w = "[fields] "
-    _check_keys(ctx, t, ("resolution", "region"), w)
+    _check_keys(ctx, t, TABLE_KEYS["[fields]"], w)
     r = _num(ctx, t.get("resolution", 0.002 if d == 2 else 0.004), w + "resolution", positive=True)
     if not 1e-4 <= r <= 0.05:
         raise ctx.fail(w + "resolution", r, "a grid spacing between 0.0001 and 0.05 m")
@@ -505,7 +539,7 @@ def _fields(ctx: _Ctx, t: Mapping[str, Any], d: int = 2) -> Fields:
 
 def _planner(ctx: _Ctx, t: Mapping[str, Any]) -> Planner:
     w = "[planner] "
-    _check_keys(ctx, t, ("metric", "weight", "planner", "time", "seed", "certifiable", "certify_margin"), w)
+    _check_keys(ctx, t, TABLE_KEYS["[planner]"], w)
     d = Planner()
     metric = t.get("metric", d.metric)
     if metric not in METRICS:
@@ -542,7 +576,7 @@ def _queries(ctx: _Ctx, v: Any, d: int = 2) -> tuple[Query, ...]:
         w = f"[[query]][{i}] "
         if not isinstance(q, dict):
             raise ctx.fail(w.strip(), q, "a table")
-        _check_keys(ctx, q, ("name", "start", "goal"), w)
+        _check_keys(ctx, q, TABLE_KEYS["[[query]]"], w)
         name = q.get("name", f"query{i}")
         if not isinstance(name, str) or not name:
             raise ctx.fail(w + "name", name, "a non-empty string")
@@ -554,7 +588,8 @@ def _queries(ctx: _Ctx, v: Any, d: int = 2) -> tuple[Query, ...]:
     return tuple(out)
 
 
-_TOL_KEYS = {
+#: ``[[tolerance]]`` keys per ``kind`` (besides ``name`` and ``kind``; ``port_x`` only in 3-D).
+TOLERANCE_KEYS: dict[str, tuple[str, ...]] = {
     "port": ("direction", "region", "gain", "tip_force_over_ei", "spacing"),
     "insertion_band": ("sensor_noise", "tip_force_over_ei", "gain", "samples", "length", "noise_sampling",
                        "draws", "seed", "hold", "shaft_angle"),
@@ -603,10 +638,10 @@ def _tolerances(ctx: _Ctx, v: Any, controller_gain: float, d: int = 2) -> tuple[
         kind = _get(ctx, t, "kind", w)
         if kind not in TOLERANCE_KINDS:
             raise ctx.fail(w + "kind", kind, " | ".join(f'"{k}"' for k in TOLERANCE_KINDS))
-        allowed = tuple(k for k in _TOL_KEYS[kind] if d == 3 or k != "port_x")
+        allowed = tuple(k for k in TOLERANCE_KEYS[kind] if d == 3 or k != "port_x")
         if d == 3 and kind in _TOL_PLANAR:  # P2's controller in 3-D: a shaft direction, not an angle
             allowed = tuple(k for k in allowed if k not in _TOL_PLANAR_ONLY) + ("shaft_direction",)
-        _check_keys(ctx, t, ("name", "kind") + allowed, w)
+        _check_keys(ctx, t, TABLE_KEYS["[[tolerance]]"] + allowed, w)
         name = _unique_name(ctx, t, w, f"tolerance{i}", names, "[[tolerance]]")
         opts: dict[str, Any] = {}
         opts["gain"] = _num(ctx, t.get("gain", controller_gain), w + "gain", positive=True)
@@ -736,7 +771,7 @@ def _anatomy(ctx: _Ctx, t: Mapping[str, Any], base_dir: Path) -> Anatomy:
     clearance >= 0 / > 0, files present); mesh contents and the geometry against the robot's port in
     :mod:`errplan.anatomy`."""
     w = "[anatomy] "
-    _check_keys(ctx, t, ("clearance", "obstacle", "body_wall"), w)
+    _check_keys(ctx, t, TABLE_KEYS["[anatomy]"], w)
     clearance = _num(ctx, t.get("clearance", 0.0), w + "clearance", nonneg=True)
     obs = t.get("obstacle", [])
     if not isinstance(obs, list):
@@ -749,9 +784,8 @@ def _anatomy(ctx: _Ctx, t: Mapping[str, Any], base_dir: Path) -> Anatomy:
         shape = _get(ctx, o, "shape", wo)
         if shape not in OBSTACLE_SHAPES:
             raise ctx.fail(wo + "shape", shape, " | ".join(f'"{x}"' for x in OBSTACLE_SHAPES))
-        keys = {"sphere": ("center", "radius"), "capsule": ("a", "b", "radius"),
-                "box": ("center", "half_extents", "rpy"), "mesh": ("file", "scale", "position", "rpy")}[shape]
-        _check_keys(ctx, o, ("name", "shape") + keys, wo)
+        keys = OBSTACLE_KEYS[shape]
+        _check_keys(ctx, o, TABLE_KEYS["[[anatomy.obstacle]]"] + keys, wo)
         name = _unique_name(ctx, o, wo, f"obstacle{i}", names, "obstacle")
         kw: dict[str, Any] = {}
         if shape == "mesh":
@@ -777,21 +811,18 @@ def _anatomy(ctx: _Ctx, t: Mapping[str, Any], base_dir: Path) -> Anatomy:
         if shape not in WALL_SHAPES:
             raise ctx.fail(ww + "shape", shape, " | ".join(f'"{x}"' for x in WALL_SHAPES))
         if shape == "ellipsoid":
-            _check_keys(ctx, bw, ("shape", "center", "radii"), ww)
+            _check_keys(ctx, bw, TABLE_KEYS["[anatomy.body_wall] ellipsoid"], ww)
             radii = _vec(ctx, _get(ctx, bw, "radii", ww), ww + "radii", 3)
             if min(radii) <= 0:
                 raise ctx.fail(ww + "radii", list(radii), "three semi-axes > 0 (m)")
             wall = BodyWall("ellipsoid", center=_vec(ctx, _get(ctx, bw, "center", ww), ww + "center", 3), radii=radii)
         else:
-            _check_keys(ctx, bw, ("shape", "file", "scale", "position", "rpy"), ww)
+            _check_keys(ctx, bw, TABLE_KEYS["[anatomy.body_wall] mesh"], ww)
             wall = BodyWall("mesh", **_mesh_keys(ctx, bw, ww, base_dir))
     return Anatomy(clearance, tuple(out), wall)
 
 
-_TOP = (
-    "name", "description", "robot", "instrument", "port", "controller", "uncertainty",
-    "sensors", "fields", "planner", "query", "tolerance", "effects", "anatomy",
-)
+_TOP = TABLE_KEYS[""]
 
 
 def scenario_from_dict(doc: Mapping[str, Any], source: str = "<memory>") -> Scenario:
