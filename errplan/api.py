@@ -39,8 +39,37 @@ Progress = Callable[[float, str], None]
 
 
 def load_scenario(path: str | Path) -> Scenario:
-    """Read a scenario TOML file, validate every key and check it against its robot (the URDF loads, the
-    shaft reaches the port). Raises one :class:`errplan.ScenarioError` naming the key and value."""
+    """Read a scenario TOML file, validate every key and check it against its robot.
+
+    Every key is checked (the scenario reference lists them), then the scenario against its robot: the
+    URDF loads, the shaft reaches through the port, the anatomy's meshes are closed and clear of the port.
+
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        The scenario file (UTF-8 TOML). Relative paths inside it (a URDF, meshes) resolve against its folder.
+
+    Returns
+    -------
+    Scenario
+        The validated scenario: frozen dataclasses, one per table; ``.dim`` is 2 (planar) or 3 (a URDF arm).
+
+    Raises
+    ------
+    errplan.ScenarioError
+        One error naming the file, the key, the value and what was expected.
+
+    Examples
+    --------
+    Run from the repository's root:
+
+    >>> import errplan
+    >>> sc = errplan.load_scenario("scenarios/beasley2004_port.toml")
+    >>> sc.name, sc.dim, [q.name for q in sc.queries]
+    ('beasley2004-port', 2, ['N-to-L', 'across-deep', 'past-the-port'])
+    >>> sc.port.estimate
+    (0.02, 0.17)
+    """
     sc = read_scenario(path)
     check_scenario(sc)
     check_anatomy(sc)
@@ -48,8 +77,39 @@ def load_scenario(path: str | Path) -> Scenario:
 
 
 def parse_scenario(doc: Mapping[str, Any], source: str = "<memory>") -> Scenario:
-    """:func:`load_scenario` for an already parsed TOML document (relative paths resolve against
-    ``source``'s folder)."""
+    """:func:`load_scenario` for an already parsed TOML document.
+
+    Parameters
+    ----------
+    doc : Mapping
+        The document as :mod:`tomllib` returns it: tables as dicts. Missing tables take their defaults
+        (P1's planar arm, gain 1, the rigid controller).
+    source : str, optional
+        The file the document came from: named in error messages; relative paths resolve against its
+        folder.
+
+    Returns
+    -------
+    Scenario
+        The validated scenario.
+
+    Raises
+    ------
+    errplan.ScenarioError
+        One error naming the key, the value and what was expected.
+
+    Examples
+    --------
+    >>> import errplan
+    >>> sc = errplan.parse_scenario({"instrument": {"length": 0.32},
+    ...                              "port": {"position": [0.0, 0.16], "estimate": [0.02, 0.17]}})
+    >>> sc.dim, sc.controller.gain, sc.controller.jacobian
+    (2, 1.0, 'rigid')
+    >>> errplan.parse_scenario({"controller": {"gain": -1.0}})
+    Traceback (most recent call last):
+    ...
+    errplan.errors.ScenarioError: <memory>: [controller] gain = -1.0: expected a number > 0
+    """
     sc = scenario_from_dict(doc, source)
     check_scenario(sc)
     check_anatomy(sc)
@@ -84,18 +144,45 @@ def compute_fields(scenario: Scenario | str | Path, resolution: float | None = N
                    workers: int | None = None, scheduler: str | None = None, progress: Progress | None = None):
     """Worst-case metric fields over the tip grid (``errplan fields``).
 
+    At every tip of the grid, the worst case over the scenario's error set of ‖G‖, φ̂max and the exact
+    |φmax| at the scenario's gain, and on request the best achievable contraction ρ* with its gain k*
+    (docs/physics.md, "Metrics").
+
     Parameters
     ----------
-    resolution : grid spacing in m (default: the scenario's ``[fields] resolution``).
-    metrics : names among ``G_norm, phi_hat_max, phi_max, rho_star`` (default: the first three, plus
-        ``rho_star`` and ``k_star`` with ``rho_star=True``).
-    samples : error-set samples per uncertain axis before refinement (default: the scenario's).
-    workers, scheduler : local worker processes (default: all cores) or a dask.distributed address.
+    scenario : Scenario or str or pathlib.Path
+        A scenario, or the path of a scenario file.
+    resolution : float, optional
+        Grid spacing, m (default: the scenario's ``[fields] resolution``).
+    metrics : sequence of str, optional
+        Names among ``G_norm``, ``phi_hat_max``, ``phi_max``, ``rho_star`` (default: the first three,
+        plus ``rho_star`` and ``k_star`` with ``rho_star=True``).
+    rho_star : bool, optional
+        Also compute ``rho_star`` and ``k_star`` (default False).
+    samples : int, optional
+        Error-set samples per uncertain axis before refinement (default: ``[uncertainty] samples``).
+    workers : int, optional
+        Local worker processes for the grid's tiles (default: all cores).
+    scheduler : str, optional
+        Address of a dask.distributed scheduler to run the tiles on instead (same arrays).
+    progress : callable, optional
+        Called as ``progress(fraction, message)``.
 
     Returns
     -------
-    MetricField : ``.valid`` and the metric arrays on the grid ``.axes`` (NaN outside the workspace),
+    MetricField
+        ``.valid`` and the metric arrays on the grid ``.axes`` (NaN outside the workspace);
         ``.save(path)`` writes the npz of docs/interfaces.md, ``.summary()`` the command's table.
+
+    Examples
+    --------
+    P1's Fig. 5 setup at 10 mm on one worker:
+
+    >>> import errplan
+    >>> mf = errplan.compute_fields("scenarios/beasley2004_port.toml", 0.01, workers=1)
+    >>> s = mf.summary()
+    >>> s["valid_points"], s["grid"], round(s["share_G_below_1"], 2)
+    (961, [49, 39], 0.72)
     """
     from .fields import compute_fields as _fields
     from .fields import parse_metrics
@@ -109,14 +196,39 @@ def compute_fields(scenario: Scenario | str | Path, resolution: float | None = N
 def plan(scenario: Scenario | str | Path, *, query: str | None = None, planner: str | None = None,
          time: float | None = None, seed: int | None = None, record: str | Path | None = None,
          progress: Progress | None = None):
-    """Plan every query (or the one named ``query``), certify per-segment gains and simulate planned versus
-    direct paths (``errplan plan``); ``record`` writes the rerun recording there.
+    """Plan every query, certify per-segment gains and simulate planned versus direct paths (``errplan plan``).
+
+    Parameters
+    ----------
+    scenario : Scenario or str or pathlib.Path
+        A scenario, or the path of a scenario file.
+    query : str, optional
+        Plan only the query of this name (default: every query).
+    planner : str, optional
+        OMPL planner by name (default: ``[planner] planner``).
+    time : float, optional
+        Planner budget per query, s (default: ``[planner] time``).
+    seed : int, optional
+        OMPL's seed (default: ``[planner] seed``).
+    record : str or pathlib.Path, optional
+        Write the rerun recording (``.rrd``) there.
+    progress : callable, optional
+        Called as ``progress(fraction, message)``.
 
     Returns
     -------
-    ScenarioPlan : ``.queries`` (one :class:`~errplan.planning.QueryPlan` each, with ``planned``,
-        ``direct``, gains and simulations), ``.costmap`` (the fields it planned on), ``.runs`` (the
-        simulated runs of the summary table) and ``.to_json()``, the plan JSON of docs/interfaces.md.
+    ScenarioPlan
+        ``.queries`` (one :class:`~errplan.planning.QueryPlan` each, with ``planned``, ``direct``, gains
+        and simulations), ``.costmap`` (the fields it planned on), ``.runs`` (the simulated runs of the
+        summary table) and ``.to_json()``, the plan JSON of docs/interfaces.md.
+
+    Examples
+    --------
+    >>> import errplan
+    >>> result = errplan.plan("scenarios/beasley2004_port.toml", query="N-to-L")
+    >>> q = result.to_json()["queries"][0]
+    >>> q["name"], all(g["certified_G_norm"] < 1 for g in q["gains"]), q["simulation"]["planned"]["monotonic"]
+    ('N-to-L', True, True)
     """
     from .pipeline import run_pipeline
     from .planning import plan_scenario
@@ -131,8 +243,36 @@ def plan(scenario: Scenario | str | Path, *, query: str | None = None, planner: 
 
 def tolerances(scenario: Scenario | str | Path, *, workers: int | None = None, scheduler: str | None = None,
                progress: Progress | None = None) -> list:
-    """Answer every ``[[tolerance]]`` query (``errplan tolerance``): a list of
-    :class:`~errplan.tolerance.ToleranceResult`, ``.to_dict()`` each being an entry of the tolerance JSON."""
+    """Answer every ``[[tolerance]]`` query of a scenario (``errplan tolerance``).
+
+    Parameters
+    ----------
+    scenario : Scenario or str or pathlib.Path
+        A scenario, or the path of a scenario file.
+    workers : int, optional
+        Local worker processes for port-placement candidates (default: all cores).
+    scheduler : str, optional
+        Address of a dask.distributed scheduler to run the candidates on instead.
+    progress : callable, optional
+        Called as ``progress(fraction, message)``.
+
+    Returns
+    -------
+    list of ToleranceResult
+        One per query, in file order; ``.to_dict()`` of each is an entry of the tolerance JSON.
+
+    Examples
+    --------
+    How far may the true port be from its estimate along y before the worst-case ‖G‖ reaches 1
+    somewhere on P1's axis (the first query of ``beasley2004_port.toml``)?
+
+    >>> import errplan
+    >>> sc = errplan.load_scenario("scenarios/beasley2004_port.toml")
+    >>> [r] = errplan.tolerances(sc.with_(tolerances=sc.tolerances[:1]), workers=1)
+    >>> d = r.to_dict()
+    >>> d["name"], d["kind"], f"{1000 * d['value']:.1f} mm", d["binding_point"]
+    ('port-y along y = 0', 'port', '15.1 mm', [-0.002, 0.42])
+    """
     from .tolerance import run_all
 
     return run_all(_scenario(scenario), progress=progress, workers=workers, scheduler=scheduler)
@@ -142,10 +282,37 @@ def run_experiment(scenario: Scenario | str | Path, seed: int = 0, *, starts: in
                    dwell: int = 10, runs=None):
     """A P1-style bench run on the scenario's truth (``errplan experiment``), deterministic from ``seed``.
 
+    The truth is the declared model plus the scenario's ``[effects]`` and the sensor noise of ``[sensors]``.
+
+    Parameters
+    ----------
+    scenario : Scenario or str or pathlib.Path
+        A scenario, or the path of a scenario file.
+    seed : int, optional
+        Seed of the sensor noise (default 0).
+    starts : int, optional
+        Start tips: P1's L, M, N where reachable, then spread over the workspace (default 8).
+    max_steps : int, optional
+        Controller commands per run at most (default 60).
+    dwell : int, optional
+        Steps recorded after a run first arrives within tolerance (default 10).
+    runs : optional
+        Explicit ``(start, target)`` runs instead of the starts times P1's targets (experiment design).
+
     Returns
     -------
-    ExperimentResult : ``.data`` the measured data (``.data.write_csv(path)`` writes the CSV of
-        docs/interfaces.md), ``.starts``, ``.targets``, ``.status`` per run.
+    ExperimentResult
+        ``.data`` the measured data (``.data.write_csv(path)`` writes the CSV of docs/interfaces.md),
+        ``.starts``, ``.targets``, ``.status`` per run.
+
+    Examples
+    --------
+    One start, P1's eight targets 20 mm away:
+
+    >>> import errplan
+    >>> bench = errplan.run_experiment("scenarios/beasley2004_port.toml", seed=0, starts=1)
+    >>> len(bench.status), set(bench.status)
+    (8, {'converged'})
     """
     from .experiment import run_experiment as _run
 
@@ -156,9 +323,40 @@ def calibrate(scenario: Scenario | str | Path, data, *, validate=None, seed: int
               effects: Sequence[str] | None = None, progress: Progress | None = None):
     """Close the loop with measured data (``errplan calibrate``): residual, effect found, error before and after.
 
-    ``data`` and ``validate``: a measured-data CSV path or :class:`~errplan.experiment.MeasuredData` (for
-    example ``run_experiment(...).data``). Returns a :class:`~errplan.calibration.CalibrationReport`:
-    ``.selected``, ``.explained``, ``.text()`` and ``.to_json()`` (the calibrate JSON).
+    Parameters
+    ----------
+    scenario : Scenario or str or pathlib.Path
+        The declared model.
+    data : str or pathlib.Path or MeasuredData
+        A measured-data CSV path or :class:`~errplan.experiment.MeasuredData` (for example
+        ``run_experiment(...).data``).
+    validate : str or pathlib.Path or MeasuredData, optional
+        Held-out data for the errors before and after (default: the errors on ``data``).
+    seed : int, optional
+        Seed of the held-out split (default 0).
+    folds : int, optional
+        Held-out folds of runs (default 5).
+    effects : sequence of str, optional
+        Candidate effects (default: the whole catalogue of docs/physics.md).
+    progress : callable, optional
+        Called as ``progress(fraction, message)``.
+
+    Returns
+    -------
+    CalibrationReport
+        ``.selected``, ``.explained``, ``.text()`` and ``.to_json()`` (the calibrate JSON).
+
+    Examples
+    --------
+    A bench whose true port is 2 mm / −1 mm off the declared one:
+
+    >>> import errplan
+    >>> sc = errplan.load_scenario("scenarios/beasley2004_port.toml")
+    >>> truth = sc.with_(effects={"port_offset": {"dy": 0.002, "dz": -0.001}})
+    >>> report = errplan.calibrate(sc, errplan.run_experiment(truth, seed=0, starts=4).data)
+    >>> found = report.to_json()["parameters"]["port_offset"]
+    >>> report.selected, report.explained, round(1000 * found["dy"], 1), round(1000 * found["dz"], 1)
+    (['port_offset'], True, 2.0, -1.0)
     """
     from .calibration import calibrate as _calibrate
     from .experiment import read_measured_csv

@@ -221,6 +221,38 @@ class Anatomy:
 
 @dataclass(frozen=True)
 class Scenario:
+    """A validated scenario: one frozen dataclass per TOML table (the scenario reference lists every key).
+
+    Made by :func:`errplan.load_scenario` (a file) or :func:`errplan.parse_scenario` (a parsed document);
+    plain data that builds nothing. ``with_`` returns a copy with some tables replaced.
+
+    Attributes
+    ----------
+    name : str
+        The scenario's name.
+    robot : Robot or UrdfRobot
+        ``[robot]``: P1's planar arm, or a URDF arm (then the scenario is spatial).
+    instrument, port, controller, uncertainty, sensors, fields, planner
+        The tables of the same names.
+    queries : tuple of Query
+        ``[[query]]``, in file order.
+    tolerances : tuple of Tolerance
+        ``[[tolerance]]``, in file order.
+    effects : Mapping
+        ``[effects.NAME]``: ``{effect: {parameter: value}}`` present in the truth.
+    anatomy : Anatomy or None
+        ``[anatomy]`` (spatial scenarios only).
+
+    Examples
+    --------
+    >>> import errplan
+    >>> sc = errplan.load_scenario("scenarios/beasley2004_port.toml")
+    >>> sc.dim, sc.axes, sc.instrument.length
+    (2, ('y', 'z'), 0.32)
+    >>> sc.with_(effects={"port_offset": {"dy": 0.002}}).effects["port_offset"]["dy"]
+    0.002
+    """
+
     name: str
     robot: Robot | UrdfRobot
     instrument: Instrument

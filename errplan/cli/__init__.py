@@ -17,6 +17,7 @@ import importlib
 import os
 import sys
 
+from .. import __version__
 from ..errors import ErrplanError
 
 COMMANDS = ("demo", "fields", "plan", "tolerance", "experiment", "calibrate", "view")
@@ -48,50 +49,58 @@ class _OneLineParser(argparse.ArgumentParser):
 def build_parser() -> argparse.ArgumentParser:
     p = _OneLineParser(
         prog="errplan",
-        description="Plan instrument-tip paths with kinematic-error metrics as costs (Beasley et al.).",
+        description="Plan instrument-tip paths with kinematic-error metrics as costs (Beasley et al.). "
+                    "Units are SI (m, rad, s); 'errplan COMMAND --help' lists a command's options.",
     )
-    p.add_argument("--quiet", "-q", action="store_true", help="no progress on stderr")
+    p.add_argument("--version", action="version", version=f"errplan {__version__}",
+                   help="print errplan's version and exit")
+    p.add_argument("--quiet", "-q", action="store_true", help="no progress on stderr (default: progress shown)")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND", parser_class=_OneLineParser)
 
-    s = sub.add_parser("demo", help="the bundled default scenario end to end: fields, plan, gains, simulation")
-    s.add_argument("--scenario", default=None, help="scenario file (default: the bundled beasley2004_bounded.toml)")
-    s.add_argument("--record", default="errplan-demo.rrd", help="rerun recording to write (default: %(default)s)")
-    s.add_argument("--json", default=None, help="also write the plan JSON here")
+    s = sub.add_parser("demo", help="the bundled scenarios end to end: fields, plan, gains, simulation, recording")
+    s.add_argument("--scenario", default=None,
+                   help="run only this scenario file, planar or spatial (default: the three bundled scenarios: "
+                        "beasley2004_bounded.toml, phantom15_spatial.toml, abdomen.toml)")
+    s.add_argument("--record", default="errplan-demo.rrd",
+                   help="rerun recording to write; the spatial and abdomen scenarios beside it as <stem>-3d.rrd and "
+                        "<stem>-abdomen.rrd (default: %(default)s)")
+    s.add_argument("--json", default=None, help="also write the plans as JSON here (default: none)")
 
     s = sub.add_parser("fields", help="worst-case metric fields of a scenario -> npz")
-    s.add_argument("scenario")
-    s.add_argument("--out", required=True, help="npz file to write")
+    s.add_argument("scenario", help="scenario TOML file")
+    s.add_argument("--out", required=True, help="npz file to write (required)")
     s.add_argument("--resolution", type=_positive_float, default=None, help="grid spacing, m (default: [fields] resolution)")
-    s.add_argument("--rho-star", action="store_true", help="also compute rho_star and k_star (best achievable contraction)")
-    s.add_argument("--samples", type=int, default=None, help="samples per uncertain axis (default: [uncertainty] samples)")
+    s.add_argument("--rho-star", action="store_true", help="also compute rho_star and k_star, the best achievable contraction (default: off)")
+    s.add_argument("--samples", type=int, default=None, help="error-set samples per uncertain axis before refinement (default: [uncertainty] samples)")
     s.add_argument("--metrics", default=None,
                    help="comma-separated subset of G_norm,phi_hat_max,phi_max,rho_star (default: the first three)")
     s.add_argument("--workers", type=int, default=None, help="local worker processes for the grid's tiles (default: all cores)")
-    s.add_argument("--scheduler", default=None, help="address of a dask.distributed scheduler to run the tiles on instead")
-    s.add_argument("--json", default=None, help="also write the summary as JSON")
+    s.add_argument("--scheduler", default=None, help="address of a dask.distributed scheduler to run the tiles on instead, e.g. tcp://host:8786 (default: none, local)")
+    s.add_argument("--json", default=None, help="also write the summary as JSON (default: none)")
 
     s = sub.add_parser("plan", help="plan every query, pick gains, simulate planned vs direct")
-    s.add_argument("scenario")
-    s.add_argument("--json", default=None, help="plan JSON to write")
-    s.add_argument("--record", default=None, help="rerun recording (.rrd) to write")
-    s.add_argument("--query", default=None, help="plan only this query (by name)")
+    s.add_argument("scenario", help="scenario TOML file")
+    s.add_argument("--json", default=None, help="plan JSON to write (default: none)")
+    s.add_argument("--record", default=None, help="rerun recording (.rrd) to write (default: none)")
+    s.add_argument("--query", default=None, help="plan only this query, by name (default: every query)")
     s.add_argument("--time", type=_positive_float, default=None, help="planner time per query, s (default: [planner] time)")
     s.add_argument("--planner", default=None, help="OMPL planner name (default: [planner] planner)")
-    s.add_argument("--seed", type=int, default=None, help="OMPL seed (default: [planner] seed)")
+    s.add_argument("--seed", type=int, default=None, help="OMPL seed, 0 to 2^32 - 1 (default: [planner] seed)")
 
     s = sub.add_parser("tolerance", help="tolerance-design queries of a scenario (port error, tip load, noise, port placement)")
-    s.add_argument("scenario")
-    s.add_argument("--json", default=None, help="tolerance JSON to write (answers and plot-ready curves)")
+    s.add_argument("scenario", help="scenario TOML file with [[tolerance]] queries")
+    s.add_argument("--json", default=None, help="tolerance JSON to write: answers and plot-ready curves (default: none)")
     s.add_argument("--workers", type=int, default=None,
                    help="local worker processes for the port-placement candidates (default: all cores)")
     s.add_argument("--scheduler", default=None,
-                   help="address of a dask.distributed scheduler to run the port-placement candidates on instead")
-    s.add_argument("--record", default=None, help="rerun recording (.rrd) of the port-placement queries")
+                   help="address of a dask.distributed scheduler to run the port-placement candidates on instead "
+                        "(default: none, local)")
+    s.add_argument("--record", default=None, help="rerun recording (.rrd) of the port-placement queries (default: none)")
     s.add_argument("--top", type=int, default=5, help="port-placement candidates listed per query (default: %(default)s)")
 
     s = sub.add_parser("experiment", help="a P1-style bench run on the scenario's truth -> measured-data CSV")
-    s.add_argument("scenario")
-    s.add_argument("--out", required=True, help="measured-data CSV to write")
+    s.add_argument("scenario", help="scenario TOML file; its [effects] and [sensors] are the bench's truth")
+    s.add_argument("--out", required=True, help="measured-data CSV to write (required)")
     s.add_argument("--seed", type=int, default=0, help="seed of the sensor noise (default: %(default)s)")
     s.add_argument("--starts", type=int, default=8,
                    help="start tips: P1's L, M, N where reachable, then spread over the workspace (default: %(default)s)")
@@ -101,7 +110,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--design", type=int, default=None, metavar="N",
                    help="choose N runs that make the catalogue's parameters identifiable (experiment design) "
                         "instead of --starts x P1's targets, within the default bench's rows (0: as many runs as "
-                        "those rows hold); compares with the default bench")
+                        "those rows hold); compares with the default bench (default: none, the default bench)")
     s.add_argument("--criterion", default="G", choices=("G", "D", "A", "E"),
                    help="design criterion of the parameters' information (default: %(default)s, see docs/calibration.md)")
     s.add_argument("--separate", default="0.94", metavar="R",
@@ -109,24 +118,28 @@ def build_parser() -> argparse.ArgumentParser:
                         "precision only; default: %(default)s)")
     s.add_argument("--max-rows", type=int, default=None,
                    help="designed bench: at most this many rows (default: the default bench's; 0: no limit)")
-    s.add_argument("--design-json", default=None, help="also write the design (runs, correlations, sigmas) as JSON")
+    s.add_argument("--design-json", default=None,
+                   help="also write the design (runs, correlations, sigmas) as JSON (default: none)")
 
     s = sub.add_parser("calibrate", help="close the loop: residual, effect found, error before/after")
-    s.add_argument("scenario")
-    s.add_argument("data")
-    s.add_argument("--validate", default=None, help="held-out CSV for the before/after errors")
-    s.add_argument("--json", default=None)
-    s.add_argument("--record", default=None)
-    s.add_argument("--export-scenario", default=None, help="write the scenario with the found effects under [effects]")
-    s.add_argument("--seed", type=int, default=0, help="seed for the held-out split")
+    s.add_argument("scenario", help="scenario TOML file: the declared model")
+    s.add_argument("data", help="measured-data CSV (errplan experiment writes one)")
+    s.add_argument("--validate", default=None,
+                   help="held-out CSV for the before/after errors (default: none, the errors on DATA)")
+    s.add_argument("--json", default=None, help="calibrate JSON to write (default: none)")
+    s.add_argument("--record", default=None, help="rerun recording (.rrd) of the residuals before and after (default: none)")
+    s.add_argument("--export-scenario", default=None,
+                   help="write the scenario with the found effects under [effects] (default: none)")
+    s.add_argument("--seed", type=int, default=0, help="seed for the held-out split (default: %(default)s)")
     s.add_argument("--folds", type=int, default=5, help="held-out folds of runs (default: %(default)s)")
     s.add_argument("--effects", default=None,
                    help="comma-separated candidate effects (default: the whole catalogue of docs/physics.md)")
 
     s = sub.add_parser("view", help="open a recording in the rerun viewer")
-    s.add_argument("recording")
+    s.add_argument("recording", help="a .rrd recording written by errplan")
     s.add_argument("--web", action="store_true",
-                   help="serve the rerun web viewer (http://localhost:9090) instead of opening the native viewer")
+                   help="serve the rerun web viewer (http://localhost:9090) instead of opening the native viewer "
+                        "(default: native)")
     return p
 
 
