@@ -1,5 +1,5 @@
 """The papers' claims, each as an assertion that could fail. Where errplan differs from a paper the
-assertion states by how much (see notes/readme_foundation.md for why).
+assertion states by how much (docs/papers.md says why).
 
 P1 = Beasley, Howe, Dupont, ICRA 2004 (scenarios/beasley2004_port.toml: port (0, 160) mm, estimate
 (20, 170) mm, k = 1). P2 = Beasley & Howe, flexible instruments (L = 0.355 m, Ft/EI = 3 /m^2).
