@@ -170,7 +170,7 @@ class Tolerance:
         return self.options.get(key, default)
 
 
-# ----------------------------------------------------------------------------- anatomy (issue 18)
+# ----------------------------------------------------------------------------- anatomy
 OBSTACLE_SHAPES = ("sphere", "capsule", "box", "mesh")
 WALL_SHAPES = ("ellipsoid", "mesh")
 MESH_SUFFIXES = (".stl", ".obj", ".ply")

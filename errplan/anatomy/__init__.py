@@ -1,4 +1,4 @@
-"""Anatomy (issue 18; docs/physics.md "Anatomy (3-D)"): obstacles from a scenario's ``[anatomy]``
+"""Anatomy (docs/physics.md "Anatomy (3-D)"): obstacles from a scenario's ``[anatomy]``
 (spheres, capsules, boxes, triangle meshes read through trimesh) and the exact robust clearance of
 the instrument's shaft to them.
 

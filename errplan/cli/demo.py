@@ -7,7 +7,7 @@ box -> one rerun recording and a summary table (planned vs direct).
 Without ``--scenario`` the demo runs P1's planar Phantom (``beasley2004_bounded.toml``, recorded to
 ``--record``, default ``errplan-demo.rrd``) and then the spatial PHANToM 1.5 on its URDF
 (``phantom15_spatial.toml``, recorded beside it as ``<stem>-3d.rrd``), then the bundled abdomen
-(``abdomen.toml``: the PHANToM among mesh organs, a vessel and the body wall, issue 18; at its own 8 mm
+(``abdomen.toml``: the PHANToM among mesh organs, a vessel and the body wall; at its own 8 mm
 grid, recorded as ``<stem>-abdomen.rrd``). The PHANToM's spatial fields are
 computed at ``SPATIAL_RESOLUTION`` over the scenario's task region (its own 4 mm grid takes about a
 minute of CPU) with the metrics the planner and the recording use (G_norm, phi_hat_max, rho_star).
@@ -116,7 +116,7 @@ def run(args) -> int:
         path = bundled_scenario()
         if not BUNDLED_SPATIAL.exists():
             raise ErrplanError(f"{BUNDLED_SPATIAL}: the bundled spatial demo scenario is missing (pass --scenario FILE)")
-        # A first run (issue 17): this process compiles the planar kernels, runs the planar part, then
+        # A first run: this process compiles the planar kernels, runs the planar part, then
         # loads the spatial scenario (compiling the reachability map's build, building the map) and runs
         # it; meanwhile a second process compiles what the later parts need, in the order they need it
         # (errplan.cli.warmup): the arm's kinematics first (a few seconds, so that this process finds

@@ -1,4 +1,4 @@
-"""Compile in a second process what a command needs later (issue 17).
+"""Compile in a second process what a command needs later.
 
 A first run compiles errplan's kernels (numba, cached on disk: :mod:`errplan.jit`), and ``errplan demo``
 needs the planar and the spatial ones while most of its own work (the URDF arm's reachability map, the

@@ -401,7 +401,7 @@ def compute_fields(sc, resolution: float | None = None, rho_star: bool = False, 
     extra = {}
     model = anatomy_model(sc, es)
     if model is not None:
-        # The anatomy pass (issue 18): a reachable tip that is not robustly clear is outside the workspace.
+        # The anatomy pass: a reachable tip that is not robustly clear is outside the workspace.
         clearance = np.full(shape, np.nan)
         flat = valid.reshape(-1)
         reach = np.flatnonzero(flat)

@@ -193,7 +193,7 @@ BLOCKED_COLOR = (150, 150, 150)
 
 
 def _log_anatomy(rec, rr, sc, mf, runs, scene) -> None:
-    """``[anatomy]`` (issue 18): ``world/anatomy/<obstacle>`` and ``world/anatomy/body_wall`` as meshes,
+    """``[anatomy]``: ``world/anatomy/<obstacle>`` and ``world/anatomy/body_wall`` as meshes,
     ``world/fields/blocked`` the grid tips that are reachable but not robustly clear (the blocked part
     of the workspace), and ``series/<query>/<kind>/clearance``: the shaft's clearance (m) at every
     state of the runs under the truth (true port to tip), on the ``step`` and ``replay`` timelines."""

@@ -328,7 +328,7 @@ def tracker_noise(length: float, tip_load: float, band: tuple[float, float], *, 
     }
 
 
-# ============================================================================= 3-D (issue 20)
+# ============================================================================= 3-D
 #: load directions sampled around the shaft before the refinement (3-D insertion depths)
 LOAD_DIRECTIONS = 16
 #: depths per chunk of the 3-D corner evaluation (memory: depths x directions x corners maps)

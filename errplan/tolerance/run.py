@@ -11,7 +11,7 @@ from .placement import check_placement, port_placement
 from .region import TIP_BYTES, _extent, _grid_size, port_tolerance, region_text, tip_load_tolerance
 from .result import Progress, ToleranceResult
 
-#: P2's flexion controller at insertion depths (planar, and in 3-D since issue 20)
+#: P2's flexion controller at insertion depths (planar and in 3-D)
 PLANAR_KINDS = ("insertion_band", "tracker_noise")
 
 

@@ -1,4 +1,4 @@
-"""Port placement on the body wall (``port_placement`` with ``candidates = "body_wall"``; issue 18).
+"""Port placement on the body wall (``port_placement`` with ``candidates = "body_wall"``).
 
 The candidates are points of the scenario's ``[anatomy.body_wall]`` (:meth:`errplan.anatomy.ShaftClearance.
 wall_points`: a deterministic set with neighbours about ``spacing`` apart along the surface, chordal
