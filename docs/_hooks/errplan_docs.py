@@ -219,6 +219,8 @@ def option_rows(command: str) -> list[tuple[str, str]]:
     parser = build_parser()
     if command != "errplan":
         sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+        if command not in sub.choices:
+            raise PluginError(f"<!-- errplan-options: {command} -->: no such command ({', '.join(sub.choices)})")
         parser = sub.choices[command]
     rows = []
     for a in parser._actions:
@@ -239,7 +241,7 @@ def options_table(command: str) -> str:
                       *(f"| `{f}` | {esc(h)} |" for f, h in rows)])
 
 
-_MARK = re.compile(r"<!--\s*errplan-options:\s*([\w-]+)\s*-->")
+_MARK = re.compile(r"^<!--\s*errplan-options:\s*([\w-]+)\s*-->$", flags=re.M)  # on a line of its own
 
 
 def on_files(files, config):
