@@ -353,7 +353,7 @@ def calibrate(scenario: Scenario | str | Path, data, *, validate=None, seed: int
     >>> import errplan
     >>> sc = errplan.load_scenario("scenarios/beasley2004_port.toml")
     >>> truth = sc.with_(effects={"port_offset": {"dy": 0.002, "dz": -0.001}})
-    >>> report = errplan.calibrate(sc, errplan.run_experiment(truth, seed=0, starts=4).data)
+    >>> report = errplan.calibrate(sc, errplan.run_experiment(truth, seed=0, starts=2).data)
     >>> found = report.to_json()["parameters"]["port_offset"]
     >>> report.selected, report.explained, round(1000 * found["dy"], 1), round(1000 * found["dz"], 1)
     (['port_offset'], True, 2.0, -1.0)

@@ -12,8 +12,12 @@ import re
 import subprocess
 import sys
 import time
-import tomllib
 from pathlib import Path
+
+try:
+    import tomllib
+except ModuleNotFoundError:  # Python 3.10
+    import tomli as tomllib  # type: ignore
 
 import pytest
 
@@ -125,7 +129,7 @@ def test_every_check_keys_call_takes_its_keys_from_the_published_tables():
             assert not isinstance(node, ast.Tuple) or not node.elts, ast.unparse(c)
 
 
-def _keys_used(doc: dict, prefix: str = "") -> set[str]:
+def _keys_used(doc: dict) -> set[str]:
     out = set()
     for k, v in doc.items():
         out.add(k)
