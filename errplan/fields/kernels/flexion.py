@@ -205,11 +205,8 @@ def _controller_J3(B, NZ, zi, j, L, Jh, S, Zk, Zv, cnt, last):
     (kinematics.shaft.estimate_from_ends), the flexed shaft's Jacobian at the measured wrist through the
     estimated port under the estimated load; the lever through the port estimate where that is not finite.
 
-    The numpy path's operations in its order, its trigonometry included: near an unidentifiable estimate
-    (equal end slopes: ``a`` is a quotient of a difference of two tangents) the estimate follows the
-    rounding, so a shortcut that is equal in exact arithmetic (``tan(atan2(y, x)) = y / x``) is not
-    equal there. The tilted tangents
-    (:func:`_tilted`) and the chord's frame (``last``: the previous noise vector's chord difference, NaN
+    The estimate is :func:`_estimate`'s shortcut where it is well conditioned, else the numpy path's
+    operations. The tilted tangents (:func:`_tilted`) and the chord's frame (``last``: the previous noise vector's chord difference, NaN
     for none) are reused where the noise vector repeats them."""
     d0, d1, d2 = NZ[zi, j, 0], NZ[zi, j, 1], NZ[zi, j, 2]
     if not (d0 == last[0] and d1 == last[1] and d2 == last[2]):
@@ -228,24 +225,80 @@ def _controller_J3(B, NZ, zi, j, L, Jh, S, Zk, Zv, cnt, last):
     yw = B[DWN, 0] * B[F2, 0] + B[DWN, 1] * B[F2, 1] + B[DWN, 2] * B[F2, 2]
     xt = B[DTN, 0] * B[F1, 0] + B[DTN, 1] * B[F1, 1] + B[DTN, 2] * B[F1, 2]
     yt = B[DTN, 0] * B[F2, 0] + B[DTN, 1] * B[F2, 1] + B[DTN, 2] * B[F2, 2]
+    a, te = _estimate(B, r, xw, yw, xt, yt, L, True)
+    solved = False
+    if a == -1.0:  # ill-conditioned for the shortcuts: the numpy path's operations
+        a, te = _estimate(B, r, xw, yw, xt, yt, L, False)
+    elif 0.0 < a < L and 0.0 < abs(te) * L * L < 1.5:
+        # The shaft through the estimated port under the estimated load is P2's beam of the plane: its
+        # port sits at ``a`` along the chord. The numpy path solves for it again from |port - w| by Newton
+        # from that distance: with ``a`` on the shaft and |te| L^2 / 3 < 1/2 the equation has that one root
+        # (it is increasing in ``a``), which Newton returns to rounding; the residual confirms it.
+        r2 = (B[PORT, 0] - B[W, 0]) ** 2 + (B[PORT, 1] - B[W, 1]) ** 2 + (B[PORT, 2] - B[W, 2]) ** 2
+        sb = abs(te) * (L - a) ** 2 / 3.0
+        if abs(a * a * (1.0 + sb * sb) - r2) <= 1e-12 * r2:
+            _flexed_J3(B, W, PORT, LOAD, L, a, Jh, S)
+            solved = True
+    if not solved:
+        _jacobian3(B, W, PORT, LOAD, L, Jh, S)
+    for i in range(3):
+        for j_ in range(3):
+            if not math.isfinite(Jh[i, j_]):
+                _lever_rows(B, W, EST, L, Jh)
+                return
+
+
+@njit(cache=True, error_model="numpy")
+def _estimate(B, r, xw, yw, xt, yt, L, fast):
+    """The fitted bending plane's normal (row NB) and P2's estimator in the plane (kinematics.shaft.
+    bending_plane, estimate_from_ends, estimate_from_end_poses): the estimated port and load into rows
+    PORT, LOAD; returns ``(a, te)`` (the port's position along the chord, the signed load).
+
+    ``fast``: the trigonometry reduced to ratios (``tan(atan2(y, x)) = y / x``, cos and sin of an
+    ``atan2`` and of its half angle from the same sides), equal to the numpy path's to a few units in
+    the last place; returns ``(-1, nan)`` (nothing written) where the estimate would amplify those
+    (end slopes whose difference ``den`` is below 1e-4: near an unidentifiable estimate the numpy path's
+    own result follows its rounding, and only its own operations in its order reproduce it). Without
+    ``fast``: the numpy path's operations in its order, trigonometry included."""
     s11 = xw * xw + xt * xt
     s22 = yw * yw + yt * yt
     s12 = xw * yw + xt * yt
-    psi = 0.5 * math.atan2(2.0 * s12, s11 - s22)
-    cp, sp = math.cos(psi), math.sin(psi)
-    for i in range(3):
-        B[NB, i] = cp * B[F1, i] + sp * B[F2, i]
-    thw = math.atan2(B[DWN, 0] * B[NB, 0] + B[DWN, 1] * B[NB, 1] + B[DWN, 2] * B[NB, 2],
-                     B[DWN, 0] * B[C, 0] + B[DWN, 1] * B[C, 1] + B[DWN, 2] * B[C, 2])
-    tht = math.atan2(B[DTN, 0] * B[NB, 0] + B[DTN, 1] * B[NB, 1] + B[DTN, 2] * B[NB, 2],
-                     B[DTN, 0] * B[C, 0] + B[DTN, 1] * B[C, 1] + B[DTN, 2] * B[C, 2])
+    if fast:
+        # psi = atan2(2 s12, s11 - s22) / 2 in (-pi/2, pi/2]: cos psi >= 0, from the double angle's sides
+        y2, x2 = 2.0 * s12, s11 - s22
+        h2 = math.sqrt(y2 * y2 + x2 * x2)
+        if not (h2 > 0.0 and r > 0.0 and r < math.inf):
+            return -1.0, math.nan
+        c2 = x2 / h2
+        if c2 >= 0.0:
+            cp = math.sqrt(0.5 * (1.0 + c2))
+            sp = y2 / h2 / (2.0 * cp)
+        else:
+            sp = math.copysign(math.sqrt(0.5 * (1.0 - c2)), y2)
+            cp = y2 / h2 / (2.0 * sp)
+    else:
+        psi = 0.5 * math.atan2(2.0 * s12, s11 - s22)
+        cp, sp = math.cos(psi), math.sin(psi)
+    n0, n1, n2 = cp * B[F1, 0] + sp * B[F2, 0], cp * B[F1, 1] + sp * B[F2, 1], cp * B[F1, 2] + sp * B[F2, 2]
+    yw_ = B[DWN, 0] * n0 + B[DWN, 1] * n1 + B[DWN, 2] * n2
+    xw_ = B[DWN, 0] * B[C, 0] + B[DWN, 1] * B[C, 1] + B[DWN, 2] * B[C, 2]
+    yt_ = B[DTN, 0] * n0 + B[DTN, 1] * n1 + B[DTN, 2] * n2
+    xt_ = B[DTN, 0] * B[C, 0] + B[DTN, 1] * B[C, 1] + B[DTN, 2] * B[C, 2]
     # P2 eqs. (8)-(14) in the plane's coordinates: wrist at the origin, tip at (0, r): the chord's angle
     # atan2(0, r) is 0.0 exactly for r > 0 (its sine 0.0, cosine 1.0)
     phi = 0.0 if r > 0.0 else math.atan2(0.0, r)
     sphi, cphi = (0.0, 1.0) if r > 0.0 else (math.sin(phi), math.cos(phi))
-    s0 = math.tan(thw - phi)
-    sL = math.tan(tht - phi)
+    if fast:
+        if not (xw_ > 0.0 and xt_ > 0.0):
+            return -1.0, math.nan
+        s0 = yw_ / xw_
+        sL = yt_ / xt_
+    else:
+        s0 = math.tan(math.atan2(yw_, xw_) - phi)
+        sL = math.tan(math.atan2(yt_, xt_) - phi)
     den = sL - s0
+    if fast and not abs(den) > 1e-4:
+        return -1.0, math.nan
     a = L * (2 * sL + s0) / den
     if not (math.isfinite(a) and den != 0):
         a = math.nan
@@ -256,19 +309,19 @@ def _controller_J3(B, NZ, zi, j, L, Jh, S, Zk, Zv, cnt, last):
     p20 = 0.0 + a * sphi + ym * cphi
     p21 = 0.0 + a * cphi + ym * -sphi
     te = fp * a / L
-    thp = math.atan2(p20, p21)
-    ct, st = math.cos(thp), math.sin(thp)
+    if fast:
+        hp = math.sqrt(p20 * p20 + p21 * p21)
+        if not (hp > 0.0 and hp < math.inf):
+            return -1.0, math.nan
+        ct, st = p21 / hp, p20 / hp
+    else:
+        thp = math.atan2(p20, p21)
+        ct, st = math.cos(thp), math.sin(thp)
+    B[NB, 0], B[NB, 1], B[NB, 2] = n0, n1, n2
     for i in range(3):
         B[PORT, i] = B[W, i] + p20 * B[NB, i] + p21 * B[C, i]
         B[LOAD, i] = te * (ct * B[NB, i] - st * B[C, i])
-    # (the port's position along the chord is solved again from |port - w|, as the numpy path does: it is
-    # the estimator's ``a`` only where that lies on the shaft; elsewhere Newton's 8 steps decide)
-    _jacobian3(B, W, PORT, LOAD, L, Jh, S)
-    for i in range(3):
-        for j_ in range(3):
-            if not math.isfinite(Jh[i, j_]):
-                _lever_rows(B, W, EST, L, Jh)
-                return
+    return a, te
 
 
 @njit(cache=True, error_model="numpy")
