@@ -237,7 +237,7 @@ def _controller_J3(B, NZ, zi, j, L, Jh, S, Zk, Zv, cnt, last):
         r2 = (B[PORT, 0] - B[W, 0]) ** 2 + (B[PORT, 1] - B[W, 1]) ** 2 + (B[PORT, 2] - B[W, 2]) ** 2
         sb = abs(te) * (L - a) ** 2 / 3.0
         if abs(a * a * (1.0 + sb * sb) - r2) <= 1e-12 * r2:
-            _flexed_J3(B, W, PORT, LOAD, L, a, Jh, S)
+            _estimated_J3(B, a, te, math.sqrt(r2), L, Jh)
             solved = True
     if not solved:
         _jacobian3(B, W, PORT, LOAD, L, Jh, S)
@@ -246,6 +246,41 @@ def _controller_J3(B, NZ, zi, j, L, Jh, S, Zk, Zv, cnt, last):
             if not math.isfinite(Jh[i, j_]):
                 _lever_rows(B, W, EST, L, Jh)
                 return
+
+
+@njit(cache=True, error_model="numpy")
+def _estimated_J3(B, a, te, rho, L, Jh):
+    """The flexed shaft's ``d tip / d w`` (kinematics.shaft.flexed_jacobian in 3-D) at the measured wrist
+    through the estimated port (rows W, PORT; ``rho = |port - w|``, the port at ``a`` along the chord) under
+    the estimated load ``te`` along the plane's normal ``n_u`` of the wrist->port line (row LOAD), into
+    ``Jh``. The load is normal to the line (``u.t = 0``) and its part normal to it does not turn with the
+    wrist's distance (``d tau / d w = 0``), so the general Jacobian (kernels.instance._flexed_J3) reduces to
+    ``I - (L cb / rho)(I - u u^T) + (L sb / rho) u n^T - L beta_a a_rho v u^T`` (``n = sign(te) n_u``,
+    ``v = -sb u + cb n``, ``cb + i sb = (1 + i s) / sqrt(1 + s^2)``, ``s = |te| b^2 / 3``): equal to
+    rounding."""
+    tau = abs(te)
+    b = L - a
+    s = tau * b * b / 3.0
+    gg = 1.0 + s * s
+    dgg = -(4.0 * tau * b / 3.0) * s
+    a_rho = 2.0 * rho / (2.0 * a * gg + a * a * dgg)
+    beta_a = -(2.0 * tau * b / 3.0) / gg
+    q = 1.0 / math.sqrt(gg)
+    cb, sb = q, s * q
+    u0, u1, u2 = (B[PORT, 0] - B[W, 0]) / rho, (B[PORT, 1] - B[W, 1]) / rho, (B[PORT, 2] - B[W, 2]) / rho
+    n0, n1, n2 = B[LOAD, 0] / tau, B[LOAD, 1] / tau, B[LOAD, 2] / tau  # sign(te) n_u
+    c1 = L * cb / rho
+    c2 = L * sb / rho
+    c3 = L * beta_a * a_rho
+    for i in range(3):
+        ui = u0 if i == 0 else (u1 if i == 1 else u2)
+        ni = n0 if i == 0 else (n1 if i == 1 else n2)
+        vi = -sb * ui + cb * ni
+        for j in range(3):
+            uj = u0 if j == 0 else (u1 if j == 1 else u2)
+            nj = n0 if j == 0 else (n1 if j == 1 else n2)
+            dij = 1.0 if i == j else 0.0
+            Jh[i, j] = dij - c1 * (dij - ui * uj) + c2 * ui * nj - c3 * vi * uj
 
 
 @njit(cache=True, error_model="numpy")
