@@ -650,7 +650,7 @@ def test_flexion_controller_matches_independent_estimation():
 # ============================================================================ compiled vs numpy search
 @pytest.mark.parametrize("name", ["beasley2004_bounded.toml", "beasley2004_port.toml"])
 def test_compiled_kernel_equals_the_numpy_search(name):
-    """The compiled kernel (fields/kernels.py) and the numpy search (fields/search.py, the general
+    """The compiled kernel (fields/kernels/) and the numpy search (fields/search.py, the general
     path) implement the same method: same robust workspace, same worst cases and rho* to rounding."""
     import errplan.fields.compute as C
 

@@ -266,6 +266,6 @@ def test_the_lanes_load_where_and_only_where_the_search_records_lanes(tmp_path, 
     out = [np.zeros(len(job.X), bool)] + [np.empty(len(job.X)) for _ in range(4)]
     kernels._TILES[sc.dim, False](job.X, *compute._tile_args(job), *out, *lanes.bufs)
     loaded = []
-    monkeypatch.setattr(kernels, "run_lanes", lambda *a: loaded.append(a))
+    monkeypatch.setattr(kernels.loops, "run_lanes", lambda *a: loaded.append(a))  # what load_lanes calls
     kernels.load_lanes(sc.dim, *compute._tile_args(job))
     assert (lanes.count[0] > 0) == bool(loaded) == straight

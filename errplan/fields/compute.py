@@ -6,8 +6,8 @@ corner port cannot be robustly valid and are skipped. The rest is split into til
 independent task (:func:`errplan.cluster.map_tasks`: in process, local worker processes or a
 dask cluster, identical arrays either way). A tile runs the compiled kernel
 (:mod:`.kernels`) for the rigid controller without Jacobian-changing effects, in the plane and in
-3-D, and the numpy search (:mod:`.search`) for P2's flexion controller or a planar truth with
-``[effects]`` that move the arm.
+3-D, and the numpy search (:mod:`.search`) for P2's flexion controller (in 3-D over compiled physics,
+:mod:`.kernels.flexion`) or a truth with ``[effects]`` that move the arm.
 """
 from __future__ import annotations
 

@@ -407,10 +407,54 @@ class SpatialFlexionEvaluator:
             Jh = np.where(rigid[..., None, None], lever[:, None], Jh)
         return Jh
 
+    def _compiled(self, x: np.ndarray, theta: np.ndarray, noise, k, want_M: bool, want_gp: int, gfloor=None,
+                  pfloor=None):
+        """The compiled controller (:func:`errplan.fields.kernels.flexion.flexion_tips`) on the true shafts
+        of :meth:`truth`: ``(M or None, g, p, ok)``."""
+        from ..jit import kernel_array
+        from .kernels.flexion import flexion_tips
+
+        x = np.asarray(x, float).reshape(-1, 3)
+        nz = self.noise if noise is None else np.asarray(noise, float)
+        NZ = kernel_array(nz[None] if nz.ndim == 2 else nz)
+        n, c = len(x), NZ.shape[1]
+        w, t, port, ok = self.truth(x, theta)
+        ok = kernel_array(np.asarray(ok, bool))
+        M = np.empty((n if want_M else 1, c, 3, 3))
+        g = np.empty(n if want_gp else 1)
+        p = np.empty(n if want_gp else 1)
+        kk = kernel_array(np.asarray(np.broadcast_to(np.asarray(k, float), (n,)) if np.ndim(k) else [float(k)],
+                                     float))
+        gf, pf = (np.full(1, -np.inf) if f is None else kernel_array(np.array(np.broadcast_to(f, (n,)), float))
+                  for f in (gfloor, pfloor))
+        flexion_tips(kernel_array(w), kernel_array(t), kernel_array(port), ok, NZ, np.asarray(self.estimate, float),
+                     float(self.length), kk, bool(want_M), int(want_gp), gf, pf, M, g, p)
+        return (M if want_M else None), g, p, ok
+
     def parts(self, x: np.ndarray, theta: np.ndarray, noise: np.ndarray | None = None
               ) -> tuple[np.ndarray, None, np.ndarray]:
         """``(M, None, ok)``: ``M`` (n, c, 3, 3) at tips ``x`` (n, 3) under instances ``theta`` over the
-        noise vectors ``noise`` ((c, 7) or per tip (n, c, 7); default the noise set's corners)."""
+        noise vectors ``noise`` ((c, 7) or per tip (n, c, 7); default the noise set's corners); NaN where
+        ``ok`` is False. Compiled (:mod:`errplan.fields.kernels.flexion`); :meth:`parts_numpy` is the
+        numpy reference it equals."""
+        M, _, _, ok = self._compiled(x, theta, noise, 0.0, True, 0)
+        return M, None, ok
+
+    def reduced(self, x: np.ndarray, theta: np.ndarray, k, phi: bool = True, g_above=None, p_above=None
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The worst over the noise vectors (the corners) of :meth:`parts`' maps, without forming them in
+        Python: ``(||I - k M||, |phi_max|, ok)`` (n,) each (``k`` a number or (n,); ``|phi_max|`` NaN
+        without ``phi``; both NaN where ``ok`` is False). ``g_above``, ``p_above`` ((n,) or a number): a
+        caller that keeps a worst value only where it exceeds these gets the value itself where it does
+        not (``inf``: that value is not computed); the exact norms and angles are then computed only
+        where their bounds exceed it. Without them: the worst values."""
+        _, g, p, ok = self._compiled(x, theta, None, k, False, 2 if phi else 1, g_above, p_above)
+        return g, p, ok
+
+    def parts_numpy(self, x: np.ndarray, theta: np.ndarray, noise: np.ndarray | None = None
+                    ) -> tuple[np.ndarray, None, np.ndarray]:
+        """:meth:`parts` in numpy, step by step through :mod:`errplan.kinematics.shaft`: the reference
+        of the compiled controller."""
         from ..kinematics.shaft import flexed_jacobian
         from ..metrics import inv
 
@@ -492,3 +536,16 @@ def _project_noise(z: np.ndarray, half: np.ndarray) -> np.ndarray:
         scale = np.where(r > lim, lim / np.where(r > 0, r, 1.0), 1.0)
         out[..., sl] = out[..., sl] * scale[..., None]
     return out
+
+
+@dataclass
+class NumpyFlexionEvaluator(SpatialFlexionEvaluator):
+    """P2's controller in 3-D on the numpy path alone (:meth:`SpatialFlexionEvaluator.parts_numpy`, the
+    search reducing the maps in numpy): the independent reference of the compiled controller for the tests
+    and ``benchmarks/flexion.py``; the same answers, much slower."""
+
+    reduced = None  # the numpy search forms every map (errplan.fields.search._values)
+
+    def parts(self, x: np.ndarray, theta: np.ndarray, noise: np.ndarray | None = None
+              ) -> tuple[np.ndarray, None, np.ndarray]:
+        return self.parts_numpy(x, theta, noise)

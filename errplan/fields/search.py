@@ -33,6 +33,21 @@ def _reduce(mu: np.ndarray, nu, k: float) -> tuple[np.ndarray, np.ndarray]:
     return g_norm_from_parts(mu, nu, k).max(axis=-1), phi_max_from_parts(mu, nu).max(axis=-1)
 
 
+def _values(ev, x: np.ndarray, th: np.ndarray, k: float, keep: bool, g_above=None, p_above=None):
+    """``(mu, nu, ||G||, |phi_max|, ok)`` of an evaluator at tips ``x`` under instance(s) ``th``, the worst
+    over a noise axis: from the evaluator's compiled reduction where it has one and the parts are not
+    kept (P2's controller in 3-D: :meth:`SpatialFlexionEvaluator.reduced`; ``mu``, ``nu`` None then).
+    ``g_above``, ``p_above``: the caller keeps ``||G||``, ``|phi_max|`` only above these values (the
+    reduction may return them where it is not; ``inf``: not needed)."""
+    red = getattr(ev, "reduced", None)
+    if red is not None and not keep:
+        g, p, ok = red(x, th, k, g_above=g_above, p_above=p_above)
+        return None, None, g, p, ok
+    mu, nu, ok = ev.parts(x, th)
+    g, p = _reduce(mu, nu, k)
+    return mu, nu, g, p, ok
+
+
 def _far_mask(es: ErrorSet, samples: int | None) -> np.ndarray:
     """(m, m) mask of sample pairs more than one grid step apart along some axis (a periodic axis
     measured around the circle)."""
@@ -138,9 +153,8 @@ def worst_case(ev: Evaluator, x: np.ndarray, k: float, *, samples: int | None = 
         sub = idx[valid]
         if len(sub) == 0:
             break
-        mu, nu, ok = ev.parts(x[sub], th)
+        mu, nu, g, p, ok = _values(ev, x[sub], th, k, keep_parts)
         valid[sub[~ok]] = False
-        g, p = _reduce(mu, nu, k)
         vals_g[sub, j] = np.where(ok, g, -np.inf)
         vals_p[sub, j] = np.where(ok, p, -np.inf)
         if keep_parts:
@@ -193,9 +207,8 @@ def worst_case(ev: Evaluator, x: np.ndarray, k: float, *, samples: int | None = 
     idx_e = np.arange(len(owner))
 
     def evaluate(sub, theta, track_g):
-        mu, nu, ok = ev.parts(xe[sub], theta)
+        _, _, g, p, ok = _values(ev, xe[sub], theta, k, False, best_g[sub] if track_g else np.inf, best_p[sub])
         ok_e[sub[~ok]] = False
-        g, p = _reduce(mu, nu, k)
         if track_g:
             upd = ok & (g > best_g[sub])
             best_g[sub[upd]] = g[upd]
@@ -288,9 +301,17 @@ def _refined_at_gain(ev: Evaluator, x: np.ndarray, k: np.ndarray, *, samples=Non
     grid = es.sample_grid(samples)
     best = np.full(len(x), -np.inf)
     th_best = np.zeros((len(x), len(es.lo)))
-    for th in grid:
+    red = getattr(ev, "reduced", None)
+
+    def worst_g(th):
+        if red is not None:  # compiled: the worst over the noise axis without forming the maps in Python
+            g, _, ok = red(x, th, k, phi=False)
+            return g, ok
         mu, nu, ok = ev.parts(x, th)
-        g = _g_of(mu, nu, k[:, None]).max(axis=-1)
+        return _g_of(mu, nu, k[:, None]).max(axis=-1), ok
+
+    for th in grid:
+        g, ok = worst_g(th)
         g = np.where(ok, g, np.inf)
         upd = g > best
         best[upd] = g[upd]
@@ -304,8 +325,8 @@ def _refined_at_gain(ev: Evaluator, x: np.ndarray, k: np.ndarray, *, samples=Non
                 v = c[:, dmn] + sgn * h[dmn]
                 c[:, dmn] = (es.lo[dmn] + np.mod(v - es.lo[dmn], es.hi[dmn] - es.lo[dmn]) if es.periodic[dmn]
                              else np.clip(v, es.lo[dmn], es.hi[dmn]))
-                mu, nu, ok = ev.parts(x, c)
-                g = np.where(ok, _g_of(mu, nu, k[:, None]).max(axis=-1), np.inf)
+                g, ok = worst_g(c)
+                g = np.where(ok, g, np.inf)
                 upd = g > best
                 best[upd] = g[upd]
                 th_best[upd] = c[upd]

@@ -56,7 +56,7 @@ under every corner instance (port corners x {no load, the largest load in 4 dire
 the refined worst pairs.
 
 P2's flexion controller in 3-D (:class:`errplan.gains.physics.FlexionKernel`): the motion maps
-come from :class:`errplan.fields.SpatialFlexionEvaluator` (numpy) with an axis of noise corners,
+come from :class:`errplan.fields.SpatialFlexionEvaluator` (compiled) with an axis of noise corners,
 flattened into the sample; the one-step replay takes the worst corner; a ball is singular-free when
 it keeps ``delta + deviation + 2 e_p`` from every true port, ``e_p`` the largest estimated-port
 error over the noise corners at the ball's centre (sampled, not analytic as for the lever).

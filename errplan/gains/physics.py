@@ -307,7 +307,8 @@ class SpatialModel:
 class FlexionKernel:
     """P2's flexion controller in 3-D behind the interface :class:`SpatialModel` takes from the
     compiled :class:`errplan.fields.KernelEvaluator`: ``motion_maps`` (with a noise-corner axis) and
-    ``worst_case``, both from :class:`errplan.fields.SpatialFlexionEvaluator` (numpy)."""
+    ``worst_case``, both from :class:`errplan.fields.SpatialFlexionEvaluator` (compiled physics,
+    :mod:`errplan.fields.kernels.flexion`)."""
 
     def __init__(self, sc):
         from ..fields import SpatialFlexionEvaluator
