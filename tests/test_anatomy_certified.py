@@ -25,6 +25,7 @@ from errplan.errors import ScenarioError
 ROOT = Path(__file__).resolve().parents[1]
 PHANTOM = ROOT / "scenarios" / "phantom15_spatial.toml"
 CLEARANCE = 0.003
+EXACT_BAND = 0.002  # the mesh distance is exact below CLEARANCE + EXACT_BAND, a lower bound above
 NODULE = ((0.0, -0.08, 0.35), 0.007)
 ORGAN_CENTER, ORGAN_AXES = (0.0, -0.07, 0.37), (0.018, 0.014, 0.010)
 CASES = {
@@ -82,14 +83,14 @@ def mesh_point_distance(mesh, p):
 def mesh_shaft_distance(mesh, ports, tips):
     """Distance (n,) from shafts [ports[i], tips[i]] to the convex mesh. A sound lower bound first: the
     distance to any face's half-space (which contains the convex mesh), the smaller of the two ends';
-    where that bound is below the clearance, the exact distance by ternary search along the shaft (the
+    where that bound is below the clearance + ``EXACT_BAND``, the exact distance by ternary search along the shaft (the
     distance to a convex set is convex along a line), each value by :func:`mesh_point_distance`."""
     nrm = mesh.face_normals
     off = np.sum(nrm * np.asarray(mesh.triangles)[:, 0], -1)
     sd = lambda x: x @ nrm.T - off  # noqa: E731
     lb = np.minimum(sd(ports), sd(tips)).max(axis=1)
     out = lb.copy()
-    hard = np.flatnonzero(lb < CLEARANCE + 1e-3)
+    hard = np.flatnonzero(lb < CLEARANCE + EXACT_BAND)
     if len(hard):
         a, b = ports[hard], tips[hard]
         lo, hi = np.zeros(len(hard)), np.ones(len(hard))
@@ -180,10 +181,12 @@ def test_every_segment_certified_monotonic_and_ball_clear(built):
             else:
                 d = mesh_shaft_distance(mesh, P, T)
             worst = min(worst, float(d.min()))
-            # the model's bound is a lower bound of every sampled tip's clearance
-            assert d.min() >= g["ball_clearance"] - 1e-9
+            # the model's bound is a lower bound of every sampled tip's clearance (where d is exact; above
+            # the band d is itself a lower bound, so the check would say nothing there)
+            if kind == "nodule" or g["ball_clearance"] < CLEARANCE + EXACT_BAND:
+                assert d.min() >= g["ball_clearance"] - 1e-9
         assert worst >= CLEARANCE
-        assert worst <= CLEARANCE + 0.006  # some ball comes close: the test can fail
+        assert worst < CLEARANCE + EXACT_BAND  # some ball comes close: the test can fail
 
 
 @pytest.mark.slow
@@ -214,14 +217,18 @@ def test_ball_clearance_is_a_lower_bound_for_the_wall_and_obstacles():
     sc = parse_scenario(doc, str(ROOT / "scenarios" / "abdomen.toml"))
     model = anatomy_model(sc, ErrorSet.from_scenario(sc))
     rng = np.random.default_rng(3)
-    near_wall = 0
-    for c in rng.uniform([-0.08, -0.08, 0.30], [0.08, 0.08, 0.44], (40, 3)):
+    # inside the task region, and near the body wall's side (x = 0.16 m at z = 0.36)
+    centres = np.vstack([rng.uniform([-0.08, -0.08, 0.30], [0.08, 0.08, 0.44], (30, 3)),
+                         rng.uniform([0.135, -0.01, 0.35], [0.145, 0.01, 0.37], (10, 3))])
+    for i, c in enumerate(centres):
         R = float(rng.uniform(0.001, 0.01))
         b = ball_clearance(model, c, R)
         assert b == pytest.approx(float(model.tip(c)) - R, abs=1e-15)
         tips = ball_samples(c, R, 30, rng)
         assert np.all(model.tip(tips) >= b - 1e-12)
-        near_wall += float(model.wall_gap(c)) < R + model.required if hasattr(model, "wall_gap") else 0
+        if i >= 30:  # the wall counts: at most the centre's depth inside it, less the radius
+            depth = float(model.wall_depth(c[None])[0])
+            assert depth < 0.03 and b <= depth - R + 1e-12
     # the nodule: closed form
     nod = parse_scenario(scenario_doc("nodule", Path("/nonexistent")), str(PHANTOM))
     m2 = anatomy_model(nod, ErrorSet.from_scenario(nod))
