@@ -25,7 +25,7 @@ from errplan.errors import ScenarioError
 ROOT = Path(__file__).resolve().parents[1]
 PHANTOM = ROOT / "scenarios" / "phantom15_spatial.toml"
 CLEARANCE = 0.003
-EXACT_BAND = 0.002  # the mesh distance is exact below CLEARANCE + EXACT_BAND, a lower bound above
+EXACT_BAND = 0.003  # the mesh distance is exact below CLEARANCE + EXACT_BAND, a lower bound above
 NODULE = ((0.0, -0.08, 0.35), 0.007)
 ORGAN_CENTER, ORGAN_AXES = (0.0, -0.07, 0.37), (0.018, 0.014, 0.010)
 CASES = {
@@ -154,7 +154,7 @@ def test_path_passes_close_and_near_optimal(built):
         else:
             d = mesh_shaft_distance(mesh, P, T)
         assert d.min() >= CLEARANCE - 1e-9
-        assert d.min() <= CLEARANCE + 0.006, (q.name, d.min())  # within a few mm: the margin matters here
+        assert d.min() < CLEARANCE + EXACT_BAND, (q.name, d.min())  # within a few mm: the margin matters here
         ref = grid_optimum(plain, q.start, q.goal, radius=3)
         assert q.planned.cost <= 1.05 * ref.cost, (q.name, q.planned.cost, ref.cost)
 

@@ -213,6 +213,12 @@ def schedule_gains(src, path, options: GainOptions | None = None, *, progress=No
                               f"anatomy: clearance >= {max(ball_cl, 0.0) * 1000:.1f} mm < {anatomy.required * 1000:.1f} mm")
                     if ball_blocked(p):
                         redo.append(i)
+                    elif not can_split(p):
+                        reason += " (at the floor length: no shorter segment)"
+                    else:
+                        own = float(anatomy.motion(a, b))
+                        reason += (f" (the path keeps {own * 1000:.1f} mm here, less than the clearance + switch "
+                                   f"tolerance + {opts.min_segment * 1000:.1f} mm: no shorter segment can be clear)")
             if not cert and not reason:
                 if math.isnan(gn):
                     reason = "no tip of the ball is reachable under the error set"
