@@ -25,7 +25,7 @@ from errplan.errors import ScenarioError
 ROOT = Path(__file__).resolve().parents[1]
 PHANTOM = ROOT / "scenarios" / "phantom15_spatial.toml"
 CLEARANCE = 0.003
-EXACT_BAND = 0.003  # the mesh distance is exact below CLEARANCE + EXACT_BAND, a lower bound above
+CLOSE = 0.003  # the paths must pass within CLEARANCE + CLOSE of the obstacle (the test of a close pass)
 NODULE = ((0.0, -0.08, 0.35), 0.007)
 ORGAN_CENTER, ORGAN_AXES = (0.0, -0.07, 0.37), (0.018, 0.014, 0.010)
 CASES = {
@@ -80,17 +80,17 @@ def mesh_point_distance(mesh, p):
     return np.where(inside, 0.0, d)
 
 
-def mesh_shaft_distance(mesh, ports, tips, need=None):
+def mesh_shaft_distance(mesh, ports, tips, need):
     """Distance (n,) from shafts [ports[i], tips[i]] to the convex mesh. A sound lower bound first: the
     distance to any face's half-space (which contains the convex mesh), the smaller of the two ends';
-    where that bound is below ``need`` (default: the clearance + ``EXACT_BAND``), the exact distance by ternary search along the shaft (the
+    where that bound is below ``need`` (m), the exact distance by ternary search along the shaft (the
     distance to a convex set is convex along a line), each value by :func:`mesh_point_distance`."""
     nrm = mesh.face_normals
     off = np.sum(nrm * np.asarray(mesh.triangles)[:, 0], -1)
     sd = lambda x: x @ nrm.T - off  # noqa: E731
     lb = np.minimum(sd(ports), sd(tips)).max(axis=1)
     out = lb.copy()
-    hard = np.flatnonzero(lb < (CLEARANCE + EXACT_BAND if need is None else need))
+    hard = np.flatnonzero(lb < need)
     if len(hard):
         a, b = ports[hard], tips[hard]
         lo, hi = np.zeros(len(hard)), np.ones(len(hard))
@@ -100,7 +100,8 @@ def mesh_shaft_distance(mesh, ports, tips, need=None):
             left = f(m1) < f(m2)
             hi, lo = np.where(left, m2, hi), np.where(left, lo, m1)
         ends = np.minimum(f(np.zeros(len(hard))), f(np.ones(len(hard))))
-        out[hard] = np.minimum(f(0.5 * (lo + hi)), ends)
+        # less the search's last interval (the distance is 1-Lipschitz along the shaft): a lower bound still
+        out[hard] = np.minimum(f(0.5 * (lo + hi)) - (hi - lo) * np.linalg.norm(b - a, axis=1), ends)
     return out
 
 
@@ -150,11 +151,13 @@ def test_path_passes_close_and_near_optimal(built):
         pts = np.concatenate([a + s * (b - a) for a, b in zip(path[:-1], path[1:])])
         P, T = np.repeat(corners, len(pts), 0), np.tile(pts, (len(corners), 1))
         if kind == "nodule":
-            d = seg_point(np.asarray(NODULE[0]), P, T) - NODULE[1]
-        else:
-            d = mesh_shaft_distance(mesh, P, T)
+            d = close = seg_point(np.asarray(NODULE[0]), P, T) - NODULE[1]
+        else:  # exact below the clearance (a sound lower bound above); exact for the 50 closest by that bound
+            d = mesh_shaft_distance(mesh, P, T, need=CLEARANCE)
+            idx = np.argsort(d)[:50]
+            close = mesh_shaft_distance(mesh, P[idx], T[idx], need=np.inf)
         assert d.min() >= CLEARANCE - 1e-9
-        assert d.min() < CLEARANCE + EXACT_BAND, (q.name, d.min())  # within a few mm: the margin matters here
+        assert close.min() < CLEARANCE + CLOSE, (q.name, close.min())  # within a few mm of the organ
         ref = grid_optimum(plain, q.start, q.goal, radius=3)
         assert q.planned.cost <= 1.05 * ref.cost, (q.name, q.planned.cost, ref.cost)
 
@@ -182,7 +185,7 @@ def test_every_segment_certified_monotonic_and_ball_clear(built):
             # every sampled tip is clear, and the model's bound is a lower bound of their clearance
             assert d.min() >= CLEARANCE
             assert d.min() >= g["ball_clearance"] - 1e-9
-        assert min(g["ball_clearance"] for g in gains) < CLEARANCE + EXACT_BAND  # some ball comes close
+        assert min(g["ball_clearance"] for g in gains) < CLEARANCE + CLOSE  # some ball comes close
 
 
 @pytest.mark.slow
