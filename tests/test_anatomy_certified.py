@@ -160,6 +160,14 @@ def test_path_passes_close_and_near_optimal(built):
         assert close.min() < CLEARANCE + CLOSE, (q.name, close.min())  # within a few mm of the organ
         ref = grid_optimum(plain, q.start, q.goal, radius=3)
         assert q.planned.cost <= 1.05 * ref.cost, (q.name, q.planned.cost, ref.cost)
+    # a tip inside the margin (clear of the plain clearance) is refused, and the message says why
+    c = np.asarray(NODULE[0] if kind == "nodule" else ORGAN_CENTER)
+    lo, hi = c, np.asarray(q.start, float)
+    for _ in range(40):  # bisection towards the obstacle to the robust clearance CLEARANCE + margin / 2
+        m = 0.5 * (lo + hi)
+        lo, hi = (m, hi) if float(cm.anatomy.tip(m)) < CLEARANCE + 0.5 * cm.anatomy_margin else (lo, m)
+    msg = cm.explain_point(tuple(hi), "tip")
+    assert msg and "plan keeps for its convergence balls" in msg and f"clearance = {CLEARANCE * 1000:.1f} mm" in msg
 
 
 @pytest.mark.slow
