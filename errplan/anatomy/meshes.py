@@ -38,8 +38,14 @@ def load_surface(file: str, scale: float = 1.0, position=(0.0, 0.0, 0.0), rpy=(0
         raise ScenarioError(f"{where}: mesh file {path}: missing")
     if path.stat().st_size == 0:
         raise ScenarioError(f"{where}: mesh file {path}: empty (no triangle)")
+    why = _not_a_mesh(path)
+    if why:
+        raise ScenarioError(f"{where}: mesh file {path}: not a mesh ({why})")
     try:
         raw = trimesh.load(str(path), force="mesh", process=False)
+    except ModuleNotFoundError as e:  # a reader's optional package: say which, not a traceback's last line
+        raise ScenarioError(f"{where}: mesh file {path}: reading it needs the Python package {e.name!r}, which is not "
+                            f"installed (pip install {e.name})")
     except Exception as e:  # any reader failure is one line naming the file
         raise ScenarioError(f"{where}: mesh file {path}: not readable as STL, OBJ or PLY ({type(e).__name__}: {e})")
     v = np.asarray(getattr(raw, "vertices", np.zeros((0, 3))), float)
@@ -61,6 +67,31 @@ def load_surface(file: str, scale: float = 1.0, position=(0.0, 0.0, 0.0), rpy=(0
     if mesh.volume < 0:  # inward normals: flip, so that the winding number is +1 inside
         faces = faces[:, ::-1].copy()
     return verts, faces
+
+
+#: bytes that never occur in a text mesh (ASCII STL, OBJ, ASCII PLY): controls other than tab, LF, FF, CR
+_BINARY = bytes(c for c in range(32) if c not in (9, 10, 12, 13))
+
+
+def _not_a_mesh(path: Path) -> str | None:
+    """Why ``path`` cannot be a mesh file, or None: a binary STL is an 80-byte header, a triangle count
+    ``n`` (uint32) and ``50 n`` bytes; a PLY starts with ``ply``; anything else must be text (ASCII STL,
+    OBJ), so a file with NUL bytes or other controls in its first 64 KiB is none of them."""
+    size = path.stat().st_size
+    with open(path, "rb") as fh:
+        head = fh.read(65536)
+    if size >= 84 and size == 84 + 50 * int.from_bytes(head[80:84], "little"):
+        return None  # binary STL
+    if head[:3] == b"ply":
+        return None
+    ctrl = sum(head.count(bytes([c])) for c in _BINARY)
+    if ctrl:
+        n = int.from_bytes(head[80:84], "little") if size >= 84 else None
+        stl = (f"a binary STL of {n} triangles would have {84 + 50 * n} bytes, this file has {size}" if n is not None
+               else f"a binary STL has at least 84 bytes, this file has {size}")
+        return (f"a binary file ({ctrl} control byte(s) in its first {len(head)}) that is not a binary STL ({stl}) "
+                "nor a PLY, and STL/OBJ/PLY text has no such bytes")
+    return None
 
 
 def write_surface(path: str | Path, vertices: np.ndarray, faces: np.ndarray) -> None:

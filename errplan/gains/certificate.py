@@ -122,3 +122,22 @@ def _prune(mu, nu, kg, top: int = 3) -> np.ndarray:
         idx = np.argpartition(-g, top, axis=1)[:, :top]
         keep.update(idx.ravel().tolist())
     return np.array(sorted(keep))
+
+
+def ball_clearance(anatomy, center, radius: float) -> float:
+    """A lower bound (m) on the robust clearance of every tip of the convergence ball of centre
+    ``center`` (3,) and radius ``radius`` (m): the clearance at the centre less the radius.
+
+    ``anatomy`` is the scenario's anatomy model (:class:`errplan.anatomy.ShaftClearance`); its
+    distance query ``anatomy.tip(x)`` is the smallest distance, over every true port of the box,
+    from the shaft [port, x] to every obstacle, and is also at most the tip's depth inside the body
+    wall. That clearance is 1-Lipschitz in the tip (the hulls of the box with two tips are within
+    Hausdorff distance of their separation; the depth inside a wall is a distance), hence the bound.
+    The ball is clear when the bound is at least ``anatomy.required`` ([anatomy] clearance).
+
+    This is the one ball condition anatomy adds, for every kind of obstacle at once: organs
+    (primitives and meshes), vessels, the body wall, and any further convex pieces the model's
+    distance query comes to include (e.g. the shafts of the other instruments of a several-instrument
+    setup, held fixed while this one moves): they join by entering ``anatomy.tip``, not here.
+    """
+    return float(anatomy.tip(np.asarray(center, float))) - float(radius)

@@ -8,7 +8,7 @@ import numpy as np
 
 from ..errors import ErrplanError
 from ..fields import Evaluator
-from .certificate import _k_upper_M, _prune, _rho, _sample_segment, _scan, _scan_M
+from .certificate import _k_upper_M, _prune, _rho, _sample_segment, _scan, _scan_M, ball_clearance
 from .options import GainOptions, GainSchedule, Segment
 from .physics import SpatialModel, _is_spatial
 from .solve import _initial_cuts, _solve_with_cuts, solve_gains
@@ -61,6 +61,12 @@ def schedule_gains(src, path, options: GainOptions | None = None, *, progress=No
     Cuts the path into pieces of at most ``max_segment``, halves the pieces whose ball no sampled
     gain certifies, chooses all gains in one casadi problem, verifies each certificate densely and
     halves (and re-solves) where the verification fails, up to ``rounds`` times.
+
+    With anatomy (3-D), a piece whose convergence ball (radius = its length + ``switch_tolerance``)
+    is not robustly clear (:func:`ball_clearance` < ``[anatomy] clearance``) is halved too, before
+    any gain is sampled, as long as halving can help (the motion of one of its halves keeps
+    ``[anatomy] clearance + switch_tolerance + min_segment``) and the floor (``max_depth`` halvings,
+    ``min_segment``) allows; a ball still not clear is reported not certified with the reason.
     """
     ev = _as_evaluator(src)
     opts = (options or _default_options(src)).validate()
@@ -107,7 +113,34 @@ def schedule_gains(src, path, options: GainOptions | None = None, *, progress=No
         a, b, _, d = piece
         return d < opts.max_depth and np.linalg.norm(b - a) / 2 >= opts.min_segment
 
-    # 1) halve where the optimiser's own sample shows no certifying gain
+    def ball_blocked(piece):
+        """The piece's ball is not clear of the anatomy, but halving it can make its parts' balls clear."""
+        if anatomy is None or not can_split(piece):
+            return False
+        a, b = piece[0], piece[1]
+        R = float(np.linalg.norm(b - a)) + opts.switch_tolerance
+        if ball_clearance(anatomy, b, R) >= anatomy.required:
+            return False
+        # every part of a motion keeps the motion's clearance, so a part of length l has a clear ball when
+        # that clearance is >= required + l + switch_tolerance: halve while either half can get there
+        # (above the floor length); this also isolates the stretches no halving can certify
+        m = 0.5 * (a + b)
+        reach = anatomy.motion(np.stack([a, m]), np.stack([m, b])) - opts.switch_tolerance - opts.min_segment
+        return bool(np.any(reach >= anatomy.required))
+
+    # 1) halve where the ball is not clear of the anatomy (no gain samples needed), then where the
+    #    optimiser's own sample shows no certifying gain
+    changed = True
+    while changed:
+        changed = False
+        out = []
+        for p in pieces:
+            if ball_blocked(p):
+                out += split(p)
+                changed = True
+            else:
+                out.append(p)
+        pieces = out
     changed = True
     while changed:
         changed = False
@@ -173,13 +206,19 @@ def schedule_gains(src, path, options: GainOptions | None = None, *, progress=No
             if anatomy is not None:
                 # the whole convergence ball must be robustly clear (docs/physics.md "Anatomy"): the
                 # clearance at its centre less its radius bounds every tip of it (1-Lipschitz)
-                ball_cl = float(anatomy.tip(b)) - s["d"]
+                ball_cl = ball_clearance(anatomy, b, s["d"])
                 if cert and ball_cl < anatomy.required:
                     cert = False
                     reason = (f"the convergence ball (radius {s['d'] * 1000:.1f} mm) is not robustly clear of the "
                               f"anatomy: clearance >= {max(ball_cl, 0.0) * 1000:.1f} mm < {anatomy.required * 1000:.1f} mm")
-                    if can_split(p):
+                    if ball_blocked(p):
                         redo.append(i)
+                    elif not can_split(p):
+                        reason += " (at the floor length: no shorter segment)"
+                    else:
+                        own = float(anatomy.motion(a, b))
+                        reason += (f" (the path keeps {own * 1000:.1f} mm here, less than the clearance + switch "
+                                   f"tolerance + {opts.min_segment * 1000:.1f} mm: no shorter segment can be clear)")
             if not cert and not reason:
                 if math.isnan(gn):
                     reason = "no tip of the ball is reachable under the error set"

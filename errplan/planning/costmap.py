@@ -199,6 +199,7 @@ class CostMap:
         self._D = cellwalk.pack(self.origin, self.h, cell.shape, multilinear_coefficients(self.integrand),
                                 cell, self.f_max)
         self.anatomy = None  # errplan.anatomy.ShaftClearance, attached by attach_anatomy
+        self.anatomy_margin = 0.0  # m of anatomy.required kept beyond [anatomy] clearance (attach_anatomy)
         self._clear = None
         if self.dim == 2:
             self._walk, self._point, self._path = cellwalk.walk2, cellwalk.point_ok2, cellwalk.path_cost2
@@ -224,17 +225,28 @@ class CostMap:
         """``"221 x 172 grid at 2 mm"``."""
         return f"{' x '.join(str(n) for n in self.shape)} grid at {self.h * 1000:g} mm"
 
-    def attach_anatomy(self, model) -> "CostMap":
+    def attach_anatomy(self, model, margin: float = 0.0) -> "CostMap":
         """Keep every point of every path robustly clear of ``model``'s obstacles (an
         :class:`errplan.anatomy.ShaftClearance`; spatial): from now on a point is valid only when it is
         also clear, and a motion only when every tip of it is (exact: one hull query per motion, not
         samples), in :meth:`point_ok`, :meth:`segment`, :meth:`motion`, :meth:`path_cost`, the planner's
-        checks and refinement. The cost is unchanged (no clearance term)."""
+        checks and refinement. The cost is unchanged (no clearance term).
+
+        ``margin`` (m): keep ``[anatomy] clearance + margin`` instead (the certifiable planner's room for
+        the convergence balls of the gain schedule, :data:`errplan.planning.plan.BALL_MARGIN`); the
+        attached model's ``required`` includes it, :attr:`anatomy_margin` says how much of it is margin."""
         if model is None or model.empty:
             return self
         if self.dim != 3:
             raise ErrplanError("anatomy is spatial: the cost map is planar")
+        if not (margin >= 0 and math.isfinite(margin)):
+            raise ErrplanError(f"anatomy margin = {margin!r}: expected a length >= 0 m")
+        if margin > 0:
+            from dataclasses import replace
+
+            model = replace(model, required=model.required + margin)
         self.anatomy = model
+        self.anatomy_margin = float(margin)
         self._clear = model.checker()
         return self
 
@@ -423,6 +435,13 @@ class CostMap:
         k = int(np.argmin(d))
         return q[k], float(d[k])
 
+    def _required_text(self) -> str:
+        req = self.anatomy.required - self.anatomy_margin
+        if self.anatomy_margin <= 0:
+            return f"[anatomy] clearance = {req * 1000:.1f} mm"
+        return (f"[anatomy] clearance = {req * 1000:.1f} mm + the {self.anatomy_margin * 1000:.1f} mm a certifiable "
+                "plan keeps for its convergence balls")
+
     def explain_point(self, p: Sequence[float], what: str = "point") -> str | None:
         """None if ``p`` is usable, otherwise a one-line reason naming the point, the cause and
         by how much (distance to the nearest usable tip, or ``rho_star`` against its bound)."""
@@ -447,8 +466,7 @@ class CostMap:
             c = float(self.anatomy.tip(np.array(p)))
             if c < self.anatomy.required:
                 return (f"{where} is not robustly clear of the anatomy: the shaft comes {c * 1000:.1f} mm from an "
-                        f"obstacle under some true port, less than [anatomy] clearance = "
-                        f"{self.anatomy.required * 1000:.1f} mm" + tail)
+                        f"obstacle under some true port, less than {self._required_text()}" + tail)
         # Which corners of the surrounding cell fail, and why.
         i = [min(max(math.floor((p[k] - self.origin[k]) / self.h), 0), self._cells[k] - 1) for k in range(self.dim)]
         corners = [tuple(a + o for a, o in zip(i, off)) for off in itertools.product((0, 1), repeat=self.dim)]
@@ -459,7 +477,7 @@ class CostMap:
             if low:
                 return (f"{where}: its grid cell is not robustly clear of the anatomy (at a corner the shaft comes "
                         f"{min(low) * 1000:.1f} mm from an obstacle or the tip is that close to the body wall, under "
-                        f"some true port; [anatomy] clearance = {self.anatomy.required * 1000:.1f} mm)" + tail)
+                        f"some true port; {self._required_text()})" + tail)
         if not all(valid[c] for c in corners):
             ws = np.ones(self.cell_ok.shape, bool)
             for s in _corner_slices(self.dim):

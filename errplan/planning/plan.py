@@ -293,6 +293,14 @@ def fields_for_planning(sc, resolution: float | None = None, progress=None, **kw
     return compute_fields(sc, resolution, rho_star=need_rho, progress=progress, **kw)
 
 
+#: m: with ``[planner] certifiable = true`` the planner keeps ``[anatomy] clearance + BALL_MARGIN`` from the
+#: anatomy. A segment's convergence ball has radius = its length + the switch tolerance (1 mm by default,
+#: :class:`errplan.gains.GainOptions`), so a path that only keeps the clearance can never have a clear ball
+#: where it grazes an obstacle; with this margin the gain schedule's halving makes every ball clear with
+#: segments of up to ``BALL_MARGIN - switch_tolerance`` (1 mm) there.
+BALL_MARGIN = 0.002
+
+
 def costmap_for(sc, mf) -> CostMap:
     """The :class:`CostMap` of a scenario's ``[planner]`` table on the fields ``mf``."""
     p = sc.planner
@@ -305,7 +313,8 @@ def costmap_for(sc, mf) -> CostMap:
         raise ErrplanError(f"{sc.source}: the fields are {getattr(mf, 'dim', 2)}-D but the scenario is {dim}-D")
     from ..fields.compute import anatomy_model
 
-    return CostMap(mf, p.metric, p.weight, p.certifiable, p.certify_margin).attach_anatomy(anatomy_model(sc))
+    margin = BALL_MARGIN if p.certifiable else 0.0
+    return CostMap(mf, p.metric, p.weight, p.certifiable, p.certify_margin).attach_anatomy(anatomy_model(sc), margin)
 
 
 def select_queries(sc, name: str | None = None) -> list:
@@ -349,7 +358,10 @@ def plan_scenario(sc, mf=None, *, query: str | None = None, planner: str | None 
                               + (f" with rho_star <= {cm.rho_bound:g}" if cm.certifiable else "") + " is empty)")
     for q in qs:
         check_endpoints(cm, q.start, q.goal, f"query {q.name!r}")
-    wm = CostMap(mf, cm.metric, cm.weight, certifiable=False).attach_anatomy(cm.anatomy) if cm.certifiable else cm
+    wm = cm
+    if cm.certifiable:  # the same anatomy, with its margin
+        wm = CostMap(mf, cm.metric, cm.weight, certifiable=False).attach_anatomy(cm.anatomy)
+        wm.anatomy_margin = cm.anatomy_margin
     plans = []
     for n, q in enumerate(qs):
         if progress:
