@@ -111,7 +111,9 @@ def _forked_task(conn, fn: Callable, args: tuple) -> None:
     except OSError:  # pragma: no cover - not permitted here: pausing then reaches this process only
         pass
     try:
-        out = ("ok", fn(*args))
+        res = fn(*args)
+        t = os.times()
+        out = ("ok", res, t.user + t.system + t.children_user + t.children_system)
     except BaseException as e:  # noqa: BLE001 - everything goes back to the parent
         out = ("err", e, traceback.format_exc())
     try:
@@ -126,7 +128,7 @@ class ForkedTasks:
     this process holds when it starts (models, compiled kernels: nothing is pickled but the result).
 
     :meth:`start` forks a task now; :meth:`collect` waits for finished ones and returns ``(key, result)``
-    pairs (a task's exception is raised here, after every other child is ended); :meth:`limited` pauses
+    pairs (and notes each one's times in :attr:`log`) (a task's exception is raised here, after every other child is ended); :meth:`limited` pauses
     (SIGSTOP, each child with its process group) all but ``n`` running tasks meanwhile: for a step of this
     process that must not share the cores (a planner with a time budget). The caller decides what to start
     and when; :meth:`close` ends whatever still runs.
@@ -137,6 +139,8 @@ class ForkedTasks:
         self._ctx = mp.get_context("fork")
         self._running: dict = {}  # reader connection -> (key, process, started, light)
         self._paused: set = set()
+        #: per finished task: key, start and end (perf_counter, s) and CPU seconds (its process and its workers)
+        self.log: list[dict] = []
 
     @property
     def free(self) -> int:
@@ -168,13 +172,14 @@ class ForkedTasks:
 
     def collect(self, timeout: float | None = None) -> list:
         """The ``(key, result)`` of every task that finished within ``timeout`` seconds (None: wait for one)."""
+        import time
         from multiprocessing.connection import wait
 
         if not self._running:
             return []
         done = []
         for r in wait(list(self._running), timeout):
-            key, p, _, _ = self._running.pop(r)
+            key, p, t_start, _ = self._running.pop(r)
             try:
                 msg = r.recv()
             except EOFError:
@@ -185,6 +190,7 @@ class ForkedTasks:
             if msg[0] != "ok":
                 self.close()
                 raise msg[1]
+            self.log.append({"key": key, "start": t_start, "end": time.perf_counter(), "cpu": msg[2]})
             done.append((key, msg[1]))
         return done
 

@@ -15,6 +15,8 @@ With ``--scenario F`` only that scenario runs (planar or spatial), recorded to `
 """
 from __future__ import annotations
 
+import contextlib
+import json
 import os
 import time
 from dataclasses import dataclass
@@ -34,6 +36,25 @@ SPATIAL_RESOLUTION = 0.010
 SPATIAL_METRICS = ("G_norm", "phi_hat_max", "rho_star")
 #: processes the demo runs its steps in (1: one after another); default: every core
 WORKERS_ENV = "ERRPLAN_DEMO_WORKERS"
+#: a JSON file to write the demo's steps to (scenario, step, start and end s, CPU s): benchmarks/first_run.py
+PROFILE_ENV = "ERRPLAN_DEMO_PROFILE"
+_STEPS: list[dict] = []
+
+
+def _cpu() -> float:
+    t = os.times()
+    return t.user + t.system + t.children_user + t.children_system
+
+
+@contextlib.contextmanager
+def _step(scenario: str, step: str):
+    """Note a step of this process (its CPU with that of the worker processes it waited for)."""
+    c, w = _cpu(), time.perf_counter()
+    try:
+        yield
+    finally:
+        _STEPS.append({"scenario": scenario, "step": step, "process": "main", "start": w,
+                       "end": time.perf_counter(), "cpu": _cpu() - c})
 
 
 def bundled_scenario() -> Path:
@@ -99,16 +120,19 @@ def run_scenario(sc, path: Path, rec: Path | None, quiet: bool, *, spatial_demo:
     if not sc.queries:
         raise ErrplanError(f"{path}: the scenario has no [[query]] to plan")
     prog = Progress("fields", quiet=quiet)
-    mf = _fields(sc, spatial_demo, prog)
+    with _step(sc.name, "fields"):
+        mf = _fields(sc, spatial_demo, prog)
     prog.done()
     t_fields = time.perf_counter() - t0
     t1 = time.perf_counter()
-    plans = _plans(sc, mf)
+    with _step(sc.name, "plan"):
+        plans = _plans(sc, mf)
     t_plan = time.perf_counter() - t1
     t2 = time.perf_counter()
     prog = Progress("gains+simulation", quiet=quiet)
     warmup.wait(f"gains{sc.dim}")
-    res = run_pipeline(sc, plans, mf, record=str(rec) if rec else None, progress=prog)
+    with _step(sc.name, "queries+record"):
+        res = run_pipeline(sc, plans, mf, record=str(rec) if rec else None, progress=prog)
     prog.done()
     t_pipe = time.perf_counter() - t2
     times = {"fields": t_fields, "plan": t_plan, "gains_simulation_record": t_pipe,
@@ -224,7 +248,7 @@ def _run_side_by_side(jobs: list[DemoJob], quiet: bool, slots: int) -> list[dict
         sc = job.sc
         s["mf"], s["t_fields"] = mf, time.perf_counter() - s["t0"]
         t1 = time.perf_counter()
-        with tasks.limited(slots - 1):
+        with tasks.limited(slots - 1), _step(sc.name, "plan"):
             s["plans"] = _plans(sc, mf)
         s["t_plan_end"] = time.perf_counter()
         s["t_plan"] = s["t_plan_end"] - t1
@@ -244,7 +268,9 @@ def _run_side_by_side(jobs: list[DemoJob], quiet: bool, slots: int) -> list[dict
         s["prog"](1.0 - left / len(s["runs"]), f"{run.name} done")
         if left:
             return
-        res = finish_pipeline(job.sc, s["plans"], s["runs"], s["mf"], record=str(job.record) if job.record else None)
+        with _step(job.sc.name, "record"):
+            res = finish_pipeline(job.sc, s["plans"], s["runs"], s["mf"],
+                                  record=str(job.record) if job.record else None)
         s["prog"].done()
         end = time.perf_counter()
         times = {"fields": s["t_fields"], "plan": s["t_plan"], "gains_simulation_record": end - s["t_plan_end"],
@@ -286,6 +312,10 @@ def _run_side_by_side(jobs: list[DemoJob], quiet: bool, slots: int) -> list[dict
                 printed += 1
     finally:
         tasks.close()
+        for e in tasks.log:
+            kind, i, q = e["key"]
+            _STEPS.append({"scenario": jobs[i].sc.name, "step": "fields" if kind == 0 else f"query {q}",
+                           "process": "worker", "start": e["start"], "end": e["end"], "cpu": e["cpu"]})
     return [s["doc"] for s in state]
 
 
@@ -339,6 +369,11 @@ def run(args) -> int:
     doc["total_s"] = time.perf_counter() - t0
     if args.json:
         write_json(args.json, doc)
+    prof = os.environ.get(PROFILE_ENV)
+    if prof:
+        with open(prof, "w", encoding="utf-8") as f:
+            json.dump({"workers": workers, "wall": doc["total_s"], "cpu": _cpu(),
+                       "steps": [dict(e, start=e["start"] - t0, end=e["end"] - t0) for e in _STEPS]}, f, indent=1)
     if len(docs) > 1:
         print(f"\ndemo total: {doc['total_s']:.1f} s")
     return 0
