@@ -164,8 +164,8 @@ class DemoJob:
             if self.load_part:
                 warmup.wait(self.load_part)
             self.sc = load_scenario(self.path)
-            if not self.sc.queries:
-                raise ErrplanError(f"{self.path}: the scenario has no [[query]] to plan")
+        if not self.sc.queries:
+            raise ErrplanError(f"{self.path}: the scenario has no [[query]] to plan")
         return self.sc
 
 
