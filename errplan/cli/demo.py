@@ -36,6 +36,9 @@ SPATIAL_RESOLUTION = 0.010
 SPATIAL_METRICS = ("G_norm", "phi_hat_max", "rho_star")
 #: processes the demo runs its steps in (1: one after another); default: every core
 WORKERS_ENV = "ERRPLAN_DEMO_WORKERS"
+#: one-process tasks that go on while the demo plans (the rest is paused): none, so that the planner (a time
+#: budget; on a loaded machine its search may end by time) gets what it gets one step after another
+PLAN_BESIDE = 0
 #: a JSON file to write the demo's steps to (scenario, step, start and end s, CPU s): benchmarks/first_run.py
 PROFILE_ENV = "ERRPLAN_DEMO_PROFILE"
 _STEPS: list[dict] = []
@@ -215,8 +218,8 @@ def _run_side_by_side(jobs: list[DemoJob], quiet: bool, slots: int) -> list[dict
     printed blocks, in the same order, as :func:`run_scenario` one after the other.
 
     Each scenario's fields are one task (the spatial fields with tile workers of their own); its plan
-    runs here, with every task but ``slots - 1`` one-process ones paused (the planner has a time budget:
-    it has a core to itself, as one after the other); then each query's gains, simulation and corner
+    runs here with every task paused (``PLAN_BESIDE``: the planner has a time budget, and runs as it does
+    one step after another); then each query's gains, simulation and corner
     replays (:func:`errplan.pipeline.run_query`) is a task; its recording and its block are made here
     once all its queries are back. Fields first (the heaviest scenario's first, or with a first run's
     warm-up the jobs' order, the order the warm-up compiles in), then the queries, the heaviest
@@ -248,7 +251,7 @@ def _run_side_by_side(jobs: list[DemoJob], quiet: bool, slots: int) -> list[dict
         sc = job.sc
         s["mf"], s["t_fields"] = mf, time.perf_counter() - s["t0"]
         t1 = time.perf_counter()
-        with tasks.limited(slots - 1), _step(sc.name, "plan"):
+        with tasks.limited(PLAN_BESIDE), _step(sc.name, "plan"):
             s["plans"] = _plans(sc, mf)
         s["t_plan_end"] = time.perf_counter()
         s["t_plan"] = s["t_plan_end"] - t1
