@@ -185,6 +185,8 @@ def kernel_array(a: np.ndarray) -> np.ndarray:
     """``a`` as a writeable C array, copied only when it is not one already. numba types a read-only
     array (a broadcast view) apart from a writeable one and compiles a kernel once more for it; passing
     every kernel argument built from a caller's array through here keeps one specialization per kernel."""
+    if type(a) is np.ndarray and a.flags.c_contiguous and a.flags.writeable:  # what np.require returns too
+        return a
     return np.require(a, requirements=("C", "W"))
 
 

@@ -254,32 +254,50 @@ def run_pipeline(sc, query_plans, fields=None, *, record: str | None = None, pro
     :class:`~errplan.fields.MetricField` the plan used (needed only for the recording).
     Returns ``{"queries": [...], "runs": [QueryRun...]}``; ``runs`` is for
     :func:`summary_table` and the recording (not JSON).
+
+    The queries are independent: :func:`query_jobs` and :func:`finish_pipeline` are the two halves
+    around them, for a caller that runs the :func:`run_query` calls elsewhere (``errplan demo`` runs
+    them in worker processes); the result is the same.
     """
     opts = options or options_from_scenario(sc)
     plans = list(query_plans)
-    model = SpatialModel(sc) if getattr(sc, "dim", 2) == 3 else None
-    out, runs = [], []
-    for i, q in enumerate(plans):
-        qj = dict(_as_query_json(q))
+    model, qjs = query_jobs(sc, plans)
+    runs = []
+    for i, qj in enumerate(qjs):
 
         def sub(f, msg, i=i):
             if progress:
                 progress((i + f) / max(len(plans), 1), msg)
 
-        run = run_query(sc, qj, options=opts, corners=corners, progress=sub, model=model)
+        runs.append(run_query(sc, qj, options=opts, corners=corners, progress=sub, model=model))
+    return finish_pipeline(sc, plans, runs, fields, record=record)
+
+
+def query_jobs(sc, query_plans) -> tuple[SpatialModel | None, list[dict]]:
+    """The scenario's certificate physics (3-D: one :class:`SpatialModel` for every query; planar:
+    None) and the query JSONs :func:`run_query` takes, one per plan."""
+    model = SpatialModel(sc) if getattr(sc, "dim", 2) == 3 else None
+    return model, [dict(_as_query_json(q)) for q in query_plans]
+
+
+def finish_pipeline(sc, query_plans, runs: list[QueryRun], fields=None, *, record: str | None = None) -> dict:
+    """The pipeline's result from the :func:`run_query` runs of ``query_plans`` (in order): the new keys
+    added to every query JSON (and to a plan object's ``extra``), the recording written."""
+    out = []
+    for q, run in zip(query_plans, runs):
+        qj = dict(_as_query_json(q))
         extra = run.extra_json()
         qj.update(extra)
         if hasattr(q, "extra") and isinstance(getattr(q, "extra"), dict):
             q.extra.update(extra)
         out.append(qj)
-        runs.append(run)
     if record:
         from .recording import record_plan
 
         if fields is None:
             raise ErrplanError("--record needs the fields the plan used")
         record_plan(record, sc, fields, runs)
-    return {"queries": out, "runs": runs}
+    return {"queries": out, "runs": list(runs)}
 
 
 # ----------------------------------------------------------------------------- table

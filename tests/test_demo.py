@@ -140,3 +140,79 @@ def test_demo_bad_scenario_is_one_clear_error(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "missing.toml" in err and err.count("\n") == 1
     assert not (tmp_path / "x.rrd").exists()
+
+
+def test_side_by_side_prints_what_one_after_another_prints(tmp_path, capsys, monkeypatch):
+    """The demo's scenarios run side by side in worker processes (fields, then every query's gains and
+    replays as tasks) print the same blocks, in the same order, and return the same documents as one
+    after the other in this process (a small UR5 scenario with two queries, another with one)."""
+    import errplan.planning.plan as plan_mod
+    from arms import ur5_scenario
+
+    from errplan.cli import demo as d
+
+    # the planner stops at its iteration cap, however loaded the machine: its plans are a function of the seed
+    monkeypatch.setattr(plan_mod, "HARD_STOP", 1e4)
+    p = ur5_scenario(tmp_path, """
+[[query]]
+name = "hop"
+start = [0.0, 0.0, 0.70]
+goal = [0.03, 0.0, 0.70]
+
+[[query]]
+name = "back"
+start = [0.03, 0.0, 0.70]
+goal = [0.0, 0.01, 0.70]
+""", name="ur5")
+    p2 = ur5_scenario(tmp_path, """
+[[query]]
+name = "side"
+start = [0.0, 0.01, 0.70]
+goal = [0.03, 0.0, 0.70]
+""", name="ur5b")
+    for f in (p, p2):
+        f.write_text(f.read_text().replace("resolution = 0.008", "resolution = 0.016"))  # small and fast
+
+    def jobs():  # the second one heavier: side by side it starts first, and is still printed second
+        return [d.DemoJob(p, record=tmp_path / "a.rrd"), d.DemoJob(p2, record=tmp_path / "b.rrd", weight=2.0)]
+
+    def strip(out):
+        return [ln for ln in out.splitlines() if not ln.startswith(("time:", "recording:"))]
+
+    def plain(v):  # the documents without their wall-clock times
+        if isinstance(v, dict):
+            return {k: plain(x) for k, x in v.items() if not k.startswith(("time", "timing"))}
+        return [plain(x) for x in v] if isinstance(v, list) else v
+
+    one = d.run_jobs(jobs(), True, workers=1)
+    out_one = capsys.readouterr().out
+    d._STEPS.clear()
+    two = d.run_jobs(jobs(), True, workers=2)
+    out_two = capsys.readouterr().out
+    assert any(e["process"] == "worker" and e["step"] == "query 1" for e in d._STEPS)  # it did run side by side
+    assert out_one.index("errplan demo: ur5 ") < out_one.index("errplan demo: ur5b") and "back" in out_one
+    assert strip(out_two) == strip(out_one)
+    assert plain(two) == plain(one)
+    assert (tmp_path / "a.rrd").exists() and (tmp_path / "b.rrd").exists()
+
+
+def test_a_failing_step_in_a_worker_is_the_one_clear_error(tmp_path):
+    """An error of a step run in a worker process reaches the command as itself (ErrplanError: exit 2),
+    and no worker is left behind."""
+    from errplan.cluster import ForkedTasks
+    from errplan.errors import ErrplanError
+
+    tasks = ForkedTasks(2)
+    tasks.start("ok", sum, [1, 2])
+    tasks.start("bad", _fail, "value 7")
+    got = {}
+    with pytest.raises(ErrplanError, match="value 7"):
+        while True:
+            got.update(tasks.collect())
+    assert len(tasks) == 0
+
+
+def _fail(msg):
+    from errplan.errors import ErrplanError
+
+    raise ErrplanError(msg)

@@ -15,7 +15,11 @@ With ``--scenario F`` only that scenario runs (planar or spatial), recorded to `
 """
 from __future__ import annotations
 
+import contextlib
+import json
+import os
 import time
+from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
 
@@ -30,6 +34,30 @@ BUNDLED_ANATOMY = SCENARIOS / "abdomen.toml"
 #: grid spacing (m) of the demo's spatial fields (the scenario's [fields] resolution is 4 mm)
 SPATIAL_RESOLUTION = 0.010
 SPATIAL_METRICS = ("G_norm", "phi_hat_max", "rho_star")
+#: processes the demo runs its steps in (1: one after another); default: every core
+WORKERS_ENV = "ERRPLAN_DEMO_WORKERS"
+#: one-process tasks that go on while the demo plans (the rest is paused): none, so that the planner (a time
+#: budget; on a loaded machine its search may end by time) gets what it gets one step after another
+PLAN_BESIDE = 0
+#: a JSON file to write the demo's steps to (scenario, step, start and end s, CPU s): benchmarks/first_run.py
+PROFILE_ENV = "ERRPLAN_DEMO_PROFILE"
+_STEPS: list[dict] = []
+
+
+def _cpu() -> float:
+    t = os.times()
+    return t.user + t.system + t.children_user + t.children_system
+
+
+@contextlib.contextmanager
+def _step(scenario: str, step: str):
+    """Note a step of this process (its CPU with that of the worker processes it waited for)."""
+    c, w = _cpu(), time.perf_counter()
+    try:
+        yield
+    finally:
+        _STEPS.append({"scenario": scenario, "step": step, "process": "main", "start": w,
+                       "end": time.perf_counter(), "cpu": _cpu() - c})
 
 
 def bundled_scenario() -> Path:
@@ -44,57 +72,254 @@ def spatial_record_path(rec: Path, tag: str = "3d") -> Path:
     return rec.with_name(f"{rec.stem}-{tag}{rec.suffix or '.rrd'}")
 
 
-def run_scenario(sc, path: Path, rec: Path | None, quiet: bool, *, spatial_demo: bool | str = False) -> dict:
-    """Fields, plan, gains, simulation and recording of one scenario; prints its table and times.
-    Returns the JSON document of the run (``queries`` with the plan JSON keys, ``timing_s``)."""
+def _fields(sc, spatial_demo: bool | str, progress):
+    """The scenario's worst-case fields for the demo: planar with rho* at its own grid; the PHANToM at
+    ``SPATIAL_RESOLUTION`` (``spatial_demo`` True), the abdomen at its own grid ("own"), with
+    ``SPATIAL_METRICS``, on every core."""
     from ..fields import compute_fields
-    from ..pipeline import run_pipeline, summary_table
+
+    # a first run compiles ahead in the background (errplan.cli.warmup); the spatial demo's metrics have no
+    # exact |phi_max|, its search is compiled without it
+    warmup.wait(_fields_part(sc, spatial_demo))
+    if spatial_demo:  # True: the PHANToM at SPATIAL_RESOLUTION; "own": the abdomen at its own resolution
+        res = SPATIAL_RESOLUTION if spatial_demo is True else None
+        return compute_fields(sc, res, metrics=SPATIAL_METRICS, progress=progress, workers=None)
+    return compute_fields(sc, rho_star=True, progress=progress)
+
+
+def _fields_part(sc, spatial_demo) -> str:
+    return f"fields{sc.dim}{'g' if spatial_demo else ''}"
+
+
+def _plans(sc, mf) -> list:
+    """Every query planned on ``mf`` (the planner has a time budget: it runs with the warm-up paused, as
+    in a later run)."""
     from ..planning import plan_scenario
+
+    warmup.wait(f"plan{sc.dim}")
+    with warmup.paused():
+        return plan_scenario(sc, mf).queries
+
+
+def _report(sc, path: Path, rec: Path | None, res: dict, spatial_demo, times: dict) -> tuple[str, dict]:
+    """The scenario's printed block (table, times, recording) and its JSON document."""
+    from ..pipeline import summary_table
+
+    res_note = f" (spatial fields at {SPATIAL_RESOLUTION * 1000:g} mm)" if spatial_demo is True else ""
+    lines = [summary_table(res["runs"], f"errplan demo: {sc.name} ({path.name}){res_note}"),
+             f"time: fields {times['fields']:.1f} s, planning {times['plan']:.1f} s, gains + simulation"
+             f"{' + recording' if rec else ''} {times['gains_simulation_record']:.1f} s, total {times['total']:.1f} s"]
+    if rec:
+        lines.append(f"recording: {rec}  (open it with `errplan view {rec}`)")
+    return "\n".join(lines), {"scenario": sc.name, "dim": sc.dim, "queries": res["queries"], "timing_s": times}
+
+
+def run_scenario(sc, path: Path, rec: Path | None, quiet: bool, *, spatial_demo: bool | str = False) -> dict:
+    """Fields, plan, gains, simulation and recording of one scenario, one step after the other; prints its
+    table and times. Returns the JSON document of the run (``queries`` with the plan JSON keys, ``timing_s``)."""
+    from ..pipeline import run_pipeline
 
     t0 = time.perf_counter()
     if not sc.queries:
         raise ErrplanError(f"{path}: the scenario has no [[query]] to plan")
     prog = Progress("fields", quiet=quiet)
-    # a first run compiles ahead in the background (errplan.cli.warmup); the spatial demo's metrics have no
-    # exact |phi_max|, its search is compiled without it
-    warmup.wait(f"fields{sc.dim}{'g' if spatial_demo else ''}")
-    if spatial_demo:  # True: the PHANToM at SPATIAL_RESOLUTION; "own": the abdomen at its own resolution
-        res = SPATIAL_RESOLUTION if spatial_demo is True else None
-        mf = compute_fields(sc, res, metrics=SPATIAL_METRICS, progress=prog, workers=None)
-    else:
-        mf = compute_fields(sc, rho_star=True, progress=prog)
+    with _step(sc.name, "fields"):
+        mf = _fields(sc, spatial_demo, prog)
     prog.done()
     t_fields = time.perf_counter() - t0
     t1 = time.perf_counter()
-    warmup.wait(f"plan{sc.dim}")
-    with warmup.paused():  # the planner has a time budget: it runs alone, as in a later run
-        plans = plan_scenario(sc, mf).queries
+    with _step(sc.name, "plan"):
+        plans = _plans(sc, mf)
     t_plan = time.perf_counter() - t1
     t2 = time.perf_counter()
     prog = Progress("gains+simulation", quiet=quiet)
     warmup.wait(f"gains{sc.dim}")
-    res = run_pipeline(sc, plans, mf, record=str(rec) if rec else None, progress=prog)
+    with _step(sc.name, "queries+record"):
+        res = run_pipeline(sc, plans, mf, record=str(rec) if rec else None, progress=prog)
     prog.done()
     t_pipe = time.perf_counter() - t2
-    total = time.perf_counter() - t0
-    res_note = f" (spatial fields at {SPATIAL_RESOLUTION * 1000:g} mm)" if spatial_demo is True else ""
-    print(summary_table(res["runs"], f"errplan demo: {sc.name} ({path.name}){res_note}"))
-    print(f"time: fields {t_fields:.1f} s, planning {t_plan:.1f} s, gains + simulation"
-          f"{' + recording' if rec else ''} {t_pipe:.1f} s, total {total:.1f} s")
-    if rec:
-        print(f"recording: {rec}  (open it with `errplan view {rec}`)")
-    return {"scenario": sc.name, "dim": sc.dim, "queries": res["queries"],
-            "timing_s": {"fields": t_fields, "plan": t_plan, "gains_simulation_record": t_pipe, "total": total}}
+    times = {"fields": t_fields, "plan": t_plan, "gains_simulation_record": t_pipe,
+             "total": time.perf_counter() - t0}
+    text, doc = _report(sc, path, rec, res, spatial_demo, times)
+    print(text)
+    return doc
 
 
-def _load_when_compiled(part: str, path: Path):
-    """A bundled scenario, loaded once a first run's warm-up has compiled ``part``: its load calls those
-    kernels (the arm's kinematics; the anatomy's clearances for its checks), and compiling them here too
-    would only duplicate the work."""
-    from ..api import load_scenario
+@dataclass
+class DemoJob:
+    """One scenario of the demo: its file, how its fields are computed (``spatial_demo``: False planar,
+    True the PHANToM at ``SPATIAL_RESOLUTION``, "own" at the scenario's grid), the warm-up part its load
+    waits for (a first run: its load calls those kernels, and compiling them here too would only duplicate
+    the work), its expected share of the work (``weight``: the heaviest chain starts first when the
+    scenarios run side by side) and where it is recorded."""
 
-    warmup.wait(part)
-    return load_scenario(path)
+    path: Path
+    spatial_demo: bool | str = False
+    load_part: str | None = None
+    weight: float = 1.0
+    record: Path | None = None
+    sc: object = None
+
+    def load(self):
+        from ..api import load_scenario
+
+        if self.sc is None:
+            if self.load_part:
+                warmup.wait(self.load_part)
+            self.sc = load_scenario(self.path)
+        if not self.sc.queries:
+            raise ErrplanError(f"{self.path}: the scenario has no [[query]] to plan")
+        return self.sc
+
+
+def demo_workers() -> int:
+    """Processes the demo runs its steps in: ``ERRPLAN_DEMO_WORKERS`` (1: one step after another, in this
+    process), else every core this process may use."""
+    from ..cluster import default_workers
+
+    v = os.environ.get(WORKERS_ENV, "").strip()
+    if not v:
+        return default_workers()
+    try:
+        n = int(v)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise ErrplanError(f"{WORKERS_ENV} = {v!r}: expected a number of processes >= 1")
+    return n
+
+
+def run_jobs(jobs: list[DemoJob], quiet: bool, workers: int = 1) -> list[dict]:
+    """Every scenario of ``jobs``, its block printed in the jobs' order (a blank line between blocks);
+    returns their JSON documents. ``workers`` 1: one scenario after the other in this process
+    (:func:`run_scenario`); more: side by side (:func:`_run_side_by_side`), the same blocks."""
+    if workers <= 1:
+        docs = []
+        for i, job in enumerate(jobs):
+            if i:
+                print()
+            docs.append(run_scenario(job.load(), job.path, job.record, quiet, spatial_demo=job.spatial_demo))
+        return docs
+    return _run_side_by_side(jobs, quiet, workers)
+
+
+def _fields_task(sc, spatial_demo, quiet: bool):
+    """A scenario's fields in a worker process (its own worker processes for the tiles where
+    :func:`_fields` uses all cores)."""
+    prog = Progress(f"fields ({sc.name})", quiet=quiet)
+    mf = _fields(sc, spatial_demo, prog)
+    prog.done()
+    return mf
+
+
+def _run_side_by_side(jobs: list[DemoJob], quiet: bool, slots: int) -> list[dict]:
+    """The scenarios' steps spread over ``slots`` worker processes (:class:`errplan.cluster.ForkedTasks`,
+    forked: each step has the models and kernels this process holds), with the same results and the same
+    printed blocks, in the same order, as :func:`run_scenario` one after the other.
+
+    Each scenario's fields are one task (the spatial fields with tile workers of their own); its plan
+    runs here with every task paused (``PLAN_BESIDE``: the planner has a time budget, and runs as it does
+    one step after another); then each query's gains, simulation and corner
+    replays (:func:`errplan.pipeline.run_query`) is a task; its recording and its block are made here
+    once all its queries are back. Fields first (the heaviest scenario's first, or with a first run's
+    warm-up the jobs' order, the order the warm-up compiles in), then the queries, the heaviest
+    scenario's first; a step whose kernels the warm-up still compiles waits for them.
+    """
+    from ..cluster import ForkedTasks
+    from ..pipeline import finish_pipeline, query_jobs, run_query
+    from ..gains import options_from_scenario
+
+    n = len(jobs)
+    order = list(range(n)) if warmup.active() else sorted(range(n), key=lambda i: -jobs[i].weight)
+    rank = {i: r for r, i in enumerate(order)}
+    state = [{"runs": None, "text": None, "doc": None} for _ in jobs]
+    pending: list[tuple] = [(0, rank[i], 0, i) for i in order]  # (kind 0 fields / 1 query, rank, query, job)
+    tasks = ForkedTasks(slots)
+    printed = 0
+
+    def startable(item) -> bool:
+        kind, _, _, i = item
+        if kind:
+            return True
+        job = jobs[i]
+        if job.sc is None and job.load_part and not warmup.ready(job.load_part):
+            return False
+        return warmup.ready(_fields_part(job.load(), job.spatial_demo))
+
+    def on_fields(i: int, mf) -> None:
+        job, s = jobs[i], state[i]
+        sc = job.sc
+        s["mf"], s["t_fields"] = mf, time.perf_counter() - s["t0"]
+        t1 = time.perf_counter()
+        with tasks.limited(PLAN_BESIDE), _step(sc.name, "plan"):
+            s["plans"] = _plans(sc, mf)
+        s["t_plan_end"] = time.perf_counter()
+        s["t_plan"] = s["t_plan_end"] - t1
+        warmup.wait(f"gains{sc.dim}")
+        if sc.dim == 3:  # what every query calls, loaded once here rather than in each worker
+            warmup.load_here(("fields3g", "gains3"))
+        s["model"], s["qjs"] = query_jobs(sc, s["plans"])
+        s["opts"] = options_from_scenario(sc)
+        s["runs"] = [None] * len(s["qjs"])
+        s["prog"] = Progress(f"gains+simulation ({sc.name})", quiet=quiet)
+        pending.extend((1, rank[i], q, i) for q in range(len(s["qjs"])))
+
+    def on_query(i: int, q: int, run) -> None:
+        job, s = jobs[i], state[i]
+        s["runs"][q] = run
+        left = sum(r is None for r in s["runs"])
+        s["prog"](1.0 - left / len(s["runs"]), f"{run.name} done")
+        if left:
+            return
+        with _step(job.sc.name, "record"):
+            res = finish_pipeline(job.sc, s["plans"], s["runs"], s["mf"],
+                                  record=str(job.record) if job.record else None)
+        s["prog"].done()
+        end = time.perf_counter()
+        times = {"fields": s["t_fields"], "plan": s["t_plan"], "gains_simulation_record": end - s["t_plan_end"],
+                 "total": end - s["t0"]}
+        s["text"], s["doc"] = _report(job.sc, job.path, job.record, res, job.spatial_demo, times)
+
+    try:
+        while printed < n:
+            pending.sort()
+            blocked = False
+            while tasks.free > 0 and pending:
+                item = next((it for it in pending if startable(it)), None)
+                if item is None:
+                    blocked = True
+                    break
+                pending.remove(item)
+                kind, _, q, i = item
+                job, s = jobs[i], state[i]
+                if kind == 0:
+                    s["t0"] = time.perf_counter()
+                    tasks.start((0, i, 0), _fields_task, job.sc, job.spatial_demo, quiet, light=not job.spatial_demo)
+                else:
+                    tasks.start((1, i, q), partial(run_query, options=s["opts"], model=s["model"]), job.sc,
+                                s["qjs"][q], light=True)
+            if not len(tasks):
+                if not pending:
+                    raise RuntimeError("errplan demo: nothing left to run for a scenario not yet reported")
+                time.sleep(0.05)  # waiting for the warm-up
+                continue
+            for (kind, i, q), res in tasks.collect(0.05 if blocked else None):
+                if kind == 0:
+                    on_fields(i, res)
+                else:
+                    on_query(i, q, res)
+            while printed < n and state[printed]["text"] is not None:
+                if printed:
+                    print()
+                print(state[printed]["text"], flush=True)
+                printed += 1
+    finally:
+        tasks.close()
+        for e in tasks.log:
+            kind, i, q = e["key"]
+            _STEPS.append({"scenario": jobs[i].sc.name, "step": "fields" if kind == 0 else f"query {q}",
+                           "process": "worker", "start": e["start"], "end": e["end"], "cpu": e["cpu"]})
+    return [s["doc"] for s in state]
 
 
 def run(args) -> int:
@@ -103,10 +328,11 @@ def run(args) -> int:
 
     t0 = time.perf_counter()
     quiet = getattr(args, "quiet", False)
+    workers = demo_workers()
     if args.scenario:
         path = Path(args.scenario)
         sc = load_scenario(path)
-        jobs = [(lambda: sc, path, False)]
+        jobs = [DemoJob(path, sc=sc)]
         # a first run compiles the planner's (and in 3-D the gains') kernels meanwhile
         if sc.dim == 3:
             warmup.start(("plan3", "gains3") + (("anatomy",) if sc.anatomy is not None else ()))
@@ -122,24 +348,22 @@ def run(args) -> int:
         # (errplan.cli.warmup): the arm's kinematics first (a few seconds, so that this process finds
         # them), the spatial search (the longest, ready about when this process has built the map), the
         # planner's and the gains' kernels in the order a scenario's steps call them, the anatomy's. The
-        # bundled scenarios are loaded when their turn comes.
+        # bundled scenarios are loaded when their turn comes. Their weights: the work of each (the
+        # abdomen's queries are the longest, then the PHANToM's fields and queries).
         warmup.start(("plan2", "arm", "fields3g", "plan3", "gains3", "anatomy"))
-        sc = load_scenario(path)
-        jobs = [(lambda: sc, path, False),
-                (partial(_load_when_compiled, "arm", BUNDLED_SPATIAL), BUNDLED_SPATIAL, True)]
+        jobs = [DemoJob(path, sc=load_scenario(path)),
+                DemoJob(BUNDLED_SPATIAL, True, "arm", weight=2.0)]
         if BUNDLED_ANATOMY.exists():
-            jobs.append((partial(_load_when_compiled, "anatomy", BUNDLED_ANATOMY), BUNDLED_ANATOMY, "own"))
+            jobs.append(DemoJob(BUNDLED_ANATOMY, "own", "anatomy", weight=3.0))
     rec = check_output("--record", args.record)
     check_output("--json", args.json)
     recs = [rec] + [spatial_record_path(rec, tag) if rec else None for tag in ("3d", "abdomen")[:len(jobs) - 1]]
     for r in recs[1:]:
         if r is not None:
             check_output("--record", str(r))
-    docs = []
-    for i, ((load, p, spatial_demo), r) in enumerate(zip(jobs, recs)):
-        if i:
-            print()
-        docs.append(run_scenario(load(), p, r, quiet, spatial_demo=spatial_demo))
+    for job, r in zip(jobs, recs):
+        job.record = r
+    docs = run_jobs(jobs, quiet, workers)
     doc = dict(docs[0])
     if len(docs) > 1:
         doc["spatial"] = docs[1]
@@ -148,6 +372,11 @@ def run(args) -> int:
     doc["total_s"] = time.perf_counter() - t0
     if args.json:
         write_json(args.json, doc)
+    prof = os.environ.get(PROFILE_ENV)
+    if prof:
+        with open(prof, "w", encoding="utf-8") as f:
+            json.dump({"workers": workers, "wall": doc["total_s"], "cpu": _cpu(),
+                       "steps": [dict(e, start=e["start"] - t0, end=e["end"] - t0) for e in _STEPS]}, f, indent=1)
     if len(docs) > 1:
         print(f"\ndemo total: {doc['total_s']:.1f} s")
     return 0

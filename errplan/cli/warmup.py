@@ -250,6 +250,27 @@ def _done() -> set[str]:
         return set()
 
 
+def active() -> bool:
+    """Whether a warm-up is running (a first run)."""
+    proc = _STATE["proc"]
+    return proc is not None and proc.poll() is None
+
+
+def load_here(parts: Sequence[str]) -> None:
+    """The kernels of ``parts`` in this process (each waited for, then loaded from the disk cache): for a
+    process about to fork workers that all call them, so that each does not load them again."""
+    for p in parts:
+        wait(p)
+        _PARTS[p]()
+
+
+def ready(part: str) -> bool:
+    """Whether :func:`wait` for ``part`` would return at once (no warm-up, a part it does not do, done, or
+    the warm-up has exited)."""
+    proc = _STATE["proc"]
+    return proc is None or part not in _STATE["parts"] or part in _done() or proc.poll() is not None
+
+
 def wait(part: str, timeout: float = 900.0) -> None:
     """Block until the warm-up has done ``part`` (returns at once without a warm-up, for a part it does
     not do, or once it has exited)."""

@@ -271,9 +271,13 @@ class KernelEvaluator:
 
         x = np.asarray(x, float)
         theta = np.asarray(theta, float)
-        shape = np.broadcast_shapes(x.shape[:-1], theta.shape[:-1])
-        X = np.ascontiguousarray(np.broadcast_to(x, shape + x.shape[-1:]).reshape(-1, self.dim))
-        TH = np.ascontiguousarray(np.broadcast_to(theta, shape + theta.shape[-1:]).reshape(-1, theta.shape[-1]))
+        if x.ndim == 2 and theta.ndim == 2 and len(x) == len(theta):  # pairs (the verification's many small calls)
+            shape = x.shape[:1]
+            X, TH = np.ascontiguousarray(x), np.ascontiguousarray(theta)
+        else:
+            shape = np.broadcast_shapes(x.shape[:-1], theta.shape[:-1])
+            X = np.ascontiguousarray(np.broadcast_to(x, shape + x.shape[-1:]).reshape(-1, self.dim))
+            TH = np.ascontiguousarray(np.broadcast_to(theta, shape + theta.shape[-1:]).reshape(-1, theta.shape[-1]))
         M = np.empty((len(X), self.dim, self.dim))
         ok = np.empty(len(X), bool)
         a = self._args
