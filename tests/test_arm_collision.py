@@ -287,3 +287,45 @@ def test_arm_at_tip_puts_the_wrist_on_the_rigid_shaft(narrow_arm):
         arm_at_tip(arm, [0.3, 0.5, 0.1], [0.3, 0.5, 0.1], L)
     with pytest.raises(ErrplanError, match="shaft length"):
         arm_at_tip(arm, [0.3, 0.5, 0.1], [0.3, 0.6, 0.1], -0.1)
+
+
+# ----------------------------------------------------------------------------- drawing the arms
+def test_triangle_meshes_are_the_placed_collision_meshes(arms, surfaces):
+    """Every vertex of every object drawn lies on a vertex of the same mesh placed here independently."""
+    a, _, A, _ = arms
+    q = np.array([0.3, -0.7, 0.9])
+    data = a.model.createData()
+    pin.framesForwardKinematics(a.model, data, a.pinocchio_configuration(q))
+    Bm = pose(BASE_A["base_position"], BASE_A["base_rpy"])
+    meshes = A.triangle_meshes(q)
+    assert [m[0] for m in meshes] == list(A.names) and len(meshes) == len(surfaces) == 8
+    for (name, v, f), (link, O, verts, _) in zip(meshes, surfaces):
+        assert name.startswith(link)
+        M = Bm @ data.oMf[a.model.getFrameId(link)].homogeneous @ O
+        mine = verts @ M[:3, :3].T + M[:3, 3]
+        assert cKDTree(mine).query(v)[0].max() < 1e-6, name
+        assert f.min() >= 0 and f.max() < len(v) and len(f) >= 12
+
+
+def test_recording_holds_every_object_of_both_arms(arms, tmp_path):
+    import rerun.chunk as rrc
+
+    from errplan.recording import sdk
+    from errplan.recording.arms import log_arm_geometry
+
+    _, _, A, B = arms
+    path = tmp_path / "arms.rrd"
+    logged = []
+
+    def log(rec, rr):
+        logged.extend(log_arm_geometry(rec, "world/arms/a", A, CONFIGS[0][0], color=(200, 80, 80)))
+        logged.extend(log_arm_geometry(rec, "world/arms/b", B, CONFIGS[0][1], static=True))
+
+    sdk.write(path, "errplan-test", "arms", None, log)
+    assert path.exists() and not path.with_name(path.name + ".part").exists()
+    rows = {}
+    for chunk in rrc.RrdReader(path).stream().to_chunks():
+        rows[chunk.entity_path] = rows.get(chunk.entity_path, 0) + chunk.num_rows
+    want = {f"/world/arms/{arm}/{n}" for arm, geo in (("a", A), ("b", B)) for n in geo.names}
+    assert want == {"/" + p for p in logged}
+    assert want <= set(rows) and all(rows[e] == 1 for e in want)

@@ -194,6 +194,21 @@ class ArmCollision:
         dq = np.abs(np.asarray(dq, dtype=float))
         return float(np.max(self.reach @ dq)) if len(self.reach) else 0.0
 
+    # ------------------------------------------------------------------ triangle meshes (for drawing)
+    def local_meshes(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Each object as a triangle mesh in its own frame: ``(vertices (k, 3), faces (m, 3))``. Meshes as
+        coal holds them (pinocchio scaled them on loading); a convex primitive (box, sphere, cylinder,
+        capsule, cone, convex) as the convex hull of points on its surface. Built once."""
+        if getattr(self, "_local_meshes", None) is None:
+            self._local_meshes = [_triangles(g, name) for g, name in zip(self._geoms, self.names)]
+        return self._local_meshes
+
+    def triangle_meshes(self, q) -> list[tuple[str, np.ndarray, np.ndarray]]:
+        """``(name, world vertices (k, 3), faces (m, 3))`` of every object at joint values ``q`` (n,)."""
+        P = self.placements(q)
+        return [(name, v @ M[:3, :3].T + M[:3, 3], f)
+                for name, (v, f), M in zip(self.names, self.local_meshes(), P)]
+
 
 # ============================================================================ distances
 def _hull_points(geom) -> np.ndarray:
@@ -207,6 +222,41 @@ def _hull_points(geom) -> np.ndarray:
     geom.computeLocalAABB()
     lo, hi = np.asarray(geom.aabb_local.min_, float), np.asarray(geom.aabb_local.max_, float)
     return np.array([[(lo, hi)[i][0], (lo, hi)[j][1], (lo, hi)[k][2]] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+
+
+def _triangles(geom, name: str) -> tuple[np.ndarray, np.ndarray]:
+    """:meth:`ArmCollision.local_meshes` for one coal geometry."""
+    verts = getattr(geom, "vertices", None)
+    if callable(verts) and hasattr(geom, "tri_indices"):
+        v = np.asarray(verts(), dtype=float)
+        tri = geom.tri_indices
+        f = np.array([[t[0], t[1], t[2]] for t in (tri(i) for i in range(geom.num_tris))], dtype=np.int64)
+        return v, f.reshape(-1, 3)
+    kind = type(geom).__name__
+    ring = np.linspace(0.0, 2.0 * math.pi, 24, endpoint=False)
+    if kind == "Box":
+        h = np.asarray(geom.halfSide, float)
+        pts = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], float) * h
+    elif kind in ("Sphere", "Capsule"):
+        r = float(geom.radius)
+        el = np.linspace(-math.pi / 2, math.pi / 2, 13)
+        pts = np.array([[math.cos(e) * math.cos(a), math.cos(e) * math.sin(a), math.sin(e)] for e in el for a in ring]) * r
+        if kind == "Capsule":
+            hl = float(geom.halfLength)
+            pts = np.concatenate([pts[pts[:, 2] >= 0] + [0, 0, hl], pts[pts[:, 2] <= 0] - [0, 0, hl]])
+    elif kind in ("Cylinder", "Cone"):
+        r, hl = float(geom.radius), float(geom.halfLength)
+        circle = np.stack([r * np.cos(ring), r * np.sin(ring)], axis=1)
+        top = np.concatenate([circle, np.full((len(ring), 1), hl)], axis=1) if kind == "Cylinder" else np.array([[0.0, 0.0, hl]])
+        pts = np.concatenate([top, np.concatenate([circle, np.full((len(ring), 1), -hl)], axis=1)])
+    elif hasattr(geom, "points") and hasattr(geom, "num_points"):
+        pts = np.array([np.asarray(geom.points(i), float) for i in range(geom.num_points)])
+    else:
+        raise ErrplanError(f"object '{name}': cannot draw a {kind} as triangles")
+    from scipy.spatial import ConvexHull
+
+    hull = ConvexHull(pts)
+    return pts, np.asarray(hull.simplices, np.int64)
 
 
 def _is_prismatic(joint) -> bool:
