@@ -329,3 +329,28 @@ def test_recording_holds_every_object_of_both_arms(arms, tmp_path):
     want = {f"/world/arms/{arm}/{n}" for arm, geo in (("a", A), ("b", B)) for n in geo.names}
     assert want == {"/" + p for p in logged}
     assert want <= set(rows) and all(rows[e] == 1 for e in want)
+
+
+def test_pruned_search_equals_every_pair(arms):
+    """The sphere-pruned search against coal over all 64 pairs, no pruning (seeded configurations, some
+    of them touching)."""
+    import coal
+
+    _, _, A, B = arms
+    rng = np.random.default_rng(11)
+    Q = np.concatenate([rng.uniform(-1.2, 1.2, size=(12, 2, 3)), [[[0.0, -0.15, 0.15], [0.0, 0.0, 0.0]]]])
+    signs = []
+    for qa, qb in Q:
+        Pa, Pb = A.placements(qa), B.placements(qb)
+        Ta = [coal.Transform3s(M[:3, :3], M[:3, 3]) for M in Pa]
+        Tb = [coal.Transform3s(M[:3, :3], M[:3, 3]) for M in Pb]
+        every = min(coal.distance(oa.geometry, ta, ob.geometry, tb, coal.DistanceRequest(), coal.DistanceResult())
+                    for oa, ta in zip(A.geometry_model.geometryObjects, Ta)
+                    for ob, tb in zip(B.geometry_model.geometryObjects, Tb))
+        d = arm_clearance(A, qa, B, qb)
+        if every > 0:
+            assert d == every
+        else:
+            assert d <= 0
+        signs.append(every > 0)
+    assert any(signs) and not all(signs)

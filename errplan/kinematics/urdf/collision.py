@@ -20,7 +20,8 @@ Pruning: each object carries a bounding sphere (centre of its local bounding box
 distance of its vertices, or of the box corners for a primitive, from that centre); a pair whose spheres
 lie farther apart than the smallest distance found so far cannot hold the minimum, so pairs are visited
 nearest spheres first and the search stops at the first pair whose sphere gap reaches the minimum. The
-result is the exact minimum over all pairs (and the same on every run: the order is a stable sort).
+result is the exact minimum over all pairs while they are clear (and the same on every run: the order is
+a stable sort); once a pair touches or overlaps (distance <= 0) the search stops there.
 """
 from __future__ import annotations
 
@@ -314,7 +315,8 @@ def closest_pair(geo_a: ArmCollision, q_a, geo_b: ArmCollision, q_b) -> Closest:
 
 def arm_clearance(geo_a: ArmCollision, q_a, geo_b: ArmCollision, q_b) -> float:
     """The smallest coal distance (m) over all pairs (object of arm a, object of arm b) at actuated joint
-    values ``q_a`` and ``q_b``; <= 0 when they touch or overlap."""
+    values ``q_a`` and ``q_b``; <= 0 when they touch or overlap (then the value of the first such pair
+    found: 0 for meshes, coal's signed penetration for primitives; depths are not compared)."""
     return closest_pair(geo_a, q_a, geo_b, q_b).distance
 
 
