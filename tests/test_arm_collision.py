@@ -243,8 +243,12 @@ def test_bad_arguments_are_errors(arms):
 
 
 def test_deterministic(arms):
+    """Two builds, and a pickled copy (as a dask worker receives it), give the same numbers."""
+    import pickle
+
     a, b, A, B = arms
-    A2, B2 = ArmCollision.from_arm(a), ArmCollision.from_arm(b)
+    A2, B2 = ArmCollision.from_arm(a), pickle.loads(pickle.dumps(B))
+    assert B2.names == B.names and np.array_equal(B2.base, B.base)
     for qa, qb in CONFIGS:
         assert arm_clearance(A, qa, B, qb) == arm_clearance(A2, qa, B2, qb)
     qs = np.array([[-0.6, -0.15, 0.15], [0.5, -0.3, 0.2]])
@@ -322,6 +326,8 @@ def test_recording_holds_every_object_of_both_arms(arms, tmp_path):
         logged.extend(log_arm_geometry(rec, "world/arms/b", B, CONFIGS[0][1], static=True))
 
     sdk.write(path, "errplan-test", "arms", None, log)
+    visual = ArmCollision.from_arm(A.arm, kind="visual")  # the visual meshes draw too
+    assert len(visual.names) == 7 and all(len(f) for _, _, f in visual.triangle_meshes(CONFIGS[0][0]))
     assert path.exists() and not path.with_name(path.name + ".part").exists()
     rows = {}
     for chunk in rrc.RrdReader(path).stream().to_chunks():

@@ -80,6 +80,11 @@ class ArmCollision:
         self._radius = np.array([float(np.max(np.linalg.norm(h - c, axis=1))) for h, c in zip(hulls, self._center)])
         self.reach = self._reach_bounds()
 
+    def __reduce__(self):
+        """Pickled as its arm and kind (pinocchio's GeometryData does not pickle): a dask worker rebuilds
+        the same objects from the same URDF (about 30 ms for a UR5)."""
+        return (type(self).from_arm, (self.arm, self.kind))
+
     # ------------------------------------------------------------------ construction
     @classmethod
     def from_arm(cls, arm: UrdfArm, kind: str = "collision") -> "ArmCollision":
