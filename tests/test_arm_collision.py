@@ -21,7 +21,7 @@ from scipy.spatial import cKDTree
 from errplan import packages
 from errplan.errors import ErrplanError
 from errplan.kinematics.urdf import MapParams, UrdfArm
-from errplan.kinematics.urdf.collision import (ArmCollision, arm_at_tip, arm_clearance, closest_pair,
+from errplan.kinematics.urdf.collision import (ArmCollision, arm_at_tip, arm_clearance, clear_along, closest_pair,
                                               min_clearance_along, motion_samples)
 
 from arms import ROOT
@@ -196,6 +196,20 @@ def test_samples_keep_every_link_point_within_half_the_clearance(arms, surfaces)
     brute = min(arm_clearance(A, q, B, np.zeros(3)) for q in np.linspace(qs[0], qs[1], 121))
     assert brute >= found - clearance / 2
     assert found <= min(arm_clearance(A, q, B, np.zeros(3)) for q in qs)  # its samples include the waypoints
+
+
+def test_clear_along_answers_as_the_full_sampler(arms):
+    """clear_along (skipping samples by the Lipschitz bound) against min_clearance_along over every sample."""
+    _, _, A, B = arms
+    rng = np.random.default_rng(2)
+    answers = []
+    for _ in range(5):
+        qs, qb = rng.uniform(-1.0, 1.0, size=(2, 3)), rng.uniform(-0.5, 0.5, 3)
+        for c in (0.1, 0.25):
+            ok = clear_along(A, qs, B, qb, c)
+            assert ok == (min_clearance_along(A, qs, B, qb, c) >= c)
+            answers.append(ok)
+    assert any(answers) and not all(answers)
 
 
 def test_motion_bound_against_finite_motions(arms, surfaces):
