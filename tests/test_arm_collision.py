@@ -239,6 +239,11 @@ def test_missing_mesh_names_its_uri(tmp_path):
     arm = UrdfArm.load(path, JOINTS, "wrist_1_link")
     with pytest.raises(ErrplanError, match=r"no-such-forearm\.stl.*forearm_link.*not found"):
         ArmCollision.from_arm(arm)
+    (tmp_path / "bad.stl").write_text("not a mesh\n")  # there, but unreadable: the error names it
+    path.write_text(text.replace("package://example-robot-data/robots/ur_description/meshes/ur5/collision/"
+                                 "no-such-forearm.stl", "bad.stl"))
+    with pytest.raises(ErrplanError, match=r"ur5_broken\.urdf: its collision geometry cannot be read .*bad\.stl"):
+        ArmCollision.from_arm(UrdfArm.load(path, JOINTS, "wrist_1_link"))
 
 
 def test_bad_arguments_are_errors(arms):

@@ -123,8 +123,8 @@ class ArmCollision:
         try:
             gm = pin.buildGeomFromUrdfString(arm.model, text, gtype)
         except Exception as exc:  # pinocchio/assimp: ValueError, RuntimeError on an unreadable mesh
-            raise ErrplanError(f"URDF {where}: its {kind} geometry cannot be read "
-                               f"({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})") from None
+            reason = " ".join(str(exc).split())[:300] or type(exc).__name__
+            raise ErrplanError(f"URDF {where}: its {kind} geometry cannot be read ({reason})") from None
         if gm.ngeoms == 0:
             raise ErrplanError(f"URDF {where} has no {kind} geometry; arm checks need it")
         return cls(arm, gm, kind)
