@@ -24,7 +24,7 @@ from errplan.kinematics.urdf import MapParams, UrdfArm
 from errplan.kinematics.urdf.collision import (ArmCollision, arm_at_tip, arm_clearance, clear_along, closest_pair,
                                               min_clearance_along, motion_samples)
 
-from arms import ROOT
+from arms import ARMS, ROOT
 
 UR5 = "package://example-robot-data/robots/ur_description/urdf/ur5_robot.urdf"
 JOINTS = ["shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint"]
@@ -73,12 +73,16 @@ def _floats(elem, key, default="0 0 0"):
 
 @pytest.fixture(scope="module")
 def surfaces():
+    return surfaces_of(ur5_path())
+
+
+def surfaces_of(urdf):
     """Per collision element of the URDF: (link, origin (4, 4), vertices of the mesh (or box), the same
     surface's points subdivided to edges <= H)."""
     import trimesh
 
     out = []
-    for link in ET.parse(ur5_path()).getroot().iter("link"):
+    for link in ET.parse(urdf).getroot().iter("link"):
         for c in link.findall("collision"):
             o = c.find("origin")
             O = pose(_floats(o, "xyz"), _floats(o, "rpy"))
@@ -128,6 +132,33 @@ def test_coal_clearance_matches_dense_surface_sampling(arms, surfaces):
         assert ind - d <= 2 * H / math.sqrt(3) + 1e-9, (qa, qb, d, ind)  # within the sampling resolution
         seen.append(d)
     assert min(seen) < 0.01 and max(seen) > 0.2  # near contact and far apart both checked
+
+
+@pytest.mark.slow
+def test_ur5_against_a_panda_with_a_held_joint(arms, surfaces):
+    """A second setup: the UR5 against a Panda (collision origins off the link frames, boxes on the
+    fingers, joint 3 held at 0.3 rad) 1.2 m away, facing it; and the motion bound of that Panda."""
+    a, _, A, _ = arms
+    spec = ARMS["panda"]
+    base = dict(base_position=[1.2, 0.0, 0.0], base_rpy=[-math.pi / 2, math.pi, 0.0])
+    panda = UrdfArm.load(packages.resolve_package_uri(spec["urdf"]), spec["joints"], spec["wrist"],
+                         fixed_joints=spec["fixed_joints"], **base)
+    P = ArmCollision.from_arm(panda)
+    psurf = surfaces_of(panda.urdf_path)
+    assert any(n.startswith("panda_leftfinger") for n in P.names)
+    seen = []
+    for qa, qp in (([0.0, -0.5, 0.5], [0.0, 0.5, -1.5]), ([0.1, -0.4, 0.4], [0.2, 1.0, -1.0])):
+        d = arm_clearance(A, qa, P, qp)
+        ind = sampled_distance(world_points(a, BASE_A, qa, surfaces), world_points(panda, base, qp, psurf))
+        assert d <= ind + 1e-9 and ind - d <= 2 * H / math.sqrt(3) + 1e-9, (qa, qp, d, ind)
+        seen.append(d)
+    assert min(seen) > 0.0
+    rng = np.random.default_rng(7)
+    for _ in range(10):
+        q, dq = rng.uniform(-1.5, 1.5, 3), rng.normal(scale=0.05, size=3)
+        P0 = world_points(panda, base, q, psurf, dense=False)
+        P1 = world_points(panda, base, q + dq, psurf, dense=False)
+        assert np.linalg.norm(P1 - P0, axis=-1).max() <= P.motion_bound(dq) + 1e-12
 
 
 def test_closest_points_lie_on_the_arms_and_give_the_distance(arms, surfaces):
