@@ -31,7 +31,7 @@ LAYERS = {
     "cli": 11, "__main__": 11, "": 11,  # "": the package's own __init__ (its API names load lazily)
 }
 # third-party libraries that must each be imported by one module only (the brief's "behind one module")
-BEHIND_ONE = ("rerun", "ompl", "casadi", "dask", "distributed", "trimesh", "fcl")
+BEHIND_ONE = ("rerun", "ompl", "casadi", "dask", "distributed", "trimesh", "fcl", "coal")
 
 
 def _modules() -> dict[str, Path]:
