@@ -58,7 +58,7 @@ def run(args) -> int:
     from ..inputs import check_output
     from . import check_seed
 
-    sc = api.load_scenario(args.scenario)
+    sc = api.load_arm(args.scenario, args.arm)
     select_queries(sc, args.query)  # a bad --query fails before the fields are computed
     for opt, value in (("--json", args.json), ("--record", args.record)):
         check_output(opt, value)
