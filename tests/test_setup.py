@@ -240,3 +240,198 @@ def test_shaft_shaft_distance_against_scipy():
     D = geo.target_hull_distances(boxes, tips, others)
     for i, j, k in itertools.product(range(2), range(2), range(4)):
         assert D[i, j, k] == pytest.approx(geo.shaft_distance(geo.hull_points(boxes[i], tips[k]), others[j]), abs=1e-12)
+
+
+# ----------------------------------------------------------------------------- triad placement
+from dataclasses import replace as _replace  # noqa: E402
+
+from errplan.tolerance import triad as tr  # noqa: E402
+
+
+def _random_data(rng, n1, n2, ne, T, keep) -> "tr.TriadData":
+    """A random instance of the search (coverage, visibility, angles, distances; ties on purpose)."""
+    cov1, cov2, vis = (rng.random((n, T)) < 0.8 for n in (n1, n2, ne))
+    q = lambda *s: np.round(rng.random(s), 1)  # noqa: E731 - coarse values make ties
+    return tr.TriadData(cov1, cov2, vis, q(n1, n2, T) * 2, q(n1, ne, T), q(n2, ne, T), q(n1, ne, T) * 0.02,
+                        q(n2, ne, T) * 0.02, q(n1, n2), q(n1, ne), q(n2, ne), 10.0, 0.26, 0.15, 0.004, keep)
+
+
+def _brute(data) -> list:
+    out = []
+    for i1, i2 in itertools.product(range(data.cov1.shape[0]), range(data.cov2.shape[0])):
+        for e in range(data.vis.shape[0]):
+            c = data.cov1[i1] & data.cov2[i2] & data.vis[e]
+            S = np.mean(data.W * (1 - c) + data.mterm[i1, i2] + ((data.A1[i1, e] - data.A2[i2, e]) / data.a_tol) ** 2)
+            ok = min(data.d12[i1, i2], data.d1e[i1, e], data.d2e[i2, e]) >= data.port_spacing and not np.any(
+                c & ((data.D1[i1, e] < data.shaft_clearance) | (data.D2[i2, e] < data.shaft_clearance)))
+            if ok:
+                out.append((float(S), i1, i2, e))
+    return sorted(out)[:data.keep]
+
+
+def test_branch_and_bound_equals_brute_force_on_random_instances(monkeypatch):
+    monkeypatch.setattr(tr, "BLOCK_PAIRS", 3)  # many blocks and waves
+    monkeypatch.setattr(tr, "WAVE_BLOCKS", 2)
+    rng = np.random.default_rng(11)
+    pruned_any = False
+    for _ in range(25):
+        data = _random_data(rng, int(rng.integers(2, 7)), int(rng.integers(2, 7)), int(rng.integers(1, 6)),
+                            int(rng.integers(3, 9)), int(rng.integers(1, 5)))
+        ref = _brute(data)
+        got = tr.search(data, prune=True)
+        full = tr.search(data, prune=False)
+        assert [b[1:] for b in got["best"]] == [b[1:] for b in ref] == [b[1:] for b in full["best"]]
+        assert np.allclose([b[0] for b in got["best"]], [b[0] for b in ref])
+        assert got["evaluated"] + got["pruned"] == got["triads"] == full["evaluated"]
+        pruned_any |= got["pruned"] > 0
+        # the bound is admissible: no triad scores below its pair's LB
+        for s, i1, i2, e in ref:
+            assert s >= tr.lower_bound(data, i1, i2) - 1e-12
+    assert pruned_any
+
+
+def _run(st, tol, **kw):
+    return tr.triad_placement(st, tol, **kw)
+
+
+def _check_figures(st, tol, r):
+    """The best triad's figures recomputed independently: angles by plain vector algebra, coverage by
+    the one-port wall placement, visibility by the cone's definition, the shaft clearance by SLSQP."""
+    from errplan.tolerance.wall import wall_port_placement
+
+    b = r["best"]
+    n1, n2 = tol.get("instruments")
+    p1, p2, pe = (np.asarray(b["ports"][k]) for k in (n1, n2, "endoscope"))
+    X = r["_arrays"]["targets"]
+    endo = st.endoscope
+    u = (np.asarray(endo.look_at) - pe) / np.linalg.norm(np.asarray(endo.look_at) - pe)
+    lens = pe + endo.insertion * u
+    m = [_angle(t - p1, t - p2) for t in X]
+    assert b["manipulation_angle"]["mean"] == pytest.approx(np.mean(m), abs=1e-9)
+    assert b["manipulation_angle"]["min"] == pytest.approx(min(m), abs=1e-9)
+    assert b["azimuth_difference_mean"] == pytest.approx(
+        np.mean([abs(_angle(t - p1, t - lens) - _angle(t - p2, t - lens)) for t in X]), abs=1e-9)
+    assert b["port_spacing_min"] == pytest.approx(min(np.linalg.norm(p1 - p2), np.linalg.norm(p1 - pe),
+                                                      np.linalg.norm(p2 - pe)), abs=1e-12)
+    region, res = tol.get("region"), r["resolution"]
+    covs = []
+    for n, p in ((n1, p1), (n2, p2)):
+        w = wall_port_placement(st.arm(n), 0.05, region, resolution=res, certify_margin=tol.get("certify_margin"),
+                                ports=p[None, :])
+        assert b["coverage"][n] == pytest.approx(w["coverage"], abs=1e-12)
+        covs.append(w["coverage"])
+    depth = [(t - lens) @ u for t in X]
+    in_cone = [endo.depth[0] <= z <= endo.depth[1] and _angle(t - lens, u) <= endo.fov / 2 for t, z in zip(X, depth)]
+    assert b["visible"] <= np.mean(in_cone) + 1e-12  # line of sight can only remove targets
+    assert b["coverage"]["both"] <= min(covs) + 1e-12
+    # the smallest shaft clearance: its target's distance by a second method
+    data = r["_arrays"]["data"]
+    i1, i2, ie = b["indices"]
+    c = data.cov1[i1] & data.cov2[i2] & data.vis[ie]
+    D = np.minimum(data.D1[i1, ie], data.D2[i2, ie])
+    k = int(np.flatnonzero(c)[np.argmin(D[c])])
+    off_e = geo.endoscope_box(endo) - np.asarray(endo.port.estimate)
+    i_near = 0 if data.D1[i1, ie, k] <= data.D2[i2, ie, k] else 1
+    arm = st.arm((n1, n2)[i_near])
+    from errplan.fields import ErrorSet
+
+    es = ErrorSet.from_scenario(arm)
+    off_i = es.port_corners() - np.asarray(es.base_port)
+    P = np.vstack([(p1, p2)[i_near] + off_i, X[k]])
+    Q = np.vstack([pe + off_e, lens])
+    assert b["shaft_clearance_min"] == pytest.approx(_hull_distance_scipy(P, Q), abs=2e-6)
+    assert b["shaft_clearance_min"] >= st.shaft_clearance
+
+
+@pytest.mark.slow
+def test_triad_bundled_pruned_equals_brute_force_and_figures():
+    st = api.load_setup(TRIAD)
+    tol = _replace(st.triads[0], options=dict(st.triads[0].options, spacing=0.05))
+    a = _run(st, tol, prune=True)
+    b = _run(st, tol, prune=False)
+    assert a["search"]["pruned"] > 0 and b["search"]["pruned"] == 0
+    assert a["best"]["indices"] == b["best"]["indices"] and a["best"]["score"] == pytest.approx(b["best"]["score"])
+    assert [t["indices"] for t in a["ranked"]] == [t["indices"] for t in b["ranked"]]
+    assert a["best"]["coverage"]["both"] < 1.0  # the region reaches the kidney: coverage matters
+    _check_figures(st, tol, a)
+    json.dumps(tr_json(st, tol, a), allow_nan=False)
+
+
+def tr_json(st, tol, data):
+    from errplan.tolerance.result import ToleranceResult
+
+    d = ToleranceResult(tol.name, tol.kind, data).to_dict()
+    assert {"best", "ranked", "candidates", "targets", "rejected"} <= set(d)
+    assert set(d["best"]) >= {"ports", "score", "coverage", "visible", "manipulation_angle", "azimuth_difference_mean",
+                              "port_spacing_min", "shaft_clearance_min", "arm_clearance_min"}
+    return d
+
+
+def _second_setup(d: Path) -> Path:
+    """Two UR5s (example-robot-data) instead of PHANToMs, a mesh body wall, two obstacles."""
+    from errplan.anatomy.meshes import icosphere, write_surface
+
+    v, f = icosphere(3)
+    write_surface(d / "wall.stl", v * [160, 140, 200], f)
+    doc = triad_doc()
+    doc["anatomy"]["body_wall"] = {"shape": "mesh", "file": str(d / "wall.stl"), "scale": 0.001,
+                                   "position": [0.0, 0.0, 0.36]}
+    doc["anatomy"]["obstacle"] = [o for o in doc["anatomy"]["obstacle"] if o["name"] in ("kidney", "vessel")]
+    for a, sx in zip(doc["arm"], (-1, 1)):
+        a["robot"] = {"urdf": "package://ur_description/urdf/ur5_joint_limited_robot.urdf",
+                      "joints": ["shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint"], "wrist": "wrist_1_link",
+                      "base_position": [sx * 0.35, 0.0, -0.05]}
+        a["instrument"] = {"length": 0.30}
+        a["rest"] = [sx * 0.04, 0.02, 0.31]
+    doc["query"] = [dict(q, start=[q["start"][0], q["start"][1], 0.31]) for q in doc["query"]]
+    doc["tolerance"][0].update(spacing=0.06, region={"x": [-0.04, 0.04], "y": [-0.04, 0.04], "z": [0.30, 0.36]},
+                               resolution=0.02)
+    p = d / "ur5_triad.toml"
+    p.write_text(to_toml(doc), encoding="utf-8")
+    return p
+
+
+@pytest.mark.slow
+def test_triad_second_setup_pruned_equals_brute_force_and_workers(tmp_path):
+    st = api.load_setup(_second_setup(tmp_path))
+    assert st.arm("left").anatomy.body_wall.shape == "mesh"
+    tol = st.triads[0]
+    a = _run(st, tol, prune=True, workers=1)
+    b = _run(st, tol, prune=False, workers=1)
+    c = _run(st, tol, prune=True, workers=2)
+    assert a["search"]["pruned"] > 0
+    for x in (b, c):
+        assert a["best"]["indices"] == x["best"]["indices"]
+        assert [t["indices"] for t in a["ranked"]] == [t["indices"] for t in x["ranked"]]
+    assert a["search"]["evaluated"] == c["search"]["evaluated"] and a["rejected"] == c["rejected"]
+    _check_figures(st, tol, a)
+
+
+@pytest.mark.slow
+def test_tolerance_command_on_the_triad(tmp_path, capsys):
+    out = tmp_path / "t.json"
+    doc = triad_doc()
+    doc["tolerance"][0]["spacing"] = 0.06  # fewer candidates: the command, not the search, is tested here
+    src = tmp_path / "s.toml"
+    src.write_text(to_toml(doc), encoding="utf-8")
+    assert main(["-q", "tolerance", str(src), "--json", str(out), "--workers", "1", "--top", "3"]) == 0
+    text = capsys.readouterr().out
+    assert "triad_placement" in text and "branch and bound" in text
+    d = json.loads(out.read_text())["tolerances"][0]
+    assert d["kind"] == "triad_placement" and set(d["best"]["ports"]) == {"left", "right", "endoscope"}
+    assert d["targets"] == 125 and len(d["ranked"]) == 5
+
+
+@pytest.mark.slow
+def test_fields_per_arm(tmp_path, capsys):
+    out = tmp_path / "F.npz"
+    assert main(["-q", "fields", str(TRIAD), "--out", str(out), "--resolution", "0.03", "--workers", "1"]) == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["F.left.npz", "F.right.npz"]
+    left = np.load(tmp_path / "F.left.npz")
+    right = np.load(tmp_path / "F.right.npz")
+    assert left["valid"].shape == right["valid"].shape and not np.array_equal(left["valid"], right["valid"])
+    # --arm: the arm's own scenario, as a one-instrument file of the same tables would give
+    one = tmp_path / "one.npz"
+    assert main(["-q", "fields", str(TRIAD), "--arm", "right", "--out", str(one), "--resolution", "0.03",
+                 "--workers", "1"]) == 0
+    assert np.array_equal(np.load(one)["valid"], right["valid"])
