@@ -57,6 +57,18 @@ def angle_between(u: np.ndarray, v: np.ndarray) -> np.ndarray:
     return np.arctan2(np.linalg.norm(np.cross(u, v), axis=-1), np.sum(u * v, axis=-1))
 
 
+def unit(v: np.ndarray) -> np.ndarray:
+    """Vectors (..., 3) scaled to length 1."""
+    v = np.asarray(v, float)
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def unit_angles(U: np.ndarray, V: np.ndarray) -> np.ndarray:
+    """(n, m, T): the angles between the unit vectors U (n, T, 3) and V (m, T, 3) per target (arccos of
+    the dot product, clipped: accurate to about 1e-8 rad at 0 and pi, exact to rounding elsewhere)."""
+    return np.arccos(np.clip(np.einsum("itk,jtk->ijt", U, V, optimize=True), -1.0, 1.0))
+
+
 def manipulation_angle(t, p1, p2) -> np.ndarray:
     """m(t): the angle at the targets t (..., 3) between t - p1 and t - p2."""
     t = np.asarray(t, float)

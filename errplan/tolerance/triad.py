@@ -82,6 +82,12 @@ def cover_batch(job: CoverJob, cands: list) -> list:
     return [np.packbits(cover(job, c)) for c in cands]
 
 
+def distance_rows(shared, rows) -> np.ndarray:
+    """One task: (len(rows), E, T) exact shaft distances of instrument candidates ``rows``."""
+    boxes, X, hull_e = shared
+    return geo.target_hull_distances(boxes[rows], X, hull_e)
+
+
 def _endoscope_candidates(model, endo, spacing: float, region: dict) -> np.ndarray:
     pts = model.wall_points(spacing)
     lo = np.array([region[a][0] for a in "xyz"])
@@ -119,6 +125,13 @@ def lower_bound(data: TriadData, i1: int, i2: int) -> float:
     return float(np.mean(data.W * (1.0 - both) + data.mterm[i1, i2]))
 
 
+def lower_bounds(data: TriadData) -> np.ndarray:
+    """(N1, N2): :func:`lower_bound` of every pair at once."""
+    T = data.cov1.shape[1]
+    both = data.cov1.astype(np.float64) @ data.cov2.astype(np.float64).T / T
+    return data.W * (1.0 - both) + np.mean(data.mterm, axis=-1)
+
+
 def pair_scores(data: TriadData, i1: int, i2: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """For pair (i1, i2) and every endoscope candidate: ``(S (E,), spacing_ok (E,), shaft_ok (E,))``."""
     c = data.cov1[i1][None, :] & data.cov2[i2][None, :] & data.vis  # (E, T)
@@ -126,6 +139,8 @@ def pair_scores(data: TriadData, i1: int, i2: int) -> tuple[np.ndarray, np.ndarr
     S = np.mean(data.W * (1.0 - c) + data.mterm[i1, i2][None, :] + az, axis=1)
     sp = (data.d12[i1, i2] >= data.port_spacing) & (data.d1e[i1] >= data.port_spacing) & (
         data.d2e[i2] >= data.port_spacing)
+    if np.isnan(data.D1[i1]).any() or np.isnan(data.D2[i2]).any():  # pragma: no cover - search's ensure
+        raise RuntimeError(f"triad search: shaft distances of pair {(i1, i2)} not computed")
     bad = c & ((data.D1[i1] < data.shaft_clearance) | (data.D2[i2] < data.shaft_clearance))
     return S, sp, ~np.any(bad, axis=1)
 
@@ -154,12 +169,14 @@ def evaluate_block(data: TriadData, item) -> dict:
 
 
 def search(data: TriadData, *, prune: bool = True, workers: int | None = 1, scheduler: str | None = None,
-           progress=None) -> dict:
-    """The ``keep`` best feasible triads, by branch and bound (``prune``) or brute force."""
+           progress=None, ensure=None) -> dict:
+    """The ``keep`` best feasible triads, by branch and bound (``prune``) or brute force. ``ensure(rows1,
+    rows2)``, called before each wave, fills the rows of ``data.D1``/``data.D2`` (instrument candidates)
+    the wave evaluates (the shaft distances are computed only where the search needs them)."""
     from ..cluster import map_tasks
 
     N1, N2, E = data.cov1.shape[0], data.cov2.shape[0], data.vis.shape[0]
-    lbs = np.array([[lower_bound(data, i, j) for j in range(N2)] for i in range(N1)]).reshape(N1, N2)
+    lbs = lower_bounds(data)
     order = sorted(((float(lbs[i, j]), i, j) for i in range(N1) for j in range(N2)))
     blocks = [order[k:k + BLOCK_PAIRS] for k in range(0, len(order), BLOCK_PAIRS)]
     best: list = []
@@ -175,6 +192,9 @@ def search(data: TriadData, *, prune: bool = True, workers: int | None = 1, sche
             pruned += sum(len(b) for b in blocks[k - len(wave):]) * E
             break
         items = [([(i, j) for _, i, j in b], [lb for lb, _, _ in b], threshold) for b in wave]
+        if ensure is not None:  # the distances of the instrument candidates this wave evaluates
+            need = [(i, j) for b in wave for lb, i, j in b if lb <= threshold]
+            ensure(sorted({i for i, _ in need}), sorted({j for _, j in need}))
         waves += 1
         for r in map_tasks(evaluate_block, data, items, workers=workers, scheduler=scheduler):
             best = sorted(best + r["best"])[:data.keep]
@@ -280,22 +300,41 @@ def triad_placement(st, tol, *, workers: int | None = 1, scheduler: str | None =
     off_e = geo.endoscope_box(endo) - np.asarray(endo.port.estimate, float)
     hull_e = np.concatenate([PE[:, None, :] + off_e[None], lens[:, None, :]], axis=1)
     boxes = {name: roles[name][:, None, :] + jobs[name].offsets[None] for name in (n1, n2)}
-    t2 = time.perf_counter()
-    D1 = geo.target_hull_distances(boxes[n1], X, hull_e)
-    D2 = geo.target_hull_distances(boxes[n2], X, hull_e)
-    dist_s = time.perf_counter() - t2
+    D1 = np.full((len(P1), len(PE), T), np.nan)
+    D2 = np.full((len(P2), len(PE), T), np.nan)
+    done = {n1: np.zeros(len(P1), bool), n2: np.zeros(len(P2), bool)}
+    dist_t = [0.0, 0]
+
+    def ensure(rows1, rows2):
+        """Exact shaft distances of these instrument candidates to every endoscope candidate, per target
+        (tasks of a few candidates each)."""
+        t = time.perf_counter()
+        for name, D, rows in ((n1, D1, rows1), (n2, D2, rows2)):
+            rows = [r for r in rows if not done[name][r]]
+            if not rows:
+                continue
+            per = max(1, math.ceil(len(rows) / max(MIN_TASKS, 1)))
+            chunks = [rows[i:i + per] for i in range(0, len(rows), per)]
+            parts = map_tasks(distance_rows, (boxes[name], X, hull_e), chunks, workers=workers, scheduler=scheduler)
+            for ch, part in zip(chunks, parts):
+                D[ch] = part
+                done[name][ch] = True
+            dist_t[1] += len(rows)
+        dist_t[0] += time.perf_counter() - t
     mstar, mtol = float(o["manipulation_angle"]), float(o["manipulation_tolerance"])
-    M = geo.manipulation_angle(X[None, None], P1[:, None, None, :], P2[None, :, None, :])  # (N1, N2, T)
-    A1 = geo.azimuth(X[None, None], P1[:, None, None, :], lens[None, :, None, :])  # (N1, E, T)
-    A2 = geo.azimuth(X[None, None], P2[:, None, None, :], lens[None, :, None, :])
+    U1, U2, UE = (geo.unit(X[None] - P[:, None]) for P in (P1, P2, lens))  # (N, T, 3) unit vectors p -> t
+    M = geo.unit_angles(U1, U2)  # (N1, N2, T): m(t)
+    A1 = geo.unit_angles(U1, UE)  # (N1, E, T): a_1(t)
+    A2 = geo.unit_angles(U2, UE)
     data = TriadData(covs[n1], covs[n2], vis, ((M - mstar) / mtol) ** 2, A1, A2, D1, D2,
                      np.linalg.norm(P1[:, None] - P2[None], axis=-1), np.linalg.norm(P1[:, None] - PE[None], axis=-1),
                      np.linalg.norm(P2[:, None] - PE[None], axis=-1), float(o["coverage_weight"]),
                      float(o["azimuth_tolerance"]), float(o["port_spacing"]), float(st.shaft_clearance), int(keep))
     t3 = time.perf_counter()
     found = search(data, prune=prune, workers=workers, scheduler=scheduler,
-                   progress=(lambda f, m: progress(0.5 + 0.5 * f, m)) if progress else None)
-    search_s = time.perf_counter() - t3
+                   progress=(lambda f, m: progress(0.5 + 0.5 * f, m)) if progress else None, ensure=ensure)
+    search_s = time.perf_counter() - t3 - dist_t[0]
+    dist_s = dist_t[0]
 
     def figures(s, i1, i2, ie) -> dict:
         c = data.cov1[i1] & data.cov2[i2] & data.vis[ie]
@@ -330,7 +369,8 @@ def triad_placement(st, tol, *, workers: int | None = 1, scheduler: str | None =
         "port_spacing": data.port_spacing, "shaft_clearance": data.shaft_clearance,
         "arm_checks": "not in the search yet" if st.arm_clearance is not None else "off",
         "workers": workers, "scheduler": scheduler,
-        "timing": {"coverage_s": cover_s, "distances_s": dist_s, "search_s": search_s},
+        "timing": {"coverage_s": cover_s, "distances_s": dist_s, "search_s": search_s,
+                   "distance_rows": dist_t[1], "distance_rows_of": len(P1) + len(P2)},
         "_arrays": {"targets": X, "lens": lens, "data": data},
         "seconds": time.perf_counter() - t0,
     }
