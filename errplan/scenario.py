@@ -939,12 +939,56 @@ class Setup:
     def rest(self, name: str):
         return self.rests[self.arm_names.index(name)]
 
+    def held_shafts(self, name: str) -> tuple[Obstacle, ...]:
+        """What arm ``name`` sees while it moves: every other instrument's shaft held at its rest point,
+        conv(box_j ∪ {rest_j}), and the endoscope's, conv(box_e ∪ {lens}), as obstacles of shape
+        ``"shaft"`` (box centre and half extents, tip ``a``). Their ``radius`` is ``[anatomy] clearance -
+        [setup] shaft_clearance`` (possibly negative): the anatomy's check "distance - radius >= clearance"
+        is then exactly "distance >= shaft_clearance"."""
+        an = self.arms[0].anatomy
+        adj = (an.clearance if an is not None else 0.0) - self.shaft_clearance
+        out = []
+        for n, sc, rest in zip(self.arm_names, self.arms, self.rests):
+            if n != name and rest is not None:
+                c, h = _box_of(sc.port.estimate, sc.uncertainty)
+                out.append(Obstacle(name=f"{n} shaft (held)", shape="shaft", center=c, half_extents=h, a=rest,
+                                    radius=adj))
+        e = self.endoscope
+        if e is not None:
+            c, h = _box_of(e.port.estimate, e.uncertainty)
+            u = [b - a for a, b in zip(e.port.estimate, e.look_at)]
+            nu = math.sqrt(sum(x * x for x in u))
+            lens = tuple(p + e.insertion * x / nu for p, x in zip(e.port.estimate, u))
+            out.append(Obstacle(name="endoscope shaft", shape="shaft", center=c, half_extents=h, a=lens, radius=adj))
+        return tuple(out)
+
+    def moving(self, name: str | None) -> Scenario:
+        """The scenario of arm ``name`` as it moves among the others (:meth:`held_shafts` join its
+        anatomy's obstacles: fields, plans, certificates and replays keep them clear as any obstacle).
+        The one-arm case: the arm's scenario unchanged."""
+        sc = self.arm(name)
+        if not self.several:
+            return sc
+        held = self.held_shafts(self.arm_names[self.arms.index(sc)])
+        an = sc.anatomy or Anatomy()
+        return sc.with_(anatomy=replace(an, obstacles=an.obstacles + held))
+
 
 #: the tables each ``[[arm]]`` holds (a one-instrument scenario has them at the top)
 ARM_TABLES = ("robot", "instrument", "port", "controller", "uncertainty")
 _TRIAD_KEYS = ("name", "kind", "instruments", "candidates", "spacing", "region", "resolution", "port_spacing",
                "manipulation_angle", "manipulation_tolerance", "azimuth_tolerance", "coverage_weight",
                "certify_margin", "gain")
+
+
+def _box_of(estimate, un: Uncertainty) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+    """Centre and half extents of the port box ``estimate`` + [port_x] x [port_y] x [port_z]."""
+    c, h = [], []
+    for e, ax in zip(estimate, "xyz"):
+        lo, hi = getattr(un, f"port_{ax}", None) or (0.0, 0.0)
+        c.append(float(e) + (lo + hi) / 2)
+        h.append((hi - lo) / 2)
+    return tuple(c), tuple(h)
 
 
 def _endoscope(ctx: _Ctx, t: Any) -> Endoscope:

@@ -167,3 +167,46 @@ def target_hull_distances(boxes: np.ndarray, tips: np.ndarray, others: np.ndarra
 
 def degrees(x) -> float:
     return float(math.degrees(x))
+
+
+def resample(path: np.ndarray, step: float = 0.001) -> np.ndarray:
+    """Points of a polyline (n, 3) every ``step`` m or closer (its vertices kept)."""
+    path = np.asarray(path, float).reshape(-1, 3)
+    out = [path[:1]]
+    for a, b in zip(path[:-1], path[1:]):
+        k = max(1, int(math.ceil(np.linalg.norm(b - a) / step)))
+        out.append(a + (b - a) * (np.arange(1, k + 1) / k)[:, None])
+    return np.vstack(out)
+
+
+def path_figures(st, name: str, path) -> dict:
+    """For a path (n, 3) of arm ``name`` of setup ``st``: ``min_shaft_clearance`` (m, the exact distance
+    from the moving shaft conv(box ∪ {a, b}) of every straight piece to every held shaft and the
+    endoscope's, each at its rest; None when there is none) and ``visible`` (share of the path's
+    points, every 1 mm, the endoscope sees; None without an endoscope)."""
+    from ..fields.compute import anatomy_model
+    from ..fields.errorset import error_set
+
+    sc = st.arm(name)
+    path = np.asarray(path, float).reshape(-1, 3)
+    box = error_set(sc)[0].port_corners()
+    held = [np.vstack([box_corners(o.center, _Halves(o.half_extents)), np.asarray(o.a, float)[None]])
+            for o in st.held_shafts(name)]
+    segs = list(zip(path[:-1], path[1:])) or [(path[0], path[0])]
+    dmin = min((shaft_distance(hull_points(box, a, b), H) for a, b in segs for H in held), default=None)
+    vis = None
+    e = st.endoscope
+    if e is not None:
+        pe = np.asarray(e.port.estimate, float)
+        axis = optical_axis(pe, e.look_at)
+        lens = pe + e.insertion * axis
+        pts = resample(path)
+        vis = float(np.mean(visible(pts, lens, axis, e.fov, e.depth, anatomy_model(st.arm(name)))))
+    return {"arm": name, "min_shaft_clearance": dmin, "visible": vis}
+
+
+class _Halves:
+    """An uncertainty-like view of a box's half extents (port_x = [-hx, hx], ...)."""
+
+    def __init__(self, h):
+        self.port_x, self.port_y, self.port_z = ((-float(v), float(v)) for v in h)
