@@ -238,6 +238,7 @@ class Scenario:
     description: str = ""
     source: str = "<memory>"
     anatomy: Anatomy | None = None  # [anatomy] (spatial scenarios only)
+    view: Any = None  # an Endoscope whose view every planned tip keeps ([endoscope] keep_visible; Setup.moving)
 
     @property
     def dim(self) -> int:
@@ -942,11 +943,11 @@ class Setup:
     def held_shafts(self, name: str) -> tuple[Obstacle, ...]:
         """What arm ``name`` sees while it moves: every other instrument's shaft held at its rest point,
         conv(box_j ∪ {rest_j}), and the endoscope's, conv(box_e ∪ {lens}), as obstacles of shape
-        ``"shaft"`` (box centre and half extents, tip ``a``). Their ``radius`` is ``[anatomy] clearance -
-        [setup] shaft_clearance`` (possibly negative): the anatomy's check "distance - radius >= clearance"
-        is then exactly "distance >= shaft_clearance"."""
+        ``"shaft"`` (box centre and half extents, tip ``a``). Their ``radius`` is ``[setup] shaft_clearance -
+        [anatomy] clearance`` (possibly negative): the anatomy's check "distance - radius >= clearance" is
+        then exactly "distance >= shaft_clearance"."""
         an = self.arms[0].anatomy
-        adj = (an.clearance if an is not None else 0.0) - self.shaft_clearance
+        adj = self.shaft_clearance - (an.clearance if an is not None else 0.0)
         out = []
         for n, sc, rest in zip(self.arm_names, self.arms, self.rests):
             if n != name and rest is not None:
@@ -971,7 +972,8 @@ class Setup:
             return sc
         held = self.held_shafts(self.arm_names[self.arms.index(sc)])
         an = sc.anatomy or Anatomy()
-        return sc.with_(anatomy=replace(an, obstacles=an.obstacles + held))
+        view = self.endoscope if (self.endoscope is not None and self.endoscope.keep_visible) else None
+        return sc.with_(anatomy=replace(an, obstacles=an.obstacles + held), view=view)
 
 
 #: the tables each ``[[arm]]`` holds (a one-instrument scenario has them at the top)

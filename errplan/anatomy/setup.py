@@ -210,3 +210,43 @@ class _Halves:
 
     def __init__(self, h):
         self.port_x, self.port_y, self.port_z = ((-float(v), float(v)) for v in h)
+
+
+def view_checker(sc):
+    """``ok(ax, ay, az, bx, by, bz) -> bool``: every tip of the straight motion a -> b is visible to the
+    endoscope ``sc.view``. Exact: the view cone (full angle < pi) cut by the depth slab is convex, so a
+    motion is inside when both ends are; the lines of sight of every tip of the motion sweep the
+    triangle conv(lens, a, b), so they all clear the obstacles when that triangle keeps a positive
+    distance from them (one hull query: the anatomy's obstacles, with the lens as the "port", without
+    the held shafts and the wall)."""
+    from dataclasses import replace
+
+    from ..fields.compute import anatomy_model
+
+    e = sc.view
+    pe = np.asarray(e.port.estimate, float)
+    axis = optical_axis(pe, e.look_at)
+    lens = pe + e.insertion * axis
+    an = sc.anatomy
+    solid = None
+    if an is not None:
+        an = replace(an, obstacles=tuple(o for o in an.obstacles if o.shape != "shaft"), body_wall=None)
+        if an.obstacles:
+            solid = replace(anatomy_model(sc.with_(anatomy=an)), wall=np.zeros(7), required=1e-12).with_box(lens)
+    clear = solid.checker() if solid is not None else None
+    lx, ly, lz = (float(v) for v in lens)
+    ux, uy, uz = (float(v) for v in axis)
+    near, far = float(e.depth[0]), float(e.depth[1])
+    cos_half = math.cos(e.fov / 2.0)
+
+    def cone(x, y, z):
+        rx, ry, rz = x - lx, y - ly, z - lz
+        d = rx * ux + ry * uy + rz * uz
+        return near <= d <= far and d >= cos_half * math.sqrt(rx * rx + ry * ry + rz * rz)
+
+    def ok(ax, ay, az, bx, by, bz):
+        if not (cone(ax, ay, az) and cone(bx, by, bz)):
+            return False
+        return clear is None or clear(ax, ay, az, bx, by, bz)
+
+    return ok

@@ -305,7 +305,12 @@ def costmap_for(sc, mf) -> CostMap:
         raise ErrplanError(f"{sc.source}: the fields are {getattr(mf, 'dim', 2)}-D but the scenario is {dim}-D")
     from ..fields.compute import anatomy_model
 
-    return CostMap(mf, p.metric, p.weight, p.certifiable, p.certify_margin).attach_anatomy(anatomy_model(sc))
+    cm = CostMap(mf, p.metric, p.weight, p.certifiable, p.certify_margin).attach_anatomy(anatomy_model(sc))
+    if getattr(sc, "view", None) is not None:  # [endoscope] keep_visible (errplan.scenario.Setup.moving)
+        from ..anatomy.setup import view_checker
+
+        cm.attach_view(view_checker(sc))
+    return cm
 
 
 def select_queries(sc, name: str | None = None) -> list:
@@ -350,6 +355,8 @@ def plan_scenario(sc, mf=None, *, query: str | None = None, planner: str | None 
     for q in qs:
         check_endpoints(cm, q.start, q.goal, f"query {q.name!r}")
     wm = CostMap(mf, cm.metric, cm.weight, certifiable=False).attach_anatomy(cm.anatomy) if cm.certifiable else cm
+    if cm.certifiable and getattr(cm, "_view", None) is not None:
+        wm.attach_view(cm._view)
     plans = []
     for n, q in enumerate(qs):
         if progress:
