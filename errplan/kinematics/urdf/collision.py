@@ -1,0 +1,341 @@
+"""Arms outside the body: the links of different arms keep a clearance (docs/physics.md, "Several
+instruments and the endoscope", "Arms outside").
+
+Each arm's links are the URDF's collision geometry, read by pinocchio into a ``GeometryModel`` (meshes
+resolved exactly as the arm resolves them, :meth:`UrdfArm.resolve_uri`) and placed at the arm's base
+pose and configuration; distances are coal's (the collision library pinocchio ships): exact
+mesh-mesh distances, 0 (or a negative penetration depth for primitive shapes) when two objects touch or
+overlap. This is the only module of errplan that imports coal or builds a ``GeometryModel``.
+
+* :class:`ArmCollision` (:meth:`ArmCollision.from_arm`): one arm's collision objects, built once;
+* :func:`arm_clearance`: the smallest distance between the objects of two arms at one configuration each;
+* :func:`min_clearance_along`: the same along a joint-space motion of one arm, sampled densely enough
+  that no link point moves more than ``clearance / 2`` between samples;
+* :func:`arm_at_tip`: the configuration that puts the instrument tip at ``t`` through port ``p``.
+
+Configurations are the arm's actuated-joint vectors ``(n,)`` (``UrdfArm``'s order); joints off the
+actuated set stay where the arm holds them (``fixed_joints``, else 0).
+
+Pruning: each object carries a bounding sphere (centre of its local bounding box, radius the largest
+distance of its vertices, or of the box corners for a primitive, from that centre); a pair whose spheres
+lie farther apart than the smallest distance found so far cannot hold the minimum, so pairs are visited
+nearest spheres first and the search stops at the first pair whose sphere gap reaches the minimum. The
+result is the exact minimum over all pairs (and the same on every run: the order is a stable sort).
+"""
+from __future__ import annotations
+
+import math
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from ...errors import ErrplanError
+from .arm import UrdfArm
+from .description import rpy_matrix
+
+KINDS = ("collision", "visual")
+
+
+@dataclass(frozen=True)
+class Closest:
+    """The closest pair of two arms' objects: ``distance`` (m, <= 0 when they touch or overlap), the
+    objects' names and the nearest points (world, (3,)) on each (where coal reports them)."""
+
+    distance: float
+    name_a: str
+    name_b: str
+    point_a: np.ndarray
+    point_b: np.ndarray
+
+
+class ArmCollision:
+    """One arm's collision objects (module docstring). Build with :meth:`from_arm`.
+
+    Attributes: ``arm`` (the :class:`UrdfArm`), ``geometry_model`` (pinocchio's ``GeometryModel``),
+    ``names`` (one per object), ``base`` (4, 4) the arm's base pose (URDF root -> world),
+    ``reach`` (objects, n): ``reach[g, j]`` bounds how far a point of object ``g`` moves per unit of
+    actuated joint ``j`` (:meth:`motion_bound`).
+    """
+
+    def __init__(self, arm: UrdfArm, geometry_model, kind: str):
+        import pinocchio as pin
+
+        self.arm = arm
+        self.kind = kind
+        self.geometry_model = geometry_model
+        self.names = tuple(g.name for g in geometry_model.geometryObjects)
+        self._geoms = [g.geometry for g in geometry_model.geometryObjects]
+        self._data = arm.model.createData()
+        self._gdata = pin.GeometryData(geometry_model)
+        B = np.eye(4)
+        B[:3, :3] = rpy_matrix(arm.base_rpy)
+        B[:3, 3] = arm.base_position
+        self.base = B
+        hulls = [_hull_points(g) for g in self._geoms]
+        self._hulls = hulls
+        self._center = np.array([0.5 * (h.min(axis=0) + h.max(axis=0)) for h in hulls])
+        self._radius = np.array([float(np.max(np.linalg.norm(h - c, axis=1))) for h, c in zip(hulls, self._center)])
+        self.reach = self._reach_bounds()
+
+    # ------------------------------------------------------------------ construction
+    @classmethod
+    def from_arm(cls, arm: UrdfArm, kind: str = "collision") -> "ArmCollision":
+        """The arm's ``collision`` (default) or ``visual`` geometry as pinocchio reads it from the arm's URDF,
+        every mesh URI resolved by :meth:`UrdfArm.resolve_uri`, placed at the arm's base pose.
+
+        Raises :class:`ErrplanError` naming the URDF when it has no such geometry, and naming the URI of
+        a mesh that cannot be found or read.
+        """
+        import pinocchio as pin
+
+        if kind not in KINDS:
+            raise ErrplanError(f"geometry kind must be one of {list(KINDS)}, got {kind!r}")
+        where = str(arm.urdf_path)
+        root = ET.fromstring(arm.urdf_text)
+        count = 0
+        for link in root.iter("link"):
+            for elem in link.findall(kind):
+                geom = elem.find("geometry")
+                if geom is None or len(geom) == 0:
+                    continue
+                count += 1
+                for mesh in geom.iter("mesh"):
+                    uri = mesh.get("filename", "")
+                    path = arm.resolve_uri(uri)
+                    if path is None:
+                        raise ErrplanError(f"URDF {where}: {kind} mesh '{uri}' of link '{link.get('name')}' "
+                                           "was not found (package_path, ROS_PACKAGE_PATH, installed description "
+                                           "packages, the URDF's folder)")
+                    mesh.set("filename", str(path))
+        if count == 0:
+            raise ErrplanError(f"URDF {where} has no {kind} geometry; arm checks need it")
+        text = ET.tostring(root, encoding="unicode")
+        gtype = pin.GeometryType.COLLISION if kind == "collision" else pin.GeometryType.VISUAL
+        try:
+            gm = pin.buildGeomFromUrdfString(arm.model, text, gtype)
+        except Exception as exc:  # pinocchio/assimp: ValueError, RuntimeError on an unreadable mesh
+            raise ErrplanError(f"URDF {where}: its {kind} geometry cannot be read "
+                               f"({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})") from None
+        if gm.ngeoms == 0:
+            raise ErrplanError(f"URDF {where} has no {kind} geometry; arm checks need it")
+        return cls(arm, gm, kind)
+
+    def _reach_bounds(self) -> np.ndarray:
+        """``reach[g, j]``: for a revolute actuated joint j upstream of object g, a bound on the distance
+        of any point of g from a point of j's axis (the joint frame's origin), valid at EVERY
+        configuration; 1 for a prismatic one; 0 when j does not move g.
+
+        Why configuration-free: let ``a_1 < ... < a_m`` be the actuated joints upstream of g (root to
+        g). Between two consecutive ones only held joints lie, so the origin of ``a_{l+1}`` is fixed in
+        the child frame of ``a_l``; that frame turns about an axis through its own origin (revolute) or
+        moves with it (prismatic), so ``|o_{a_l} - o_{a_{l+1}}|`` never changes, nor the distance of a
+        point of g from ``o_{a_m}``. By the triangle inequality every point x of g has
+        ``|x - o_{a_i}| <= sum_{l=i}^{m-1} |o_{a_l} - o_{a_{l+1}}| + max_x |x - o_{a_m}|``, all measured at
+        one configuration (the arm's reference). Points of g are within the convex hull of its vertices
+        (the corners of its bounding box for a primitive), so the maximum is over those points."""
+        import pinocchio as pin
+
+        arm, model, data = self.arm, self.arm.model, self._data
+        q0 = arm.pinocchio_configuration(np.zeros(arm.n))
+        pin.forwardKinematics(model, data, q0)
+        pin.updateGeometryPlacements(model, data, self.geometry_model, self._gdata)
+        act = list(arm._act_ids)
+        prismatic = [_is_prismatic(model.joints[j]) for j in act]
+        reach = np.zeros((len(self._geoms), arm.n))
+        for g, obj in enumerate(self.geometry_model.geometryObjects):
+            ups = []
+            jid = obj.parentJoint
+            while jid != 0:
+                if jid in act:
+                    ups.append(act.index(jid))
+                jid = model.parents[jid]
+            ups.reverse()  # root to object
+            if not ups:
+                continue
+            M = self._gdata.oMg[g].homogeneous
+            pts = self._hulls[g] @ M[:3, :3].T + M[:3, 3]
+            origin = [np.asarray(data.oMi[act[i]].translation) for i in ups]
+            r = float(np.max(np.linalg.norm(pts - origin[-1], axis=1)))
+            for k in range(len(ups) - 1, -1, -1):
+                reach[g, ups[k]] = 1.0 if prismatic[ups[k]] else r
+                if k:
+                    r += float(np.linalg.norm(origin[k] - origin[k - 1]))
+        return reach
+
+    # ------------------------------------------------------------------ placements
+    def _check_q(self, q, what: str = "q") -> np.ndarray:
+        q = np.asarray(q, dtype=float)
+        if q.shape != (self.arm.n,):
+            raise ErrplanError(f"{what} must be {self.arm.n} joint values of {self.arm.urdf_path.name}, got shape {q.shape}")
+        if not np.all(np.isfinite(q)):
+            raise ErrplanError(f"{what} must be finite joint values, got {q.tolist()}")
+        return q
+
+    def placements(self, q) -> np.ndarray:
+        """World placements (objects, 4, 4) of the objects at actuated joint values ``q`` (n,)."""
+        import pinocchio as pin
+
+        q = self._check_q(q)
+        pin.forwardKinematics(self.arm.model, self._data, self.arm.pinocchio_configuration(q))
+        pin.updateGeometryPlacements(self.arm.model, self._data, self.geometry_model, self._gdata)
+        return np.array([self.base @ M.homogeneous for M in self._gdata.oMg])
+
+    def motion_bound(self, dq) -> float:
+        """Bound (m) on how far any point of any object moves along the straight joint-space motion
+        ``q -> q + dq``, from any ``q``: ``max_g sum_j |dq_j| reach[g, j]``.
+
+        Along ``q(s) = q + s dq`` a point x of object g moves with velocity
+        ``sum_j (w_j x (x - o_j)) dq_j`` (revolute; ``dq_j`` times a unit axis for a prismatic joint), the
+        geometric Jacobian's columns, so its speed is at most ``sum_j |dq_j| |x - o_j|`` and its
+        displacement, the integral over s in [0, 1], at most ``sum_j |dq_j| reach[g, j]``
+        (:meth:`_reach_bounds`: ``|x - o_j|`` bounded at every configuration)."""
+        dq = np.abs(np.asarray(dq, dtype=float))
+        return float(np.max(self.reach @ dq)) if len(self.reach) else 0.0
+
+
+# ============================================================================ distances
+def _hull_points(geom) -> np.ndarray:
+    """Points (k, 3), in the object's frame, whose convex hull holds the object: a mesh's vertices, else
+    the corners of its local bounding box."""
+    verts = getattr(geom, "vertices", None)
+    if callable(verts):
+        v = np.asarray(verts(), dtype=float)
+        if v.ndim == 2 and len(v):
+            return v
+    geom.computeLocalAABB()
+    lo, hi = np.asarray(geom.aabb_local.min_, float), np.asarray(geom.aabb_local.max_, float)
+    return np.array([[(lo, hi)[i][0], (lo, hi)[j][1], (lo, hi)[k][2]] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+
+
+def _is_prismatic(joint) -> bool:
+    return "Prismatic" in joint.shortname() or "JointModelP" in joint.shortname()
+
+
+def _transforms(P: np.ndarray):
+    import coal
+
+    return [coal.Transform3s(np.ascontiguousarray(M[:3, :3]), np.ascontiguousarray(M[:3, 3])) for M in P]
+
+
+def _closest(a: ArmCollision, Pa: np.ndarray, b: ArmCollision, Pb: np.ndarray, best: float = math.inf,
+             Ta=None, Tb=None) -> tuple[float, tuple | None]:
+    """The smallest coal distance over the pairs (object of a at Pa, object of b at Pb) that is below
+    ``best``: ``(distance, (i, j, point_a, point_b))``, or ``(best, None)`` when none is (module
+    docstring: sphere pruning keeps the exact minimum)."""
+    import coal
+
+    ca = np.einsum("gij,gj->gi", Pa[:, :3, :3], a._center) + Pa[:, :3, 3]
+    cb = np.einsum("gij,gj->gi", Pb[:, :3, :3], b._center) + Pb[:, :3, 3]
+    lower = np.linalg.norm(ca[:, None] - cb[None], axis=-1) - a._radius[:, None] - b._radius[None]
+    order = np.argsort(lower, axis=None, kind="stable")
+    if not len(order) or lower.flat[order[0]] >= best:
+        return best, None
+    Ta = _transforms(Pa) if Ta is None else Ta
+    Tb = _transforms(Pb) if Tb is None else Tb
+    req = coal.DistanceRequest()
+    found = None
+    nb = len(b._geoms)
+    for k in order:
+        if lower.flat[k] >= best:
+            break
+        i, j = divmod(int(k), nb)
+        res = coal.DistanceResult()
+        d = float(coal.distance(a._geoms[i], Ta[i], b._geoms[j], Tb[j], req, res))
+        if not math.isfinite(d):
+            raise ErrplanError(f"coal returned a non-finite distance ({d}) between '{a.names[i]}' and '{b.names[j]}'")
+        if d < best:
+            best = d
+            found = (i, j, np.array(res.getNearestPoint1(), float), np.array(res.getNearestPoint2(), float))
+            if best <= 0.0:
+                break
+    return best, found
+
+
+def closest_pair(geo_a: ArmCollision, q_a, geo_b: ArmCollision, q_b) -> Closest:
+    """The closest pair of objects of two arms at configurations ``q_a``, ``q_b`` (:class:`Closest`)."""
+    d, found = _closest(geo_a, geo_a.placements(q_a), geo_b, geo_b.placements(q_b))
+    if found is None:  # only when an arm has no objects, which from_arm refuses
+        raise ErrplanError("arm_clearance needs two arms with collision objects")
+    i, j, pa, pb = found
+    return Closest(d, geo_a.names[i], geo_b.names[j], pa, pb)
+
+
+def arm_clearance(geo_a: ArmCollision, q_a, geo_b: ArmCollision, q_b) -> float:
+    """The smallest coal distance (m) over all pairs (object of arm a, object of arm b) at actuated joint
+    values ``q_a`` and ``q_b``; <= 0 when they touch or overlap."""
+    return closest_pair(geo_a, q_a, geo_b, q_b).distance
+
+
+def motion_samples(geo: ArmCollision, qs, clearance: float) -> np.ndarray:
+    """Configurations (k, n) along the piecewise-straight joint-space motion through ``qs`` (m, n), the
+    waypoints included, so that no point of any object moves more than ``clearance / 2`` between two
+    consecutive ones (:meth:`ArmCollision.motion_bound` per segment, split into equal steps)."""
+    c = float(clearance) if isinstance(clearance, (int, float, np.floating, np.integer)) else math.nan
+    if not (math.isfinite(c) and c > 0.0):
+        raise ErrplanError(f"clearance must be a positive number (m), got {clearance!r}")
+    qs = np.asarray(qs, dtype=float)
+    n = geo.arm.n
+    if qs.ndim != 2 or qs.shape[1] != n or len(qs) == 0:
+        raise ErrplanError(f"qs must be configurations of shape (m, {n}), got shape {qs.shape}")
+    if not np.all(np.isfinite(qs)):
+        raise ErrplanError("qs must be finite joint values (a NaN is an unreachable configuration)")
+    out = [qs[:1]]
+    for q0, q1 in zip(qs[:-1], qs[1:]):
+        steps = max(1, math.ceil(geo.motion_bound(q1 - q0) / (0.5 * c) * (1.0 + 1e-12)))
+        s = np.arange(1, steps + 1)[:, None] / steps
+        out.append(q0 + s * (q1 - q0))
+    return np.concatenate(out)
+
+
+def min_clearance_along(geo_a: ArmCollision, qs_a, geo_b: ArmCollision, q_b, clearance: float,
+                        stop_below: float | None = None) -> float:
+    """The smallest clearance (m) between arm a moving through configurations ``qs_a`` (m, n) (straight
+    segments in joint space) and arm b held at ``q_b``, over :func:`motion_samples`: no point of arm a
+    moves more than ``clearance / 2`` between two samples, so if every sample is at least ``clearance``
+    clear, every configuration of the motion is at least ``clearance / 2`` clear (the true minimum along
+    the motion is never below the returned value minus ``clearance / 2``).
+
+    ``stop_below``: return as soon as a sample below it is found (that sample's clearance; a validity
+    check needs no more). Arm b's placements are computed once; samples whose spheres cannot beat the
+    minimum so far are skipped (the result is the exact minimum over the samples)."""
+    samples = motion_samples(geo_a, qs_a, clearance)
+    Pb = geo_b.placements(geo_b._check_q(q_b, "q_b"))
+    Tb = _transforms(Pb)
+    best = math.inf
+    for q in samples:
+        best, _ = _closest(geo_a, geo_a.placements(q), geo_b, Pb, best, Tb=Tb)
+        if stop_below is not None and best < stop_below:
+            break
+    return float(best)
+
+
+# ============================================================================ the arm at a tip
+def arm_at_tip(arm: UrdfArm, tip, port, length: float, near=None) -> np.ndarray:
+    """Actuated joint values (n,) putting the wrist at ``t - L (t - p) / |t - p|``: the rigid shaft of
+    length ``L`` through port ``p`` with its tip at ``t`` (physics.md, "Definitions the figures use").
+    ``near``: a configuration tried first (keeps a branch). Raises :class:`ErrplanError` when the tip
+    is at the port or that wrist is out of the arm's reach."""
+    t = np.asarray(tip, dtype=float)
+    p = np.asarray(port, dtype=float)
+    if t.shape != (3,) or p.shape != (3,) or not (np.all(np.isfinite(t)) and np.all(np.isfinite(p))):
+        raise ErrplanError(f"tip and port must be finite points [x, y, z], got {np.asarray(tip).tolist()} "
+                           f"and {np.asarray(port).tolist()}")
+    L = float(length)
+    if not (math.isfinite(L) and L > 0.0):
+        raise ErrplanError(f"shaft length must be a positive number (m), got {length!r}")
+    d = t - p
+    nd = float(np.linalg.norm(d))
+    if nd == 0.0:
+        raise ErrplanError(f"tip {t.tolist()} is at the port: the shaft has no direction")
+    w = t - L * d / nd
+    q, ok = arm.inverse(w, near=near)
+    if not bool(ok):
+        raise ErrplanError(f"tip {t.tolist()} through port {p.tolist()} needs the wrist at "
+                           f"{np.round(w, 6).tolist()}, out of reach of {arm.urdf_path.name}")
+    return np.asarray(q, float)
+
+
+__all__ = ["ArmCollision", "Closest", "arm_clearance", "closest_pair", "min_clearance_along", "motion_samples",
+           "arm_at_tip"]
