@@ -90,6 +90,16 @@ def check_setup(st: Setup) -> None:
         if m is not None and not bool(m.tip_clear(x)):
             raise ScenarioError(f"{st.source}: [[arm]] {name!r} rest = {list(rest)}: expected a tip robustly clear "
                                 f"of the anatomy by [anatomy] clearance {m.required:g} m (rest point not clear)")
+    if st.arm_clearance is not None:  # arm checks need every arm's collision geometry
+        from .errors import ErrplanError
+        from .kinematics.urdf.collision import ArmCollision
+
+        for name, sc in zip(st.arm_names, st.arms):
+            try:
+                ArmCollision.from_arm(arm_for(sc.robot))
+            except ErrplanError as err:
+                raise ScenarioError(f"{st.source}: [setup] arm_clearance = {st.arm_clearance:g}: arm {name!r}: "
+                                    f"{err}") from None
     e = st.endoscope
     if e is not None:
         sc0 = st.arms[0]

@@ -118,6 +118,8 @@ BAD = {
     "triad-unknown-key": (_set(("tolerance", 0, "colour"), "red"), ["[[tolerance]][0] colour", "unknown key"]),
     "keep-visible-text": (_set(("endoscope", "keep_visible"), "yes"), ["keep_visible", "true or false"]),
     "endoscope-without-arms": (None, ["[endoscope]", "[[arm]]"]),
+    "arm-checks-without-collision-geometry": (_set(("setup", "arm_clearance"), 0.02),
+                                              ["[setup] arm_clearance", "no collision geometry"]),
 }
 
 
