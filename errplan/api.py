@@ -30,9 +30,9 @@ from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
 
 from .kinematics import check_scenario
-from .scenario import Scenario, read_scenario, scenario_from_dict
+from .scenario import Scenario, Setup, read_scenario, read_setup, scenario_from_dict
 
-__all__ = ["Scenario", "load_scenario", "parse_scenario", "compute_fields", "plan", "tolerances", "run_experiment",
+__all__ = ["Scenario", "Setup", "load_scenario", "load_setup", "load_arm", "parse_scenario", "compute_fields", "plan", "tolerances", "run_experiment",
            "calibrate"]
 
 Progress = Callable[[float, str], None]
@@ -74,6 +74,86 @@ def load_scenario(path: str | Path) -> Scenario:
     check_scenario(sc)
     check_anatomy(sc)
     return sc
+
+
+def load_setup(path: str | Path) -> Setup:
+    """Read a scenario file with one or several arms (``[[arm]]``) once into per-arm scenarios, and check
+    every arm as :func:`load_scenario` checks a scenario, then the setup (:func:`check_setup`)."""
+    st = read_setup(path)
+    for sc in st.arms:
+        check_scenario(sc)
+        check_anatomy(sc)
+    check_setup(st)
+    return st
+
+
+def load_arm(path: str | Path, arm: str | None) -> Scenario:
+    """The scenario of one arm of a file (``arm`` None: a one-instrument file, or its only arm); the
+    whole file is read and checked (:func:`load_setup`)."""
+    return load_setup(path).arm(arm)
+
+
+def check_setup(st: Setup) -> None:
+    """The checks of a several-arm setup that need geometry: each rest point robustly reachable and
+    clear of the anatomy, the endoscope's port on the body wall, and the scenario's ports at least each
+    ``triad_placement`` query's ``port_spacing`` apart. One :class:`errplan.ScenarioError`."""
+    if not st.several:
+        return
+    import numpy as np
+
+    from .errors import ScenarioError
+    from .fields.compute import anatomy_model
+    from .fields.errorset import error_set
+    from .kinematics import arm_for
+    from .kinematics.shaft import lever_wrist
+
+    for name, sc, rest in zip(st.arm_names, st.arms, st.rests):
+        es = error_set(sc)[0]
+        corners = es.port_corners()
+        x = np.asarray(rest, float)
+        wr = lever_wrist(x[None, :], corners, sc.instrument.length)
+        if not bool(np.all(arm_for(sc.robot).reachable(wr))):
+            raise ScenarioError(f"{st.source}: [[arm]] {name!r} rest = {list(rest)}: expected a tip the arm reaches "
+                                "through every true port of its box (rest point unreachable)")
+        m = anatomy_model(sc, es)
+        if m is not None and not bool(m.tip_clear(x)):
+            raise ScenarioError(f"{st.source}: [[arm]] {name!r} rest = {list(rest)}: expected a tip robustly clear "
+                                f"of the anatomy by [anatomy] clearance {m.required:g} m (rest point not clear)")
+    if st.arm_clearance is not None:  # arm checks need every arm's collision geometry
+        from .errors import ErrplanError
+        from .kinematics.urdf.collision import ArmCollision
+
+        for name, sc in zip(st.arm_names, st.arms):
+            try:
+                ArmCollision.from_arm(arm_for(sc.robot))
+            except ErrplanError as err:
+                raise ScenarioError(f"{st.source}: [setup] arm_clearance = {st.arm_clearance:g}: arm {name!r}: "
+                                    f"{err}") from None
+    e = st.endoscope
+    if e is not None:
+        sc0 = st.arms[0]
+        m = anatomy_model(sc0)
+        if m is not None and m.wall[6] > 0:
+            from .anatomy.setup import endoscope_box
+
+            box = endoscope_box(e)
+            tol = max(0.001, float(np.max(np.linalg.norm(box - box.mean(axis=0), axis=1))))
+            gap = m.wall_gap(np.asarray(e.port.estimate, float))
+            if gap > tol:
+                raise ScenarioError(f"{st.source}: [endoscope] port.estimate = {list(e.port.estimate)}: "
+                                    f"{gap * 1000:.1f} mm from the body wall (more than {tol * 1000:.1f} mm): expected "
+                                    "a port on [anatomy.body_wall] (endoscope port off the wall)")
+    ports = [(f"[[arm]] {n!r} port.estimate", sc.port.estimate) for n, sc in zip(st.arm_names, st.arms)]
+    if e is not None:
+        ports.append(("[endoscope] port.estimate", e.port.estimate))
+    for t in st.triads:
+        ps = t.get("port_spacing", 0.0)
+        for i in range(len(ports)):
+            for j in range(i + 1, len(ports)):
+                d = float(np.linalg.norm(np.subtract(ports[i][1], ports[j][1])))
+                if d < ps:
+                    raise ScenarioError(f"{st.source}: {ports[i][0]} and {ports[j][0]} are {d * 1000:.1f} mm apart: "
+                                        f"expected ports at least [[tolerance]] {t.name!r} port_spacing = {ps:g} m apart")
 
 
 def parse_scenario(doc: Mapping[str, Any], source: str = "<memory>") -> Scenario:

@@ -25,6 +25,8 @@ from .errors import ScenarioError
 METRICS = ("phi_hat_max", "G_norm", "phi_max", "rho_star")
 JACOBIANS = ("rigid", "flexion")
 TOLERANCE_KINDS = ("port", "insertion_band", "tip_load", "tracker_noise", "port_placement")
+#: kinds of a several-arm scenario (``[[arm]]``): answered for the whole setup, not per arm
+SETUP_TOLERANCE_KINDS = ("triad_placement",)
 EFFECT_PARAMS: dict[str, tuple[str, ...]] = {
     "port_offset": ("dy", "dz"),
     "joint_offset": ("dq1", "dq2"),
@@ -268,6 +270,7 @@ class Scenario:
     description: str = ""
     source: str = "<memory>"
     anatomy: Anatomy | None = None  # [anatomy] (spatial scenarios only)
+    view: Any = None  # an Endoscope whose view every planned tip keeps ([endoscope] keep_visible; Setup.moving)
 
     @property
     def dim(self) -> int:
@@ -304,10 +307,29 @@ def _unique_name(ctx, t: dict, where: str, default: str, names: set, what: str) 
     return name
 
 
+def _short(v: Any) -> str:
+    """A value for an error message: short values as written, tables and long lists abbreviated (an
+    unknown ``[[arm]]`` key must not print every arm)."""
+    if isinstance(v, dict):
+        return "a table {" + ", ".join(list(map(str, v))[:6]) + (", ..." if len(v) > 6 else "") + "}"
+    if isinstance(v, list) and v and all(isinstance(x, dict) for x in v):
+        return f"an array of {len(v)} table{'s' if len(v) != 1 else ''}"
+    r = repr(v)
+    return r if len(r) <= 80 else r[:77] + "..."
+
+
+class _Short(str):
+    """A value already abbreviated by :func:`_short` (printed without quotes)."""
+
+    def __repr__(self) -> str:
+        return str(self)
+
+
 def _check_keys(ctx: _Ctx, table: Mapping[str, Any], allowed: tuple[str, ...], where: str) -> None:
     for k in table:
         if k not in allowed:
-            raise ctx.fail(f"{where}{k}", table[k], f"one of the keys {', '.join(allowed)} (unknown key)")
+            raise ctx.fail(f"{where}{k}", _Short(_short(table[k])), f"one of the keys {', '.join(allowed)} "
+                           "(unknown key)")
 
 
 def _table(ctx: _Ctx, doc: Mapping[str, Any], key: str, required: bool) -> Mapping[str, Any]:
@@ -922,4 +944,308 @@ def read_scenario(path: str | Path) -> Scenario:
         doc = tomllib.loads(text)
     except (ValueError, RecursionError) as e:  # TOMLDecodeError is a ValueError; absurd nesting recurses
         raise ScenarioError(f"{p}: not valid TOML: {e}") from None
+    if "arm" in doc:  # several instruments: one arm at a time (read_setup reads them all)
+        return setup_from_dict(doc, str(p)).arm(None)
     return scenario_from_dict(doc, str(p))
+
+
+# ----------------------------------------------------------------------------- several arms
+@dataclass(frozen=True)
+class Endoscope:
+    """``[endoscope]`` (docs/interfaces.md "Several instruments and the endoscope"): a straight rigid
+    shaft through ``port`` (estimate, truth) whose optical axis runs toward ``look_at``; the lens sits
+    ``insertion`` (m) along it from the port, sees a cone of full angle ``fov`` (rad) between the
+    depths ``depth`` = (near, far) (m from the lens). ``uncertainty``: the port box (port_x/y/z)."""
+
+    port: Port
+    look_at: tuple[float, float, float]
+    insertion: float
+    fov: float
+    depth: tuple[float, float]
+    uncertainty: Uncertainty = Uncertainty()
+    keep_visible: bool = False
+
+
+@dataclass(frozen=True)
+class Setup:
+    """A scenario file read once: one :class:`Scenario` per instrument arm (the same type every command
+    takes, with the shared ``[anatomy]``, ``[fields]``, ``[planner]``, ``[sensors]`` and ``[effects]``
+    tables and that arm's queries), the endoscope and the setup's clearances. A one-instrument file is
+    the one-arm case (``several`` false, its arm named ``"arm"``, no endoscope).
+
+    ``rests``: per arm, the tip's rest point (None in a one-instrument file); ``triads``: the
+    ``triad_placement`` tolerance queries (options as parsed)."""
+
+    name: str
+    source: str
+    arm_names: tuple[str, ...]
+    arms: tuple[Scenario, ...]
+    rests: tuple[tuple[float, float, float] | None, ...] = ()
+    endoscope: Endoscope | None = None
+    shaft_clearance: float = 0.0
+    arm_clearance: float | None = None
+    triads: tuple[Tolerance, ...] = ()
+    several: bool = False
+
+    def arm(self, name: str | None, option: str = "--arm") -> Scenario:
+        """The scenario of arm ``name`` (None: the only arm). One :class:`ScenarioError` otherwise."""
+        if name is None:
+            if len(self.arms) == 1:
+                return self.arms[0]
+            raise ScenarioError(f"{self.source}: the scenario has {len(self.arms)} arms ({', '.join(self.arm_names)}): "
+                                f"name one with {option} NAME")
+        if name not in self.arm_names:
+            if not self.several:
+                raise ScenarioError(f"{option} {name}: {self.source} has one instrument and no [[arm]] tables")
+            raise ScenarioError(f"{option} {name}: expected one of the arms {', '.join(self.arm_names)}")
+        return self.arms[self.arm_names.index(name)]
+
+    def rest(self, name: str):
+        return self.rests[self.arm_names.index(name)]
+
+    def held_shafts(self, name: str) -> tuple[Obstacle, ...]:
+        """What arm ``name`` sees while it moves: every other instrument's shaft held at its rest point,
+        conv(box_j ∪ {rest_j}), and the endoscope's, conv(box_e ∪ {lens}), as obstacles of shape
+        ``"shaft"`` (box centre and half extents, tip ``a``). Their ``radius`` is ``[setup] shaft_clearance -
+        [anatomy] clearance`` (possibly negative): the anatomy's check "distance - radius >= clearance" is
+        then exactly "distance >= shaft_clearance"."""
+        an = self.arms[0].anatomy
+        adj = self.shaft_clearance - (an.clearance if an is not None else 0.0)
+        out = []
+        for n, sc, rest in zip(self.arm_names, self.arms, self.rests):
+            if n != name and rest is not None:
+                c, h = _box_of(sc.port.estimate, sc.uncertainty)
+                out.append(Obstacle(name=f"{n} shaft (held)", shape="shaft", center=c, half_extents=h, a=rest,
+                                    radius=adj))
+        e = self.endoscope
+        if e is not None:
+            c, h = _box_of(e.port.estimate, e.uncertainty)
+            u = [b - a for a, b in zip(e.port.estimate, e.look_at)]
+            nu = math.sqrt(sum(x * x for x in u))
+            lens = tuple(p + e.insertion * x / nu for p, x in zip(e.port.estimate, u))
+            out.append(Obstacle(name="endoscope shaft", shape="shaft", center=c, half_extents=h, a=lens, radius=adj))
+        return tuple(out)
+
+    def moving(self, name: str | None) -> Scenario:
+        """The scenario of arm ``name`` as it moves among the others (:meth:`held_shafts` join its
+        anatomy's obstacles: fields, plans, certificates and replays keep them clear as any obstacle).
+        The one-arm case: the arm's scenario unchanged."""
+        sc = self.arm(name)
+        if not self.several:
+            return sc
+        held = self.held_shafts(self.arm_names[self.arms.index(sc)])
+        an = sc.anatomy or Anatomy()
+        view = self.endoscope if (self.endoscope is not None and self.endoscope.keep_visible) else None
+        return sc.with_(anatomy=replace(an, obstacles=an.obstacles + held), view=view)
+
+
+#: the tables each ``[[arm]]`` holds (a one-instrument scenario has them at the top)
+ARM_TABLES = ("robot", "instrument", "port", "controller", "uncertainty")
+_TRIAD_KEYS = ("name", "kind", "instruments", "candidates", "spacing", "region", "resolution", "port_spacing",
+               "manipulation_angle", "manipulation_tolerance", "azimuth_tolerance", "coverage_weight",
+               "certify_margin", "gain")
+
+
+def _box_of(estimate, un: Uncertainty) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+    """Centre and half extents of the port box ``estimate`` + [port_x] x [port_y] x [port_z]."""
+    c, h = [], []
+    for e, ax in zip(estimate, "xyz"):
+        lo, hi = getattr(un, f"port_{ax}", None) or (0.0, 0.0)
+        c.append(float(e) + (lo + hi) / 2)
+        h.append((hi - lo) / 2)
+    return tuple(c), tuple(h)
+
+
+def _endoscope(ctx: _Ctx, t: Any) -> Endoscope:
+    w = "[endoscope] "
+    if not isinstance(t, dict):
+        raise ctx.fail("[endoscope]", _Short(_short(t)), "a table")
+    _check_keys(ctx, t, ("port", "look_at", "insertion", "fov", "depth", "uncertainty", "keep_visible"), w)
+    pt = _get(ctx, t, "port", w)
+    if not isinstance(pt, dict):
+        raise ctx.fail(w + "port", _Short(_short(pt)), "{ estimate = [x, y, z], position = [x, y, z] }")
+    _check_keys(ctx, pt, ("estimate", "position"), w + "port.")
+    pos = _vec(ctx, _get(ctx, pt, "position", w + "port."), w + "port.position", 3)
+    est = _vec(ctx, pt.get("estimate", list(pos)), w + "port.estimate", 3)
+    look = _vec(ctx, _get(ctx, t, "look_at", w), w + "look_at", 3)
+    if math.dist(look, est) < 1e-6:
+        raise ctx.fail(w + "look_at", list(look), "a point away from the endoscope's port (the optical axis)")
+    ins = _num(ctx, _get(ctx, t, "insertion", w), w + "insertion", positive=True)
+    fov = _num(ctx, _get(ctx, t, "fov", w), w + "fov")
+    if not 0 < fov < math.pi:
+        raise ctx.fail(w + "fov", fov, "a full cone angle in (0, pi) rad")
+    near, far = _pair(ctx, _get(ctx, t, "depth", w), w + "depth")
+    if not 0 <= near < far:
+        raise ctx.fail(w + "depth", [near, far], "[near, far] m from the lens with 0 <= near < far (increasing)")
+    un = t.get("uncertainty", {})
+    if not isinstance(un, dict):
+        raise ctx.fail(w + "uncertainty", _Short(_short(un)), "{ port_x = [lo, hi], port_y = ..., port_z = ... }")
+    _check_keys(ctx, un, ("port_x", "port_y", "port_z"), w + "uncertainty.")
+    box = {k: _pair(ctx, un[k], w + f"uncertainty.{k}", ordered=True) for k in ("port_x", "port_y", "port_z")
+           if k in un}
+    kv = t.get("keep_visible", False)
+    if not isinstance(kv, bool):
+        raise ctx.fail(w + "keep_visible", kv, "true or false")
+    return Endoscope(Port(pos, est), look, ins, fov, (near, far), Uncertainty(**box), kv)
+
+
+def _triad(ctx: _Ctx, t: dict, i: int, arm_names: tuple[str, ...], margin: float) -> Tolerance:
+    """A ``triad_placement`` query (docs/interfaces.md): options with their defaults filled in."""
+    w = f"[[tolerance]][{i}] "
+    _check_keys(ctx, t, _TRIAD_KEYS, w)
+    o: dict[str, Any] = {}
+    ins = _get(ctx, t, "instruments", w, list(arm_names[:2]))
+    if (not isinstance(ins, list) or len(ins) != 2 or len(set(map(str, ins))) != 2
+            or not all(isinstance(x, str) and x in arm_names for x in ins)):
+        raise ctx.fail(w + "instruments", ins, f"two different arms of the scenario ({', '.join(arm_names)})")
+    o["instruments"] = tuple(ins)
+    roles = tuple(ins) + ("endoscope",)
+    cand = _get(ctx, t, "candidates", w)
+    if cand == "body_wall":
+        o["candidates"] = "body_wall"
+    elif isinstance(cand, dict):
+        _check_keys(ctx, cand, roles, w + "candidates.")
+        out = {}
+        for r in roles:
+            pts = _get(ctx, cand, r, w + "candidates.")
+            if not isinstance(pts, list) or not pts:
+                raise ctx.fail(w + f"candidates.{r}", pts, "a non-empty list of points [x, y, z] on the body wall")
+            out[r] = tuple(_vec(ctx, p, w + f"candidates.{r}[{j}]", 3) for j, p in enumerate(pts))
+        o["candidates"] = out
+    else:
+        raise ctx.fail(w + "candidates", _Short(_short(cand)), '"body_wall" or { ' + ", ".join(
+            f"{r} = [[x, y, z], ...]" for r in roles) + " }")
+    o["spacing"] = _num(ctx, t.get("spacing", 0.03), w + "spacing", positive=True)
+    o["region"] = _region(ctx, _get(ctx, t, "region", w), w + "region", 3)
+    if "resolution" in t:
+        o["resolution"] = _num(ctx, t["resolution"], w + "resolution", positive=True)
+    o["port_spacing"] = _num(ctx, t.get("port_spacing", 0.06), w + "port_spacing", nonneg=True)
+    o["manipulation_angle"] = _num(ctx, t.get("manipulation_angle", math.radians(60)), w + "manipulation_angle")
+    if not 0 < o["manipulation_angle"] < math.pi:
+        raise ctx.fail(w + "manipulation_angle", t["manipulation_angle"], "an angle in (0, pi) rad")
+    for k in ("manipulation_tolerance", "azimuth_tolerance"):
+        o[k] = _num(ctx, t.get(k, math.radians(15)), w + k, positive=True)
+    o["coverage_weight"] = _num(ctx, t.get("coverage_weight", 10.0), w + "coverage_weight", nonneg=True)
+    o["certify_margin"] = _num(ctx, t.get("certify_margin", margin), w + "certify_margin", nonneg=True)
+    if o["certify_margin"] >= 1:
+        raise ctx.fail(w + "certify_margin", t["certify_margin"], "a number in [0, 1)")
+    if "gain" in t:
+        o["gain"] = _num(ctx, t["gain"], w + "gain", positive=True)
+    return Tolerance(_get(ctx, t, "name", w, f"tolerance{i}"), "triad_placement", o)
+
+
+def setup_from_dict(doc: Mapping[str, Any], source: str = "<memory>") -> Setup:
+    """Validate a parsed TOML document into a :class:`Setup`: per ``[[arm]]`` a one-instrument
+    :class:`Scenario` (:func:`scenario_from_dict` of the shared tables with that arm's tables and
+    queries), or, without ``[[arm]]``, the one-arm setup of the document's one scenario."""
+    ctx = _Ctx(source)
+    if not isinstance(doc, dict) or "arm" not in doc:
+        for key in ("endoscope", "setup"):
+            if isinstance(doc, dict) and key in doc:
+                raise ctx.fail(f"[{key}]", _Short(_short(doc[key])), "[[arm]] tables beside it (an endoscope and "
+                               "setup clearances belong to a scenario with several instruments)")
+        sc = scenario_from_dict(doc, source)
+        return Setup(sc.name, source, ("arm",), (sc,), (None,))
+    _check_keys(ctx, doc, _TOP + ("arm", "endoscope", "setup"), "")
+    for key in ARM_TABLES:
+        if key in doc:
+            raise ctx.fail(f"[{key}]", _Short(_short(doc[key])), "no top-level instrument table beside [[arm]] "
+                           f"(each arm holds its own [arm.{key}]; a scenario with both is ambiguous)")
+    arms_t = doc["arm"]
+    if not isinstance(arms_t, list) or not arms_t or not all(isinstance(a, dict) for a in arms_t):
+        raise ctx.fail("[[arm]]", _Short(_short(arms_t)), "an array of tables, one per instrument arm")
+    names: set[str] = set()
+    arm_names = []
+    for i, a in enumerate(arms_t):
+        w = f"[[arm]][{i}] "
+        _check_keys(ctx, a, ("name", "rest") + ARM_TABLES, w)
+        arm_names.append(_unique_name(ctx, a, w, f"arm{i}", names, "[[arm]]"))
+    arm_names_t = tuple(arm_names)
+    name = doc.get("name", Path(source).stem)
+    # queries: each names its arm (required with several arms)
+    queries = doc.get("query", [])
+    if not isinstance(queries, list):
+        raise ctx.fail("[[query]]", _Short(_short(queries)), "an array of tables")
+    q_arm: list[str] = []
+    q_plain = []
+    for i, q in enumerate(queries):
+        w = f"[[query]][{i}] "
+        if not isinstance(q, dict):
+            raise ctx.fail(w.strip(), _Short(_short(q)), "a table")
+        an = q.get("arm")
+        if an is None and len(arm_names_t) > 1:
+            raise ctx.fail(w + "arm", None, f"the arm that moves, one of {', '.join(arm_names_t)} (missing: required "
+                           "when there are several arms)")
+        an = arm_names_t[0] if an is None else an
+        if an not in arm_names_t:
+            raise ctx.fail(w + "arm", an, f"one of the arms {', '.join(arm_names_t)} (unknown arm)")
+        q_arm.append(an)
+        q_plain.append({k: v for k, v in q.items() if k != "arm"})
+    _queries(ctx, q_plain, 3)  # names unique over the whole file, points checked with their index
+    planner = _planner(ctx, _table(ctx, doc, "planner", False))
+    tols = doc.get("tolerance", [])
+    if not isinstance(tols, list):
+        raise ctx.fail("[[tolerance]]", _Short(_short(tols)), "an array of tables")
+    triads, per_arm = [], []
+    for i, t in enumerate(tols):
+        if isinstance(t, dict) and t.get("kind") in SETUP_TOLERANCE_KINDS:
+            triads.append(_triad(ctx, t, i, arm_names_t, planner.certify_margin))
+        else:
+            per_arm.append(t)
+    tnames = [t.name for t in triads] + [t.get("name") for t in per_arm if isinstance(t, dict)]
+    dup = [n for n in tnames if n is not None and tnames.count(n) > 1]
+    if dup:
+        raise ctx.fail("[[tolerance]] name", dup[0], "a name used by no other [[tolerance]]")
+    shared = {k: v for k, v in doc.items() if k not in ("arm", "endoscope", "setup", "query", "tolerance")}
+    arms, rests = [], []
+    for i, (an, a) in enumerate(zip(arm_names_t, arms_t)):
+        sub = dict(shared, name=f"{name}.{an}", query=[q for q, qa in zip(q_plain, q_arm) if qa == an],
+                   tolerance=per_arm)
+        sub.update({k: a[k] for k in ARM_TABLES if k in a})
+        robot = a.get("robot")
+        if not isinstance(robot, dict) or "urdf" not in robot:
+            raise ctx.fail(f"[[arm]][{i}] robot.urdf", None if not isinstance(robot, dict) else robot.get("urdf"),
+                           "a URDF arm (several instruments are spatial: [arm.robot] urdf = ...)")
+        try:
+            sc = scenario_from_dict(sub, source)
+        except ScenarioError as e:
+            msg = str(e)
+            head = f"{source}: "
+            body = msg[len(head):] if msg.startswith(head) else msg
+            if any(body.startswith(f"[{k}]") for k in ARM_TABLES):
+                j = body.index("]")
+                rest = body[j + 1:]
+                body = f"[[arm]][{i}] (name {an!r}) {body[1:j]}" + (rest if rest.startswith(" = ") else "." + rest[1:])
+            raise ScenarioError(head + body) from None
+        arms.append(sc)
+        rests.append(_vec(ctx, _get(ctx, a, "rest", f"[[arm]][{i}] "), f"[[arm]][{i}] rest", 3))
+    endo = _endoscope(ctx, doc["endoscope"]) if "endoscope" in doc else None
+    st = _table(ctx, doc, "setup", False)
+    _check_keys(ctx, st, ("shaft_clearance", "arm_clearance"), "[setup] ")
+    shaft_c = _num(ctx, st.get("shaft_clearance", 0.0), "[setup] shaft_clearance", nonneg=True)
+    arm_c = _num(ctx, st["arm_clearance"], "[setup] arm_clearance", positive=True) if "arm_clearance" in st else None
+    for i, t in enumerate(triads):
+        if endo is None:
+            raise ctx.fail(f"[[tolerance]] {t.name!r} kind", "triad_placement", "an [endoscope] table (missing)")
+        if t.get("candidates") == "body_wall" and (arms[0].anatomy is None or arms[0].anatomy.body_wall is None):
+            raise ctx.fail(f"[[tolerance]] {t.name!r} candidates", "body_wall", "an [anatomy.body_wall] table "
+                           "(missing)")
+    return Setup(name, source, arm_names_t, tuple(arms), tuple(rests), endo, shaft_c, arm_c, tuple(triads), True)
+
+
+def read_document(path: str | Path) -> dict:
+    """A scenario file parsed as TOML (one :class:`ScenarioError` for a file that is not)."""
+    from .inputs import read_text
+
+    p = Path(path)
+    text = read_text(p, "scenario file")
+    try:
+        return tomllib.loads(text)
+    except (ValueError, RecursionError) as e:
+        raise ScenarioError(f"{p}: not valid TOML: {e}") from None
+
+
+def read_setup(path: str | Path) -> Setup:
+    """Read and validate a scenario file with one or several arms (the data only; :func:`errplan.api.
+    load_setup` also checks it against the robots and the anatomy)."""
+    return setup_from_dict(read_document(path), str(Path(path)))

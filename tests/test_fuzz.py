@@ -59,6 +59,9 @@ class Case:
 def _abs_paths(doc: dict, src: Path) -> dict:
     """Paths inside a scenario (a URDF, package paths) made absolute, so that the mutated copy
     written elsewhere still finds them."""
+    for arm in doc.get("arm") or []:  # several instruments: each [[arm]] holds its own [arm.robot]
+        if isinstance(arm, dict) and isinstance(arm.get("robot"), dict):
+            _abs_paths({"robot": arm["robot"]}, src)
     robot = doc.get("robot")
     if isinstance(robot, dict):
         if isinstance(robot.get("urdf"), str) and not robot["urdf"].startswith("package://"):
@@ -639,9 +642,55 @@ def placement_cases() -> list[Case]:
     return out
 
 
-SCENARIO_CASES = [c for f in BUNDLED for c in scenario_cases(f)]
+#: scenarios with several arms get their own cases (tests/test_setup.py, setup_cases below): the per-leaf
+#: mutations here run through one-instrument commands
+ONE_ARM = [f for f in BUNDLED if "[[arm]]" not in f.read_text(encoding="utf-8")]
+SCENARIO_CASES = [c for f in ONE_ARM for c in scenario_cases(f)]
+
+
+def setup_cases() -> list[Case]:
+    """The keys of a scenario with several arms (``[[arm]]``, ``[endoscope]``, ``[setup]``, query ``arm``,
+    ``triad_placement``): NaN, inf, wrong types, wrong lengths, through the commands that read them, and
+    ``--arm`` naming no arm."""
+    src = SCENARIOS / "abdomen_triad.toml"
+    if not src.exists():
+        return []
+    doc = _doc(src)
+    muts = {
+        "endoscope.fov:nan": (("endoscope", "fov"), NAN), "endoscope.insertion:inf": (("endoscope", "insertion"), INF),
+        "endoscope.depth:text": (("endoscope", "depth"), ["near", 0.2]),
+        "endoscope.look_at:short": (("endoscope", "look_at"), [0.0, 0.0]),
+        "endoscope.look_at:at-port": (("endoscope", "look_at"), list(doc["endoscope"]["port"]["estimate"])),
+        "endoscope.port:text": (("endoscope", "port"), "wall"),
+        "endoscope.uncertainty.port_x:reversed": (("endoscope", "uncertainty", "port_x"), [0.003, -0.003]),
+        "setup.shaft_clearance:text": (("setup", "shaft_clearance"), "wide"),
+        "setup.arm_clearance:zero": (("setup", "arm_clearance"), 0.0),
+        "arm.0.rest:nan": (("arm", 0, "rest"), [NAN, 0.0, 0.3]), "arm.1.rest:short": (("arm", 1, "rest"), [0.0, 0.3]),
+        "arm.0.name:empty": (("arm", 0, "name"), ""), "arm:table": (("arm",), {"name": "left"}),
+        "arm.1.instrument.length:negative": (("arm", 1, "instrument", "length"), -0.3),
+        "query.0.arm:number": (("query", 0, "arm"), 1),
+        "tolerance.0.instruments:text": (("tolerance", 0, "instruments"), "left"),
+        "tolerance.0.coverage_weight:negative": (("tolerance", 0, "coverage_weight"), -1.0),
+        "tolerance.0.port_spacing:inf": (("tolerance", 0, "port_spacing"), INF),
+        "tolerance.0.candidates:text": (("tolerance", 0, "candidates"), "wall"),
+        "tolerance.0.manipulation_angle:pi": (("tolerance", 0, "manipulation_angle"), 3.5),
+        "tolerance.0.resolution:tiny": (("tolerance", 0, "resolution"), 1e-9),
+    }
+    out = []
+    for tag, (path, value) in muts.items():
+        cmd = "tolerance" if path[0] == "tolerance" else ("plan" if path[0] == "query" else "fields")
+        argv = _argv(cmd) + (["--arm", "left"] if cmd != "tolerance" else [])
+        out.append(Case(f"abdomen_triad:{tag}", {"s.toml": to_toml(_set(doc, path, value))}, argv))
+    text = to_toml(doc)
+    for cmd in ("fields", "plan", "experiment", "tolerance", "calibrate"):
+        out.append(Case(f"abdomen_triad:arm-unknown:{cmd}", {"s.toml": text}, _argv(cmd) + ["--arm", "middle"]))
+    out.append(Case("abdomen_triad:no-arm:experiment", {"s.toml": text}, _argv("experiment")))
+    out.append(Case("abdomen_triad:record-triad", {"s.toml": text}, _argv("tolerance") + ["--record", "{d}/t.rrd"]))
+    port = _doc(PORT)
+    out.append(Case("beasley2004_port:arm-on-one-instrument", {"s.toml": to_toml(port)}, _argv("fields") + ["--arm", "left"]))
+    return out
 OTHER_CASES = (effect_cases() + toml_syntax_cases() + file_cases() + option_cases() + spatial_robot_cases()
-               + placement_cases())
+               + placement_cases() + setup_cases())
 CASES = SCENARIO_CASES + OTHER_CASES
 
 
@@ -689,12 +738,12 @@ def assert_rejected(rc, err: str, warns: list, d: Path, inputs: list) -> None:
 
 def _pristine_loads(src: Path, tmp: Path) -> str | None:
     """None if the bundled scenario, written back the way the mutations are, loads; else why not."""
-    from errplan.api import load_scenario
+    from errplan.api import load_setup
 
     p = tmp / f"pristine-{src.stem}.toml"
     p.write_text(to_toml(_doc(src)), encoding="utf-8")
     try:
-        load_scenario(p)
+        load_setup(p)
     except Exception as e:  # noqa: BLE001 - reported by the test below
         return f"{type(e).__name__}: {e}"
     return None

@@ -392,6 +392,23 @@ def build(anatomy, box: np.ndarray, where: str = "[anatomy]") -> ShaftClearance:
             surfaces.append(Surface(o.name, o.shape, v, f))
             solids.append(("mesh", v, f))
             continue
+        if o.shape == "shaft":  # a held shaft conv(box ∪ {tip}): the box and 12 tetrahedra (triangle, tip)
+            corners = _box_corners(o.center, o.half_extents, (0.0, 0.0, 0.0))
+            tip = np.asarray(o.a, float)
+            cores = [corners] + [np.vstack([corners[f], tip]) for f in _BOX_FACES]
+            for core in cores:
+                P = np.zeros((_d.MAX_PIECE, 3))
+                P[:len(core)] = core
+                pts.append(P)
+                npts.append(len(core))
+                prad.append(o.radius)
+                pball.append(_ball(core, o.radius))
+                owner.append(k)
+            clusters.append(first + len(cores))
+            cball.append(_ball(np.vstack([corners, tip]), o.radius))
+            surfaces.append(Surface(o.name, o.shape, np.vstack([corners, tip]), _BOX_FACES))
+            solids.append(("convex", list(range(first, first + len(cores)))))
+            continue
         if o.shape == "sphere":
             core, r = np.array([o.center], float), o.radius
             sv, sf = _sphere_mesh(o.center, o.radius)

@@ -77,6 +77,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--workers", type=int, default=None, help="local worker processes for the grid's tiles (default: all cores)")
     s.add_argument("--scheduler", default=None, help="address of a dask.distributed scheduler to run the tiles on instead, e.g. tcp://host:8786 (default: none, local)")
     s.add_argument("--json", default=None, help="also write the summary as JSON (default: none)")
+    s.add_argument("--arm", default=None, help="the arm of a scenario with several instruments, by its [[arm]] name (default: every arm, one F.<arm>.npz each)")
 
     s = sub.add_parser("plan", help="plan every query, pick gains, simulate planned vs direct")
     s.add_argument("scenario", help="scenario TOML file")
@@ -86,6 +87,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--time", type=_positive_float, default=None, help="planner time per query, s (default: [planner] time)")
     s.add_argument("--planner", default=None, help="OMPL planner name (default: [planner] planner)")
     s.add_argument("--seed", type=int, default=None, help="OMPL seed, 0 to 2^32 - 1 (default: [planner] seed)")
+    s.add_argument("--arm", default=None, help="the arm of a scenario with several instruments, by its [[arm]] name (default: every query, each with its own arm)")
 
     s = sub.add_parser("tolerance", help="tolerance-design queries of a scenario (port error, tip load, noise, port placement)")
     s.add_argument("scenario", help="scenario TOML file with [[tolerance]] queries")
@@ -97,6 +99,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "(default: none, local)")
     s.add_argument("--record", default=None, help="rerun recording (.rrd) of the port-placement queries (default: none)")
     s.add_argument("--top", type=int, default=5, help="port-placement candidates listed per query (default: %(default)s)")
+    s.add_argument("--arm", default=None, help="the arm of a scenario with several instruments, by its [[arm]] name (default: the setup's triad_placement queries)")
 
     s = sub.add_parser("experiment", help="a P1-style bench run on the scenario's truth -> measured-data CSV")
     s.add_argument("scenario", help="scenario TOML file; its [effects] and [sensors] are the bench's truth")
@@ -120,6 +123,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="designed bench: at most this many rows (default: the default bench's; 0: no limit)")
     s.add_argument("--design-json", default=None,
                    help="also write the design (runs, correlations, sigmas) as JSON (default: none)")
+    s.add_argument("--arm", default=None, help="the arm of a scenario with several instruments, by its [[arm]] name (default: the only arm; required with several)")
 
     s = sub.add_parser("calibrate", help="close the loop: residual, effect found, error before/after")
     s.add_argument("scenario", help="scenario TOML file: the declared model")
@@ -134,6 +138,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--folds", type=int, default=5, help="held-out folds of runs (default: %(default)s)")
     s.add_argument("--effects", default=None,
                    help="comma-separated candidate effects (default: the whole catalogue of docs/physics.md)")
+    s.add_argument("--arm", default=None, help="the arm of a scenario with several instruments, by its [[arm]] name (default: the only arm; required with several)")
 
     s = sub.add_parser("view", help="open a recording in the rerun viewer")
     s.add_argument("recording", help="a .rrd recording written by errplan")

@@ -19,7 +19,7 @@ def run(args) -> int:
     from ..inputs import check_output
     from . import check_seed
 
-    sc = api.load_scenario(args.scenario)
+    sc = api.load_arm(args.scenario, args.arm)
     for opt, v in (("--json", args.json), ("--record", args.record), ("--export-scenario", args.export_scenario)):
         check_output(opt, v)
     check_seed("--seed", args.seed)

@@ -17,7 +17,7 @@ def run(args) -> int:
     from ..inputs import check_output
     from . import check_seed
 
-    sc = api.load_scenario(args.scenario)
+    sc = api.load_arm(args.scenario, args.arm)
     out = check_output("--out", args.out)
     check_seed("--seed", args.seed)
     starts = getattr(args, "starts", 8)

@@ -43,27 +43,39 @@ def run(args) -> int:
     metrics = parse_metrics(args.metrics, args.rho_star)
     if args.workers is not None and args.workers < 1:
         raise ErrplanError(f"--workers {args.workers}: expected a number of worker processes >= 1")
-    sc = api.load_scenario(args.scenario)
+    st = api.load_setup(args.scenario)
     out = Path(args.out)
     if not out.parent.exists():
         raise ErrplanError(f"--out {args.out}: directory {out.parent} does not exist")
     if args.samples is not None and not 2 <= args.samples <= 41:
         raise ErrplanError(f"--samples {args.samples}: expected an integer from 2 to 41")
+    if args.arm is not None or not st.several:
+        jobs = [(st.arm(args.arm), out, args.json)]
+    else:  # several arms: one npz per arm, F.<arm>.npz
+        jobs = [(sc, out.with_name(f"{out.stem}.{n}{out.suffix or '.npz'}"),
+                 None if not args.json else str(Path(args.json).with_name(f"{Path(args.json).stem}.{n}"
+                                                                          f"{Path(args.json).suffix}")))
+                for n, sc in zip(st.arm_names, st.arms)]
     # Progress only on a terminal (an updating line, cleared before any error): an error is then
     # the one line on stderr, also in logs and pipes.
-    prog = Progress("fields", quiet=args.quiet)
-    prog.quiet = prog.quiet or not prog.tty
-    with prog.cleared_on_error():
-        mf = api.compute_fields(sc, args.resolution, samples=args.samples, progress=prog, metrics=metrics,
-                                workers=args.workers, scheduler=args.scheduler)
-        summary = mf.summary()
-        if summary["valid_points"] == 0:
-            raise ErrplanError(f"{sc.source}: no tip of the grid is reachable under every instance of the error set")
-    prog.done()
-    mf.save(out)
-    if args.json:
-        write_json(args.json, {"scenario": sc.name, "out": str(out), "summary": summary})
-    print(field_table(summary, f"worst-case fields of {sc.name} (gain {sc.controller.gain:g}) -> {out}"))
-    if mf.meta.get("noise_worst_case"):  # P2's flexion controller: the worst case over the noise is searched
-        print("sensor noise: " + mf.meta["noise_worst_case"])
+    results = []
+    for sc, path, js in jobs:
+        prog = Progress("fields", quiet=args.quiet)
+        prog.quiet = prog.quiet or not prog.tty
+        with prog.cleared_on_error():
+            mf = api.compute_fields(sc, args.resolution, samples=args.samples, progress=prog, metrics=metrics,
+                                    workers=args.workers, scheduler=args.scheduler)
+            summary = mf.summary()
+            if summary["valid_points"] == 0:
+                raise ErrplanError(f"{sc.source}: no tip of the grid is reachable under every instance of the error set"
+                                   + (f" (arm {sc.name})" if st.several else ""))
+        prog.done()
+        results.append((sc, path, js, mf, summary))
+    for sc, path, js, mf, summary in results:  # written once every arm has its fields: nothing half-written
+        mf.save(path)
+        if js:
+            write_json(js, {"scenario": sc.name, "out": str(path), "summary": summary})
+        print(field_table(summary, f"worst-case fields of {sc.name} (gain {sc.controller.gain:g}) -> {path}"))
+        if mf.meta.get("noise_worst_case"):  # P2's flexion controller: the worst case over the noise is searched
+            print("sensor noise: " + mf.meta["noise_worst_case"])
     return 0

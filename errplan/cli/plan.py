@@ -58,7 +58,10 @@ def run(args) -> int:
     from ..inputs import check_output
     from . import check_seed
 
-    sc = api.load_scenario(args.scenario)
+    st = api.load_setup(args.scenario)
+    if st.several:
+        return _run_setup(st, args)
+    sc = st.arm(args.arm)
     select_queries(sc, args.query)  # a bad --query fails before the fields are computed
     for opt, value in (("--json", args.json), ("--record", args.record)):
         check_output(opt, value)
@@ -77,4 +80,63 @@ def run(args) -> int:
         write_json(args.json, plan.to_json())
     if args.record:
         print(f"recording: {args.record}  (open it with `errplan view {args.record}`)")
+    return 0
+
+
+def _run_setup(st, args) -> int:
+    """Several arms: every query (or ``--query``) with its arm (``--arm``: only that arm's), the other
+    instruments held at rest and the endoscope's shaft as obstacles of the moving arm
+    (:meth:`errplan.scenario.Setup.moving`); the plan JSON's queries add ``arm``,
+    ``min_shaft_clearance`` and ``visible`` (:func:`errplan.anatomy.setup.path_figures`)."""
+    from .. import api
+    from ..anatomy.setup import path_figures
+    from ..errors import ErrplanError
+    from ..inputs import check_output
+    from ..pipeline import summary_table
+    from . import check_seed
+
+    names = [args.arm] if args.arm is not None else list(st.arm_names)
+    if args.arm is not None:
+        st.arm(args.arm)
+    jobs = []
+    for n in names:
+        sc = st.moving(n)
+        qs = [q for q in sc.queries if args.query is None or q.name == args.query]
+        if qs:
+            jobs.append((n, sc))
+    if not jobs:
+        what = f" of arm {args.arm!r}" if args.arm else ""
+        if args.query:
+            raise ErrplanError(f"--query {args.query!r}: no such query{what} in {st.source}")
+        raise ErrplanError(f"{st.source}: no [[query]]{what} to plan")
+    if args.record:
+        raise ErrplanError(f"--record {args.record}: recordings of several arms are not available yet")
+    check_output("--json", args.json)
+    check_seed("--seed", args.seed)
+    prog = Progress("plan", quiet=args.quiet)
+    prog.quiet = prog.quiet or not prog.tty
+    plans = []
+    for n, sc in jobs:
+        plans.append((n, sc, api.plan(sc, query=args.query, planner=args.planner, time=args.time, seed=args.seed,
+                                      progress=prog)))
+    prog.done()
+    out = {"scenario": st.name, "queries": []}
+    for n, sc, plan in plans:
+        print(plan_table(plan))
+        print()
+        print(summary_table(plan.runs, f"certified gains and simulation: {sc.name}"))
+        j = plan.to_json()
+        out.setdefault("objective", j["objective"])
+        for qj, qp in zip(j["queries"], plan.queries):
+            fig = path_figures(st, n, qp.planned.path)
+            qj.update(fig)
+            out["queries"].append(qj)
+            ms, vis = fig["min_shaft_clearance"], fig["visible"]
+            ms_t = "-" if ms is None else f"{ms * 1000:.1f} mm"
+            vis_t = "-" if vis is None else f"{100 * vis:.0f}%"
+            print(f"{qp.name} (arm {n}): smallest shaft clearance {ms_t} (required {st.shaft_clearance * 1000:g} mm), "
+                  f"visible {vis_t}")
+        print()
+    if args.json:
+        write_json(args.json, out)
     return 0

@@ -49,6 +49,62 @@ def placement_table(r, top: int = 5) -> str:
     return "\n".join(lines)
 
 
+def triad_table(r, top: int = 5) -> str:
+    """The best triad and the next ones of a ``triad_placement`` result: ports, score, per-criterion figures."""
+    d = r.data
+    names = d["instruments"]
+    rows = []
+    for rank, t in enumerate([d["best"]] + d["ranked"][:max(top - 1, 0)], 1):
+        ma = t["manipulation_angle"]
+        sc_ = t["shaft_clearance_min"]
+        rows.append([rank, _mm(t["ports"][names[0]]), _mm(t["ports"][names[1]]), _mm(t["ports"]["endoscope"]),
+                     t["score"], 100 * t["coverage"][names[0]], 100 * t["coverage"][names[1]],
+                     100 * t["coverage"]["both"], 100 * t["visible"], math.degrees(ma["mean"]),
+                     math.degrees(ma["min"]), math.degrees(t["azimuth_difference_mean"]),
+                     1000 * t["port_spacing_min"], math.nan if sc_ is None else 1000 * sc_])
+    s = d["search"]
+    title = (f"{r.name}: {len(d['candidates'][names[0]])} x {len(d['candidates'][names[1]])} x "
+             f"{len(d['candidates']['endoscope'])} candidate ports ({names[0]} x {names[1]} x endoscope), "
+             f"{d['targets']} targets; score S lower is better")
+    lines = [format_table(["rank", f"{names[0]} (mm)", f"{names[1]} (mm)", "endoscope (mm)", "S",
+                           f"cov {names[0]} %", f"cov {names[1]} %", "both %", "visible %", "m mean (deg)",
+                           "m min (deg)", "|a1-a2| (deg)", "spacing (mm)", "shaft clear (mm)"], rows, title)]
+    rej = d["rejected"]
+    lines.append(f"search: {s['method']}, {s['evaluated']:,} of {s['triads']:,} triads evaluated "
+                 f"({100 * s['pruned_share']:.1f}% pruned by the lower bound); rejected among them: port spacing "
+                 f"{rej['port_spacing']:,}, shaft clearance {rej['shaft_clearance']:,}; arm checks: {d['arm_checks']}")
+    return "\n".join(lines)
+
+
+def _run_setup(st, args) -> int:
+    from ..inputs import check_output
+    from ..tolerance.run import run_setup_query
+
+    if not st.triads:
+        raise ErrplanError(f"{st.source}: no triad_placement query: name an arm with --arm NAME for its "
+                           "[[tolerance]] queries")
+    check_output("--json", args.json)
+    if args.record:
+        raise ErrplanError(f"--record {args.record}: recordings of triad placement are not available yet")
+    prog = Progress("tolerance", quiet=args.quiet)
+    prog.quiet = prog.quiet or not prog.tty
+    results = []
+    with prog.cleared_on_error():
+        for tol in st.triads:
+            results.append(run_setup_query(st, tol, prog, workers=args.workers, scheduler=args.scheduler))
+    prog.done()
+    rows = [r.summary_row() + [r.seconds] for r in results]
+    print(format_table(["query", "kind", "answer", "ports", "note", "s"], rows,
+                       f"setup queries of {st.name}"))
+    for r in results:
+        print()
+        print(triad_table(r, args.top))
+    if args.json:
+        write_json(args.json, {"scenario": st.name, "source": st.source,
+                               "tolerances": [r.to_dict() for r in results]})
+    return 0
+
+
 def run(args) -> int:
     from ..inputs import check_output
     from .. import api
@@ -58,7 +114,10 @@ def run(args) -> int:
         raise ErrplanError(f"--workers {args.workers}: expected a number of worker processes >= 1")
     if args.top < 0:
         raise ErrplanError(f"--top {args.top}: expected a number of candidates >= 0")
-    sc = api.load_scenario(args.scenario)
+    st = api.load_setup(args.scenario)
+    if st.several and args.arm is None:  # the setup's own queries (triad placement)
+        return _run_setup(st, args)
+    sc = st.arm(args.arm)
     check_output("--json", args.json)
     record = None
     if args.record:

@@ -250,6 +250,23 @@ class CostMap:
         self._clear = model.checker()
         return self
 
+    def attach_view(self, visible) -> "CostMap":
+        """Also keep every tip of every motion visible: ``visible(ax, ay, az, bx, by, bz) -> bool`` for a
+        straight motion (:func:`errplan.anatomy.setup.view_checker`), checked with the anatomy's clearance
+        wherever that is (points, motions, the planner's checks, the refinement)."""
+        if visible is None:
+            return self
+        if self.dim != 3:
+            raise ErrplanError("an endoscope's view is spatial: the cost map is planar")
+        clear = self._clear
+        self._view = visible
+        if clear is None:
+            self._clear = visible
+        else:
+            self._clear = lambda ax, ay, az, bx, by, bz: (clear(ax, ay, az, bx, by, bz)
+                                                         and visible(ax, ay, az, bx, by, bz))
+        return self
+
     def point_ok(self, *p: float) -> bool:
         """True if the point (d coordinates) lies in a usable cell (closed cells: a point on a face,
         an edge or a corner counts if any cell touching it is usable), and is robustly clear of the

@@ -314,7 +314,12 @@ def costmap_for(sc, mf) -> CostMap:
     from ..fields.compute import anatomy_model
 
     margin = BALL_MARGIN if p.certifiable else 0.0
-    return CostMap(mf, p.metric, p.weight, p.certifiable, p.certify_margin).attach_anatomy(anatomy_model(sc), margin)
+    cm = CostMap(mf, p.metric, p.weight, p.certifiable, p.certify_margin).attach_anatomy(anatomy_model(sc), margin)
+    if getattr(sc, "view", None) is not None:  # [endoscope] keep_visible (errplan.scenario.Setup.moving)
+        from ..anatomy.setup import view_checker
+
+        cm.attach_view(view_checker(sc))
+    return cm
 
 
 def select_queries(sc, name: str | None = None) -> list:
@@ -359,9 +364,11 @@ def plan_scenario(sc, mf=None, *, query: str | None = None, planner: str | None 
     for q in qs:
         check_endpoints(cm, q.start, q.goal, f"query {q.name!r}")
     wm = cm
-    if cm.certifiable:  # the same anatomy, with its margin
+    if cm.certifiable:  # the same anatomy, with its margin, and the same view
         wm = CostMap(mf, cm.metric, cm.weight, certifiable=False).attach_anatomy(cm.anatomy)
         wm.anatomy_margin = cm.anatomy_margin
+        if getattr(cm, "_view", None) is not None:
+            wm.attach_view(cm._view)
     plans = []
     for n, q in enumerate(qs):
         if progress:

@@ -44,6 +44,11 @@ class ToleranceResult:
                 note += f"; refined {_point(r['port'])}: {100 * r['coverage']:.1f}%"
             return [self.name, "port_placement", f"coverage {100 * d['coverage']:.1f}%", f"best {_point(d['best'])}",
                     note]
+        if self.kind == "triad_placement":
+            b = d["best"]
+            return [self.name, "triad_placement", f"score {b['score']:.4f}",
+                    "; ".join(f"{k} {_point(v)}" for k, v in b["ports"].items()),
+                    f"both covered {100 * b['coverage']['both']:.1f}%, pruned {100 * d['search']['pruned_share']:.1f}%"]
         if self.kind == "insertion_band":
             band = d["band"]
             b = "none" if band is None else f"{band[0]:.3f} < r/L < {band[1]:.3f}"

@@ -71,6 +71,21 @@ def run_query(sc, tol, progress: Progress | None = None, *, workers: int | None 
     return ToleranceResult(tol.name, tol.kind, data, time.perf_counter() - t0)
 
 
+def run_setup_query(st, tol, progress: Progress | None = None, *, workers: int | None = 1,
+                    scheduler: str | None = None) -> ToleranceResult:
+    """Answer one setup-level query (``triad_placement``) of a :class:`errplan.scenario.Setup`."""
+    from .triad import triad_placement
+
+    t0 = time.perf_counter()
+    where = f"[[tolerance]] {tol.name!r}"
+    try:
+        data = triad_placement(st, tol, workers=workers, scheduler=scheduler, progress=progress)
+    except ErrplanError as e:
+        msg = str(e)
+        raise type(e)(msg if msg.startswith(where) else f"{where}: {msg}") from None
+    return ToleranceResult(tol.name, tol.kind, data, time.perf_counter() - t0)
+
+
 def _tip_load(o: dict, where: str) -> float:
     t = o.get("tip_force_over_ei")
     if t is None:
