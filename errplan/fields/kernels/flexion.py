@@ -359,6 +359,194 @@ def _estimate(B, r, xw, yw, xt, yt, L, fast):
     return a, te
 
 
+# Rows of the per-pair corner table ``Q`` (rows, c): one column per noise vector, filled by
+# :func:`_corner_inputs`, read and written by the batched stages (:func:`_fast_corners`, :func:`_corner_maps`).
+QR, QXW, QYW, QXT, QYT, QC, QF1, QF2, QDW, QDT, JH = 0, 1, 2, 3, 4, 5, 8, 11, 14, 17, 20
+QROWS = 29
+
+
+@njit(cache=True, error_model="numpy")
+def _corner_inputs(B, NZ, zi, c, Zk, Zv, cnt, last, Q):
+    """Per noise vector ``j < c`` the measured chord's length and frame (rows C, F1, F2) and the tilted
+    tangents (rows DWN, DTN) as :func:`_controller_J3` computes them (the chord frame per distinct chord
+    difference, each tilt once), and their projections ``xw, yw, xt, yt`` on the chord frame, into column
+    ``j`` of ``Q``."""
+    for j in range(c):
+        d0, d1, d2 = NZ[zi, j, 0], NZ[zi, j, 1], NZ[zi, j, 2]
+        if not (d0 == last[0] and d1 == last[1] and d2 == last[2]):
+            last[0], last[1], last[2] = d0, d1, d2
+            for i in range(3):
+                B[PT, i] = B[TIP, i] + NZ[zi, j, i]
+            c0, c1, c2 = B[PT, 0] - B[W, 0], B[PT, 1] - B[W, 1], B[PT, 2] - B[W, 2]
+            r = math.sqrt(c0 * c0 + c1 * c1 + c2 * c2)
+            last[3] = r
+            B[C, 0], B[C, 1], B[C, 2] = c0 / r, c1 / r, c2 / r
+            _perp_rows(B, C, F1, F2)
+        _tilted(B, Zk, Zv, cnt, 0, DW, NZ[zi, j, 3], NZ[zi, j, 4], E1W, DWN)
+        _tilted(B, Zk, Zv, cnt, 1, DT, NZ[zi, j, 5], NZ[zi, j, 6], E1T, DTN)
+        Q[QR, j] = last[3]
+        Q[QXW, j] = B[DWN, 0] * B[F1, 0] + B[DWN, 1] * B[F1, 1] + B[DWN, 2] * B[F1, 2]
+        Q[QYW, j] = B[DWN, 0] * B[F2, 0] + B[DWN, 1] * B[F2, 1] + B[DWN, 2] * B[F2, 2]
+        Q[QXT, j] = B[DTN, 0] * B[F1, 0] + B[DTN, 1] * B[F1, 1] + B[DTN, 2] * B[F1, 2]
+        Q[QYT, j] = B[DTN, 0] * B[F2, 0] + B[DTN, 1] * B[F2, 1] + B[DTN, 2] * B[F2, 2]
+        for i in range(3):
+            Q[QC + i, j] = B[C, i]
+            Q[QF1 + i, j] = B[F1, i]
+            Q[QF2 + i, j] = B[F2, i]
+            Q[QDW + i, j] = B[DWN, i]
+            Q[QDT + i, j] = B[DTN, i]
+
+
+@njit(cache=True, error_model="numpy")
+def _fast_corners(Q, c, w0, w1, w2, L, fl):
+    """The controller's ``Jhat`` of every noise vector whose estimate takes the shortcuts (:func:`_estimate`
+    with ``fast``, then :func:`_estimated_J3`, finite), into rows JH of ``Q``; ``fl[j]`` 1 there, 0 where
+    :func:`_controller_J3` must run instead. The same operations in the same order as those two functions
+    (the same numbers to the bit), written as one loop over the noise vectors without calls or early
+    returns: the vectors' long chains of divisions and square roots then overlap (and vectorize) instead
+    of waiting on each other."""
+    for j in range(c):
+        r = Q[QR, j]
+        xw, yw, xt, yt = Q[QXW, j], Q[QYW, j], Q[QXT, j], Q[QYT, j]
+        s11 = xw * xw + xt * xt
+        s22 = yw * yw + yt * yt
+        s12 = xw * yw + xt * yt
+        y2, x2 = 2.0 * s12, s11 - s22
+        h2 = math.sqrt(y2 * y2 + x2 * x2)
+        ok = h2 > 0.0 and r > 0.0 and r < math.inf
+        c2 = x2 / h2
+        if c2 >= 0.0:
+            cp = math.sqrt(0.5 * (1.0 + c2))
+            sp = y2 / h2 / (2.0 * cp)
+        else:
+            sp = math.copysign(math.sqrt(0.5 * (1.0 - c2)), y2)
+            cp = y2 / h2 / (2.0 * sp)
+        n0 = cp * Q[QF1, j] + sp * Q[QF2, j]
+        n1 = cp * Q[QF1 + 1, j] + sp * Q[QF2 + 1, j]
+        n2 = cp * Q[QF1 + 2, j] + sp * Q[QF2 + 2, j]
+        e0, e1, e2 = Q[QC, j], Q[QC + 1, j], Q[QC + 2, j]
+        yw_ = Q[QDW, j] * n0 + Q[QDW + 1, j] * n1 + Q[QDW + 2, j] * n2
+        xw_ = Q[QDW, j] * e0 + Q[QDW + 1, j] * e1 + Q[QDW + 2, j] * e2
+        yt_ = Q[QDT, j] * n0 + Q[QDT + 1, j] * n1 + Q[QDT + 2, j] * n2
+        xt_ = Q[QDT, j] * e0 + Q[QDT + 1, j] * e1 + Q[QDT + 2, j] * e2
+        sphi, cphi = 0.0, 1.0  # r > 0 where ok
+        ok = ok and xw_ > 0.0 and xt_ > 0.0
+        s0 = yw_ / xw_
+        sL = yt_ / xt_
+        den = sL - s0
+        ok = ok and abs(den) > 1e-4
+        a = L * (2 * sL + s0) / den
+        if not (math.isfinite(a) and den != 0):
+            a = math.nan
+        fp = 2 * (s0 - sL) / (a * (a - L))
+        if not math.isfinite(fp):
+            fp = math.nan
+        ym = -fp * a * a * (a - L) ** 2 / (3 * L)
+        p20 = 0.0 + a * sphi + ym * cphi
+        p21 = 0.0 + a * cphi + ym * -sphi
+        te = fp * a / L
+        hp = math.sqrt(p20 * p20 + p21 * p21)
+        ok = ok and hp > 0.0 and hp < math.inf
+        ct, st = p21 / hp, p20 / hp
+        po0 = w0 + p20 * n0 + p21 * e0
+        po1 = w1 + p20 * n1 + p21 * e1
+        po2 = w2 + p20 * n2 + p21 * e2
+        t0 = te * (ct * n0 - st * e0)
+        t1 = te * (ct * n1 - st * e1)
+        t2 = te * (ct * n2 - st * e2)
+        ok = ok and 0.0 < a < L and 0.0 < abs(te) * L * L < 1.5
+        r2 = (po0 - w0) ** 2 + (po1 - w1) ** 2 + (po2 - w2) ** 2
+        sb_ = abs(te) * (L - a) ** 2 / 3.0
+        ok = ok and abs(a * a * (1.0 + sb_ * sb_) - r2) <= 1e-12 * r2
+        # _estimated_J3(B, a, te, sqrt(r2), L, Jh)
+        rho = math.sqrt(r2)
+        tau = abs(te)
+        b = L - a
+        s = tau * b * b / 3.0
+        gg = 1.0 + s * s
+        dgg = -(4.0 * tau * b / 3.0) * s
+        a_rho = 2.0 * rho / (2.0 * a * gg + a * a * dgg)
+        beta_a = -(2.0 * tau * b / 3.0) / gg
+        q = 1.0 / math.sqrt(gg)
+        cb, sb = q, s * q
+        u0, u1, u2 = (po0 - w0) / rho, (po1 - w1) / rho, (po2 - w2) / rho
+        n0, n1, n2 = t0 / tau, t1 / tau, t2 / tau
+        c1 = L * cb / rho
+        c2 = L * sb / rho
+        c3 = L * beta_a * a_rho
+        v0 = -sb * u0 + cb * n0
+        v1 = -sb * u1 + cb * n1
+        v2 = -sb * u2 + cb * n2
+        Q[JH + 0, j] = 1.0 - c1 * (1.0 - u0 * u0) + c2 * u0 * n0 - c3 * v0 * u0
+        Q[JH + 1, j] = 0.0 - c1 * (0.0 - u0 * u1) + c2 * u0 * n1 - c3 * v0 * u1
+        Q[JH + 2, j] = 0.0 - c1 * (0.0 - u0 * u2) + c2 * u0 * n2 - c3 * v0 * u2
+        Q[JH + 3, j] = 0.0 - c1 * (0.0 - u1 * u0) + c2 * u1 * n0 - c3 * v1 * u0
+        Q[JH + 4, j] = 1.0 - c1 * (1.0 - u1 * u1) + c2 * u1 * n1 - c3 * v1 * u1
+        Q[JH + 5, j] = 0.0 - c1 * (0.0 - u1 * u2) + c2 * u1 * n2 - c3 * v1 * u2
+        Q[JH + 6, j] = 0.0 - c1 * (0.0 - u2 * u0) + c2 * u2 * n0 - c3 * v2 * u0
+        Q[JH + 7, j] = 0.0 - c1 * (0.0 - u2 * u1) + c2 * u2 * n1 - c3 * v2 * u1
+        Q[JH + 8, j] = 1.0 - c1 * (1.0 - u2 * u2) + c2 * u2 * n2 - c3 * v2 * u2
+        for i in range(9):
+            ok = ok and math.isfinite(Q[JH + i, j])
+        fl[j] = 1 if ok else 0
+
+
+@njit(cache=True, error_model="numpy")
+def _corner_maps(Q, c, J, Ms, bad):
+    """``M = J Jhat^-1`` of every noise vector (``Jhat`` in rows JH of ``Q``; errplan.linalg.inv3's cofactors
+    and the product's operations in their order) into ``Ms``; ``bad[j]`` 1 where ``Jhat`` is singular
+    (errplan.linalg.singular3 at RCOND_INV) or ``M`` not finite. One loop over the noise vectors, as
+    :func:`_fast_corners`."""
+    j00, j01, j02 = J[0, 0], J[0, 1], J[0, 2]
+    j10, j11, j12 = J[1, 0], J[1, 1], J[1, 2]
+    j20, j21, j22 = J[2, 0], J[2, 1], J[2, 2]
+    for j in range(c):
+        a00, a01, a02 = Q[JH, j], Q[JH + 1, j], Q[JH + 2, j]
+        a10, a11, a12 = Q[JH + 3, j], Q[JH + 4, j], Q[JH + 5, j]
+        a20, a21, a22 = Q[JH + 6, j], Q[JH + 7, j], Q[JH + 8, j]
+        c00 = a11 * a22 - a12 * a21
+        c01 = a12 * a20 - a10 * a22
+        c02 = a10 * a21 - a11 * a20
+        det = a00 * c00 + a01 * c01 + a02 * c02
+        r = math.nan if det == 0.0 else 1.0 / det
+        i00 = c00 * r
+        i10 = c01 * r
+        i20 = c02 * r
+        i01 = (a02 * a21 - a01 * a22) * r
+        i11 = (a00 * a22 - a02 * a20) * r
+        i21 = (a01 * a20 - a00 * a21) * r
+        i02 = (a01 * a12 - a02 * a11) * r
+        i12 = (a02 * a10 - a00 * a12) * r
+        i22 = (a00 * a11 - a01 * a10) * r
+        f = 0.0
+        f += a00 * a00
+        f += a01 * a01
+        f += a02 * a02
+        f += a10 * a10
+        f += a11 * a11
+        f += a12 * a12
+        f += a20 * a20
+        f += a21 * a21
+        f += a22 * a22
+        sing = not abs(det) > RCOND_INV * f * math.sqrt(f)
+        m00 = j00 * i00 + j01 * i10 + j02 * i20
+        m01 = j00 * i01 + j01 * i11 + j02 * i21
+        m02 = j00 * i02 + j01 * i12 + j02 * i22
+        m10 = j10 * i00 + j11 * i10 + j12 * i20
+        m11 = j10 * i01 + j11 * i11 + j12 * i21
+        m12 = j10 * i02 + j11 * i12 + j12 * i22
+        m20 = j20 * i00 + j21 * i10 + j22 * i20
+        m21 = j20 * i01 + j21 * i11 + j22 * i21
+        m22 = j20 * i02 + j21 * i12 + j22 * i22
+        Ms[j, 0, 0], Ms[j, 0, 1], Ms[j, 0, 2] = m00, m01, m02
+        Ms[j, 1, 0], Ms[j, 1, 1], Ms[j, 1, 2] = m10, m11, m12
+        Ms[j, 2, 0], Ms[j, 2, 1], Ms[j, 2, 2] = m20, m21, m22
+        fin = (math.isfinite(m00) and math.isfinite(m01) and math.isfinite(m02) and math.isfinite(m10)
+               and math.isfinite(m11) and math.isfinite(m12) and math.isfinite(m20) and math.isfinite(m21)
+               and math.isfinite(m22))
+        bad[j] = 1 if (sing or not fin) else 0
+
+
 @njit(cache=True, error_model="numpy")
 def _gnorm(Ms, j, k):
     """``||I - k Ms[j]||_2`` (errplan.linalg.g_norm3's arithmetic, without a view)."""
@@ -463,6 +651,8 @@ def flexion_tips(Wt, Tt, Pt, ok, NZ, est, L, k, want_M, want_gp, gfloor, pfloor,
     Zv = np.empty((2, 16, 3))
     cnt = np.zeros(2, np.int64)
     last = np.empty(4)
+    Q = np.empty((QROWS, c))
+    fl = np.empty(c, np.int64)
     for i in range(3):
         B[EST, i] = est[i]
     for i in range(n):
@@ -475,19 +665,18 @@ def flexion_tips(Wt, Tt, Pt, ok, NZ, est, L, k, want_M, want_gp, gfloor, pfloor,
             zi = i if NZ.shape[0] > 1 else 0
             cnt[0] = cnt[1] = 0
             last[0] = math.nan
+            _corner_inputs(B, NZ, zi, c, Zk, Zv, cnt, last, Q)
+            _fast_corners(Q, c, B[W, 0], B[W, 1], B[W, 2], L, fl)
             for j in range(c):
-                _controller_J3(B, NZ, zi, j, L, Jh, S, Zk, Zv, cnt, last)
-                det = inv3(Jh, Ji)
-                if singular3(Jh, det, RCOND_INV):
-                    good = False
-                    break
-                fin = True
-                for a_ in range(3):
-                    for b_ in range(3):
-                        v = J[a_, 0] * Ji[0, b_] + J[a_, 1] * Ji[1, b_] + J[a_, 2] * Ji[2, b_]
-                        Ms[j, a_, b_] = v
-                        fin = fin and math.isfinite(v)
-                if not fin:
+                if fl[j] == 0:  # the general estimate (_controller_J3 from this noise vector's chord)
+                    last[0] = math.nan
+                    _controller_J3(B, NZ, zi, j, L, Jh, S, Zk, Zv, cnt, last)
+                    for a_ in range(3):
+                        for b_ in range(3):
+                            Q[JH + 3 * a_ + b_, j] = Jh[a_, b_]
+            _corner_maps(Q, c, J, Ms, fl)
+            for j in range(c):
+                if fl[j] != 0:  # a singular Jhat or a non-finite M: the pair is not valid
                     good = False
                     break
         ok[i] = good
