@@ -24,7 +24,7 @@ import math
 import numpy as np
 
 from ...jit import njit
-from ...linalg import _smax3, inv3, phi_max3, singular3
+from ...linalg import _smax3, phi_max3
 from .instance import NEWTON, _flexed_J3
 
 RCOND_INV = 1e-12  # errplan.metrics.inv's default: a controller Jacobian this close to singular fails the pair
@@ -359,19 +359,28 @@ def _estimate(B, r, xw, yw, xt, yt, L, fast):
     return a, te
 
 
-# Rows of the per-pair corner table ``Q`` (rows, c): one column per noise vector, filled by
-# :func:`_corner_inputs`, read and written by the batched stages (:func:`_fast_corners`, :func:`_corner_maps`).
-QR, QXW, QYW, QXT, QYT, QC, QF1, QF2, QDW, QDT, JH = 0, 1, 2, 3, 4, 5, 8, 11, 14, 17, 20
-QROWS = 29
+# The noise vectors of one pair run in blocks of CS: a block's quantities live in rows of one flat array
+# ``Z`` (row ``r`` of corner ``j`` at ``Z[r * CS + j]``). The stride being a constant, the compiler sees
+# that the batched stages' reads and writes do not overlap and vectorizes their loops over the corners.
+CS = 64
+ZR, ZXW, ZYW, ZXT, ZYT, ZC, ZF1, ZF2, ZDW, ZDT = 0, 1, 2, 3, 4, 5, 8, 11, 14, 17  # the measurements
+ZJ = 20  # Jhat, 9 rows (row-major)
+ZFL = 29  # 1.0 where _fast_corners computed Jhat
+ZM = 30  # M = J Jhat^-1, 9 rows
+ZBAD = 39  # 1.0 where Jhat is singular or M not finite
+ZGB = 40  # _gnorm_bound of M at the pair's gain
+ZPB = 41  # the ||G|| bound inside _phi_bound (2.0 where that returns pi without one)
+ZROWS = 42
 
 
 @njit(cache=True, error_model="numpy")
-def _corner_inputs(B, NZ, zi, c, Zk, Zv, cnt, last, Q):
-    """Per noise vector ``j < c`` the measured chord's length and frame (rows C, F1, F2) and the tilted
-    tangents (rows DWN, DTN) as :func:`_controller_J3` computes them (the chord frame per distinct chord
-    difference, each tilt once), and their projections ``xw, yw, xt, yt`` on the chord frame, into column
-    ``j`` of ``Q``."""
-    for j in range(c):
+def _corner_inputs(B, NZ, zi, j0, nb, Zk, Zv, cnt, last, Z):
+    """Per noise vector ``j0 + jj`` (``jj < nb``) the measured chord's length and frame (rows C, F1, F2) and
+    the tilted tangents (rows DWN, DTN) as :func:`_controller_J3` computes them (the chord frame per
+    distinct chord difference, each tilt once), and their projections ``xw, yw, xt, yt`` on the chord
+    frame, into column ``jj`` of the block ``Z``."""
+    for jj in range(nb):
+        j = j0 + jj
         d0, d1, d2 = NZ[zi, j, 0], NZ[zi, j, 1], NZ[zi, j, 2]
         if not (d0 == last[0] and d1 == last[1] and d2 == last[2]):
             last[0], last[1], last[2] = d0, d1, d2
@@ -384,69 +393,68 @@ def _corner_inputs(B, NZ, zi, c, Zk, Zv, cnt, last, Q):
             _perp_rows(B, C, F1, F2)
         _tilted(B, Zk, Zv, cnt, 0, DW, NZ[zi, j, 3], NZ[zi, j, 4], E1W, DWN)
         _tilted(B, Zk, Zv, cnt, 1, DT, NZ[zi, j, 5], NZ[zi, j, 6], E1T, DTN)
-        Q[QR, j] = last[3]
-        Q[QXW, j] = B[DWN, 0] * B[F1, 0] + B[DWN, 1] * B[F1, 1] + B[DWN, 2] * B[F1, 2]
-        Q[QYW, j] = B[DWN, 0] * B[F2, 0] + B[DWN, 1] * B[F2, 1] + B[DWN, 2] * B[F2, 2]
-        Q[QXT, j] = B[DTN, 0] * B[F1, 0] + B[DTN, 1] * B[F1, 1] + B[DTN, 2] * B[F1, 2]
-        Q[QYT, j] = B[DTN, 0] * B[F2, 0] + B[DTN, 1] * B[F2, 1] + B[DTN, 2] * B[F2, 2]
+        Z[ZR * CS + jj] = last[3]
+        Z[ZXW * CS + jj] = B[DWN, 0] * B[F1, 0] + B[DWN, 1] * B[F1, 1] + B[DWN, 2] * B[F1, 2]
+        Z[ZYW * CS + jj] = B[DWN, 0] * B[F2, 0] + B[DWN, 1] * B[F2, 1] + B[DWN, 2] * B[F2, 2]
+        Z[ZXT * CS + jj] = B[DTN, 0] * B[F1, 0] + B[DTN, 1] * B[F1, 1] + B[DTN, 2] * B[F1, 2]
+        Z[ZYT * CS + jj] = B[DTN, 0] * B[F2, 0] + B[DTN, 1] * B[F2, 1] + B[DTN, 2] * B[F2, 2]
         for i in range(3):
-            Q[QC + i, j] = B[C, i]
-            Q[QF1 + i, j] = B[F1, i]
-            Q[QF2 + i, j] = B[F2, i]
-            Q[QDW + i, j] = B[DWN, i]
-            Q[QDT + i, j] = B[DTN, i]
+            Z[(ZC + i) * CS + jj] = B[C, i]
+            Z[(ZF1 + i) * CS + jj] = B[F1, i]
+            Z[(ZF2 + i) * CS + jj] = B[F2, i]
+            Z[(ZDW + i) * CS + jj] = B[DWN, i]
+            Z[(ZDT + i) * CS + jj] = B[DTN, i]
 
 
 @njit(cache=True, error_model="numpy")
-def _fast_corners(Q, c, w0, w1, w2, L, fl):
-    """The controller's ``Jhat`` of every noise vector whose estimate takes the shortcuts (:func:`_estimate`
-    with ``fast``, then :func:`_estimated_J3`, finite), into rows JH of ``Q``; ``fl[j]`` 1 there, 0 where
-    :func:`_controller_J3` must run instead. The same operations in the same order as those two functions
-    (the same numbers to the bit), written as one loop over the noise vectors without calls or early
-    returns: the vectors' long chains of divisions and square roots then overlap (and vectorize) instead
-    of waiting on each other."""
-    for j in range(c):
-        r = Q[QR, j]
-        xw, yw, xt, yt = Q[QXW, j], Q[QYW, j], Q[QXT, j], Q[QYT, j]
+def _fast_corners(Z, nb, w0, w1, w2, L):
+    """The controller's ``Jhat`` of every noise vector of the block ``Z`` (``nb`` of them) whose estimate takes
+    the shortcuts (:func:`_estimate` with ``fast``, then :func:`_estimated_J3`, finite) into rows ZJ, and
+    row ZFL 1.0 there, 0.0 where :func:`_controller_J3` must run instead. The same operations in the same
+    order as those two functions (the same numbers to the bit), written as one loop over the noise
+    vectors without calls, early returns or branches: the compiler vectorizes it, and the vectors' long
+    chains of divisions and square roots overlap instead of waiting on each other."""
+    for j in range(nb):
+        r = Z[(ZR) * CS + j]
+        xw, yw, xt, yt = Z[(ZXW) * CS + j], Z[(ZYW) * CS + j], Z[(ZXT) * CS + j], Z[(ZYT) * CS + j]
         s11 = xw * xw + xt * xt
         s22 = yw * yw + yt * yt
         s12 = xw * yw + xt * yt
         y2, x2 = 2.0 * s12, s11 - s22
         h2 = math.sqrt(y2 * y2 + x2 * x2)
-        ok = h2 > 0.0 and r > 0.0 and r < math.inf
+        ok = (h2 > 0.0) & (r > 0.0) & (r < math.inf)
         c2 = x2 / h2
-        if c2 >= 0.0:
-            cp = math.sqrt(0.5 * (1.0 + c2))
-            sp = y2 / h2 / (2.0 * cp)
-        else:
-            sp = math.copysign(math.sqrt(0.5 * (1.0 - c2)), y2)
-            cp = y2 / h2 / (2.0 * sp)
-        n0 = cp * Q[QF1, j] + sp * Q[QF2, j]
-        n1 = cp * Q[QF1 + 1, j] + sp * Q[QF2 + 1, j]
-        n2 = cp * Q[QF1 + 2, j] + sp * Q[QF2 + 2, j]
-        e0, e1, e2 = Q[QC, j], Q[QC + 1, j], Q[QC + 2, j]
-        yw_ = Q[QDW, j] * n0 + Q[QDW + 1, j] * n1 + Q[QDW + 2, j] * n2
-        xw_ = Q[QDW, j] * e0 + Q[QDW + 1, j] * e1 + Q[QDW + 2, j] * e2
-        yt_ = Q[QDT, j] * n0 + Q[QDT + 1, j] * n1 + Q[QDT + 2, j] * n2
-        xt_ = Q[QDT, j] * e0 + Q[QDT + 1, j] * e1 + Q[QDT + 2, j] * e2
+        # _estimate's two branches as selects: 1 - c2 == 1 + |c2| exactly for c2 < 0
+        pos = c2 >= 0.0
+        sq = math.sqrt(0.5 * (1.0 + abs(c2)))
+        first = sq if pos else math.copysign(sq, y2)
+        other = y2 / h2 / (2.0 * first)
+        cp = sq if pos else other
+        sp = other if pos else first
+        n0 = cp * Z[(ZF1) * CS + j] + sp * Z[(ZF2) * CS + j]
+        n1 = cp * Z[(ZF1 + 1) * CS + j] + sp * Z[(ZF2 + 1) * CS + j]
+        n2 = cp * Z[(ZF1 + 2) * CS + j] + sp * Z[(ZF2 + 2) * CS + j]
+        e0, e1, e2 = Z[(ZC) * CS + j], Z[(ZC + 1) * CS + j], Z[(ZC + 2) * CS + j]
+        yw_ = Z[(ZDW) * CS + j] * n0 + Z[(ZDW + 1) * CS + j] * n1 + Z[(ZDW + 2) * CS + j] * n2
+        xw_ = Z[(ZDW) * CS + j] * e0 + Z[(ZDW + 1) * CS + j] * e1 + Z[(ZDW + 2) * CS + j] * e2
+        yt_ = Z[(ZDT) * CS + j] * n0 + Z[(ZDT + 1) * CS + j] * n1 + Z[(ZDT + 2) * CS + j] * n2
+        xt_ = Z[(ZDT) * CS + j] * e0 + Z[(ZDT + 1) * CS + j] * e1 + Z[(ZDT + 2) * CS + j] * e2
         sphi, cphi = 0.0, 1.0  # r > 0 where ok
-        ok = ok and xw_ > 0.0 and xt_ > 0.0
+        ok = ok & (xw_ > 0.0) & (xt_ > 0.0)
         s0 = yw_ / xw_
         sL = yt_ / xt_
         den = sL - s0
-        ok = ok and abs(den) > 1e-4
+        ok = ok & (abs(den) > 1e-4)
         a = L * (2 * sL + s0) / den
-        if not (math.isfinite(a) and den != 0):
-            a = math.nan
+        a = a if (math.isfinite(a) & (den != 0)) else math.nan
         fp = 2 * (s0 - sL) / (a * (a - L))
-        if not math.isfinite(fp):
-            fp = math.nan
+        fp = fp if math.isfinite(fp) else math.nan
         ym = -fp * a * a * (a - L) ** 2 / (3 * L)
         p20 = 0.0 + a * sphi + ym * cphi
         p21 = 0.0 + a * cphi + ym * -sphi
         te = fp * a / L
         hp = math.sqrt(p20 * p20 + p21 * p21)
-        ok = ok and hp > 0.0 and hp < math.inf
+        ok = ok & (hp > 0.0) & (hp < math.inf)
         ct, st = p21 / hp, p20 / hp
         po0 = w0 + p20 * n0 + p21 * e0
         po1 = w1 + p20 * n1 + p21 * e1
@@ -454,10 +462,10 @@ def _fast_corners(Q, c, w0, w1, w2, L, fl):
         t0 = te * (ct * n0 - st * e0)
         t1 = te * (ct * n1 - st * e1)
         t2 = te * (ct * n2 - st * e2)
-        ok = ok and 0.0 < a < L and 0.0 < abs(te) * L * L < 1.5
+        ok = ok & (0.0 < a) & (a < L) & (0.0 < abs(te) * L * L) & (abs(te) * L * L < 1.5)
         r2 = (po0 - w0) ** 2 + (po1 - w1) ** 2 + (po2 - w2) ** 2
         sb_ = abs(te) * (L - a) ** 2 / 3.0
-        ok = ok and abs(a * a * (1.0 + sb_ * sb_) - r2) <= 1e-12 * r2
+        ok = ok & (abs(a * a * (1.0 + sb_ * sb_) - r2) <= 1e-12 * r2)
         # _estimated_J3(B, a, te, sqrt(r2), L, Jh)
         rho = math.sqrt(r2)
         tau = abs(te)
@@ -477,33 +485,37 @@ def _fast_corners(Q, c, w0, w1, w2, L, fl):
         v0 = -sb * u0 + cb * n0
         v1 = -sb * u1 + cb * n1
         v2 = -sb * u2 + cb * n2
-        Q[JH + 0, j] = 1.0 - c1 * (1.0 - u0 * u0) + c2 * u0 * n0 - c3 * v0 * u0
-        Q[JH + 1, j] = 0.0 - c1 * (0.0 - u0 * u1) + c2 * u0 * n1 - c3 * v0 * u1
-        Q[JH + 2, j] = 0.0 - c1 * (0.0 - u0 * u2) + c2 * u0 * n2 - c3 * v0 * u2
-        Q[JH + 3, j] = 0.0 - c1 * (0.0 - u1 * u0) + c2 * u1 * n0 - c3 * v1 * u0
-        Q[JH + 4, j] = 1.0 - c1 * (1.0 - u1 * u1) + c2 * u1 * n1 - c3 * v1 * u1
-        Q[JH + 5, j] = 0.0 - c1 * (0.0 - u1 * u2) + c2 * u1 * n2 - c3 * v1 * u2
-        Q[JH + 6, j] = 0.0 - c1 * (0.0 - u2 * u0) + c2 * u2 * n0 - c3 * v2 * u0
-        Q[JH + 7, j] = 0.0 - c1 * (0.0 - u2 * u1) + c2 * u2 * n1 - c3 * v2 * u1
-        Q[JH + 8, j] = 1.0 - c1 * (1.0 - u2 * u2) + c2 * u2 * n2 - c3 * v2 * u2
-        for i in range(9):
-            ok = ok and math.isfinite(Q[JH + i, j])
-        fl[j] = 1 if ok else 0
+        h0 = 1.0 - c1 * (1.0 - u0 * u0) + c2 * u0 * n0 - c3 * v0 * u0
+        h1 = 0.0 - c1 * (0.0 - u0 * u1) + c2 * u0 * n1 - c3 * v0 * u1
+        h2_ = 0.0 - c1 * (0.0 - u0 * u2) + c2 * u0 * n2 - c3 * v0 * u2
+        h3 = 0.0 - c1 * (0.0 - u1 * u0) + c2 * u1 * n0 - c3 * v1 * u0
+        h4 = 1.0 - c1 * (1.0 - u1 * u1) + c2 * u1 * n1 - c3 * v1 * u1
+        h5 = 0.0 - c1 * (0.0 - u1 * u2) + c2 * u1 * n2 - c3 * v1 * u2
+        h6 = 0.0 - c1 * (0.0 - u2 * u0) + c2 * u2 * n0 - c3 * v2 * u0
+        h7 = 0.0 - c1 * (0.0 - u2 * u1) + c2 * u2 * n1 - c3 * v2 * u1
+        h8 = 1.0 - c1 * (1.0 - u2 * u2) + c2 * u2 * n2 - c3 * v2 * u2
+        Z[(ZJ + 0) * CS + j], Z[(ZJ + 1) * CS + j], Z[(ZJ + 2) * CS + j] = h0, h1, h2_
+        Z[(ZJ + 3) * CS + j], Z[(ZJ + 4) * CS + j], Z[(ZJ + 5) * CS + j] = h3, h4, h5
+        Z[(ZJ + 6) * CS + j], Z[(ZJ + 7) * CS + j], Z[(ZJ + 8) * CS + j] = h6, h7, h8
+        ok = (ok & math.isfinite(h0) & math.isfinite(h1) & math.isfinite(h2_) & math.isfinite(h3) & math.isfinite(h4)
+              & math.isfinite(h5) & math.isfinite(h6) & math.isfinite(h7) & math.isfinite(h8))
+        Z[ZFL * CS + j] = 1.0 if ok else 0.0
 
 
 @njit(cache=True, error_model="numpy")
-def _corner_maps(Q, c, J, Ms, bad):
-    """``M = J Jhat^-1`` of every noise vector (``Jhat`` in rows JH of ``Q``; errplan.linalg.inv3's cofactors
-    and the product's operations in their order) into ``Ms``; ``bad[j]`` 1 where ``Jhat`` is singular
-    (errplan.linalg.singular3 at RCOND_INV) or ``M`` not finite. One loop over the noise vectors, as
-    :func:`_fast_corners`."""
+def _corner_maps(Z, nb, J, k):
+    """``M = J Jhat^-1`` of every noise vector of the block ``Z`` (``Jhat`` in rows ZJ; errplan.linalg.inv3's
+    cofactors and the product's operations in their order) into rows ZM; row ZBAD 1.0 where ``Jhat`` is
+    singular (errplan.linalg.singular3 at RCOND_INV) or ``M`` not finite; the bounds of :func:`_gnorm_bound`
+    at gain ``k`` (row ZGB) and inside :func:`_phi_bound` (row ZPB), the same operations. One loop over
+    the noise vectors, vectorized as :func:`_fast_corners`."""
     j00, j01, j02 = J[0, 0], J[0, 1], J[0, 2]
     j10, j11, j12 = J[1, 0], J[1, 1], J[1, 2]
     j20, j21, j22 = J[2, 0], J[2, 1], J[2, 2]
-    for j in range(c):
-        a00, a01, a02 = Q[JH, j], Q[JH + 1, j], Q[JH + 2, j]
-        a10, a11, a12 = Q[JH + 3, j], Q[JH + 4, j], Q[JH + 5, j]
-        a20, a21, a22 = Q[JH + 6, j], Q[JH + 7, j], Q[JH + 8, j]
+    for j in range(nb):
+        a00, a01, a02 = Z[(ZJ + 0) * CS + j], Z[(ZJ + 1) * CS + j], Z[(ZJ + 2) * CS + j]
+        a10, a11, a12 = Z[(ZJ + 3) * CS + j], Z[(ZJ + 4) * CS + j], Z[(ZJ + 5) * CS + j]
+        a20, a21, a22 = Z[(ZJ + 6) * CS + j], Z[(ZJ + 7) * CS + j], Z[(ZJ + 8) * CS + j]
         c00 = a11 * a22 - a12 * a21
         c01 = a12 * a20 - a10 * a22
         c02 = a10 * a21 - a11 * a20
@@ -538,13 +550,43 @@ def _corner_maps(Q, c, J, Ms, bad):
         m20 = j20 * i00 + j21 * i10 + j22 * i20
         m21 = j20 * i01 + j21 * i11 + j22 * i21
         m22 = j20 * i02 + j21 * i12 + j22 * i22
-        Ms[j, 0, 0], Ms[j, 0, 1], Ms[j, 0, 2] = m00, m01, m02
-        Ms[j, 1, 0], Ms[j, 1, 1], Ms[j, 1, 2] = m10, m11, m12
-        Ms[j, 2, 0], Ms[j, 2, 1], Ms[j, 2, 2] = m20, m21, m22
-        fin = (math.isfinite(m00) and math.isfinite(m01) and math.isfinite(m02) and math.isfinite(m10)
-               and math.isfinite(m11) and math.isfinite(m12) and math.isfinite(m20) and math.isfinite(m21)
-               and math.isfinite(m22))
-        bad[j] = 1 if (sing or not fin) else 0
+        Z[ZM * CS + j], Z[(ZM + 1) * CS + j], Z[(ZM + 2) * CS + j] = m00, m01, m02
+        Z[(ZM + 3) * CS + j], Z[(ZM + 4) * CS + j], Z[(ZM + 5) * CS + j] = m10, m11, m12
+        Z[(ZM + 6) * CS + j], Z[(ZM + 7) * CS + j], Z[(ZM + 8) * CS + j] = m20, m21, m22
+        fin = (math.isfinite(m00) & math.isfinite(m01) & math.isfinite(m02) & math.isfinite(m10)
+               & math.isfinite(m11) & math.isfinite(m12) & math.isfinite(m20) & math.isfinite(m21)
+               & math.isfinite(m22))
+        Z[ZBAD * CS + j] = 1.0 if (sing | (not fin)) else 0.0
+        Z[ZGB * CS + j] = _gbound9(m00, m01, m02, m10, m11, m12, m20, m21, m22, k)
+        tr = m00 + m11 + m22
+        f = 0.0
+        f += m00 * m00
+        f += m01 * m01
+        f += m02 * m02
+        f += m10 * m10
+        f += m11 * m11
+        f += m12 * m12
+        f += m20 * m20
+        f += m21 * m21
+        f += m22 * m22
+        pb = _gbound9(m00, m01, m02, m10, m11, m12, m20, m21, m22, tr / f)
+        Z[ZPB * CS + j] = pb if ((tr > 0.0) & (f > 0.0)) else 2.0
+
+
+@njit(cache=True, error_model="numpy")
+def _gbound9(m00, m01, m02, m10, m11, m12, m20, m21, m22, k):
+    """:func:`_gnorm_bound` of the map with entries ``m..`` (its operations in its order)."""
+    g00, g01, g02 = 1.0 - k * m00, -k * m01, -k * m02
+    g10, g11, g12 = -k * m10, 1.0 - k * m11, -k * m12
+    g20, g21, g22 = -k * m20, -k * m21, 1.0 - k * m22
+    a00 = g00 * g00 + g10 * g10 + g20 * g20
+    a11 = g01 * g01 + g11 * g11 + g21 * g21
+    a22 = g02 * g02 + g12 * g12 + g22 * g22
+    a01 = abs(g00 * g01 + g10 * g11 + g20 * g21)
+    a02 = abs(g00 * g02 + g10 * g12 + g20 * g22)
+    a12 = abs(g01 * g02 + g11 * g12 + g21 * g22)
+    r = max(a00 + a01 + a02, max(a01 + a11 + a12, a02 + a12 + a22))
+    return math.sqrt(r) * (1.0 + 1e-12)
 
 
 @njit(cache=True, error_model="numpy")
@@ -576,10 +618,10 @@ def _gnorm_bound(Ms, j, k):
 @njit(cache=True, error_model="numpy")
 def _g_worst(Ms, c, k, bound, floor):
     """``max_j ||I - k Ms[j]||`` over ``j < c``, exact (errplan.linalg's closed form) only where the bound
-    of :func:`_gnorm_bound` could beat the best so far; ``floor`` where that maximum is not above it."""
+    ``bound[j]`` (:func:`_gnorm_bound`'s, at ``k``) could beat the best so far; ``floor`` where that maximum
+    is not above it. The bound is never below the norm, so the result is the maximum whatever the order."""
     top = 0
     for j in range(c):
-        bound[j] = _gnorm_bound(Ms, j, k)
         if bound[j] > bound[top]:
             top = j
     best = floor
@@ -608,13 +650,13 @@ def _phi_bound(Ms, j, tight):
 
 
 @njit(cache=True, error_model="numpy")
-def _phi_worst(Ms, c, bound, floor):
-    """``max_j phi_max3(Ms[j])`` over ``j < c``, exact where a bound (:func:`_phi_bound`, the cheap one
-    first, then the tight one) could beat the best exact value so far; ``floor`` where that maximum is
-    not above ``floor`` (a caller that keeps only a value above its best)."""
+def _phi_worst(Ms, c, pb, bound, floor):
+    """``max_j phi_max3(Ms[j])`` over ``j < c``, exact where a bound (:func:`_phi_bound`'s, the cheap one first
+    from its norm bound ``pb[j]``, then the tight one) could beat the best exact value so far; ``floor``
+    where that maximum is not above ``floor`` (a caller that keeps only a value above its best)."""
     top = 0
     for j in range(c):
-        bound[j] = _phi_bound(Ms, j, False)
+        bound[j] = math.asin(pb[j]) if pb[j] < 1.0 else math.pi
         if bound[j] > bound[top]:
             top = j
     best = floor
@@ -644,15 +686,15 @@ def flexion_tips(Wt, Tt, Pt, ok, NZ, est, L, k, want_M, want_gp, gfloor, pfloor,
     B = np.zeros((ROWS, 3))
     J = np.empty((3, 3))
     Jh = np.empty((3, 3))
-    Ji = np.empty((3, 3))
     Ms = np.empty((c, 3, 3))
     bound = np.empty(c)
     Zk = np.empty((2, 16, 2))
     Zv = np.empty((2, 16, 3))
     cnt = np.zeros(2, np.int64)
     last = np.empty(4)
-    Q = np.empty((QROWS, c))
-    fl = np.empty(c, np.int64)
+    Z = np.empty(ZROWS * CS)
+    gb = np.empty(c)
+    pb = np.empty(c)
     for i in range(3):
         B[EST, i] = est[i]
     for i in range(n):
@@ -663,21 +705,32 @@ def flexion_tips(Wt, Tt, Pt, ok, NZ, est, L, k, want_M, want_gp, gfloor, pfloor,
             _jacobian3(B, W, P, T, L, J, S)
             _true_poses(B, L)
             zi = i if NZ.shape[0] > 1 else 0
+            ki = k[i] if k.shape[0] > 1 else k[0]
             cnt[0] = cnt[1] = 0
             last[0] = math.nan
-            _corner_inputs(B, NZ, zi, c, Zk, Zv, cnt, last, Q)
-            _fast_corners(Q, c, B[W, 0], B[W, 1], B[W, 2], L, fl)
-            for j in range(c):
-                if fl[j] == 0:  # the general estimate (_controller_J3 from this noise vector's chord)
-                    last[0] = math.nan
-                    _controller_J3(B, NZ, zi, j, L, Jh, S, Zk, Zv, cnt, last)
+            for j0 in range(0, c, CS):
+                nb = min(CS, c - j0)
+                _corner_inputs(B, NZ, zi, j0, nb, Zk, Zv, cnt, last, Z)
+                _fast_corners(Z, nb, B[W, 0], B[W, 1], B[W, 2], L)
+                for jj in range(nb):
+                    if Z[ZFL * CS + jj] == 0.0:  # the general estimate (_controller_J3 from this vector's chord)
+                        last[0] = math.nan
+                        _controller_J3(B, NZ, zi, j0 + jj, L, Jh, S, Zk, Zv, cnt, last)
+                        for a_ in range(3):
+                            for b_ in range(3):
+                                Z[(ZJ + 3 * a_ + b_) * CS + jj] = Jh[a_, b_]
+                _corner_maps(Z, nb, J, ki)
+                for jj in range(nb):
+                    if Z[ZBAD * CS + jj] != 0.0:  # a singular Jhat or a non-finite M: the pair is not valid
+                        good = False
+                        break
+                    j = j0 + jj
                     for a_ in range(3):
                         for b_ in range(3):
-                            Q[JH + 3 * a_ + b_, j] = Jh[a_, b_]
-            _corner_maps(Q, c, J, Ms, fl)
-            for j in range(c):
-                if fl[j] != 0:  # a singular Jhat or a non-finite M: the pair is not valid
-                    good = False
+                            Ms[j, a_, b_] = Z[(ZM + 3 * a_ + b_) * CS + jj]
+                    gb[j] = Z[ZGB * CS + jj]
+                    pb[j] = Z[ZPB * CS + jj]
+                if not good:
                     break
         ok[i] = good
         if want_M:
@@ -692,6 +745,6 @@ def flexion_tips(Wt, Tt, Pt, ok, NZ, est, L, k, want_M, want_gp, gfloor, pfloor,
                 continue
             ki = k[i] if k.shape[0] > 1 else k[0]
             gf = gfloor[i] if gfloor.shape[0] > 1 else gfloor[0]
-            out_g[i] = _g_worst(Ms, c, ki, bound, gf) if gf < math.inf else gf
+            out_g[i] = _g_worst(Ms, c, ki, gb, gf) if gf < math.inf else gf
             pf = pfloor[i] if pfloor.shape[0] > 1 else pfloor[0]
-            out_p[i] = _phi_worst(Ms, c, bound, pf) if want_gp == 2 else math.nan
+            out_p[i] = _phi_worst(Ms, c, pb, bound, pf) if want_gp == 2 else math.nan
