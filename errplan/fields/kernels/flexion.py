@@ -374,36 +374,84 @@ ZROWS = 42
 
 
 @njit(cache=True, error_model="numpy")
-def _corner_inputs(B, NZ, zi, j0, nb, Zk, Zv, cnt, last, Z):
-    """Per noise vector ``j0 + jj`` (``jj < nb``) the measured chord's length and frame (rows C, F1, F2) and
-    the tilted tangents (rows DWN, DTN) as :func:`_controller_J3` computes them (the chord frame per
-    distinct chord difference, each tilt once), and their projections ``xw, yw, xt, yt`` on the chord
-    frame, into column ``jj`` of the block ``Z``."""
+def _noise_index(NZ, zi, c, ids, reps, nrep):
+    """The distinct chord differences (slot 0, ``NZ[zi, j, 0:3]``), wrist tilts (slot 1, ``3:5``) and tip tilts
+    (slot 2, ``5:7``) of the noise vectors: ``ids[slot, j]`` the one vector ``j`` has, ``reps[slot, q]`` a
+    vector with the ``q``-th, ``nrep[slot]`` how many (a noise set repeats each across its corners)."""
+    for slot in range(3):
+        lo = 0 if slot == 0 else (3 if slot == 1 else 5)
+        hi = 3 if slot == 0 else (5 if slot == 1 else 7)
+        m = 0
+        for j in range(c):
+            found = -1
+            for q in range(m):
+                r = reps[slot, q]
+                same = True
+                for a_ in range(lo, hi):
+                    same = same and NZ[zi, r, a_] == NZ[zi, j, a_]
+                if same:
+                    found = q
+                    break
+            if found < 0:
+                reps[slot, m] = j
+                found = m
+                m += 1
+            ids[slot, j] = found
+        nrep[slot] = m
+
+
+@njit(cache=True, error_model="numpy")
+def _pair_tables(B, NZ, zi, reps, nrep, CT, TW, TT):
+    """Per distinct chord difference ``q`` the measured chord's length and frame (``CT[q]``: r, C, F1, F2)
+    and per distinct tilt each end's tilted tangent (``TW[q]``, ``TT[q]``), as :func:`_controller_J3`
+    computes them (the true poses of rows W, TIP, DW, DT, E1W, E1T, MB)."""
+    for q in range(nrep[0]):
+        j = reps[0, q]
+        for i in range(3):
+            B[PT, i] = B[TIP, i] + NZ[zi, j, i]
+        c0, c1, c2 = B[PT, 0] - B[W, 0], B[PT, 1] - B[W, 1], B[PT, 2] - B[W, 2]
+        r = math.sqrt(c0 * c0 + c1 * c1 + c2 * c2)
+        B[C, 0], B[C, 1], B[C, 2] = c0 / r, c1 / r, c2 / r
+        _perp_rows(B, C, F1, F2)
+        CT[q, 0] = r
+        for i in range(3):
+            CT[q, 1 + i] = B[C, i]
+            CT[q, 4 + i] = B[F1, i]
+            CT[q, 7 + i] = B[F2, i]
+    for q in range(nrep[1]):
+        j = reps[1, q]
+        _tilt(B, DW, NZ[zi, j, 3], NZ[zi, j, 4], E1W, DWN)
+        for i in range(3):
+            TW[q, i] = B[DWN, i]
+    for q in range(nrep[2]):
+        j = reps[2, q]
+        _tilt(B, DT, NZ[zi, j, 5], NZ[zi, j, 6], E1T, DTN)
+        for i in range(3):
+            TT[q, i] = B[DTN, i]
+
+
+@njit(cache=True, error_model="numpy")
+def _corner_inputs(ids, j0, nb, CT, TW, TT, Z):
+    """Per noise vector ``j0 + jj`` (``jj < nb``) its chord's length and frame and its tilted tangents (from
+    :func:`_pair_tables`) and their projections ``xw, yw, xt, yt`` on the chord frame (the operations of
+    :func:`_controller_J3`), into column ``jj`` of the block ``Z``."""
     for jj in range(nb):
         j = j0 + jj
-        d0, d1, d2 = NZ[zi, j, 0], NZ[zi, j, 1], NZ[zi, j, 2]
-        if not (d0 == last[0] and d1 == last[1] and d2 == last[2]):
-            last[0], last[1], last[2] = d0, d1, d2
-            for i in range(3):
-                B[PT, i] = B[TIP, i] + NZ[zi, j, i]
-            c0, c1, c2 = B[PT, 0] - B[W, 0], B[PT, 1] - B[W, 1], B[PT, 2] - B[W, 2]
-            r = math.sqrt(c0 * c0 + c1 * c1 + c2 * c2)
-            last[3] = r
-            B[C, 0], B[C, 1], B[C, 2] = c0 / r, c1 / r, c2 / r
-            _perp_rows(B, C, F1, F2)
-        _tilted(B, Zk, Zv, cnt, 0, DW, NZ[zi, j, 3], NZ[zi, j, 4], E1W, DWN)
-        _tilted(B, Zk, Zv, cnt, 1, DT, NZ[zi, j, 5], NZ[zi, j, 6], E1T, DTN)
-        Z[ZR * CS + jj] = last[3]
-        Z[ZXW * CS + jj] = B[DWN, 0] * B[F1, 0] + B[DWN, 1] * B[F1, 1] + B[DWN, 2] * B[F1, 2]
-        Z[ZYW * CS + jj] = B[DWN, 0] * B[F2, 0] + B[DWN, 1] * B[F2, 1] + B[DWN, 2] * B[F2, 2]
-        Z[ZXT * CS + jj] = B[DTN, 0] * B[F1, 0] + B[DTN, 1] * B[F1, 1] + B[DTN, 2] * B[F1, 2]
-        Z[ZYT * CS + jj] = B[DTN, 0] * B[F2, 0] + B[DTN, 1] * B[F2, 1] + B[DTN, 2] * B[F2, 2]
-        for i in range(3):
-            Z[(ZC + i) * CS + jj] = B[C, i]
-            Z[(ZF1 + i) * CS + jj] = B[F1, i]
-            Z[(ZF2 + i) * CS + jj] = B[F2, i]
-            Z[(ZDW + i) * CS + jj] = B[DWN, i]
-            Z[(ZDT + i) * CS + jj] = B[DTN, i]
+        q, u, v = ids[0, j], ids[1, j], ids[2, j]
+        f10, f11, f12 = CT[q, 4], CT[q, 5], CT[q, 6]
+        f20, f21, f22 = CT[q, 7], CT[q, 8], CT[q, 9]
+        w0, w1, w2 = TW[u, 0], TW[u, 1], TW[u, 2]
+        t0, t1, t2 = TT[v, 0], TT[v, 1], TT[v, 2]
+        Z[ZR * CS + jj] = CT[q, 0]
+        Z[ZXW * CS + jj] = w0 * f10 + w1 * f11 + w2 * f12
+        Z[ZYW * CS + jj] = w0 * f20 + w1 * f21 + w2 * f22
+        Z[ZXT * CS + jj] = t0 * f10 + t1 * f11 + t2 * f12
+        Z[ZYT * CS + jj] = t0 * f20 + t1 * f21 + t2 * f22
+        Z[ZC * CS + jj], Z[(ZC + 1) * CS + jj], Z[(ZC + 2) * CS + jj] = CT[q, 1], CT[q, 2], CT[q, 3]
+        Z[ZF1 * CS + jj], Z[(ZF1 + 1) * CS + jj], Z[(ZF1 + 2) * CS + jj] = f10, f11, f12
+        Z[ZF2 * CS + jj], Z[(ZF2 + 1) * CS + jj], Z[(ZF2 + 2) * CS + jj] = f20, f21, f22
+        Z[ZDW * CS + jj], Z[(ZDW + 1) * CS + jj], Z[(ZDW + 2) * CS + jj] = w0, w1, w2
+        Z[ZDT * CS + jj], Z[(ZDT + 1) * CS + jj], Z[(ZDT + 2) * CS + jj] = t0, t1, t2
 
 
 @njit(cache=True, error_model="numpy")
@@ -695,6 +743,14 @@ def flexion_tips(Wt, Tt, Pt, ok, NZ, est, L, k, want_M, want_gp, gfloor, pfloor,
     Z = np.empty(ZROWS * CS)
     gb = np.empty(c)
     pb = np.empty(c)
+    ids = np.empty((3, c), np.int64)
+    reps = np.empty((3, c), np.int64)
+    nrep = np.zeros(3, np.int64)
+    CT = np.empty((c, 10))
+    TW = np.empty((c, 3))
+    TT = np.empty((c, 3))
+    if NZ.shape[0] == 1:
+        _noise_index(NZ, 0, c, ids, reps, nrep)
     for i in range(3):
         B[EST, i] = est[i]
     for i in range(n):
@@ -708,9 +764,12 @@ def flexion_tips(Wt, Tt, Pt, ok, NZ, est, L, k, want_M, want_gp, gfloor, pfloor,
             ki = k[i] if k.shape[0] > 1 else k[0]
             cnt[0] = cnt[1] = 0
             last[0] = math.nan
+            if NZ.shape[0] > 1:
+                _noise_index(NZ, zi, c, ids, reps, nrep)
+            _pair_tables(B, NZ, zi, reps, nrep, CT, TW, TT)
             for j0 in range(0, c, CS):
                 nb = min(CS, c - j0)
-                _corner_inputs(B, NZ, zi, j0, nb, Zk, Zv, cnt, last, Z)
+                _corner_inputs(ids, j0, nb, CT, TW, TT, Z)
                 _fast_corners(Z, nb, B[W, 0], B[W, 1], B[W, 2], L)
                 for jj in range(nb):
                     if Z[ZFL * CS + jj] == 0.0:  # the general estimate (_controller_J3 from this vector's chord)
