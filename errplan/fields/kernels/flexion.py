@@ -698,24 +698,47 @@ def _phi_bound(Ms, j, tight):
 
 
 @njit(cache=True, error_model="numpy")
-def _phi_worst(Ms, c, pb, bound, floor):
+def _phi_worst(Ms, c, pb, floor):
     """``max_j phi_max3(Ms[j])`` over ``j < c``, exact where a bound (:func:`_phi_bound`'s, the cheap one first
     from its norm bound ``pb[j]``, then the tight one) could beat the best exact value so far; ``floor``
     where that maximum is not above ``floor`` (a caller that keeps only a value above its best)."""
     top = 0
-    for j in range(c):
-        bound[j] = math.asin(pb[j]) if pb[j] < 1.0 else math.pi
-        if bound[j] > bound[top]:
+    for j in range(c):  # asin is increasing: the largest norm bound gives the largest angle bound
+        if pb[j] > pb[top]:
             top = j
     best = floor
     for q in range(-1, c):
         j = top if q < 0 else q
-        if (q >= 0 and j == top) or not bound[j] > best:
+        if q >= 0 and j == top:
+            continue
+        # pb[j] below sin(best) by more than rounding: asin(pb[j]) < best, the cheap bound fails (no asin)
+        if 0.0 <= best < 1.5 and pb[j] < math.sin(best) * (1.0 - 1e-9):
+            continue
+        if not (math.asin(pb[j]) if pb[j] < 1.0 else math.pi) > best:
             continue
         if not _phi_bound(Ms, j, True) > best:
             continue
         best = max(best, phi_max3(Ms[j]))
     return best
+
+
+@njit(cache=True, error_model="numpy")
+def _g_argmax(Ms, c, k, bound):
+    """``(max_j ||I - k Ms[j]||, j)`` over ``j < c``, ``j`` the first corner attaining it (numpy's argmax),
+    exact only where the bound ``bound[j]`` (:func:`_gnorm_bound`'s, widened: above the norm, so a corner
+    that ties the maximum is evaluated too) could reach the best so far."""
+    top = 0
+    for j in range(c):
+        if bound[j] > bound[top]:
+            top = j
+    best = _gnorm(Ms, top, k)
+    jb = top
+    for j in range(c):
+        if j != top and bound[j] >= best:
+            v = _gnorm(Ms, j, k)
+            if v > best or (v == best and j < jb):
+                best, jb = v, j
+    return best, jb
 
 
 @njit(cache=True, error_model="numpy")
@@ -725,7 +748,9 @@ def flexion_tips(Wt, Tt, Pt, ok, NZ, est, L, k, want_M, want_gp, gfloor, pfloor,
     over the noise vectors ``NZ`` ((1, c, 7) shared or (n, c, 7) per pair) into ``out_M[i]`` (``want_M``;
     NaN for an invalid pair), the worst ``||I - k[i] M||`` over them (``k`` (1,) or (n,)) into ``out_g[i]``
     (``want_gp`` 1 or 2) and the worst ``|phi_max|`` into ``out_p[i]`` (``want_gp`` 2); NaN for an invalid
-    pair. ``gfloor``, ``pfloor`` ((n,), or (1,) for all): a caller that keeps a worst value only where it
+    pair. ``want_gp`` 3: the worst corner of a valid pair instead, its norm into ``out_g[i]``, its index (the
+    first attaining it) into ``out_p[i]`` and its map into ``out_M[i, 0]`` (untouched for an invalid pair).
+    ``gfloor``, ``pfloor`` ((n,), or (1,) for all): a caller that keeps a worst value only where it
     exceeds these gets the floor itself where it does not (-inf: always the worst; inf: not computed), and
     the exact norms and angles are computed only where their bounds exceed the best so far."""
     n = Wt.shape[0]
@@ -735,7 +760,6 @@ def flexion_tips(Wt, Tt, Pt, ok, NZ, est, L, k, want_M, want_gp, gfloor, pfloor,
     J = np.empty((3, 3))
     Jh = np.empty((3, 3))
     Ms = np.empty((c, 3, 3))
-    bound = np.empty(c)
     Zk = np.empty((2, 16, 2))
     Zv = np.empty((2, 16, 3))
     cnt = np.zeros(2, np.int64)
@@ -803,7 +827,14 @@ def flexion_tips(Wt, Tt, Pt, ok, NZ, est, L, k, want_M, want_gp, gfloor, pfloor,
                 out_p[i] = math.nan
                 continue
             ki = k[i] if k.shape[0] > 1 else k[0]
+            if want_gp == 3:  # the worst corner: its norm, index and map
+                g_, jb = _g_argmax(Ms, c, ki, gb)
+                out_g[i], out_p[i] = g_, float(jb)
+                for a_ in range(3):
+                    for b_ in range(3):
+                        out_M[i, 0, a_, b_] = Ms[jb, a_, b_]
+                continue
             gf = gfloor[i] if gfloor.shape[0] > 1 else gfloor[0]
             out_g[i] = _g_worst(Ms, c, ki, gb, gf) if gf < math.inf else gf
             pf = pfloor[i] if pfloor.shape[0] > 1 else pfloor[0]
-            out_p[i] = _phi_worst(Ms, c, pb, bound, pf) if want_gp == 2 else math.nan
+            out_p[i] = _phi_worst(Ms, c, pb, pf) if want_gp == 2 else math.nan
