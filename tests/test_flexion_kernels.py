@@ -96,6 +96,23 @@ def test_worst_over_the_noise_equals_the_maps_worst(evs):
     assert close(gk[ok][well], g_norm(M0[ok0], kk[ok0][:, None]).max(axis=-1)[well])
 
 
+def test_worst_corner_equals_the_numpy_argmax(evs):
+    """The compiled worst corner (bounds prune the exact norms; the noise refinement's start) is numpy's
+    argmax over every corner's ||G|| (the first of equal ones), with its norm and map; invalid pairs as the
+    numpy path's. The noise set's 432 corners run in several blocks of the kernel, the last one partial."""
+    sc, ev, ref = evs
+    x, th = _pairs(40, 6, 0.004)
+    k = float(sc.controller.gain)
+    g, j, Mj, ok = ev.worst_corner(x, th, k)
+    g0, j0, Mj0, ok0 = ref.worst_corner(x, th, k)
+    assert np.array_equal(ok, ok0) and ok.sum() > 20 and len(ev.noise) % 64 != 0
+    well = np.abs(Mj0[ok]).max(axis=(1, 2)) < 1e4
+    assert np.array_equal(j[ok][well], j0[ok][well])
+    assert close(g[ok], g0[ok]) and close(Mj[ok][well], Mj0[ok][well])
+    assert np.all(g[~ok] == -np.inf) and np.all(np.isnan(Mj[~ok]))
+    assert np.unique(j[ok]).size > 1  # not one corner everywhere
+
+
 @pytest.mark.slow
 def test_worst_case_fields_equal_the_numpy_search(evs):
     """The whole worst case of a field tile (sampling, pattern search, noise refinement, rho*) on the

@@ -554,6 +554,17 @@ class NumpyFlexionEvaluator(SpatialFlexionEvaluator):
 
     reduced = None  # the numpy search forms every map (errplan.fields.search._values)
 
+    def worst_corner(self, x: np.ndarray, theta: np.ndarray, k: float
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`SpatialFlexionEvaluator.worst_corner` from every corner's map in numpy (``np.argmax``)."""
+        from ..metrics import g_norm
+
+        M, _, ok = self.parts(x, theta)
+        n = len(M)
+        g = np.where(ok[:, None], g_norm(np.where(ok[:, None, None, None], M, 0.0), k), -np.inf)
+        j = np.argmax(g, axis=1)
+        return g[np.arange(n), j], j, M[np.arange(n), j], ok
+
     def parts(self, x: np.ndarray, theta: np.ndarray, noise: np.ndarray | None = None
               ) -> tuple[np.ndarray, None, np.ndarray]:
         return self.parts_numpy(x, theta, noise)
