@@ -13,6 +13,13 @@ port estimate where the estimate is unidentifiable), ``M = J Jhat^-1``. Each ste
 arithmetic in scalars, in the same order (the numpy path, :meth:`SpatialFlexionEvaluator.parts_numpy
 <errplan.fields.evaluator.SpatialFlexionEvaluator.parts_numpy>`, is the reference the tests hold it to).
 
+The noise vectors of a pair run in batches: the distinct chords and tilts once per pair
+(:func:`_noise_index`, :func:`_pair_tables`), then blocks of CS vectors through loops without calls or
+branches (:func:`_corner_inputs`, :func:`_fast_corners`, :func:`_corner_maps`) that the compiler vectorizes,
+the same operations in the same order as the one-vector functions (:func:`_controller_J3`, which still
+serves the vectors whose estimate needs the general path): the same numbers to the bit, about four times
+faster.
+
 The worst over the noise vectors (:func:`flexion_tips` with ``want_gp``) takes ``||I - k M||`` of each map and
 the exact ``|phi_max|`` only where its cheap bound (:func:`errplan.fields.kernels.metrics.phi_bound`'s) could
 beat the best exact value so far: the same maximum, a fraction of the exact evaluations.
