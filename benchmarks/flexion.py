@@ -86,7 +86,8 @@ def main() -> int:
     print()
     maps = pairs[0] * len(ev.noise)
     print(f"compiled: {pairs[0] / len(X):.1f} (tip, instance) evaluations per tip over the {len(ev.noise)} noise "
-          f"corners (and the noise refinement's polls), {c_k / maps * 1e9:.0f} ns of CPU per corner map")
+          f"corners; {c_k / maps * 1e9:.0f} ns of CPU per corner map (the compiled field's whole CPU time, the "
+          f"noise refinement's few polls included, over those maps)")
     print(f"CPU per tip, numpy / compiled: {(c_n / len(sub)) / (c_k / len(X)):.1f}x; same valid flags on the "
           f"numpy tips: {same}; largest |difference| of G_norm, phi_max there: {diff:.1e}")
     print(f"2 mm-class field over P2's task region ({a.task_res * 1e3:g} mm, {n_task} tips, {int(f.valid.sum())} valid): "
