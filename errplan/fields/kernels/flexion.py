@@ -630,7 +630,7 @@ def _corner_maps(Z, nb, J, k):
 
 @njit(cache=True, error_model="numpy")
 def _gbound9(m00, m01, m02, m10, m11, m12, m20, m21, m22, k):
-    """:func:`_gnorm_bound` of the map with entries ``m..`` (its operations in its order)."""
+    """:func:`_gnorm_bound` of the map with entries ``m..``: the Gershgorin bound of ``G^T G``, widened."""
     g00, g01, g02 = 1.0 - k * m00, -k * m01, -k * m02
     g10, g11, g12 = -k * m10, 1.0 - k * m11, -k * m12
     g20, g21, g22 = -k * m20, -k * m21, 1.0 - k * m22
@@ -655,19 +655,10 @@ def _gnorm(Ms, j, k):
 @njit(cache=True, error_model="numpy")
 def _gnorm_bound(Ms, j, k):
     """An upper bound of ``||I - k Ms[j]||_2``: the square root of the largest Gershgorin row sum of
-    ``G^T G`` (its largest eigenvalue is at most that), widened by 1e-12 against rounding. Tight where
-    ``G^T G`` is nearly diagonal, as near a good controller."""
-    g00, g01, g02 = 1.0 - k * Ms[j, 0, 0], -k * Ms[j, 0, 1], -k * Ms[j, 0, 2]
-    g10, g11, g12 = -k * Ms[j, 1, 0], 1.0 - k * Ms[j, 1, 1], -k * Ms[j, 1, 2]
-    g20, g21, g22 = -k * Ms[j, 2, 0], -k * Ms[j, 2, 1], 1.0 - k * Ms[j, 2, 2]
-    a00 = g00 * g00 + g10 * g10 + g20 * g20
-    a11 = g01 * g01 + g11 * g11 + g21 * g21
-    a22 = g02 * g02 + g12 * g12 + g22 * g22
-    a01 = abs(g00 * g01 + g10 * g11 + g20 * g21)
-    a02 = abs(g00 * g02 + g10 * g12 + g20 * g22)
-    a12 = abs(g01 * g02 + g11 * g12 + g21 * g22)
-    r = max(a00 + a01 + a02, max(a01 + a11 + a12, a02 + a12 + a22))
-    return math.sqrt(r) * (1.0 + 1e-12)
+    ``G^T G`` (its largest eigenvalue is at most that), widened by 1e-12 against rounding (:func:`_gbound9`).
+    Tight where ``G^T G`` is nearly diagonal, as near a good controller."""
+    return _gbound9(Ms[j, 0, 0], Ms[j, 0, 1], Ms[j, 0, 2], Ms[j, 1, 0], Ms[j, 1, 1], Ms[j, 1, 2],
+                    Ms[j, 2, 0], Ms[j, 2, 1], Ms[j, 2, 2], k)
 
 
 @njit(cache=True, error_model="numpy")
