@@ -57,7 +57,16 @@ def main() -> int:
     X = widened_tips()
     load0 = os.getloadavg()[0]
     numpy_worst_case(ev, X[:2], k)  # load (or compile) the kernels outside the measurement
+    pairs = [0]
+    compiled = ev._compiled
+
+    def counted(x, theta, noise, *args, **kw):  # (tip, instance) pairs the compiled controller evaluates
+        pairs[0] += len(np.asarray(x).reshape(-1, 3)) * (1 if noise is None else 0)
+        return compiled(x, theta, noise, *args, **kw)
+
+    ev._compiled = counted
     kern, c_k, w_k = timed(lambda: numpy_worst_case(ev, X, k))
+    ev._compiled = compiled
     sub = np.arange(0, len(X), a.every)
     nump, c_n, w_n = timed(lambda: numpy_worst_case(ref, X[sub], k))
     same = np.array_equal(kern["valid"][sub], nump["valid"])
@@ -75,6 +84,10 @@ def main() -> int:
     print(f"| numpy path (every {a.every}th tip) | {len(sub)} | {int(v.sum())} | {c_n / len(sub) * 1e3:.2f} | {w_n / len(sub) * 1e3:.2f} |")
     print(f"| compiled controller (every tip) | {len(X)} | {int(kern['valid'].sum())} | {c_k / len(X) * 1e3:.2f} | {w_k / len(X) * 1e3:.2f} |")
     print()
+    maps = pairs[0] * len(ev.noise)
+    print(f"compiled: {pairs[0] / len(X):.1f} (tip, instance) evaluations per tip over the {len(ev.noise)} noise "
+          f"corners; {c_k / maps * 1e9:.0f} ns of CPU per corner map (the compiled field's whole CPU time, the "
+          f"noise refinement's few polls included, over those maps)")
     print(f"CPU per tip, numpy / compiled: {(c_n / len(sub)) / (c_k / len(X)):.1f}x; same valid flags on the "
           f"numpy tips: {same}; largest |difference| of G_norm, phi_max there: {diff:.1e}")
     print(f"2 mm-class field over P2's task region ({a.task_res * 1e3:g} mm, {n_task} tips, {int(f.valid.sum())} valid): "

@@ -96,6 +96,70 @@ def test_worst_over_the_noise_equals_the_maps_worst(evs):
     assert close(gk[ok][well], g_norm(M0[ok0], kk[ok0][:, None]).max(axis=-1)[well])
 
 
+def test_batched_corners_are_the_one_corner_kernel_bit_for_bit(evs):
+    """The kernel runs the noise vectors in vectorized blocks; per vector it must do what the one-vector
+    functions do (fields.kernels.flexion._controller_J3, errplan.linalg.inv3, the product), operation for
+    operation: the same maps to the bit, on pairs whose vectors take the shortcut estimate, the general
+    one, or both (low loads)."""
+    from numba import njit
+
+    import errplan.fields.kernels.flexion as F
+    from errplan.linalg import inv3
+
+    @njit(error_model="numpy")
+    def one_by_one(Wt, Tt, Pt, ok, NZ, est, L, out):
+        c = NZ.shape[1]
+        S = np.zeros((8, 3, 3))
+        B = np.zeros((F.ROWS, 3))
+        J, Jh, Ji = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
+        Zk, Zv = np.empty((2, 16, 2)), np.empty((2, 16, 3))
+        cnt, last = np.zeros(2, np.int64), np.empty(4)
+        for a_ in range(3):
+            B[F.EST, a_] = est[a_]
+        for i in range(Wt.shape[0]):
+            if not ok[i]:
+                continue
+            for a_ in range(3):
+                B[F.W, a_], B[F.T, a_], B[F.P, a_] = Wt[i, a_], Tt[i, a_], Pt[i, a_]
+            F._jacobian3(B, F.W, F.P, F.T, L, J, S)
+            F._true_poses(B, L)
+            cnt[0] = cnt[1] = 0
+            last[0] = np.nan
+            for j in range(c):
+                F._controller_J3(B, NZ, 0, j, L, Jh, S, Zk, Zv, cnt, last)
+                inv3(Jh, Ji)
+                for a_ in range(3):
+                    for b_ in range(3):
+                        out[i, j, a_, b_] = J[a_, 0] * Ji[0, b_] + J[a_, 1] * Ji[1, b_] + J[a_, 2] * Ji[2, b_]
+
+    _, ev, _ = evs
+    x, th = _pairs(40, 7, 0.004)
+    M, _, ok = ev.parts(x, th)
+    w, t, port, ok_t = ev.truth(x, th)
+    M1 = np.full_like(M, np.nan)
+    one_by_one(w, t, port, ok, np.ascontiguousarray(ev.noise[None]), np.asarray(ev.estimate, float),
+               float(ev.length), M1)
+    assert ok.sum() > 20
+    assert np.array_equal(M[ok], M1[ok])
+
+
+def test_worst_corner_equals_the_numpy_argmax(evs):
+    """The compiled worst corner (bounds prune the exact norms; the noise refinement's start) is numpy's
+    argmax over every corner's ||G|| (the first of equal ones), with its norm and map; invalid pairs as the
+    numpy path's. The noise set's 432 corners run in several blocks of the kernel, the last one partial."""
+    sc, ev, ref = evs
+    x, th = _pairs(40, 6, 0.004)
+    k = float(sc.controller.gain)
+    g, j, Mj, ok = ev.worst_corner(x, th, k)
+    g0, j0, Mj0, ok0 = ref.worst_corner(x, th, k)
+    assert np.array_equal(ok, ok0) and ok.sum() > 20 and len(ev.noise) % 64 != 0
+    well = np.abs(Mj0[ok]).max(axis=(1, 2)) < 1e4
+    assert np.array_equal(j[ok][well], j0[ok][well])
+    assert close(g[ok], g0[ok]) and close(Mj[ok][well], Mj0[ok][well])
+    assert np.all(g[~ok] == -np.inf) and np.all(np.isnan(Mj[~ok]))
+    assert np.unique(j[ok]).size > 1  # not one corner everywhere
+
+
 @pytest.mark.slow
 def test_worst_case_fields_equal_the_numpy_search(evs):
     """The whole worst case of a field tile (sampling, pattern search, noise refinement, rho*) on the

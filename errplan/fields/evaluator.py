@@ -420,7 +420,7 @@ class SpatialFlexionEvaluator:
         n, c = len(x), NZ.shape[1]
         w, t, port, ok = self.truth(x, theta)
         ok = kernel_array(np.asarray(ok, bool))
-        M = np.empty((n if want_M else 1, c, 3, 3))
+        M = np.empty((n if want_M or want_gp == 3 else 1, c if want_M else 1, 3, 3))
         g = np.empty(n if want_gp else 1)
         p = np.empty(n if want_gp else 1)
         kk = kernel_array(np.asarray(np.broadcast_to(np.asarray(k, float), (n,)) if np.ndim(k) else [float(k)],
@@ -429,7 +429,7 @@ class SpatialFlexionEvaluator:
                   for f in (gfloor, pfloor))
         flexion_tips(kernel_array(w), kernel_array(t), kernel_array(port), ok, NZ, np.asarray(self.estimate, float),
                      float(self.length), kk, bool(want_M), int(want_gp), gf, pf, M, g, p)
-        return (M if want_M else None), g, p, ok
+        return (M if want_M or want_gp == 3 else None), g, p, ok
 
     def parts(self, x: np.ndarray, theta: np.ndarray, noise: np.ndarray | None = None
               ) -> tuple[np.ndarray, None, np.ndarray]:
@@ -450,6 +450,17 @@ class SpatialFlexionEvaluator:
         where their bounds exceed it. Without them: the worst values."""
         _, g, p, ok = self._compiled(x, theta, None, k, False, 2 if phi else 1, g_above, p_above)
         return g, p, ok
+
+    def worst_corner(self, x: np.ndarray, theta: np.ndarray, k: float
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The noise corner of largest ``||I - k M||`` at each pair, compiled, without forming the other
+        corners' maps in Python: ``(||G||, j, M_j, ok)``, ``j`` (n,) the first corner attaining it
+        (``np.argmax`` over :meth:`parts`' corners), ``M_j`` (n, 3, 3) its map; ``||G||`` -inf, ``j`` 0 and
+        ``M_j`` NaN where ``ok`` is False."""
+        M, g, j, ok = self._compiled(x, theta, None, k, False, 3)
+        M = M[:, 0]
+        M[~ok] = np.nan
+        return np.where(ok, g, -np.inf), np.where(ok, j, 0.0).astype(np.int64), M, ok
 
     def parts_numpy(self, x: np.ndarray, theta: np.ndarray, noise: np.ndarray | None = None
                     ) -> tuple[np.ndarray, None, np.ndarray]:
@@ -493,11 +504,8 @@ class SpatialFlexionEvaluator:
 
         x = np.asarray(x, float).reshape(-1, 3)
         n = len(x)
-        M, _, ok = self.parts(x, theta)
-        g = np.where(ok[:, None], g_norm(np.where(ok[:, None, None, None], M, 0.0), k), -np.inf)
-        j = np.argmax(g, axis=1)
-        best_g = g[np.arange(n), j]
-        best_p = np.where(ok, phi_max(np.where(ok[:, None, None], M[np.arange(n), j], np.eye(3))), -np.inf)
+        best_g, j, Mj, ok = self.worst_corner(x, theta, k)
+        best_p = np.where(ok, phi_max(np.where(ok[:, None, None], Mj, np.eye(3))), -np.inf)
         z = self.noise[j].copy()
         half = self.noise_bounds()
         moving = np.flatnonzero(np.any(self.noise != 0, axis=0) & (half > 0))
@@ -545,6 +553,17 @@ class NumpyFlexionEvaluator(SpatialFlexionEvaluator):
     and ``benchmarks/flexion.py``; the same answers, much slower."""
 
     reduced = None  # the numpy search forms every map (errplan.fields.search._values)
+
+    def worst_corner(self, x: np.ndarray, theta: np.ndarray, k: float
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`SpatialFlexionEvaluator.worst_corner` from every corner's map in numpy (``np.argmax``)."""
+        from ..metrics import g_norm
+
+        M, _, ok = self.parts(x, theta)
+        n = len(M)
+        g = np.where(ok[:, None], g_norm(np.where(ok[:, None, None, None], M, 0.0), k), -np.inf)
+        j = np.argmax(g, axis=1)
+        return g[np.arange(n), j], j, M[np.arange(n), j], ok
 
     def parts(self, x: np.ndarray, theta: np.ndarray, noise: np.ndarray | None = None
               ) -> tuple[np.ndarray, None, np.ndarray]:

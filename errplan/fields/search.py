@@ -206,6 +206,27 @@ def worst_case(ev: Evaluator, x: np.ndarray, k: float, *, samples: int | None = 
     ok_e = valid[owner].copy()
     idx_e = np.arange(len(owner))
 
+    # The instances each entry has been evaluated at (its theta's bytes -> whether ||G|| was computed there):
+    # a poll landing on one again cannot raise that entry's best (both only grow), so it is skipped (the
+    # same search, fewer evaluations). A tip's own entry starts at its best samples, so its samples count;
+    # a second start's entry starts below them and does not.
+    seen: dict = {}
+    for j, th in enumerate(grid):
+        key = th.tobytes()
+        for i in np.flatnonzero(valid).tolist():
+            seen[(i, key)] = True
+
+    def unseen(rows, theta, for_g):
+        fresh = np.ones(len(rows), bool)
+        for q, (r, t) in enumerate(zip(rows.tolist(), theta)):
+            key = (r, t.tobytes())
+            had = seen.get(key)
+            if had is not None and (had or not for_g):
+                fresh[q] = False
+            else:
+                seen[key] = for_g
+        return fresh
+
     def evaluate(sub, theta, track_g):
         _, _, g, p, ok = _values(ev, xe[sub], theta, k, False, best_g[sub] if track_g else np.inf, best_p[sub])
         ok_e[sub[~ok]] = False
@@ -245,7 +266,9 @@ def worst_case(ev: Evaluator, x: np.ndarray, k: float, *, samples: int | None = 
                         if np.any(keep):
                             c = c[keep].copy()
                             c[:, dmn] = moved[keep]
-                            evaluate(rows[keep], c, for_g)
+                            fresh = unseen(rows[keep], c, for_g)
+                            if np.any(fresh):
+                                evaluate(rows[keep][fresh], c[fresh], for_g)
 
                     poll(sub, th_g, True)
                     poll(sub[apart & ok_e[sub]], th_p, False)
