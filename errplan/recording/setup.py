@@ -166,7 +166,7 @@ def _log_endoscope(rec, rr, base: str, e, port=None) -> np.ndarray:
                                       albedo_factor=(*ENDO_COLOR, CONE_ALPHA)), static=True)
     rec.log(f"{base}/camera", rr.Transform3D(translation=lens, mat3x3=camera_rotation(axis)), static=True)
     rec.log(f"{base}/camera", rr.Pinhole(fov_y=float(e.fov), aspect_ratio=1.0, camera_xyz=rr.ViewCoordinates.RDF,
-                                         image_plane_distance=float(e.depth[1])), static=True)
+                                         image_plane_distance=float(e.depth[0])), static=True)
     return lens
 
 
