@@ -30,7 +30,7 @@ import numpy as np
 
 from . import sdk
 from .arms import log_arm_geometry
-from .style import DIRECT_COLOR, PLANNED_COLOR, PORT_EST_COLOR, PORT_TRUE_COLOR, entity_name, turbo
+from .style import DIRECT_COLOR, PLANNED_COLOR, PORT_TRUE_COLOR, entity_name, turbo
 
 ARM_COLORS = ((120, 170, 230), (230, 150, 90), (150, 210, 130), (200, 140, 210))
 ENDO_COLOR = (90, 220, 220)
