@@ -146,3 +146,17 @@ def test_triad_record(tmp_path, capsys):
         strips = np.asarray(cols[f"{base}/shafts/{role}"]["strips"][0], float)
         assert strips.shape == (len(X), 2, 3)
         assert np.allclose(strips[:, 0], d["best"]["ports"][role], atol=1e-6) and np.allclose(strips[:, 1], X, atol=1e-6)
+
+
+def test_plan_record_of_one_arm_of_a_setup(tmp_path, capsys):
+    """--arm: that arm moves along its plan; the other is drawn once, at its rest (tip at `rest`)."""
+    src, doc = _setup_file(tmp_path)
+    rrd = tmp_path / "p.rrd"
+    assert main(["-q", "plan", str(src), "--arm", "right", "--record", str(rrd), "--time", "0.2"]) == 0
+    capsys.readouterr()
+    rows, cols = _read(rrd)
+    assert rows["/world/arms/left/chain"] == 1 and rows["/world/arms/right/chain"] > 1
+    assert "/world/queries/right_right_reach/planned" in rows and not any("left_reach" in k for k in rows)
+    rest = doc["arm"][0]["rest"]
+    assert np.allclose(_last(cols, "/world/arms/left/tip", "positions")[0], rest, atol=1e-6)
+    assert np.allclose(cols["/world/arms/left/shaft"]["strips"][0][0][2], rest, atol=1e-6)

@@ -199,7 +199,12 @@ def record_setup_plan(path, st, plans, *, app_id: str = "errplan") -> None:
                                                         labels=[f"{n} port"]), static=True)
         if e is not None:
             _log_endoscope(rec, rr, "world/endoscope", e)
-        # the motion timeline: each planned query in turn, the other arms at rest
+        # the motion timeline: each planned query in turn, the other arms at rest (an arm without a query
+        # of its own: at rest throughout, static)
+        moving = {n for n, _, plan in plans if plan.queries}
+        for n, m in models.items():
+            if n not in moving and m["q_rest"] is not None:
+                _log_arm_state(rec, rr, n, m, m["q_rest"], m["rest_tip"], colors[n], static=True)
         offset = 0
         for n, sc, plan in plans:
             m = models[n]
@@ -214,16 +219,13 @@ def record_setup_plan(path, st, plans, *, app_id: str = "errplan") -> None:
                 rec.set_time("motion", sequence=offset)
                 rec.log("motion/query", rr.TextLog(f"arm {n}: {qp.name} (planned, {len(tips)} states)"))
                 for o, mo in models.items():
-                    if o != n and mo["q_rest"] is not None:
+                    if o != n and o in moving and mo["q_rest"] is not None:
                         _log_arm_state(rec, rr, o, mo, mo["q_rest"], mo["rest_tip"], colors[o])
                 for i, (q, t) in enumerate(zip(qs, tips)):
                     rec.set_time("motion", sequence=offset + i)
                     _log_arm_state(rec, rr, n, m, q, t, colors[n])
                 offset += len(tips)
         rec.reset_time()
-        for n, m in models.items():  # arms without a query: at rest throughout
-            if not any(n == p[0] and p[2].queries for p in plans) and m["q_rest"] is not None:
-                _log_arm_state(rec, rr, n, m, m["q_rest"], m["rest_tip"], colors[n], static=True)
 
     rrb = sdk.blueprint()
     region = st.arms[0].fields.region
