@@ -685,7 +685,8 @@ def setup_cases() -> list[Case]:
     for cmd in ("fields", "plan", "experiment", "tolerance", "calibrate"):
         out.append(Case(f"abdomen_triad:arm-unknown:{cmd}", {"s.toml": text}, _argv(cmd) + ["--arm", "middle"]))
     out.append(Case("abdomen_triad:no-arm:experiment", {"s.toml": text}, _argv("experiment")))
-    out.append(Case("abdomen_triad:record-triad", {"s.toml": text}, _argv("tolerance") + ["--record", "{d}/t.rrd"]))
+    out.append(Case("abdomen_triad:record-triad-is-a-directory", {"s.toml": text}, _argv("tolerance") + ["--record", "{d}"]))
+    out.append(Case("abdomen_triad:record-plan-is-a-directory", {"s.toml": text}, _argv("plan") + ["--record", "{d}"]))
     port = _doc(PORT)
     out.append(Case("beasley2004_port:arm-on-one-instrument", {"s.toml": to_toml(port)}, _argv("fields") + ["--arm", "left"]))
     return out

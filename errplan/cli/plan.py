@@ -109,9 +109,8 @@ def _run_setup(st, args) -> int:
         if args.query:
             raise ErrplanError(f"--query {args.query!r}: no such query{what} in {st.source}")
         raise ErrplanError(f"{st.source}: no [[query]]{what} to plan")
-    if args.record:
-        raise ErrplanError(f"--record {args.record}: recordings of several arms are not available yet")
-    check_output("--json", args.json)
+    for opt, value in (("--json", args.json), ("--record", args.record)):
+        check_output(opt, value)
     check_seed("--seed", args.seed)
     prog = Progress("plan", quiet=args.quiet)
     prog.quiet = prog.quiet or not prog.tty
@@ -137,6 +136,12 @@ def _run_setup(st, args) -> int:
             print(f"{qp.name} (arm {n}): smallest shaft clearance {ms_t} (required {st.shaft_clearance * 1000:g} mm), "
                   f"visible {vis_t}")
         print()
+    if args.record:  # first: the recording is the output most likely to fail, written atomically
+        from ..recording.setup import record_setup_plan
+
+        record_setup_plan(args.record, st, plans)
     if args.json:
         write_json(args.json, out)
+    if args.record:
+        print(f"recording: {args.record}  (open it with `errplan view {args.record}`)")
     return 0

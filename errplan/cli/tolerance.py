@@ -84,8 +84,7 @@ def _run_setup(st, args) -> int:
         raise ErrplanError(f"{st.source}: no triad_placement query: name an arm with --arm NAME for its "
                            "[[tolerance]] queries")
     check_output("--json", args.json)
-    if args.record:
-        raise ErrplanError(f"--record {args.record}: recordings of triad placement are not available yet")
+    check_output("--record", args.record)
     prog = Progress("tolerance", quiet=args.quiet)
     prog.quiet = prog.quiet or not prog.tty
     results = []
@@ -99,9 +98,15 @@ def _run_setup(st, args) -> int:
     for r in results:
         print()
         print(triad_table(r, args.top))
+    if args.record:  # first: the recording is the output most likely to fail, written atomically
+        from ..recording.setup import record_triad
+
+        record_triad(args.record, st, results)
     if args.json:
         write_json(args.json, {"scenario": st.name, "source": st.source,
                                "tolerances": [r.to_dict() for r in results]})
+    if args.record:
+        print(f"recording: {args.record}  (open it with `errplan view {args.record}`)")
     return 0
 
 

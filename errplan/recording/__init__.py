@@ -4,6 +4,8 @@
 - :mod:`.space`: the 3-D plan (the robot from its URDF replaying the runs, field slices and surfaces);
 - :mod:`.calibration`: ``errplan calibrate --record`` (residuals before and after, replays), plane and 3-D;
 - :mod:`.placement`: ``errplan tolerance --record`` (port-placement coverage);
+- :mod:`.setup`: several arms and the endoscope (``errplan plan SETUP --record``) and triad placement
+  (``errplan tolerance SETUP --record``), with :mod:`.arms` (an arm's URDF geometry at a configuration);
 
 below them :mod:`.robot` (a URDF robot in a recording), :mod:`.shapes` (images, edges, slices and
 surfaces, numpy), :mod:`.style` (colours and names) and :mod:`.sdk`, the only module of errplan that
@@ -20,9 +22,10 @@ from .plane import _log_plan, blueprint
 from .shapes import field_image, level_surface, slice_mesh, workspace_edges
 from .space import SpatialScene, _log_plan_spatial, blueprint_spatial, expected_rows
 from .placement import heat_image
+from .setup import record_setup_plan, record_triad
 from .style import entity_name, entity_names, turbo, uv, viridis
 
-__all__ = ["record_plan", "record_calibration", "record_placement", "write_placement", "entity_name", "entity_names",
+__all__ = ["record_plan", "record_setup_plan", "record_triad", "record_calibration", "record_placement", "write_placement", "entity_name", "entity_names",
            "uv", "turbo", "viridis", "heat_image", "field_image", "workspace_edges", "slice_mesh", "level_surface", "residual_map",
            "expected_rows"]
 

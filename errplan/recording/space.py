@@ -192,18 +192,14 @@ WALL_COLOR = (230, 200, 170, 50)
 BLOCKED_COLOR = (150, 150, 150)
 
 
-def _log_anatomy(rec, rr, sc, mf, runs, scene) -> None:
-    """``[anatomy]``: ``world/anatomy/<obstacle>`` and ``world/anatomy/body_wall`` as meshes,
-    ``world/fields/blocked`` the grid tips that are reachable but not robustly clear (the blocked part
-    of the workspace), and ``series/<query>/<kind>/clearance``: the shaft's clearance (m) at every
-    state of the runs under the truth (true port to tip), on the ``step`` and ``replay`` timelines."""
+def log_anatomy_meshes(rec, rr, sc):
+    """The anatomy of ``sc`` as meshes: ``world/anatomy/<obstacle>`` and ``world/anatomy/body_wall``
+    (static). Returns the anatomy model (None without ``[anatomy]``)."""
     from ..fields.compute import anatomy_model
-    from ..kinematics.truth import Plant
 
     an = anatomy_model(sc)
     if an is None:
-        return
-    ui = rr.Radius.ui_points
+        return None
     for srf in an.surfaces:
         rec.log(f"world/anatomy/{srf.name}", rr.Mesh3D(vertex_positions=srf.vertices, triangle_indices=srf.faces,
                                                        albedo_factor=OBSTACLE_COLOR), static=True)
@@ -211,6 +207,20 @@ def _log_anatomy(rec, rr, sc, mf, runs, scene) -> None:
     if wm is not None:
         rec.log("world/anatomy/body_wall", rr.Mesh3D(vertex_positions=wm[0], triangle_indices=wm[1],
                                                      albedo_factor=WALL_COLOR), static=True)
+    return an
+
+
+def _log_anatomy(rec, rr, sc, mf, runs, scene) -> None:
+    """``[anatomy]``: ``world/anatomy/<obstacle>`` and ``world/anatomy/body_wall`` as meshes,
+    ``world/fields/blocked`` the grid tips that are reachable but not robustly clear (the blocked part
+    of the workspace), and ``series/<query>/<kind>/clearance``: the shaft's clearance (m) at every
+    state of the runs under the truth (true port to tip), on the ``step`` and ``replay`` timelines."""
+    from ..kinematics.truth import Plant
+
+    an = log_anatomy_meshes(rec, rr, sc)
+    if an is None:
+        return
+    ui = rr.Radius.ui_points
     cl = getattr(mf, "clearance", None)
     if cl is not None:
         blocked = np.isfinite(cl) & (cl < an.required)
