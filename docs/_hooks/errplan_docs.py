@@ -161,11 +161,11 @@ KEY_DOCS: dict[tuple[str, str], str] = {
     ("[[tolerance]] triad_placement", "spacing"): "m, > 0: candidate spacing along the wall (0.03)",
     ("[[tolerance]] triad_placement", "resolution"): "m: spacing of the task-target grid in `region` (`[fields] resolution`)",
     ("[[tolerance]] triad_placement", "port_spacing"): "m, ≥ 0: smallest distance between any two ports of a triad, a hard constraint (0.06)",
-    ("[[tolerance]] triad_placement", "manipulation_angle"): "m\*, rad, in (0, π): the best angle between the two instrument shafts at a target (60° = 1.0472)",
-    ("[[tolerance]] triad_placement", "manipulation_tolerance"): "m_tol, rad, > 0: the score's scale of m − m\* (15° = 0.2618)",
+    ("[[tolerance]] triad_placement", "manipulation_angle"): "m\\*, rad, in (0, π): the best angle between the two instrument shafts at a target (60° = 1.0472)",
+    ("[[tolerance]] triad_placement", "manipulation_tolerance"): "m_tol, rad, > 0: the score's scale of m − m\\* (15° = 0.2618)",
     ("[[tolerance]] triad_placement", "azimuth_tolerance"): "a_tol, rad, > 0: the score's scale of the azimuth difference a₁ − a₂ (15° = 0.2618)",
     ("[[tolerance]] triad_placement", "coverage_weight"): "W, ≥ 0: the score's weight of an uncovered target (10)",
-    ("[[tolerance]] triad_placement", "certify_margin"): "covered means ρ\* ≤ 1 − margin for each instrument, in [0, 1) (`[planner] certify_margin`)",
+    ("[[tolerance]] triad_placement", "certify_margin"): "covered means ρ\\* ≤ 1 − margin for each instrument, in [0, 1) (`[planner] certify_margin`)",
 }
 
 EFFECT_DOCS = {
