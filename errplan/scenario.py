@@ -417,6 +417,15 @@ TABLE_KEYS: dict[str, tuple[str, ...]] = {
     "[[anatomy.obstacle]]": ("name", "shape"),
     "[anatomy.body_wall] ellipsoid": ("shape", "center", "radii"),
     "[anatomy.body_wall] mesh": ("shape", "file", "scale", "position", "rpy"),
+    # several instruments (:func:`setup_from_dict`): the top level adds these, the instrument tables
+    # move into each ``[[arm]]`` (``[arm.robot]`` ... take the keys of ``[robot]`` ...)
+    "several instruments": ("arm", "endoscope", "setup"),
+    "[[arm]]": ("name", "rest", "robot", "instrument", "port", "controller", "uncertainty"),
+    "[endoscope]": ("port", "look_at", "insertion", "fov", "depth", "uncertainty", "keep_visible"),
+    "[endoscope] port": ("estimate", "position"),
+    "[endoscope] uncertainty": ("port_x", "port_y", "port_z"),
+    "[setup]": ("shaft_clearance", "arm_clearance"),
+    "[[query]] several instruments": ("arm",),
 }
 #: ``[[anatomy.obstacle]]`` keys per ``shape`` (besides ``name`` and ``shape``).
 OBSTACLE_KEYS: dict[str, tuple[str, ...]] = {
@@ -652,6 +661,10 @@ TOLERANCE_KEYS: dict[str, tuple[str, ...]] = {
                       "shaft_angle"),
     "port_placement": ("candidates", "spacing", "region", "resolution", "gain", "certify_margin", "refine",
                        "refine_levels"),
+    # a scenario with several instruments (SETUP_TOLERANCE_KINDS)
+    "triad_placement": ("instruments", "candidates", "spacing", "region", "resolution", "port_spacing",
+                        "manipulation_angle", "manipulation_tolerance", "azimuth_tolerance", "coverage_weight",
+                        "certify_margin", "gain"),
 }
 _TOL_PLANAR = ("insertion_band", "tracker_noise")  # P2's flexion controller at insertion depths
 #: their keys without a 3-D meaning yet: the hold variants, Monte Carlo noise, the planar shaft angle
@@ -1040,10 +1053,8 @@ class Setup:
 
 
 #: the tables each ``[[arm]]`` holds (a one-instrument scenario has them at the top)
-ARM_TABLES = ("robot", "instrument", "port", "controller", "uncertainty")
-_TRIAD_KEYS = ("name", "kind", "instruments", "candidates", "spacing", "region", "resolution", "port_spacing",
-               "manipulation_angle", "manipulation_tolerance", "azimuth_tolerance", "coverage_weight",
-               "certify_margin", "gain")
+ARM_TABLES = tuple(k for k in TABLE_KEYS["[[arm]]"] if k not in ("name", "rest"))
+_TRIAD_KEYS = TABLE_KEYS["[[tolerance]]"] + TOLERANCE_KEYS["triad_placement"]
 
 
 def _box_of(estimate, un: Uncertainty) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
@@ -1060,11 +1071,11 @@ def _endoscope(ctx: _Ctx, t: Any) -> Endoscope:
     w = "[endoscope] "
     if not isinstance(t, dict):
         raise ctx.fail("[endoscope]", _Short(_short(t)), "a table")
-    _check_keys(ctx, t, ("port", "look_at", "insertion", "fov", "depth", "uncertainty", "keep_visible"), w)
+    _check_keys(ctx, t, TABLE_KEYS["[endoscope]"], w)
     pt = _get(ctx, t, "port", w)
     if not isinstance(pt, dict):
         raise ctx.fail(w + "port", _Short(_short(pt)), "{ estimate = [x, y, z], position = [x, y, z] }")
-    _check_keys(ctx, pt, ("estimate", "position"), w + "port.")
+    _check_keys(ctx, pt, TABLE_KEYS["[endoscope] port"], w + "port.")
     pos = _vec(ctx, _get(ctx, pt, "position", w + "port."), w + "port.position", 3)
     est = _vec(ctx, pt.get("estimate", list(pos)), w + "port.estimate", 3)
     look = _vec(ctx, _get(ctx, t, "look_at", w), w + "look_at", 3)
@@ -1080,7 +1091,7 @@ def _endoscope(ctx: _Ctx, t: Any) -> Endoscope:
     un = t.get("uncertainty", {})
     if not isinstance(un, dict):
         raise ctx.fail(w + "uncertainty", _Short(_short(un)), "{ port_x = [lo, hi], port_y = ..., port_z = ... }")
-    _check_keys(ctx, un, ("port_x", "port_y", "port_z"), w + "uncertainty.")
+    _check_keys(ctx, un, TABLE_KEYS["[endoscope] uncertainty"], w + "uncertainty.")
     box = {k: _pair(ctx, un[k], w + f"uncertainty.{k}", ordered=True) for k in ("port_x", "port_y", "port_z")
            if k in un}
     kv = t.get("keep_visible", False)
@@ -1146,7 +1157,7 @@ def setup_from_dict(doc: Mapping[str, Any], source: str = "<memory>") -> Setup:
                                "setup clearances belong to a scenario with several instruments)")
         sc = scenario_from_dict(doc, source)
         return Setup(sc.name, source, ("arm",), (sc,), (None,))
-    _check_keys(ctx, doc, _TOP + ("arm", "endoscope", "setup"), "")
+    _check_keys(ctx, doc, _TOP + TABLE_KEYS["several instruments"], "")
     for key in ARM_TABLES:
         if key in doc:
             raise ctx.fail(f"[{key}]", _Short(_short(doc[key])), "no top-level instrument table beside [[arm]] "
@@ -1158,7 +1169,7 @@ def setup_from_dict(doc: Mapping[str, Any], source: str = "<memory>") -> Setup:
     arm_names = []
     for i, a in enumerate(arms_t):
         w = f"[[arm]][{i}] "
-        _check_keys(ctx, a, ("name", "rest") + ARM_TABLES, w)
+        _check_keys(ctx, a, TABLE_KEYS["[[arm]]"], w)
         arm_names.append(_unique_name(ctx, a, w, f"arm{i}", names, "[[arm]]"))
     arm_names_t = tuple(arm_names)
     name = doc.get("name", Path(source).stem)
@@ -1221,7 +1232,7 @@ def setup_from_dict(doc: Mapping[str, Any], source: str = "<memory>") -> Setup:
         rests.append(_vec(ctx, _get(ctx, a, "rest", f"[[arm]][{i}] "), f"[[arm]][{i}] rest", 3))
     endo = _endoscope(ctx, doc["endoscope"]) if "endoscope" in doc else None
     st = _table(ctx, doc, "setup", False)
-    _check_keys(ctx, st, ("shaft_clearance", "arm_clearance"), "[setup] ")
+    _check_keys(ctx, st, TABLE_KEYS["[setup]"], "[setup] ")
     shaft_c = _num(ctx, st.get("shaft_clearance", 0.0), "[setup] shaft_clearance", nonneg=True)
     arm_c = _num(ctx, st["arm_clearance"], "[setup] arm_clearance", positive=True) if "arm_clearance" in st else None
     for i, t in enumerate(triads):

@@ -131,6 +131,41 @@ KEY_DOCS: dict[tuple[str, str], str] = {
     ("[anatomy.body_wall] mesh", "scale"): "file units → m (1)",
     ("[anatomy.body_wall] mesh", "position"): "translation after rotating by `rpy`, m (`[0, 0, 0]`)",
     ("[anatomy.body_wall] mesh", "rpy"): "orientation, rad, roll-pitch-yaw (`[0, 0, 0]`)",
+    ("several instruments", "arm"): "array of tables `[[arm]]`, one per instrument arm (replaces the top-level `[robot]`, `[instrument]`, `[port]`, `[controller]`, `[uncertainty]`; a file with both is an error)",
+    ("several instruments", "endoscope"): "table `[endoscope]` (optional; required by `triad_placement`): the endoscope's port, view and error box",
+    ("several instruments", "setup"): "table `[setup]` (optional): clearances between the instruments",
+    ("[[arm]]", "name"): "unique arm name (`armN`): queries, `triad_placement` and `--arm` name it",
+    ("[[arm]]", "rest"): "`[x, y, z]`, m: where the arm's tip waits while another instrument moves (required)",
+    ("[[arm]]", "robot"): "table `[arm.robot]`: the keys of a URDF `[robot]` (required: several instruments are spatial)",
+    ("[[arm]]", "instrument"): "table `[arm.instrument]`: the keys of `[instrument]`",
+    ("[[arm]]", "port"): "table `[arm.port]`: the keys of `[port]`",
+    ("[[arm]]", "controller"): "table `[arm.controller]`: the keys of `[controller]`",
+    ("[[arm]]", "uncertainty"): "table `[arm.uncertainty]`: the keys of `[uncertainty]`, the arm's own error set",
+    ("[endoscope]", "port"): "`{ estimate = [x, y, z], position = [x, y, z] }`, m: the endoscope's port (`estimate` defaults to `position`)",
+    ("[endoscope]", "look_at"): "`[x, y, z]`, m: the optical axis runs from the port toward this point (required)",
+    ("[endoscope]", "insertion"): "m, > 0: the lens's distance from the port along the axis (required)",
+    ("[endoscope]", "fov"): "rad, in (0, π): the full angle of the view cone (required)",
+    ("[endoscope]", "depth"): "`[near, far]`, m from the lens, 0 ≤ near < far: the depth range seen (required)",
+    ("[endoscope]", "uncertainty"): "`{ port_x = [lo, hi], port_y = ..., port_z = ... }`, m: the endoscope port's error box (none: a point)",
+    ("[endoscope]", "keep_visible"): "every tip of a planned path inside the view and in line of sight (false)",
+    ("[endoscope] port", "estimate"): "the port the endoscope's placement assumes, m",
+    ("[endoscope] port", "position"): "the true port, m (required)",
+    ("[endoscope] uncertainty", "port_x"): "`[lo, hi]`, m: true port = estimate + offset along x",
+    ("[endoscope] uncertainty", "port_y"): "`[lo, hi]`, m: the offset along y",
+    ("[endoscope] uncertainty", "port_z"): "`[lo, hi]`, m: the offset along z",
+    ("[setup]", "shaft_clearance"): "m, ≥ 0: kept between two instrument shafts and between an instrument and the endoscope, over every port error (0)",
+    ("[setup]", "arm_clearance"): "m, > 0: between links of different arms, by the URDFs' collision geometry (omit: no arm checks; the URDF must have collision geometry)",
+    ("[[query]] several instruments", "arm"): "the arm that moves, by name (required when there are several arms; the others wait at `rest`)",
+    ("[[tolerance]] triad_placement", "instruments"): "the two arms whose ports are chosen, by name (the first two arms)",
+    ("[[tolerance]] triad_placement", "candidates"): '`"body_wall"` (candidates spaced along the wall), or `{ ARM = [[x, y, z], ...], ..., endoscope = [...] }` points per role (required)',
+    ("[[tolerance]] triad_placement", "spacing"): "m, > 0: candidate spacing along the wall (0.03)",
+    ("[[tolerance]] triad_placement", "resolution"): "m: spacing of the task-target grid in `region` (`[fields] resolution`)",
+    ("[[tolerance]] triad_placement", "port_spacing"): "m, ≥ 0: smallest distance between any two ports of a triad, a hard constraint (0.06)",
+    ("[[tolerance]] triad_placement", "manipulation_angle"): "m\\*, rad, in (0, π): the best angle between the two instrument shafts at a target (60° = 1.0472)",
+    ("[[tolerance]] triad_placement", "manipulation_tolerance"): "m_tol, rad, > 0: the score's scale of m − m\\* (15° = 0.2618)",
+    ("[[tolerance]] triad_placement", "azimuth_tolerance"): "a_tol, rad, > 0: the score's scale of the azimuth difference a₁ − a₂ (15° = 0.2618)",
+    ("[[tolerance]] triad_placement", "coverage_weight"): "W, ≥ 0: the score's weight of an uncovered target (10)",
+    ("[[tolerance]] triad_placement", "certify_margin"): "covered means ρ\\* ≤ 1 − margin for each instrument, in [0, 1) (`[planner] certify_margin`)",
 }
 
 EFFECT_DOCS = {
@@ -152,6 +187,11 @@ TABLE_TITLES = {
     "[[anatomy.obstacle]]": "`[[anatomy.obstacle]]`: every shape",
     "[anatomy.body_wall] ellipsoid": '`[anatomy.body_wall]` with `shape = "ellipsoid"`',
     "[anatomy.body_wall] mesh": '`[anatomy.body_wall]` with `shape = "mesh"`',
+    "several instruments": "Top level: a scenario with several instruments adds",
+    "[[arm]]": "`[[arm]]`: one instrument arm (several instruments)",
+    "[endoscope] port": "`[endoscope] port = { ... }`",
+    "[endoscope] uncertainty": "`[endoscope] uncertainty = { ... }`",
+    "[[query]] several instruments": "`[[query]]`: several instruments add",
 }
 
 
@@ -183,10 +223,13 @@ def scenario_reference() -> str:
         title = TABLE_TITLES.get(table, f"`{table}`")
         out += [f"## {title}", "", _table([(k, _doc(table, k, used)) for k in keys]), ""]
         if table == "[[tolerance]]":
-            for kind in S.TOLERANCE_KINDS:
+            for kind in S.TOLERANCE_KINDS + S.SETUP_TOLERANCE_KINDS:
                 keys_k = S.TOLERANCE_KEYS[kind]
                 out += [f"### `kind = \"{kind}\"`", "",
                         _table([(k, _doc(f"[[tolerance]] {kind}", k, used)) for k in keys_k]), ""]
+                if kind in S.SETUP_TOLERANCE_KINDS:
+                    out += [f"`{kind}` belongs to a scenario with several instruments (`[[arm]]`, `[endoscope]`); "
+                            "[several instruments](../concepts/several-instruments.md) explains it.", ""]
                 if kind in S._TOL_PLANAR:
                     out += [f"In a spatial scenario `{kind}` takes `shaft_direction` and not "
                             + ", ".join(f"`{k}`" for k in S._TOL_PLANAR_ONLY) + ".", ""]
