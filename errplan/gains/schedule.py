@@ -91,9 +91,9 @@ def schedule_gains(src, path, options: GainOptions | None = None, *, progress=No
                 if len(smp["M"]) == 0:
                     smp.update(rho0=float("inf"), k0=1.0, kg=None)
                 else:
-                    rho0, k0, kg, idx = _scan_M(smp["M"])
-                    smp.update(rho0=float("inf") if smp["singular"] else rho0, k0=k0, kg=kg, prune=idx,
-                               ku=_k_upper_M(smp["M"]))
+                    ku = _k_upper_M(smp["M"])
+                    rho0, k0, kg, idx = _scan_M(smp["M"], ku=ku)
+                    smp.update(rho0=float("inf") if smp["singular"] else rho0, k0=k0, kg=kg, prune=idx, ku=ku)
             elif len(smp["mu"]) == 0:
                 smp.update(rho0=float("inf"), k0=1.0, kg=None, vals=None)
             else:
