@@ -22,12 +22,24 @@ def _pair_g(ev, k: np.ndarray, singular: np.ndarray):
     if _is_spatial(ev):
         return lambda x, th, i: _g3(ev, x, th, k[i], singular[i])
 
-    def g(x, th, i):
+    def g1(x, th, kk):
         mu, nu, ok = ev.parts(x, th)
         _, reach = ev.true_wrist(x, th)
-        return _worst_g(mu, nu, reach, ok, k[i][:, None])
+        return _worst_g(mu, nu, reach, ok, kk)
 
-    return g
+    return lambda x, th, i: _per_segment(lambda xs, ts, s: g1(xs, ts, k[s]), x, th, i)
+
+
+def _per_segment(f, x: np.ndarray, th: np.ndarray, i: np.ndarray) -> np.ndarray:
+    """``f(x, th, s)`` one segment ``s`` at a time (``i`` the pairs' segment indices, nondecreasing): the
+    planar physics (numpy) takes the straight-shaft fast path when no pair of a call carries a load,
+    so a call holds the pairs of one segment only, as when each segment was verified on its own."""
+    out = np.empty(len(x))
+    cut = np.flatnonzero(np.diff(i)) + 1
+    for lo, hi in zip(np.r_[0, cut], np.r_[cut, len(x)]):
+        if hi > lo:
+            out[lo:hi] = f(x[lo:hi], th[lo:hi], i[lo])
+    return out
 
 
 def _replay_pairs(ev, b: np.ndarray, x: np.ndarray, opts: GainOptions) -> tuple[np.ndarray, np.ndarray]:
@@ -145,7 +157,11 @@ def verify_segments(ev: Evaluator, segments, opts: GainOptions) -> list[dict]:
     farw = np.linalg.norm(xt - bt_, axis=-1) > 1e-9
     sr2 = np.full(len(xt), np.nan)
     if np.any(farw):
-        sr2[farw] = step_ratio(ev, bt_[farw], xt[farw], tt[farw], K[tseg[farw]])
+        fi = np.flatnonzero(farw)
+        if spatial:  # compiled physics, pair by pair: all segments at once
+            sr2[fi] = step_ratio(ev, bt_[fi], xt[fi], tt[fi], K[tseg[fi]])
+        else:
+            sr2[fi] = _per_segment(lambda xs, ts, s: step_ratio(ev, B[s], xs, ts, K[s]), xt[fi], tt[fi], tseg[fi])
     out = []
     reach_s = reach.reshape(S, n, m)
     nt = min(8, n)  # refined tips per segment
