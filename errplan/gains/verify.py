@@ -84,18 +84,27 @@ def verify_segments(ev: Evaluator, segments, opts: GainOptions) -> list[dict]:
     seg = np.repeat(np.arange(S), n)                                     # segment of each tip
     th = _instance_grid(ev, opts.verify_samples)
     m = len(th)
+    # The grid: one call per segment (n m pairs each: large enough, and the maps of one segment at a time
+    # stay small in memory)
+    G = np.empty((S * n, m))
+    reach = np.empty((S * n, m), bool)
+    n_sing = np.zeros(S, np.int64)
+    for i in range(S):
+        rows = slice(i * n, (i + 1) * n)
+        if spatial:
+            M, ok = ev.maps(xs[i], th)  # (n, m, 3, 3), or (n, m, c, 3, 3) over the flexion controller's noise corners
+            g = gnorm3_pairs(M, K[i]).reshape(M.shape[:-2])
+            G[rows] = _mask3(g.max(axis=-1) if g.ndim == 3 else g, ok, sing[i])
+            reach[rows] = ok
+            n_sing[i] = int(ok.sum()) if sing[i] else 0
+        else:
+            mu, nu, rch, ok = _pairs(ev, xs[i], th)
+            G[rows] = _worst_g(mu, nu, rch, ok, K[i])
+            reach[rows] = rch
+            n_sing[i] = int((rch & ~ok).sum())
+            corners = int(mu.shape[-1])
     if spatial:
-        M, ok = ev.maps(x, th)  # (S n, m, 3, 3), or (S n, m, c, 3, 3) over the flexion controller's noise corners
-        kk = np.broadcast_to(K[seg].reshape((-1,) + (1,) * (M.ndim - 3)), M.shape[:-2])
-        G = gnorm3_pairs(M, kk.ravel()).reshape(M.shape[:-2])
-        G = _mask3(G.max(axis=-1) if G.ndim == 3 else G, ok, sing[seg][:, None])
-        reach, corners = ok, ev.noise_corners
-        n_sing = np.where(sing, ok.reshape(S, -1).sum(axis=1), 0)
-    else:
-        mu, nu, reach, ok = _pairs(ev, x, th)
-        G = _worst_g(mu, nu, reach, ok, K[seg][:, None, None])
-        corners = int(mu.shape[-1])
-        n_sing = (reach & ~ok).reshape(S, -1).sum(axis=1)
+        corners = ev.noise_corners
     pair_g = _pair_g(ev, K, sing)
     Gs = G.reshape(S, n, m)
     grid_max = Gs.max(axis=(1, 2))
