@@ -5,6 +5,7 @@ cutting-plane casadi optimum against an SVD scan, the cut rows, the kernels' mot
 the 3-D balls; the spatial certificates end to end are in tests/test_pipeline_spatial.py."""
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -446,3 +447,45 @@ def test_spatial_bad_path_shape():
     ev = SpatialModel(load_scenario(PHANTOM))
     with pytest.raises(ErrplanError, match=r"\(m >= 2, 3\)"):
         schedule_gains(ev, np.array([[0.0, 0.35], [0.01, 0.36]]))
+
+
+def test_gnorm3_pairs_match_numpy_svd_and_the_grid():
+    """Per-pair gains: ||I - k_i M_i|| against numpy's SVD norm, and bit for bit the grid kernel's value
+    at the same gain (the verification batches pairs of segments with different gains)."""
+    from errplan.gains import gnorm3_grid
+    from errplan.gains.physics import gnorm3_pairs
+
+    rng = np.random.default_rng(5)
+    M = np.eye(3) + 0.5 * rng.normal(size=(40, 3, 3))
+    k = rng.uniform(0.1, 1.5, 40)
+    exact = np.linalg.norm(np.eye(3) - k[:, None, None] * M, ord=2, axis=(-2, -1))
+    g = gnorm3_pairs(M, k)
+    assert np.allclose(g, exact, rtol=1e-10)
+    assert np.array_equal(g, np.array([gnorm3_grid(M[i:i + 1], k[i])[0, 0] for i in range(40)]))
+    M[3, 1, 2] = np.nan
+    assert np.isnan(gnorm3_pairs(M, k)[3]) and np.isfinite(np.delete(gnorm3_pairs(M, k), 3)).all()
+
+
+@pytest.mark.parametrize("spatial", [False, True])
+def test_verification_of_a_round_equals_one_segment_at_a_time(spatial):
+    """verify_segments (all segments' pairs through the kernels together, each with its own gain) gives
+    exactly the dicts of verify_segment called on each segment alone."""
+    from errplan.gains.schedule import _as_evaluator
+    from errplan.gains.verify import verify_segment, verify_segments
+
+    sc = load_scenario(PHANTOM if spatial else BOUNDED)
+    ev = _as_evaluator(sc)
+    opts = options_from_scenario(sc)
+    if spatial:
+        opts = GainOptions(**{**opts.__dict__, "verify_disk": 30, "verify_ring": 12, "verify_refine": 2}).validate()
+        path = np.array([[-0.06, 0.03, 0.36], [0.02, -0.01, 0.40]])
+    else:
+        path = np.array([[-0.06, 0.40], [0.0, 0.37]])
+    pieces = cut_path(path, opts.max_segment)[:3]
+    segs = [(a, b, 0.5 + 0.2 * i, float(np.linalg.norm(b - a)) + opts.switch_tolerance)
+            for i, (a, b, _) in enumerate(pieces)]
+    assert len(segs) == 3
+    batch = verify_segments(ev, segs, opts)
+    alone = [verify_segment(ev, *s, opts) for s in segs]
+    assert json.dumps(batch) == json.dumps(alone)  # exact floats (repr), NaN included
+    assert len({v["G_norm"] for v in batch}) == 3  # three different segments and gains

@@ -101,6 +101,7 @@ def _gains3() -> None:
 
     M = np.zeros((0, 3, 3))
     physics.gnorm3_grid(M, [0.5])
+    physics.gnorm3_pairs(M, 0.5)
     physics.cut_rows(M, 0.5)
     metrics.inv(M)
     metrics.spectral_norm(M)

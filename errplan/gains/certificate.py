@@ -64,11 +64,12 @@ def _k_upper_M(M: np.ndarray) -> float:
     return 2.0 / lam if lam > 0 else 1.0
 
 
-def _scan_M(M: np.ndarray, n: int = 81, top: int = 3):
+def _scan_M(M: np.ndarray, n: int = 81, top: int = 3, ku: float | None = None):
     """3-D :func:`_scan` and :func:`_prune` in one pass: ``(rho*, k*, kg, pruned indices)``. The
     grid's top pairs are kept; the golden-section polish (:func:`_golden`) runs on them (the maximum
-    near the grid's best gain is theirs), the value at the result on every pair."""
-    ku = _k_upper_M(M)
+    near the grid's best gain is theirs), the value at the result on every pair. ``ku``: :func:`_k_upper_M`
+    of ``M`` when the caller has it."""
+    ku = _k_upper_M(M) if ku is None else ku
     kg = np.linspace(ku / n, ku, n)
     G = gnorm3_grid(M, kg)                                   # (n, p)
     vals = G.max(axis=1)
@@ -77,7 +78,7 @@ def _scan_M(M: np.ndarray, n: int = 81, top: int = 3):
     else:
         idx = np.unique(np.argpartition(-G, top, axis=1)[:, :top].ravel())
     Mp = M[idx]
-    k = _golden(lambda q: rho_of_k_M(Mp, q)[0], kg, vals)
+    k = _golden(lambda q: rho_of_k_M(Mp, q), kg, vals)
     return float(rho_of_k_M(M, k)[0]), float(k), kg, idx
 
 
@@ -92,19 +93,21 @@ def _scan(mu, nu, n: int = 401) -> tuple[float, float, np.ndarray, np.ndarray]:
     ku = _k_upper(mu)
     kg = np.linspace(ku / n, ku, n)
     vals = rho_of_k(mu, nu, kg)
-    k = _golden(lambda q: rho_of_k(mu, nu, q)[0], kg, vals)
+    k = _golden(lambda q: rho_of_k(mu, nu, q), kg, vals)
     return float(rho_of_k(mu, nu, k)[0]), float(k), kg, vals
 
 
 def _golden(rho, kg: np.ndarray, vals: np.ndarray) -> float:
-    """The scans' polish (plane and 3-D): golden-section search of the convex ``rho(k)`` (a scalar
-    function) between the neighbours of the grid's best gain ``kg[argmin vals]``."""
+    """The scans' polish (plane and 3-D): golden-section search of the convex ``rho(k)`` between the
+    neighbours of the grid's best gain ``kg[argmin vals]``; ``rho`` takes an array of gains (both
+    points of a step in one call)."""
     j = int(np.argmin(vals))
     lo, hi = kg[max(j - 1, 0)], kg[min(j + 1, len(kg) - 1)]
     gr = (math.sqrt(5) - 1) / 2
     for _ in range(40):
         c, d = hi - gr * (hi - lo), lo + gr * (hi - lo)
-        if rho(c) < rho(d):
+        rc, rd = rho(np.array([c, d]))
+        if rc < rd:
             hi = d
         else:
             lo = c

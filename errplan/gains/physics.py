@@ -94,6 +94,23 @@ def _vsigma_rows(Ms, k, out):
         out[i, 1] = math.sqrt(b2)
 
 
+@njit(cache=True, error_model="numpy")
+def _gnorm_pairs(Ms, ks, out):
+    """``out[i] = ||I - ks[i] Ms[i]||_2`` (3 x 3; NaN for a non-finite ``Ms[i]``)."""
+    for i in range(Ms.shape[0]):
+        out[i] = g_norm3(Ms[i], ks[i])
+
+
+def gnorm3_pairs(M: np.ndarray, k) -> np.ndarray:
+    """``||I - k_i M_i||_2`` (n,) for 3 x 3 matrices ``M`` (n, 3, 3) each with its gain ``k_i`` (``k``
+    a scalar or (n,)), compiled: the same values as :func:`gnorm3_grid` one gain at a time."""
+    M = np.ascontiguousarray(np.asarray(M, float).reshape(-1, 3, 3))
+    k = np.ascontiguousarray(np.broadcast_to(np.asarray(k, float), (len(M),)))
+    out = np.empty(len(M))
+    _gnorm_pairs(M, k, out)
+    return out
+
+
 def gnorm3_grid(M: np.ndarray, k) -> np.ndarray:
     """``||I - k_j M_i||_2`` (len(k), n) for 3 x 3 matrices ``M`` (n, 3, 3), compiled."""
     k = np.atleast_1d(np.asarray(k, float))
@@ -261,7 +278,8 @@ class SpatialModel:
         return p, w, t, reach
 
     def step_ratio(self, target, x: np.ndarray, theta: np.ndarray, k) -> np.ndarray:
-        """:func:`step_ratio` in 3-D: one controller step on the URDF arm per pair (n,)."""
+        """:func:`step_ratio` in 3-D: one controller step on the URDF arm per pair (n,); ``target`` (3,)
+        or one per pair (n, 3)."""
         x = np.asarray(x, float)
         theta = np.asarray(theta, float)
         b = np.asarray(target, float)
@@ -275,12 +293,13 @@ class SpatialModel:
         idx = np.flatnonzero(reach)
         if not len(idx):
             return out
+        b = np.broadcast_to(b, x.shape)[idx]  # one target, or one per pair
         w, p, t, q, xx, kk = w[idx], p[idx], t[idx], q[idx], x[idx], k[idx]
         if self.jacobian == "flexion":  # the worst over the controller's noise corners: one row per corner
             Jh = self.kev.fev.controller_jacobian(w, t, p)  # (n, c, 3, 3)
             c = Jh.shape[1]
             rep = lambda a: np.repeat(a, c, axis=0)
-            w, p, t, q, xx, kk = rep(w), rep(p), rep(t), rep(q), rep(xx), rep(kk)
+            w, p, t, q, xx, kk, b = rep(w), rep(p), rep(t), rep(q), rep(xx), rep(kk), rep(b)
             Jh = Jh.reshape(-1, 3, 3)
         else:
             c = 1
@@ -354,7 +373,8 @@ def step_ratio(ev: Evaluator, target, x: np.ndarray, theta: np.ndarray, k) -> np
     ``dq = k Jarm^-1 Jhat_tw^-1 (b - x)`` and the true tip moves to ``x'`` (flexed shaft, true
     port and load). Returns ``|x' - b| / |x - b|`` (n,) worst over the controller's noise corners;
     ``nan`` where the truth cannot reach ``x`` and ``inf`` where the step leaves the joint limits,
-    pulls the shaft out of the port or the controller's Jacobian is singular. In 3-D
+    pulls the shaft out of the port or the controller's Jacobian is singular. ``target`` (d,) or one
+    per pair (n, d). In 3-D
     (:class:`SpatialModel`) the same step on the URDF arm.
     """
     if _is_spatial(ev):
@@ -387,7 +407,7 @@ def step_ratio(ev: Evaluator, target, x: np.ndarray, theta: np.ndarray, k) -> np
         w2s = np.where(ok_shaft[..., None], w2, port + [0.0, -0.5 * ev.length])
         x2 = flexed_tip(w2s, np.broadcast_to(port, w2s.shape), ev.length, t)
         e0 = np.linalg.norm(e, axis=-1)
-        ratio = np.linalg.norm(x2 - b, axis=-1) / np.where(e0 > 0, e0, np.nan)[:, None]
+        ratio = np.linalg.norm(x2 - (b[:, None, :] if b.ndim == 2 else b), axis=-1) / np.where(e0 > 0, e0, np.nan)[:, None]
     good = ok_lim & ok_shaft & ~sing & ~sing_arm[:, None] & np.isfinite(ratio)
     ratio = np.where(good, ratio, np.inf).max(axis=-1)
     return np.where(reach, ratio, np.nan)

@@ -12,7 +12,7 @@ from .certificate import _k_upper_M, _prune, _rho, _sample_segment, _scan, _scan
 from .options import GainOptions, GainSchedule, Segment
 from .physics import SpatialModel, _is_spatial
 from .solve import _initial_cuts, _solve_with_cuts, solve_gains
-from .verify import _lower_gain, verify_segment
+from .verify import _lower_gain, verify_segments
 
 
 def cut_path(path: np.ndarray, max_segment: float) -> list[tuple[np.ndarray, np.ndarray, int]]:
@@ -91,9 +91,9 @@ def schedule_gains(src, path, options: GainOptions | None = None, *, progress=No
                 if len(smp["M"]) == 0:
                     smp.update(rho0=float("inf"), k0=1.0, kg=None)
                 else:
-                    rho0, k0, kg, idx = _scan_M(smp["M"])
-                    smp.update(rho0=float("inf") if smp["singular"] else rho0, k0=k0, kg=kg, prune=idx,
-                               ku=_k_upper_M(smp["M"]))
+                    ku = _k_upper_M(smp["M"])
+                    rho0, k0, kg, idx = _scan_M(smp["M"], ku=ku)
+                    smp.update(rho0=float("inf") if smp["singular"] else rho0, k0=k0, kg=kg, prune=idx, ku=ku)
             elif len(smp["mu"]) == 0:
                 smp.update(rho0=float("inf"), k0=1.0, kg=None, vals=None)
             else:
@@ -184,11 +184,12 @@ def schedule_gains(src, path, options: GainOptions | None = None, *, progress=No
         info["round"] = rnd + 1
         segs = []
         redo = []
-        for i, (p, s, kk) in enumerate(zip(pieces, smps, ks)):
+        # every certificate of the round verified at once (the kernels see all the segments' pairs together)
+        vs = verify_segments(ev, [(p[0], p[1], float(kk), s["d"]) for p, s, kk in zip(pieces, smps, ks)], opts)
+        for i, (p, s, kk, v) in enumerate(zip(pieces, smps, ks, vs)):
             if progress:
                 progress((rnd + (i + 1) / len(pieces)) / opts.rounds, "verifying certificates")
             a, b, e, d = p
-            v = verify_segment(ev, a, b, float(kk), s["d"], opts)
             pred = float(_rho(s, kk)[0]) if len(s["M"] if "M" in s else s["mu"]) else float("nan")
             if s["singular"]:
                 pred = float("inf")
