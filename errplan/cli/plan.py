@@ -87,9 +87,9 @@ def _run_setup(st, args) -> int:
     """Several arms: every query (or ``--query``) with its arm (``--arm``: only that arm's), the other
     instruments held at rest and the endoscope's shaft as obstacles of the moving arm
     (:meth:`errplan.scenario.Setup.moving`); the plan JSON's queries add ``arm``,
-    ``min_shaft_clearance`` and ``visible`` (:func:`errplan.anatomy.setup.path_figures`)."""
+    ``min_shaft_clearance`` and ``visible`` (:func:`errplan.planning.setup_checks.path_figures`)."""
     from .. import api
-    from ..anatomy.setup import path_figures
+    from ..planning.setup_checks import path_figures
     from ..errors import ErrplanError
     from ..inputs import check_output
     from ..pipeline import summary_table

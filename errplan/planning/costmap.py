@@ -252,7 +252,7 @@ class CostMap:
 
     def attach_view(self, visible) -> "CostMap":
         """Also keep every tip of every motion visible: ``visible(ax, ay, az, bx, by, bz) -> bool`` for a
-        straight motion (:func:`errplan.anatomy.setup.view_checker`), checked with the anatomy's clearance
+        straight motion (:func:`errplan.planning.setup_checks.view_checker`), checked with the anatomy's clearance
         wherever that is (points, motions, the planner's checks, the refinement)."""
         if visible is None:
             return self

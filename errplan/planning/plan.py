@@ -316,7 +316,7 @@ def costmap_for(sc, mf) -> CostMap:
     margin = BALL_MARGIN if p.certifiable else 0.0
     cm = CostMap(mf, p.metric, p.weight, p.certifiable, p.certify_margin).attach_anatomy(anatomy_model(sc), margin)
     if getattr(sc, "view", None) is not None:  # [endoscope] keep_visible (errplan.scenario.Setup.moving)
-        from ..anatomy.setup import view_checker
+        from .setup_checks import view_checker
 
         cm.attach_view(view_checker(sc))
     return cm
