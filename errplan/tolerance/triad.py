@@ -17,8 +17,21 @@ Score of a triad (p1, p2, pe), lower is better, over the targets T::
 with c(t) = cov1(t) and cov2(t) and vis(t). Hard constraints: every pair of ports at least
 ``port_spacing`` apart; the endoscope's robust shaft conv(box_e ∪ {lens}) at least ``shaft_clearance``
 from each instrument's robust shaft conv(box_i ∪ {t}) at every covered target (exact convex
-distances); arm checks (``[setup] arm_clearance``) are not part of the search yet (``arm_clearance_min``
-is null).
+distances); with ``[setup] arm_clearance`` (arm checks on), the two instrument arms at least that far
+apart at every covered target.
+
+Arm checks. At target t each instrument arm stands at the inverse kinematics that puts its wrist at
+``t - L (t - p)/|t - p|`` (p its nominal candidate port; the compiled :meth:`UrdfArm.inverse`, the same
+branch every run); the arm clearance is the smallest coal distance over the pairs of collision objects
+of the two arms (:mod:`errplan.kinematics.urdf.collision`; the endoscope has no arm). A triad is
+rejected when some covered target has an arm clearance below ``arm_clearance`` (or an arm that cannot
+stand there). Configurations are computed once per (instrument candidate, target) and only for the
+candidates a wave evaluates, at the targets that candidate covers; coal is queried once per
+(instrument pair, target), only for the pairs a wave evaluates, at the targets both instruments cover,
+and only when the two instrument ports are at least ``port_spacing`` apart (otherwise every triad of
+the pair is rejected for spacing; its triads do not count under ``arm_clearance``); the queries run as
+tasks (:func:`errplan.cluster.map_tasks`) and their results are kept for the rest of the search and
+for the figures (``arm_clearance_min``: the smallest over the covered targets).
 
 Search (branch and bound; exact). For an instrument pair (p1, p2) let
 
@@ -26,7 +39,10 @@ Search (branch and bound; exact). For an instrument pair (p1, p2) let
 
 For every endoscope port pe, c(t) <= cov1(t) cov2(t), so W (1 - c(t)) >= W (1 - cov1(t) cov2(t)), and
 the azimuth term is >= 0; m(t) does not depend on pe. Hence S(p1, p2, pe) >= LB(p1, p2) for every pe:
-LB is an admissible lower bound. Pairs are visited in increasing LB (ties by index) in blocks; the
+LB is an admissible lower bound. It does not look at the hard constraints, so it stays admissible with
+the arm checks on: they only remove triads from the feasible set (never change a score), so the
+``keep``-th best feasible S can only rise and a pair pruned by LB > that S still holds no triad that
+could enter the list. Pairs are visited in increasing LB (ties by index) in blocks; the
 search keeps the ``keep`` best feasible triads found so far (ordered by (S, i1, i2, ie)); a pair whose LB
 is greater than the ``keep``-th best S cannot enter the list (every one of its triads has S >= LB > that
 S), and since the pairs come in increasing LB, once a block's smallest LB exceeds it so do all later
@@ -88,6 +104,14 @@ def distance_rows(shared, rows) -> np.ndarray:
     return geo.target_hull_distances(boxes[rows], X, hull_e)
 
 
+def arm_rows(geos, item) -> np.ndarray:
+    """One task: the arm clearances (k,) of configuration pairs ``item = (Q1 (k, n1), Q2 (k, n2))`` of the
+    two instrument arms ``geos = (ArmCollision, ArmCollision)`` (NaN where an arm cannot stand)."""
+    from ..kinematics.urdf.collision import clearances
+
+    return clearances(geos[0], item[0], geos[1], item[1])
+
+
 def _endoscope_candidates(model, endo, spacing: float, region: dict) -> np.ndarray:
     pts = model.wall_points(spacing)
     lo = np.array([region[a][0] for a in "xyz"])
@@ -117,6 +141,11 @@ class TriadData:
     port_spacing: float
     shaft_clearance: float
     keep: int
+    #: (N1, N2, T) arm clearance per instrument pair and target (arm checks on; else None): +inf where
+    #: not both instruments cover the target or the pair is not checked, NaN where an arm cannot stand
+    arm: np.ndarray | None = None
+    arm_clearance: float | None = None
+    arm_done: np.ndarray | None = None  # (N1, N2) bool: the pairs whose ``arm`` row is computed
 
 
 def lower_bound(data: TriadData, i1: int, i2: int) -> float:
@@ -132,8 +161,9 @@ def lower_bounds(data: TriadData) -> np.ndarray:
     return data.W * (1.0 - both) + np.mean(data.mterm, axis=-1)
 
 
-def pair_scores(data: TriadData, i1: int, i2: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """For pair (i1, i2) and every endoscope candidate: ``(S (E,), spacing_ok (E,), shaft_ok (E,))``."""
+def pair_scores(data: TriadData, i1: int, i2: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """For pair (i1, i2) and every endoscope candidate: ``(S (E,), spacing_ok (E,), shaft_ok (E,),
+    arm_ok (E,))`` (arm_ok all true when the arm checks are off)."""
     c = data.cov1[i1][None, :] & data.cov2[i2][None, :] & data.vis  # (E, T)
     az = ((data.A1[i1] - data.A2[i2]) / data.a_tol) ** 2
     S = np.mean(data.W * (1.0 - c) + data.mterm[i1, i2][None, :] + az, axis=1)
@@ -142,7 +172,13 @@ def pair_scores(data: TriadData, i1: int, i2: int) -> tuple[np.ndarray, np.ndarr
     if np.isnan(data.D1[i1]).any() or np.isnan(data.D2[i2]).any():  # pragma: no cover - search's ensure
         raise RuntimeError(f"triad search: shaft distances of pair {(i1, i2)} not computed")
     bad = c & ((data.D1[i1] < data.shaft_clearance) | (data.D2[i2] < data.shaft_clearance))
-    return S, sp, ~np.any(bad, axis=1)
+    if data.arm is None:
+        arm_ok = np.ones(len(S), bool)
+    else:
+        if not data.arm_done[i1, i2]:  # pragma: no cover - search's ensure
+            raise RuntimeError(f"triad search: arm clearances of pair {(i1, i2)} not computed")
+        arm_ok = ~np.any(c & ~(data.arm[i1, i2] >= data.arm_clearance)[None, :], axis=1)  # NaN (no configuration) fails
+    return S, sp, ~np.any(bad, axis=1), arm_ok
 
 
 def evaluate_block(data: TriadData, item) -> dict:
@@ -151,17 +187,18 @@ def evaluate_block(data: TriadData, item) -> dict:
     pairs, lbs, threshold = item
     E = data.vis.shape[0]
     best: list = []
-    rej = {"port_spacing": 0, "shaft_clearance": 0}
+    rej = {"port_spacing": 0, "shaft_clearance": 0, "arm_clearance": 0}
     evaluated = pruned = 0
     for (i1, i2), lb in zip(pairs, lbs):
         if lb > threshold:
             pruned += E
             continue
-        S, sp, sh = pair_scores(data, i1, i2)
+        S, sp, sh, am = pair_scores(data, i1, i2)
         evaluated += E
         rej["port_spacing"] += int(np.sum(~sp))
         rej["shaft_clearance"] += int(np.sum(~sh))
-        ok = np.flatnonzero(sp & sh)
+        rej["arm_clearance"] += int(np.sum(~am))
+        ok = np.flatnonzero(sp & sh & am)
         for e in ok[np.argsort(S[ok], kind="stable")][:data.keep]:
             best.append((float(S[e]), int(i1), int(i2), int(e)))
     best.sort()
@@ -171,8 +208,9 @@ def evaluate_block(data: TriadData, item) -> dict:
 def search(data: TriadData, *, prune: bool = True, workers: int | None = 1, scheduler: str | None = None,
            progress=None, ensure=None) -> dict:
     """The ``keep`` best feasible triads, by branch and bound (``prune``) or brute force. ``ensure(rows1,
-    rows2)``, called before each wave, fills the rows of ``data.D1``/``data.D2`` (instrument candidates)
-    the wave evaluates (the shaft distances are computed only where the search needs them)."""
+    rows2, pairs)``, called before each wave, fills the rows of ``data.D1``/``data.D2`` (instrument
+    candidates) and, with the arm checks on, the pairs of ``data.arm`` the wave evaluates (shaft distances
+    and arm clearances are computed only where the search needs them)."""
     from ..cluster import map_tasks
 
     N1, N2, E = data.cov1.shape[0], data.cov2.shape[0], data.vis.shape[0]
@@ -180,7 +218,7 @@ def search(data: TriadData, *, prune: bool = True, workers: int | None = 1, sche
     order = sorted(((float(lbs[i, j]), i, j) for i in range(N1) for j in range(N2)))
     blocks = [order[k:k + BLOCK_PAIRS] for k in range(0, len(order), BLOCK_PAIRS)]
     best: list = []
-    rej = {"port_spacing": 0, "shaft_clearance": 0}
+    rej = {"port_spacing": 0, "shaft_clearance": 0, "arm_clearance": 0}
     evaluated = pruned = 0
     waves = 0
     k = 0
@@ -194,7 +232,7 @@ def search(data: TriadData, *, prune: bool = True, workers: int | None = 1, sche
         items = [([(i, j) for _, i, j in b], [lb for lb, _, _ in b], threshold) for b in wave]
         if ensure is not None:  # the distances of the instrument candidates this wave evaluates
             need = [(i, j) for b in wave for lb, i, j in b if lb <= threshold]
-            ensure(sorted({i for i, _ in need}), sorted({j for _, j in need}))
+            ensure(sorted({i for i, _ in need}), sorted({j for _, j in need}), need)
         waves += 1
         for r in map_tasks(evaluate_block, data, items, workers=workers, scheduler=scheduler):
             best = sorted(best + r["best"])[:data.keep]
@@ -321,6 +359,81 @@ def triad_placement(st, tol, *, workers: int | None = 1, scheduler: str | None =
                 done[name][ch] = True
             dist_t[1] += len(rows)
         dist_t[0] += time.perf_counter() - t
+    arm_c = st.arm_clearance
+    arm_t = [0.0, 0, 0]  # seconds, pairs checked, coal queries (pair x target)
+    ARM = arm_done = None
+    if arm_c is not None:
+        from ..kinematics import arm_for
+        from ..kinematics.urdf.collision import ArmCollision
+
+        kin, geos = {}, {}
+        for name, sc in ((n1, sc1), (n2, sc2)):
+            kin[name] = arm_for(sc.robot)
+            try:
+                geos[name] = ArmCollision.from_arm(kin[name])
+            except ErrplanError as err:
+                raise ErrplanError(f"{where}: [setup] arm_clearance = {arm_c:g}: arm {name!r}: {err}") from None
+        Pc = {n1: P1, n2: P2}
+        Qc = {name: np.full((len(Pc[name]), T, kin[name].n), np.nan) for name in (n1, n2)}
+        qdone = {name: np.zeros(len(Pc[name]), bool) for name in (n1, n2)}
+        ARM = np.full((len(P1), len(P2), T), np.inf)
+        arm_done = np.zeros((len(P1), len(P2)), bool)
+        d12 = np.linalg.norm(P1[:, None] - P2[None], axis=-1)
+
+        def configs(name, rows):
+            """Each arm at the targets its candidates ``rows`` cover: the wrist at t - L (t - p)/|t - p|."""
+            rows = [r for r in rows if not qdone[name][r]]
+            if not rows:
+                return
+            cov = covs[name][rows]  # (r, T)
+            u = geo.unit(X[None] - Pc[name][rows][:, None])
+            W = X[None] - float(st.arm(name).instrument.length) * u
+            q, ok = kin[name].inverse(W[cov])
+            Qr = np.full((len(rows), T, kin[name].n), np.nan)
+            Qr[cov] = np.where(np.asarray(ok, bool)[:, None], q, np.nan)
+            Qc[name][rows] = Qr
+            qdone[name][rows] = True
+
+    def ensure_arms(pairs):
+        """Arm clearances of the instrument pairs ``pairs`` at the targets both cover (module docstring)."""
+        t = time.perf_counter()
+        todo = sorted({(i, j) for i, j in pairs if not arm_done[i, j]})
+        check = [(i, j) for i, j in todo if d12[i, j] >= float(o["port_spacing"])]
+        configs(n1, sorted({i for i, _ in check}))
+        configs(n2, sorted({j for _, j in check}))
+        where_t = [(i, j, np.flatnonzero(covs[n1][i] & covs[n2][j])) for i, j in check]
+        where_t = [w for w in where_t if len(w[2])]
+        total = sum(len(w[2]) for w in where_t)
+        if total:
+            per = max(1, math.ceil(total / max(MIN_TASKS, 1)))
+            chunks, cur, size = [], [], 0
+            for w in where_t:
+                cur.append(w)
+                size += len(w[2])
+                if size >= per:
+                    chunks.append(cur)
+                    cur, size = [], 0
+            if cur:
+                chunks.append(cur)
+            items = [(np.concatenate([Qc[n1][i, tt] for i, _, tt in ch]),
+                      np.concatenate([Qc[n2][j, tt] for _, j, tt in ch])) for ch in chunks]
+            parts = map_tasks(arm_rows, (geos[n1], geos[n2]), items, workers=workers, scheduler=scheduler)
+            for ch, part in zip(chunks, parts):
+                k = 0
+                for i, j, tt in ch:
+                    ARM[i, j, tt] = part[k:k + len(tt)]
+                    k += len(tt)
+        for i, j in todo:
+            arm_done[i, j] = True
+        arm_t[0] += time.perf_counter() - t
+        arm_t[1] += len(check)
+        arm_t[2] += total
+
+    def ensure_all(rows1, rows2, pairs):
+        ensure(rows1, rows2)
+        if arm_c is not None:
+            ensure_arms(pairs)
+
     mstar, mtol = float(o["manipulation_angle"]), float(o["manipulation_tolerance"])
     U1, U2, UE = (geo.unit(X[None] - P[:, None]) for P in (P1, P2, lens))  # (N, T, 3) unit vectors p -> t
     M = geo.unit_angles(U1, U2)  # (N1, N2, T): m(t)
@@ -329,17 +442,19 @@ def triad_placement(st, tol, *, workers: int | None = 1, scheduler: str | None =
     data = TriadData(covs[n1], covs[n2], vis, ((M - mstar) / mtol) ** 2, A1, A2, D1, D2,
                      np.linalg.norm(P1[:, None] - P2[None], axis=-1), np.linalg.norm(P1[:, None] - PE[None], axis=-1),
                      np.linalg.norm(P2[:, None] - PE[None], axis=-1), float(o["coverage_weight"]),
-                     float(o["azimuth_tolerance"]), float(o["port_spacing"]), float(st.shaft_clearance), int(keep))
+                     float(o["azimuth_tolerance"]), float(o["port_spacing"]), float(st.shaft_clearance), int(keep),
+                     ARM, None if arm_c is None else float(arm_c), arm_done)
     t3 = time.perf_counter()
     found = search(data, prune=prune, workers=workers, scheduler=scheduler,
-                   progress=(lambda f, m: progress(0.5 + 0.5 * f, m)) if progress else None, ensure=ensure)
-    search_s = time.perf_counter() - t3 - dist_t[0]
+                   progress=(lambda f, m: progress(0.5 + 0.5 * f, m)) if progress else None, ensure=ensure_all)
+    search_s = time.perf_counter() - t3 - dist_t[0] - arm_t[0]
     dist_s = dist_t[0]
 
     def figures(s, i1, i2, ie) -> dict:
         c = data.cov1[i1] & data.cov2[i2] & data.vis[ie]
         m = M[i1, i2]
         cl = np.minimum(D1[i1, ie], D2[i2, ie])[c]
+        ac = ARM[i1, i2][c] if ARM is not None else np.zeros(0)
         return {"ports": {n1: P1[i1].tolist(), n2: P2[i2].tolist(), "endoscope": PE[ie].tolist()}, "score": s,
                 "coverage": {n1: float(np.mean(data.cov1[i1])), n2: float(np.mean(data.cov2[i2])),
                              "both": float(np.mean(c))},
@@ -348,17 +463,19 @@ def triad_placement(st, tol, *, workers: int | None = 1, scheduler: str | None =
                 "azimuth_difference_mean": float(np.mean(np.abs(A1[i1, ie] - A2[i2, ie]))),
                 "port_spacing_min": float(min(data.d12[i1, i2], data.d1e[i1, ie], data.d2e[i2, ie])),
                 "shaft_clearance_min": float(cl.min()) if len(cl) else None,
-                "arm_clearance_min": None, "indices": [int(i1), int(i2), int(ie)]}
+                "arm_clearance_min": float(ac.min()) if len(ac) else None, "indices": [int(i1), int(i2), int(ie)]}
 
     if not found["best"]:
+        arms = "" if arm_c is None else f", arm clearance {arm_c:g} m"
         raise ErrplanError(f"{where}: no triad of the {found['triads']} meets the hard constraints (port spacing "
-                           f"{o['port_spacing']:g} m, shaft clearance {st.shaft_clearance:g} m at covered targets)")
+                           f"{o['port_spacing']:g} m, shaft clearance {st.shaft_clearance:g} m{arms} at covered targets)")
     ranked = [figures(*b) for b in found["best"]]
     return {
         "best": ranked[0], "ranked": ranked[1:],
         "candidates": {n1: P1.tolist(), n2: P2.tolist(), "endoscope": PE.tolist()},
         "targets": T,
-        "rejected": dict(found["rejected"], arm_clearance=None),
+        "rejected": dict(found["rejected"], arm_clearance=found["rejected"]["arm_clearance"] if arm_c is not None
+                         else None),
         "search": {"triads": found["triads"], "pairs": found["pairs"], "evaluated": found["evaluated"],
                    "pruned": found["pruned"], "pruned_share": found["pruned"] / max(found["triads"], 1),
                    "waves": found["waves"], "method": "branch and bound" if prune else "brute force",
@@ -367,10 +484,13 @@ def triad_placement(st, tol, *, workers: int | None = 1, scheduler: str | None =
         "weights": {"coverage_weight": data.W, "manipulation_angle": mstar, "manipulation_tolerance": mtol,
                     "azimuth_tolerance": data.a_tol},
         "port_spacing": data.port_spacing, "shaft_clearance": data.shaft_clearance,
-        "arm_checks": "not in the search yet" if st.arm_clearance is not None else "off",
+        "arm_checks": "off" if arm_c is None else (f"on (arm_clearance {arm_c:g} m, "
+                                                   f"{found['rejected']['arm_clearance']:,} triads rejected)"),
+        "arm_clearance": None if arm_c is None else float(arm_c),
         "workers": workers, "scheduler": scheduler,
         "timing": {"coverage_s": cover_s, "distances_s": dist_s, "search_s": search_s,
-                   "distance_rows": dist_t[1], "distance_rows_of": len(P1) + len(P2)},
+                   "distance_rows": dist_t[1], "distance_rows_of": len(P1) + len(P2),
+                   "arm_s": arm_t[0], "arm_pairs": arm_t[1], "arm_queries": arm_t[2]},
         "_arrays": {"targets": X, "lens": lens, "data": data},
         "seconds": time.perf_counter() - t0,
     }

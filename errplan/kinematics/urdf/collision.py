@@ -9,6 +9,7 @@ overlap. This is the only module of errplan that imports coal or builds a ``Geom
 
 * :class:`ArmCollision` (:meth:`ArmCollision.from_arm`): one arm's collision objects, built once;
 * :func:`arm_clearance`: the smallest distance between the objects of two arms at one configuration each;
+  :func:`clearances`, the same for a batch of configuration pairs;
 * :func:`min_clearance_along`: the same along a joint-space motion of one arm, sampled densely enough
   that no link point moves more than ``clearance / 2`` between samples; :func:`clear_along`, the
   yes/no of it with fewer distance queries (a motion validity check);
@@ -326,6 +327,33 @@ def arm_clearance(geo_a: ArmCollision, q_a, geo_b: ArmCollision, q_b) -> float:
     return closest_pair(geo_a, q_a, geo_b, q_b).distance
 
 
+def clearances(geo_a: ArmCollision, qs_a, geo_b: ArmCollision, qs_b) -> np.ndarray:
+    """:func:`arm_clearance` of every pair of configurations ``(qs_a[k], qs_b[k])`` (k,) ((k, n) each): NaN
+    where either configuration holds a NaN (an arm that cannot stand there). Each distinct configuration
+    is placed once (a batch shares them: the same candidate port and target recur over many pairs)."""
+    qs_a, qs_b = np.asarray(qs_a, float), np.asarray(qs_b, float)
+    if qs_a.ndim != 2 or qs_a.shape != (len(qs_b), geo_a.arm.n) or qs_b.shape[1:] != (geo_b.arm.n,):
+        raise ErrplanError(f"qs_a and qs_b must be configurations (k, {geo_a.arm.n}) and (k, {geo_b.arm.n}), "
+                           f"got shapes {qs_a.shape} and {qs_b.shape}")
+    cache: dict = {}
+
+    def placed(geo, q):
+        key = (id(geo), q.tobytes())
+        if key not in cache:
+            P = geo.placements(q)
+            cache[key] = (P, _transforms(P))
+        return cache[key]
+
+    out = np.full(len(qs_a), np.nan)
+    for k, (qa, qb) in enumerate(zip(qs_a, qs_b)):
+        if not (np.all(np.isfinite(qa)) and np.all(np.isfinite(qb))):
+            continue
+        Pa, Ta = placed(geo_a, qa)
+        Pb, Tb = placed(geo_b, qb)
+        out[k], _ = _closest(geo_a, Pa, geo_b, Pb, Ta=Ta, Tb=Tb)
+    return out
+
+
 def motion_samples(geo: ArmCollision, qs, clearance: float) -> np.ndarray:
     """Configurations (k, n) along the piecewise-straight joint-space motion through ``qs`` (m, n), the
     waypoints included, so that no point of any object moves more than ``clearance / 2`` between two
@@ -420,5 +448,5 @@ def arm_at_tip(arm: UrdfArm, tip, port, length: float, near=None) -> np.ndarray:
     return np.asarray(q, float)
 
 
-__all__ = ["ArmCollision", "Closest", "arm_clearance", "closest_pair", "min_clearance_along", "clear_along", "motion_samples",
+__all__ = ["ArmCollision", "Closest", "arm_clearance", "clearances", "closest_pair", "min_clearance_along", "clear_along", "motion_samples",
            "arm_at_tip"]
