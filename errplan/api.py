@@ -95,8 +95,10 @@ def load_arm(path: str | Path, arm: str | None) -> Scenario:
 
 def check_setup(st: Setup) -> None:
     """The checks of a several-arm setup that need geometry: each rest point robustly reachable and
-    clear of the anatomy, the endoscope's port on the body wall, and the scenario's ports at least each
-    ``triad_placement`` query's ``port_spacing`` apart. One :class:`errplan.ScenarioError`."""
+    clear of the anatomy, with the arm checks on every arm's collision geometry readable and the arms
+    at rest (each at the IK putting its wrist on the rigid shaft from its rest point through its
+    estimated port) at least ``arm_clearance`` apart, the endoscope's port on the body wall, and the
+    scenario's ports at least each ``triad_placement`` query's ``port_spacing`` apart. One :class:`errplan.ScenarioError`."""
     if not st.several:
         return
     import numpy as np
@@ -123,12 +125,30 @@ def check_setup(st: Setup) -> None:
         from .errors import ErrplanError
         from .kinematics.urdf.collision import ArmCollision
 
-        for name, sc in zip(st.arm_names, st.arms):
+        from .kinematics.urdf.collision import arm_at_tip, closest_pair
+
+        held = []  # the arms at rest: each at the IK putting its wrist on the rigid shaft through its port
+        for name, sc, rest in zip(st.arm_names, st.arms, st.rests):
             try:
-                ArmCollision.from_arm(arm_for(sc.robot))
+                geo = ArmCollision.from_arm(arm_for(sc.robot))
             except ErrplanError as err:
                 raise ScenarioError(f"{st.source}: [setup] arm_clearance = {st.arm_clearance:g}: arm {name!r}: "
                                     f"{err}") from None
+            try:
+                q = arm_at_tip(geo.arm, rest, sc.port.estimate, sc.instrument.length)
+            except ErrplanError as err:
+                raise ScenarioError(f"{st.source}: [[arm]] {name!r} rest = {list(rest)}: {err} (rest point "
+                                    "unreachable)") from None
+            held.append((name, rest, geo, q))
+        for i in range(len(held)):
+            for j in range(i + 1, len(held)):
+                (na, ra, ga, qa), (nb, rb, gb, qb) = held[i], held[j]
+                c = closest_pair(ga, qa, gb, qb)
+                if c.distance < st.arm_clearance:
+                    raise ScenarioError(f"{st.source}: [[arm]] {na!r} rest = {list(ra)} and {nb!r} rest = {list(rb)}: "
+                                        f"their arms are {c.distance * 1000:.1f} mm apart ({c.name_a!r} and "
+                                        f"{c.name_b!r}), expected at least [setup] arm_clearance = "
+                                        f"{st.arm_clearance:g} m (rest point not clear)")
     e = st.endoscope
     if e is not None:
         sc0 = st.arms[0]
