@@ -30,8 +30,11 @@ candidates a wave evaluates, at the targets that candidate covers; coal is queri
 (instrument pair, target), only for the pairs a wave evaluates, at the targets both instruments cover,
 and only when the two instrument ports are at least ``port_spacing`` apart (otherwise every triad of
 the pair is rejected for spacing; its triads do not count under ``arm_clearance``); the queries run as
-tasks (:func:`errplan.cluster.map_tasks`) and their results are kept for the rest of the search and
-for the figures (``arm_clearance_min``: the smallest over the covered targets).
+tasks (:func:`errplan.cluster.map_tasks`) and their results are kept for the rest of the search. A
+query answers yes or no (coal's collision query with a security margin of ``arm_clearance``:
+:func:`errplan.kinematics.urdf.collision.clear_of`; pairs of links whose bounding spheres lie
+``arm_clearance`` apart are never queried); the figures' ``arm_clearance_min`` (the smallest over the
+covered targets) is the exact clearance (coal's distance), queried for the reported triads only.
 
 Search (branch and bound; exact). For an instrument pair (p1, p2) let
 
@@ -104,12 +107,13 @@ def distance_rows(shared, rows) -> np.ndarray:
     return geo.target_hull_distances(boxes[rows], X, hull_e)
 
 
-def arm_rows(geos, item) -> np.ndarray:
-    """One task: the arm clearances (k,) of configuration pairs ``item = (Q1 (k, n1), Q2 (k, n2))`` of the
-    two instrument arms ``geos = (ArmCollision, ArmCollision)`` (NaN where an arm cannot stand)."""
-    from ..kinematics.urdf.collision import clearances
+def arm_rows(shared, item) -> np.ndarray:
+    """One task: (k,) whether the two instrument arms ``shared = (ArmCollision, ArmCollision,
+    arm_clearance)`` keep ``arm_clearance`` at configuration pairs ``item = (Q1 (k, n1), Q2 (k, n2))``
+    (False where an arm cannot stand)."""
+    from ..kinematics.urdf.collision import clear_of
 
-    return clearances(geos[0], item[0], geos[1], item[1])
+    return clear_of(shared[0], item[0], shared[1], item[1], shared[2])
 
 
 def _endoscope_candidates(model, endo, spacing: float, region: dict) -> np.ndarray:
@@ -141,8 +145,9 @@ class TriadData:
     port_spacing: float
     shaft_clearance: float
     keep: int
-    #: (N1, N2, T) arm clearance per instrument pair and target (arm checks on; else None): +inf where
-    #: not both instruments cover the target or the pair is not checked, NaN where an arm cannot stand
+    #: (N1, N2, T) bool, the arms at least arm_clearance apart per instrument pair and target (arm checks
+    #: on; else None): True where not both instruments cover the target or the pair is not checked,
+    #: False where an arm cannot stand
     arm: np.ndarray | None = None
     arm_clearance: float | None = None
     arm_done: np.ndarray | None = None  # (N1, N2) bool: the pairs whose ``arm`` row is computed
@@ -177,7 +182,7 @@ def pair_scores(data: TriadData, i1: int, i2: int) -> tuple[np.ndarray, np.ndarr
     else:
         if not data.arm_done[i1, i2]:  # pragma: no cover - search's ensure
             raise RuntimeError(f"triad search: arm clearances of pair {(i1, i2)} not computed")
-        arm_ok = ~np.any(c & ~(data.arm[i1, i2] >= data.arm_clearance)[None, :], axis=1)  # NaN (no configuration) fails
+        arm_ok = ~np.any(c & ~data.arm[i1, i2][None, :], axis=1)
     return S, sp, ~np.any(bad, axis=1), arm_ok
 
 
@@ -376,7 +381,7 @@ def triad_placement(st, tol, *, workers: int | None = 1, scheduler: str | None =
         Pc = {n1: P1, n2: P2}
         Qc = {name: np.full((len(Pc[name]), T, kin[name].n), np.nan) for name in (n1, n2)}
         qdone = {name: np.zeros(len(Pc[name]), bool) for name in (n1, n2)}
-        ARM = np.full((len(P1), len(P2), T), np.inf)
+        ARM = np.ones((len(P1), len(P2), T), bool)
         arm_done = np.zeros((len(P1), len(P2)), bool)
         d12 = np.linalg.norm(P1[:, None] - P2[None], axis=-1)
 
@@ -417,7 +422,8 @@ def triad_placement(st, tol, *, workers: int | None = 1, scheduler: str | None =
                 chunks.append(cur)
             items = [(np.concatenate([Qc[n1][i, tt] for i, _, tt in ch]),
                       np.concatenate([Qc[n2][j, tt] for _, j, tt in ch])) for ch in chunks]
-            parts = map_tasks(arm_rows, (geos[n1], geos[n2]), items, workers=workers, scheduler=scheduler)
+            parts = map_tasks(arm_rows, (geos[n1], geos[n2], float(arm_c)), items, workers=workers,
+                              scheduler=scheduler)
             for ch, part in zip(chunks, parts):
                 k = 0
                 for i, j, tt in ch:
@@ -450,11 +456,25 @@ def triad_placement(st, tol, *, workers: int | None = 1, scheduler: str | None =
     search_s = time.perf_counter() - t3 - dist_t[0] - arm_t[0]
     dist_s = dist_t[0]
 
+    exact = {}
+
+    def exact_arm(i1, i2) -> np.ndarray:
+        """(T,) the exact arm clearances of a reported pair at the targets both instruments cover (the
+        search keeps only whether they are at least arm_clearance)."""
+        from ..kinematics.urdf.collision import clearances
+
+        if (i1, i2) not in exact:
+            tt = np.flatnonzero(covs[n1][i1] & covs[n2][i2])
+            row = np.full(T, np.inf)
+            row[tt] = clearances(geos[n1], Qc[n1][i1, tt], geos[n2], Qc[n2][i2, tt])
+            exact[(i1, i2)] = row
+        return exact[(i1, i2)]
+
     def figures(s, i1, i2, ie) -> dict:
         c = data.cov1[i1] & data.cov2[i2] & data.vis[ie]
         m = M[i1, i2]
         cl = np.minimum(D1[i1, ie], D2[i2, ie])[c]
-        ac = ARM[i1, i2][c] if ARM is not None else np.zeros(0)
+        ac = exact_arm(i1, i2)[c] if ARM is not None else np.zeros(0)
         return {"ports": {n1: P1[i1].tolist(), n2: P2[i2].tolist(), "endoscope": PE[ie].tolist()}, "score": s,
                 "coverage": {n1: float(np.mean(data.cov1[i1])), n2: float(np.mean(data.cov2[i2])),
                              "both": float(np.mean(c))},
@@ -491,6 +511,9 @@ def triad_placement(st, tol, *, workers: int | None = 1, scheduler: str | None =
         "timing": {"coverage_s": cover_s, "distances_s": dist_s, "search_s": search_s,
                    "distance_rows": dist_t[1], "distance_rows_of": len(P1) + len(P2),
                    "arm_s": arm_t[0], "arm_pairs": arm_t[1], "arm_queries": arm_t[2]},
-        "_arrays": {"targets": X, "lens": lens, "data": data},
+        "_arrays": {"targets": X, "lens": lens, "data": data,
+                    # the best triad's arms per target (T, n) (NaN where not computed; arm checks on)
+                    "arm_q": None if arm_c is None else {n1: Qc[n1][found["best"][0][1]],
+                                                         n2: Qc[n2][found["best"][0][2]]}},
         "seconds": time.perf_counter() - t0,
     }

@@ -9,7 +9,8 @@ overlap. This is the only module of errplan that imports coal or builds a ``Geom
 
 * :class:`ArmCollision` (:meth:`ArmCollision.from_arm`): one arm's collision objects, built once;
 * :func:`arm_clearance`: the smallest distance between the objects of two arms at one configuration each;
-  :func:`clearances`, the same for a batch of configuration pairs;
+  :func:`clearances`, the same for a batch of configuration pairs; :func:`clear_of`, its yes/no against
+  a required clearance (coal's collision query with a security margin, no distance);
 * :func:`min_clearance_along`: the same along a joint-space motion of one arm, sampled densely enough
   that no link point moves more than ``clearance / 2`` between samples; :func:`clear_along`, the
   yes/no of it with fewer distance queries (a motion validity check);
@@ -327,30 +328,69 @@ def arm_clearance(geo_a: ArmCollision, q_a, geo_b: ArmCollision, q_b) -> float:
     return closest_pair(geo_a, q_a, geo_b, q_b).distance
 
 
-def clearances(geo_a: ArmCollision, qs_a, geo_b: ArmCollision, qs_b) -> np.ndarray:
-    """:func:`arm_clearance` of every pair of configurations ``(qs_a[k], qs_b[k])`` (k,) ((k, n) each): NaN
-    where either configuration holds a NaN (an arm that cannot stand there). Each distinct configuration
-    is placed once (a batch shares them: the same candidate port and target recur over many pairs)."""
+def _pairs_of(geo_a: ArmCollision, qs_a, geo_b: ArmCollision, qs_b) -> tuple[np.ndarray, np.ndarray, dict]:
     qs_a, qs_b = np.asarray(qs_a, float), np.asarray(qs_b, float)
     if qs_a.ndim != 2 or qs_a.shape != (len(qs_b), geo_a.arm.n) or qs_b.shape[1:] != (geo_b.arm.n,):
         raise ErrplanError(f"qs_a and qs_b must be configurations (k, {geo_a.arm.n}) and (k, {geo_b.arm.n}), "
                            f"got shapes {qs_a.shape} and {qs_b.shape}")
-    cache: dict = {}
+    return qs_a, qs_b, {}
 
-    def placed(geo, q):
-        key = (id(geo), q.tobytes())
-        if key not in cache:
-            P = geo.placements(q)
-            cache[key] = (P, _transforms(P))
-        return cache[key]
+
+def _placed(cache: dict, geo: ArmCollision, q: np.ndarray):
+    key = (id(geo), q.tobytes())
+    if key not in cache:
+        P = geo.placements(q)
+        cache[key] = (P, _transforms(P))
+    return cache[key]
+
+
+def clearances(geo_a: ArmCollision, qs_a, geo_b: ArmCollision, qs_b) -> np.ndarray:
+    """:func:`arm_clearance` of every pair of configurations ``(qs_a[k], qs_b[k])`` (k,) ((k, n) each); NaN
+    where either configuration holds a NaN (an arm that cannot stand there). Each distinct configuration
+    is placed once (a batch shares them: the same candidate port and target recur over many pairs)."""
+    qs_a, qs_b, cache = _pairs_of(geo_a, qs_a, geo_b, qs_b)
 
     out = np.full(len(qs_a), np.nan)
     for k, (qa, qb) in enumerate(zip(qs_a, qs_b)):
         if not (np.all(np.isfinite(qa)) and np.all(np.isfinite(qb))):
             continue
-        Pa, Ta = placed(geo_a, qa)
-        Pb, Tb = placed(geo_b, qb)
+        Pa, Ta = _placed(cache, geo_a, qa)
+        Pb, Tb = _placed(cache, geo_b, qb)
         out[k], _ = _closest(geo_a, Pa, geo_b, Pb, Ta=Ta, Tb=Tb)
+    return out
+
+
+def clear_of(geo_a: ArmCollision, qs_a, geo_b: ArmCollision, qs_b, clearance: float) -> np.ndarray:
+    """Whether ``arm_clearance >= clearance`` for every pair of configurations ``(qs_a[k], qs_b[k])``: (k,)
+    bool, False where either configuration holds a NaN (an arm that cannot stand there). A yes/no needs no
+    distance: coal's collision query with ``security_margin = clearance`` (two objects "collide" when
+    they are closer than it; it stops at the first such triangle pair), asked only for the pairs of
+    objects whose bounding spheres lie less than ``clearance`` apart (the others cannot be closer). On
+    the UR5's meshes about 20 times faster than :func:`clearances`; the tests compare the two."""
+    import coal
+
+    c = float(clearance)
+    if not (math.isfinite(c) and c > 0.0):
+        raise ErrplanError(f"clearance must be a positive number (m), got {clearance!r}")
+    qs_a, qs_b, cache = _pairs_of(geo_a, qs_a, geo_b, qs_b)
+    req = coal.CollisionRequest()
+    req.security_margin = c
+    req.num_max_contacts = 1
+    out = np.zeros(len(qs_a), bool)
+    for k, (qa, qb) in enumerate(zip(qs_a, qs_b)):
+        if not (np.all(np.isfinite(qa)) and np.all(np.isfinite(qb))):
+            continue
+        Pa, Ta = _placed(cache, geo_a, qa)
+        Pb, Tb = _placed(cache, geo_b, qb)
+        ca = np.einsum("gij,gj->gi", Pa[:, :3, :3], geo_a._center) + Pa[:, :3, 3]
+        cb = np.einsum("gij,gj->gi", Pb[:, :3, :3], geo_b._center) + Pb[:, :3, 3]
+        lower = np.linalg.norm(ca[:, None] - cb[None], axis=-1) - geo_a._radius[:, None] - geo_b._radius[None]
+        ok = True
+        for i, j in zip(*np.nonzero(lower < c)):
+            if coal.collide(geo_a._geoms[i], Ta[i], geo_b._geoms[j], Tb[j], req, coal.CollisionResult()):
+                ok = False
+                break
+        out[k] = ok
     return out
 
 
@@ -448,5 +488,5 @@ def arm_at_tip(arm: UrdfArm, tip, port, length: float, near=None) -> np.ndarray:
     return np.asarray(q, float)
 
 
-__all__ = ["ArmCollision", "Closest", "arm_clearance", "clearances", "closest_pair", "min_clearance_along", "clear_along", "motion_samples",
+__all__ = ["ArmCollision", "Closest", "arm_clearance", "clearances", "clear_of", "closest_pair", "min_clearance_along", "clear_along", "motion_samples",
            "arm_at_tip"]
