@@ -44,14 +44,15 @@ SAG = 1e-4  # how far inside a sampled cylinder or sphere its polygon's points m
 
 # ----------------------------------------------------------------------------- scenarios
 def phantom_with_collision(d: Path) -> Path:
-    """The bundled PHANToM with its visual cylinders and sphere as collision geometry (its base disc left
-    out: the two bases of abdomen_triad stand 0.1 m apart, their 0.12 m discs would overlap)."""
+    """The bundled PHANToM with the visual cylinders and sphere of its moving links as collision geometry
+    (its base disc and post left out: abdomen_triad's two bases stand 0.1 m apart, their 0.12 m discs
+    would overlap and their posts would set every triad's arm clearance)."""
     text = (SCENARIOS / "phantom15.urdf").read_text()
 
     def link(m):
         body = m.group(0)
         v = re.search(r"<visual>(.*?)</visual>", body, re.S)
-        if 'name="base"' in body or v is None:
+        if 'name="base"' in body or 'name="torso"' in body or v is None:
             return body
         return body.replace("</link>", "<collision>" + re.sub(r"<material[^>]*/>", "", v.group(1)) + "</collision></link>")
 
@@ -107,10 +108,10 @@ def surfaces_of(urdf: Path, base_dir: Path):
             elif g.tag == "box":
                 m = trimesh.creation.box(extents=_floats(g, "size"))
             elif g.tag == "cylinder":
-                m = trimesh.creation.cylinder(radius=float(g.get("radius")), height=float(g.get("length")), sections=256)
+                m = trimesh.creation.cylinder(radius=float(g.get("radius")), height=float(g.get("length")), sections=48)
             else:
                 assert g.tag == "sphere", g.tag
-                m = trimesh.creation.icosphere(subdivisions=5, radius=float(g.get("radius")))
+                m = trimesh.creation.icosphere(subdivisions=4, radius=float(g.get("radius")))
             v, _ = trimesh.remesh.subdivide_to_size(m.vertices, m.faces, max_edge=H)
             out.append((link.get("name"), O, np.unique(np.asarray(v), axis=0)))
     return out
@@ -159,7 +160,8 @@ def search_both(st, tol):
     assert [t["indices"] for t in [a["best"]] + a["ranked"]] == [t["indices"] for t in [b["best"]] + b["ranked"]]
     for x, y in zip([a["best"]] + a["ranked"], [b["best"]] + b["ranked"]):
         assert x["score"] == pytest.approx(y["score"], abs=1e-12)
-        assert x["arm_clearance_min"] == y["arm_clearance_min"] and x["arm_clearance_min"] >= st.arm_clearance
+        assert x["arm_clearance_min"] == y["arm_clearance_min"]  # None: no target covered
+        assert x["arm_clearance_min"] is None or x["arm_clearance_min"] >= st.arm_clearance
     assert a["rejected"]["arm_clearance"] > 0 and b["rejected"]["arm_clearance"] >= a["rejected"]["arm_clearance"]
     assert a["arm_checks"].startswith("on") and a["timing"]["arm_queries"] < b["timing"]["arm_queries"]
     return a, b
@@ -170,13 +172,12 @@ def search_both(st, tol):
 def test_abdomen_arms_pruned_equals_brute_force_and_figures(tmp_path):
     st = api.load_setup(abdomen_arms(tmp_path))
     tol = st.triads[0]
-    a, _ = search_both(st, tol)
-    # the arm checks matter: without them the best triad is another one, closer than arm_clearance
-    off = tr.triad_placement(dataclasses.replace(st, arm_clearance=None), tol)
-    assert off["best"]["indices"] != a["best"]["indices"] and off["best"]["arm_clearance_min"] is None
-    assert off["rejected"]["arm_clearance"] is None and off["arm_checks"] == "off"
+    a, _ = search_both(st, tol)  # some triads rejected for their arms (the PHANToMs' links touch there)
     _check_figures(st, tol, a)
     check_arms(st, a)
+    off = tr.triad_placement(dataclasses.replace(st, arm_clearance=None), tol)
+    assert off["best"]["arm_clearance_min"] is None and off["rejected"]["arm_clearance"] is None
+    assert off["arm_checks"] == "off" and off["timing"]["arm_queries"] == 0
 
 
 @pytest.mark.slow
@@ -186,6 +187,8 @@ def test_ur5_triad_pruned_equals_brute_force_and_figures(tmp_path):
     tol = st.triads[0]
     a, _ = search_both(st, tol)
     assert a["rejected"]["arm_clearance"] > a["rejected"]["port_spacing"] + a["rejected"]["shaft_clearance"]
+    off = tr.triad_placement(dataclasses.replace(st, arm_clearance=None), tol)  # the arm checks decide
+    assert off["best"]["indices"] != a["best"]["indices"] and off["best"]["score"] < a["best"]["score"]
     _check_figures(st, tol, a)
     check_arms(st, a)
     c = tr.triad_placement(st, tol, workers=2)  # tasks in two processes: the same answer and counts
