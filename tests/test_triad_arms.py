@@ -38,7 +38,7 @@ except ModuleNotFoundError:  # pragma: no cover
     import tomli as tomllib  # type: ignore
 
 UR5_TRIAD = SCENARIOS / "ur5_triad.toml"
-H = 0.005  # edge length of the sampled surfaces (m)
+H = 0.007  # edge length of the sampled surfaces (m)
 SAG = 1e-4  # how far inside a sampled cylinder or sphere its polygon's points may lie (m), bounded below
 
 
