@@ -12,6 +12,10 @@ overlap. This is the only module of errplan that imports coal or builds a ``Geom
 * :func:`min_clearance_along`: the same along a joint-space motion of one arm, sampled densely enough
   that no link point moves more than ``clearance / 2`` between samples; :func:`clear_along`, the
   yes/no of it with fewer distance queries (a motion validity check);
+* :class:`HeldArm`, :func:`clearance_to_held`, :func:`within_held`, :func:`clear_along_held`,
+  :func:`min_clearance_along_held`: the same against several arms held still, their placements computed
+  once (the planner's arm checks, :mod:`errplan.planning.arm_checks`); :func:`within_held` answers "closer
+  than c?" by coal's collision test with security margin c, about a hundred times cheaper than a distance;
 * :func:`arm_at_tip`: the configuration that puts the instrument tip at ``t`` through port ``p``.
 
 Configurations are the arm's actuated-joint vectors ``(n,)`` (``UrdfArm``'s order); joints off the
