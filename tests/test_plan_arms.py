@@ -255,3 +255,43 @@ def test_a_start_too_near_the_held_arm_is_one_line_exit_2(tmp_path, capsys):
     assert err.count("\n") == 1 and "start" in err and "arm 'right' held at rest" in err, err
     assert "[setup] arm_clearance = 35 mm" in err
     assert sorted(x.name for x in tmp_path.iterdir()) == ["s.toml"]
+
+
+def test_held_arm_checks_against_coal_distances():
+    """within_held (coal's collision test with a security margin) against the distance, and
+    clear_along_held (sphere skipping) against the minimum over every sample, on the setup's two UR5s."""
+    from errplan.kinematics.urdf.collision import (clear_along, clear_along_held, clearance_to_held,
+                                                  min_clearance_along, min_clearance_along_held, within_held)
+    from errplan.planning.arm_checks import ArmChecks
+
+    doc = setup_doc()
+    st = api_setup(doc)
+    ch = ArmChecks.from_scenario(st.moving("left"))
+    h = ch.held[0]
+    rng = np.random.default_rng(7)
+    lo, hi = np.array([-0.11, -0.04, 0.27]), np.array([0.0, 0.04, 0.43])
+    seen = []
+    for a, b in zip(lo + rng.random((10, 3)) * (hi - lo), lo + rng.random((10, 3)) * (hi - lo)):
+        b = a + 0.2 * (b - a)  # moves of up to about 3 cm
+        qa = ch.config(a)
+        d = clearance_to_held(ch.geo, qa, ch.held)
+        seen.append(d)
+        for c in (0.01, CLEARANCE, 0.06):
+            if abs(d - c) > 1e-6:
+                assert within_held(ch.geo, qa, ch.held, c) == (d < c), (a, d, c)
+        Q = ch.motion_configs(a, b)
+        for c in (CLEARANCE,):
+            full = min_clearance_along_held(ch.geo, Q, ch.held, c)
+            assert full == pytest.approx(min_clearance_along(ch.geo, Q, h.geo, h.q, c), abs=1e-12)
+            assert clear_along_held(ch.geo, Q, ch.held, c) == (full >= c) == clear_along(ch.geo, Q, h.geo, h.q, c)
+    assert min(seen) < 0.02 and max(seen) > 0.06  # near and far apart both met
+
+
+def api_setup(doc, tmp=None):
+    import tempfile
+    from pathlib import Path
+
+    d = Path(tempfile.mkdtemp())
+    p = d / "s.toml"
+    p.write_text(to_toml(doc), encoding="utf-8")
+    return api.load_setup(p)
