@@ -271,6 +271,7 @@ class Scenario:
     source: str = "<memory>"
     anatomy: Anatomy | None = None  # [anatomy] (spatial scenarios only)
     view: Any = None  # an Endoscope whose view every planned tip keeps ([endoscope] keep_visible; Setup.moving)
+    held_arms: Any = None  # HeldArms: the other arms, held at rest, the moving arm's links keep clear of (Setup.moving)
 
     @property
     def dim(self) -> int:
@@ -1049,7 +1050,26 @@ class Setup:
         held = self.held_shafts(self.arm_names[self.arms.index(sc)])
         an = sc.anatomy or Anatomy()
         view = self.endoscope if (self.endoscope is not None and self.endoscope.keep_visible) else None
-        return sc.with_(anatomy=replace(an, obstacles=an.obstacles + held), view=view)
+        arms = None
+        if self.arm_clearance is not None:  # [setup] arm_clearance: the others' links, held at rest
+            me = self.arm_names[self.arms.index(sc)]
+            arms = HeldArms(float(self.arm_clearance),
+                            tuple((n, o.robot, tuple(o.port.estimate), float(o.instrument.length), tuple(rest))
+                                  for n, o, rest in zip(self.arm_names, self.arms, self.rests)
+                                  if n != me and rest is not None), self.rest(me))
+        return sc.with_(anatomy=replace(an, obstacles=an.obstacles + held), view=view, held_arms=arms)
+
+
+@dataclass(frozen=True)
+class HeldArms:
+    """What the moving arm's links keep clear of ([setup] arm_clearance, :meth:`Setup.moving`): the
+    ``clearance`` (m), per other arm ``(name, robot, port estimate, shaft length, rest tip)``, and the
+    moving arm's own rest tip (its configuration there picks the branch of its inverse kinematics); the
+    arm-check model is built from it once per plan (:mod:`errplan.planning.arm_checks`)."""
+
+    clearance: float
+    arms: tuple = ()
+    rest: tuple | None = None
 
 
 #: the tables each ``[[arm]]`` holds (a one-instrument scenario has them at the top)

@@ -86,10 +86,9 @@ def run(args) -> int:
 def _run_setup(st, args) -> int:
     """Several arms: every query (or ``--query``) with its arm (``--arm``: only that arm's), the other
     instruments held at rest and the endoscope's shaft as obstacles of the moving arm
-    (:meth:`errplan.scenario.Setup.moving`); the plan JSON's queries add ``arm``,
-    ``min_shaft_clearance`` and ``visible`` (:func:`errplan.planning.setup_checks.path_figures`)."""
+    (:meth:`errplan.scenario.Setup.moving`); the plan JSON's queries add ``arm``, ``visible``, the shaft
+    clearances and ``min_arm_clearance`` (:func:`setup_figures`)."""
     from .. import api
-    from ..planning.setup_checks import path_figures
     from ..errors import ErrplanError
     from ..inputs import check_output
     from ..pipeline import summary_table
@@ -126,15 +125,18 @@ def _run_setup(st, args) -> int:
         print(summary_table(plan.runs, f"certified gains and simulation: {sc.name}"))
         j = plan.to_json()
         out.setdefault("objective", j["objective"])
+        runs = {r.name: r for r in plan.runs}
         for qj, qp in zip(j["queries"], plan.queries):
-            fig = path_figures(st, n, qp.planned.path)
-            qj.update(fig)
+            fig = setup_figures(st, n, sc, qp, runs.get(qp.name), qj, plan.costmap)
             out["queries"].append(qj)
-            ms, vis = fig["min_shaft_clearance"], fig["visible"]
-            ms_t = "-" if ms is None else f"{ms * 1000:.1f} mm"
+            ms, vis, ma = fig["min_shaft_clearance"], fig["visible"], fig["min_arm_clearance"]
+            mm = lambda x: "-" if x is None else f"{x * 1000:.1f} mm"  # noqa: E731
             vis_t = "-" if vis is None else f"{100 * vis:.0f}%"
-            print(f"{qp.name} (arm {n}): smallest shaft clearance {ms_t} (required {st.shaft_clearance * 1000:g} mm), "
-                  f"visible {vis_t}")
+            arm_t = "" if st.arm_clearance is None else (f", smallest arm clearance {mm(ma)} (required "
+                                                         f"{st.arm_clearance * 1000:g} mm)")
+            print(f"{qp.name} (arm {n}): smallest shaft clearance {mm(ms)} (path {mm(fig['min_shaft_clearance_path'])}, "
+                  f"replays {mm(fig['min_shaft_clearance_replays'])}; required {st.shaft_clearance * 1000:g} mm), "
+                  f"visible {vis_t}{arm_t}")
         print()
     if args.record:  # first: the recording is the output most likely to fail, written atomically
         from ..recording.setup import record_setup_plan
@@ -145,3 +147,50 @@ def _run_setup(st, args) -> int:
     if args.record:
         print(f"recording: {args.record}  (open it with `errplan view {args.record}`)")
     return 0
+
+
+def setup_figures(st, name: str, sc, qp, run, qj: dict, cm) -> dict:
+    """The several-instrument figures of one planned query, added to its plan JSON ``qj`` (and returned):
+
+    * ``arm``, ``visible`` (:func:`errplan.planning.setup_checks.path_figures`);
+    * ``min_shaft_clearance_path``: the exact distance from the robust moving shaft (every true port of
+      the box) along the planned path to every held shaft and the endoscope's;
+    * per simulated run of the planned path, under the scenario's truth (``simulation.planned``) and under
+      every corner of the port box (``simulation.corners.planned[i]``), its ``min_shaft_clearance``: the
+      shaft through that run's true port sweeping each step's triangle
+      (:func:`errplan.planning.setup_checks.run_shaft_clearance`); ``min_shaft_clearance_replays`` the
+      smallest of them;
+    * ``min_shaft_clearance``: the smallest of the path's and the replays' (None when nothing is held);
+    * ``min_arm_clearance``: with ``[setup] arm_clearance``, the smallest clearance between the moving
+      arm's links along the planned path (sampled as the planner's motion check samples it) and every held
+      arm's (:meth:`errplan.planning.arm_checks.ArmChecks.path_clearance`); None without arm checks.
+    """
+    from ..pipeline import corner_plant, truth_plant
+    from ..planning.setup_checks import held_hulls, path_figures, run_shaft_clearance
+
+    fig = path_figures(st, name, qp.planned.path)
+    path_min = fig.pop("min_shaft_clearance")
+    hulls = held_hulls(st, name)
+    reps = []
+    if run is not None and hulls:
+        sim = qj.get("simulation", {})
+        d = run_shaft_clearance(hulls, truth_plant(sc).true_port, run.sim_planned.sim.tip)
+        sim.get("planned", {})["min_shaft_clearance"] = d
+        reps.append(d)
+        corner_js = sim.get("corners", {}).get("planned", [])
+        for i, (th, rep) in enumerate(zip(run.corners, run.corner_planned)):
+            d = run_shaft_clearance(hulls, corner_plant(sc, th).true_port, rep.sim.tip)
+            if i < len(corner_js):
+                corner_js[i]["min_shaft_clearance"] = d
+            reps.append(d)
+    rep_min = min(reps) if reps else None
+    both = [x for x in (path_min, rep_min) if x is not None]
+    checks = getattr(cm, "arm_checks", None)
+    arm_min = None
+    if checks is not None:
+        arm_min = checks.path_clearance(qp.planned.path)
+        arm_min = None if not math.isfinite(arm_min) else arm_min
+    fig.update(min_shaft_clearance=min(both) if both else None, min_shaft_clearance_path=path_min,
+               min_shaft_clearance_replays=rep_min, min_arm_clearance=arm_min)
+    qj.update(fig)
+    return fig

@@ -151,8 +151,10 @@ class ScenarioPlan:
 def check_endpoints(cm: CostMap, start, goal, name: str = "query") -> None:
     """Raise :class:`InfeasibleError` naming the endpoint, the cause and by how much when the start
     or goal is unusable, or when they lie in disconnected parts of the usable region."""
+    from .arm_checks import explain_point as explain_arms
+
     for what, p in (("start", start), ("goal", goal)):
-        msg = cm.explain_point(p, f"{name}: {what}")
+        msg = explain_arms(cm, p, f"{name}: {what}") or cm.explain_point(p, f"{name}: {what}")
         if msg:
             raise InfeasibleError(msg)
     if not cm.connected(start, goal):
@@ -229,8 +231,12 @@ def plan_query(cm: CostMap, start, goal, settings: PlannerSettings | None = None
     # Reseed before anything draws from the RNG so that each query is a function of the seed,
     # whatever was planned before in this process.
     ompl_adapter.seed(st.seed)
-    bound = direct.cost if direct.valid else math.inf
+    from .arm_checks import path_clear  # the arm checks, which the fields and the cell graph do not hold
+
+    direct_ok = direct.valid and path_clear(cm, [start, goal])
+    bound = direct.cost if direct_ok else math.inf
     coarse = seed_path(cm, start, goal, limit=bound) if use_seed else None
+    coarse = coarse if coarse is None or path_clear(cm, coarse[0]) else None
     if coarse is not None:
         bound = coarse[1]
     used = 0
@@ -260,7 +266,7 @@ def plan_query(cm: CostMap, start, goal, settings: PlannerSettings | None = None
         raw_cost = math.inf
     if first is not None and first is not raw:
         cands.append(("first solution", first, cm.path_cost(first)[1]))
-    if direct.valid:
+    if direct_ok:
         cands.append(("direct", np.array([start, goal]), direct.cost))
     best = min(cands, key=lambda c: c[2]) if cands else None  # the first of equal costs
     time_solve = _time.perf_counter() - t_begin
@@ -319,7 +325,9 @@ def costmap_for(sc, mf) -> CostMap:
         from .setup_checks import view_checker
 
         cm.attach_view(view_checker(sc))
-    return cm
+    from .arm_checks import ArmChecks, attach
+
+    return attach(cm, ArmChecks.from_scenario(sc))  # [setup] arm_clearance (errplan.scenario.Setup.moving)
 
 
 def select_queries(sc, name: str | None = None) -> list:

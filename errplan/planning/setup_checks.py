@@ -20,8 +20,7 @@ def path_figures(st, name: str, path) -> dict:
     sc = st.arm(name)
     path = np.asarray(path, float).reshape(-1, 3)
     box = error_set(sc)[0].port_corners()
-    held = [np.vstack([box_corners(o.center, _Halves(o.half_extents)), np.asarray(o.a, float)[None]])
-            for o in st.held_shafts(name)]
+    held = held_hulls(st, name)
     segs = list(zip(path[:-1], path[1:])) or [(path[0], path[0])]
     dmin = min((shaft_distance(hull_points(box, a, b), H) for a, b in segs for H in held), default=None)
     vis = None
@@ -33,6 +32,26 @@ def path_figures(st, name: str, path) -> dict:
         pts = resample(path)
         vis = float(np.mean(visible(pts, lens, axis, e.fov, e.depth, anatomy_model(st.arm(name)))))
     return {"arm": name, "min_shaft_clearance": dmin, "visible": vis}
+
+
+def held_hulls(st, name: str) -> list[np.ndarray]:
+    """The points (k, 3) whose convex hulls are what arm ``name`` keeps ``shaft_clearance`` from: every held
+    shaft conv(box_j ∪ {rest_j}) and the endoscope's conv(box_e ∪ {lens})."""
+    return [np.vstack([box_corners(o.center, _Halves(o.half_extents)), np.asarray(o.a, float)[None]])
+            for o in st.held_shafts(name)]
+
+
+def run_shaft_clearance(hulls, port, tips) -> float | None:
+    """The smallest exact distance (m) between the shaft of one simulated run and the held hulls
+    (:func:`held_hulls`): the shaft pivots at the run's true ``port`` (3,) and its tip moves straight
+    between the visited tips (n, 3), so each step sweeps the triangle conv(port, t_k, t_k+1); None
+    without any hull."""
+    if not hulls:
+        return None
+    tips = np.asarray(tips, float).reshape(-1, 3)
+    port = np.asarray(port, float).reshape(1, 3)
+    steps = list(zip(tips[:-1], tips[1:])) or [(tips[0], tips[0])]
+    return float(min(shaft_distance(hull_points(port, a, b), H) for a, b in steps for H in hulls))
 
 
 class _Halves:

@@ -14,6 +14,10 @@ overlap. This is the only module of errplan that imports coal or builds a ``Geom
 * :func:`min_clearance_along`: the same along a joint-space motion of one arm, sampled densely enough
   that no link point moves more than ``clearance / 2`` between samples; :func:`clear_along`, the
   yes/no of it with fewer distance queries (a motion validity check);
+* :class:`HeldArm`, :func:`clearance_to_held`, :func:`within_held`, :func:`clear_along_held`,
+  :func:`min_clearance_along_held`: the same against several arms held still, their placements computed
+  once (the planner's arm checks, :mod:`errplan.planning.arm_checks`); :func:`within_held` answers "closer
+  than c?" by coal's collision test with security margin c, about a hundred times cheaper than a distance;
 * :func:`arm_at_tip`: the configuration that puts the instrument tip at ``t`` through port ``p``.
 
 Configurations are the arm's actuated-joint vectors ``(n,)`` (``UrdfArm``'s order); joints off the
@@ -462,6 +466,123 @@ def clear_along(geo_a: ArmCollision, qs_a, geo_b: ArmCollision, q_b, clearance: 
     return True
 
 
+# ============================================================================ against arms held still
+class HeldArm:
+    """An arm held at one configuration ``q`` (n,): its objects' placements, coal transforms and bounding
+    spheres in the world, computed once (a planner checks a moving arm against it thousands of times)."""
+
+    def __init__(self, geo: ArmCollision, q, name: str = ""):
+        self.geo = geo
+        self.name = name
+        self.q = geo._check_q(q, "q_held")
+        self.P = geo.placements(self.q)
+        self.T = _transforms(self.P)
+        self.centers = np.einsum("gij,gj->gi", self.P[:, :3, :3], geo._center) + self.P[:, :3, 3]
+
+
+def _lower_bound(geo: ArmCollision, P: np.ndarray, held: Sequence[HeldArm]) -> float:
+    """The smallest bounding-sphere gap between arm ``geo`` at placements ``P`` and the held arms: a lower
+    bound of their clearance (every point of an object lies in its sphere)."""
+    ca = np.einsum("gij,gj->gi", P[:, :3, :3], geo._center) + P[:, :3, 3]
+    lb = math.inf
+    for h in held:
+        gap = np.linalg.norm(ca[:, None] - h.centers[None], axis=-1) - geo._radius[:, None] - h.geo._radius[None]
+        lb = min(lb, float(gap.min()))
+    return lb
+
+
+def _any_within(geo: ArmCollision, P: np.ndarray, held: Sequence[HeldArm], c: float) -> bool:
+    """Whether some object of arm ``geo`` at placements ``P`` lies closer than ``c`` to an object of a held
+    arm: coal's collision test with security margin ``c`` (exact, and about a hundred times cheaper than a
+    mesh-mesh distance), on the pairs whose bounding spheres lie closer than ``c``, nearest first."""
+    import coal
+
+    ca = np.einsum("gij,gj->gi", P[:, :3, :3], geo._center) + P[:, :3, 3]
+    req = coal.CollisionRequest()
+    req.security_margin = float(c)
+    req.enable_contact = False
+    Ta = None
+    for h in held:
+        gap = np.linalg.norm(ca[:, None] - h.centers[None], axis=-1) - geo._radius[:, None] - h.geo._radius[None]
+        order = np.argsort(gap, axis=None, kind="stable")
+        nb = len(h.geo._geoms)
+        for k in order:
+            if gap.flat[k] >= c:
+                break
+            if Ta is None:
+                Ta = _transforms(P)
+            i, j = divmod(int(k), nb)
+            if coal.collide(geo._geoms[i], Ta[i], h.geo._geoms[j], h.T[j], req, coal.CollisionResult()):
+                return True
+    return False
+
+
+def within_held(geo: ArmCollision, q, held: Sequence[HeldArm], clearance: float) -> bool:
+    """Whether arm ``geo`` at actuated joint values ``q`` comes closer than ``clearance`` to a held arm (the
+    yes/no of :func:`clearance_to_held` below ``clearance``, by coal's collision test with that security
+    margin)."""
+    return _any_within(geo, geo.placements(q), held, clearance)
+
+
+def clearance_to_held(geo: ArmCollision, q, held: Sequence[HeldArm], below: float = math.inf) -> float:
+    """The smallest coal distance (m) between arm ``geo`` at actuated joint values ``q`` and every held arm
+    (:func:`arm_clearance` against each); with ``below``, the exact value only when it is below ``below``,
+    else ``below`` itself (a yes/no check needs no more: pairs whose spheres lie ``below`` apart are
+    never queried)."""
+    P = geo.placements(q)
+    Ta = None
+    best = float(below)
+    for h in held:
+        if Ta is None:
+            Ta = _transforms(P)
+        best, _ = _closest(geo, P, h.geo, h.P, best, Ta=Ta, Tb=h.T)
+        if best <= 0.0:
+            break
+    return best
+
+
+def clear_along_held(geo: ArmCollision, qs, held: Sequence[HeldArm], clearance: float) -> bool:
+    """Whether every sample of :func:`motion_samples` (arm ``geo`` through ``qs`` (m, n)) is at least
+    ``clearance`` clear of every held arm: :func:`clear_along` against several arms held still, with their
+    placements computed once (:class:`HeldArm`). Skipping is :func:`clear_along`'s (exact): after a sample
+    at least ``d >= clearance`` clear, the samples to which no point moves more than ``d - clearance`` are
+    clear too; here ``d`` is the bounding-sphere gap (a lower bound of the clearance, no coal query). Where
+    the spheres come closer than ``clearance``, the sample is decided by coal's collision test with
+    security margin ``clearance`` (:func:`within_held`) and the next sample is taken."""
+    if not held:
+        return True
+    samples = motion_samples(geo, qs, clearance)
+    c = float(clearance)
+    steps = np.max(geo.reach @ np.abs(np.diff(samples, axis=0)).T, axis=0) if len(samples) > 1 else np.zeros(0)
+    cum = np.concatenate([[0.0], np.cumsum(steps)])
+    i = 0
+    while i < len(samples):
+        P = geo.placements(samples[i])
+        d = _lower_bound(geo, P, held)
+        if d < c:
+            if _any_within(geo, P, held, c):
+                return False
+            i += 1
+            continue
+        i = max(i + 1, int(np.searchsorted(cum, cum[i] + (d - c), side="right")))
+    return True
+
+
+def min_clearance_along_held(geo: ArmCollision, qs, held: Sequence[HeldArm], clearance: float) -> float:
+    """The smallest clearance (m) over the samples of :func:`motion_samples` (arm ``geo`` through ``qs``)
+    to every held arm (:func:`min_clearance_along` against several held arms); inf without any."""
+    samples = motion_samples(geo, qs, clearance)
+    best = math.inf
+    for q in samples:
+        P = geo.placements(q)
+        if _lower_bound(geo, P, held) >= best:
+            continue
+        Ta = _transforms(P)
+        for h in held:
+            best, _ = _closest(geo, P, h.geo, h.P, best, Ta=Ta, Tb=h.T)
+    return float(best)
+
+
 # ============================================================================ the arm at a tip
 def arm_at_tip(arm: UrdfArm, tip, port, length: float, near=None) -> np.ndarray:
     """Actuated joint values (n,) putting the wrist at ``t - L (t - p) / |t - p|``: the rigid shaft of
@@ -488,5 +609,6 @@ def arm_at_tip(arm: UrdfArm, tip, port, length: float, near=None) -> np.ndarray:
     return np.asarray(q, float)
 
 
-__all__ = ["ArmCollision", "Closest", "arm_clearance", "clearances", "clear_of", "closest_pair", "min_clearance_along", "clear_along", "motion_samples",
-           "arm_at_tip"]
+__all__ = ["ArmCollision", "Closest", "arm_clearance", "clearances", "clear_of", "closest_pair", "min_clearance_along",
+           "clear_along", "motion_samples", "arm_at_tip", "HeldArm", "clearance_to_held", "within_held", "clear_along_held",
+           "min_clearance_along_held"]
