@@ -37,9 +37,11 @@ SPATIAL_RESOLUTION = 0.010
 SPATIAL_METRICS = ("G_norm", "phi_hat_max", "rho_star")
 #: processes the demo runs its steps in (1: one after another); default: every core
 WORKERS_ENV = "ERRPLAN_DEMO_WORKERS"
-#: one-process tasks that go on while the demo plans (the rest is paused): none, so that the planner (a time
-#: budget; on a loaded machine its search may end by time) gets what it gets one step after another
-PLAN_BESIDE = 0
+#: one-process tasks that go on while the demo plans (the rest is paused): one, on the other core. A plan
+#: ends at its iteration cap (a function of the seed), reached well before its hard stop
+#: (errplan.planning.plan.HARD_STOP) with a core of its own; only a machine loaded beyond its cores can make
+#: it end by time instead (its ``stopped_by`` then says "time"), as it can one step after another
+PLAN_BESIDE = 1
 #: a JSON file to write the demo's steps to (scenario, step, start and end s, CPU s): benchmarks/first_run.py
 PROFILE_ENV = "ERRPLAN_DEMO_PROFILE"
 _STEPS: list[dict] = []
@@ -73,10 +75,10 @@ def spatial_record_path(rec: Path, tag: str = "3d") -> Path:
     return rec.with_name(f"{rec.stem}-{tag}{rec.suffix or '.rrd'}")
 
 
-def _fields(sc, spatial_demo: bool | str, progress):
+def _fields(sc, spatial_demo: bool | str, progress, workers: int | None = None):
     """The scenario's worst-case fields for the demo: planar with rho* at its own grid; the PHANToM at
     ``SPATIAL_RESOLUTION`` (``spatial_demo`` True), the abdomen at its own grid ("own"), with
-    ``SPATIAL_METRICS``, on every core."""
+    ``SPATIAL_METRICS``, on ``workers`` processes (None: every core; the tiles' results are the same)."""
     from ..fields import compute_fields
 
     # a first run compiles ahead in the background (errplan.cli.warmup); the spatial demo's metrics have no
@@ -88,7 +90,7 @@ def _fields(sc, spatial_demo: bool | str, progress):
         return fields_for_planning(sc, progress=progress, workers=1)
     if spatial_demo:  # True: the PHANToM at SPATIAL_RESOLUTION; "own": the abdomen at its own resolution
         res = SPATIAL_RESOLUTION if spatial_demo is True else None
-        return compute_fields(sc, res, metrics=SPATIAL_METRICS, progress=progress, workers=None)
+        return compute_fields(sc, res, metrics=SPATIAL_METRICS, progress=progress, workers=workers)
     return compute_fields(sc, rho_star=True, progress=progress)
 
 
@@ -163,6 +165,8 @@ class DemoJob:
     load_part: str | None = None
     weight: float = 1.0
     record: Path | None = None
+    #: the order of its queries among the others' when side by side (the longest first; default ``weight``)
+    query_weight: float | None = None
     sc: object = None
     #: an arm of the several-instrument setup (:class:`TriadBlock`): no block of its own
     hidden: bool = False
@@ -334,10 +338,10 @@ def run_jobs(jobs: list[DemoJob], quiet: bool, workers: int = 1, triad: TriadBlo
 
 
 def _fields_task(sc, spatial_demo, quiet: bool):
-    """A scenario's fields in a worker process (its own worker processes for the tiles where
-    :func:`_fields` uses all cores)."""
+    """A scenario's fields in a worker process, its tiles one after another (one process: the other
+    core has the demo's other steps)."""
     prog = Progress(f"fields ({sc.name})", quiet=quiet)
-    mf = _fields(sc, spatial_demo, prog)
+    mf = _fields(sc, spatial_demo, prog, workers=1)
     prog.done()
     return mf
 
@@ -376,6 +380,8 @@ def _run_side_by_side(jobs: list[DemoJob], quiet: bool, slots: int, triad: Triad
     weight = {i: (jobs[i].weight if i >= 0 else 1.5) for i in units}
     order = units if warmup.active() else sorted(units, key=lambda i: -weight[i])
     rank = {i: r for r, i in enumerate(order)}
+    qorder = sorted(range(n), key=lambda i: -(jobs[i].weight if jobs[i].query_weight is None else jobs[i].query_weight))
+    qrank = {i: r for r, i in enumerate(qorder)}
     state = [{"runs": None, "text": None, "doc": None} for _ in jobs]
     pending: list[tuple] = [(0, rank[i], 0, i) for i in order]  # (kind 0 fields / 1 query, rank, query, job)
     tasks = ForkedTasks(slots)
@@ -408,7 +414,7 @@ def _run_side_by_side(jobs: list[DemoJob], quiet: bool, slots: int, triad: Triad
         s["opts"] = options_from_scenario(sc)
         s["runs"] = [None] * len(s["qjs"])
         s["prog"] = Progress(f"gains+simulation ({sc.name})", quiet=quiet)
-        pending.extend((1, rank[i], q, i) for q in range(len(s["qjs"])))
+        pending.extend((1, qrank[i], q, i) for q in range(len(s["qjs"])))
 
     def on_query(i: int, q: int, run) -> None:
         job, s = jobs[i], state[i]
@@ -459,8 +465,7 @@ def _run_side_by_side(jobs: list[DemoJob], quiet: bool, slots: int, triad: Triad
                     tasks.start((0, i, 0), _triad_task, triad.st, light=True)
                 elif kind == 0:
                     s["t0"] = time.perf_counter()
-                    tasks.start((0, i, 0), _fields_task, job.sc, job.spatial_demo, quiet,
-                                light=job.spatial_demo in (False, "plan"))
+                    tasks.start((0, i, 0), _fields_task, job.sc, job.spatial_demo, quiet, light=True)
                 else:
                     tasks.start((1, i, q), partial(run_query, options=s["opts"], model=s["model"]), job.sc,
                                 s["qjs"][q], light=True)
@@ -523,13 +528,15 @@ def run(args) -> int:
         # (errplan.cli.warmup): the arm's kinematics first (a few seconds, so that this process finds
         # them), the spatial search (the longest, ready about when this process has built the map), the
         # planner's and the gains' kernels in the order a scenario's steps call them, the anatomy's. The
-        # bundled scenarios are loaded when their turn comes. Their weights: the work of each (the
-        # abdomen's queries are the longest, then the PHANToM's fields and queries).
+        # bundled scenarios are loaded when their turn comes. Their weights, side by side: the fields of
+        # the abdomen first (the longest), then the planar ones (short: its plan and its queries, the
+        # longest of the demo, come early, while the other core computes fields), the PHANToM's, the
+        # setup's triad placement and its arms'; the queries the longest first.
         warmup.start(("plan2", "arm", "fields3g", "plan3", "gains3", "anatomy"))
-        jobs = [DemoJob(path, sc=load_scenario(path)),
-                DemoJob(BUNDLED_SPATIAL, True, "arm", weight=2.0)]
+        jobs = [DemoJob(path, weight=2.5, query_weight=3.0, sc=load_scenario(path)),
+                DemoJob(BUNDLED_SPATIAL, True, "arm", weight=2.0, query_weight=1.5)]
         if BUNDLED_ANATOMY.exists():
-            jobs.append(DemoJob(BUNDLED_ANATOMY, "own", "anatomy", weight=3.0))
+            jobs.append(DemoJob(BUNDLED_ANATOMY, "own", "anatomy", weight=3.0, query_weight=2.0))
     # the several-instrument setup after the scenarios (with --scenario: none)
     triad = TriadBlock(BUNDLED_TRIAD) if not args.scenario and BUNDLED_TRIAD.exists() else None
     rec = check_output("--record", args.record)
