@@ -208,8 +208,9 @@ class TriadBlock:
                 raise ErrplanError(f"{self.path}: the demo's setup needs several [[arm]] tables and a "
                                    "triad_placement [[tolerance]] query")
             self.st = st
-            self.arms = [(n, DemoJob(self.path, "plan", "anatomy", weight=0.5, sc=st.moving(n), hidden=True))
-                         for n in st.arm_names if st.moving(n).queries]
+            moving = [(n, st.moving(n)) for n in st.arm_names]
+            self.arms = [(n, DemoJob(self.path, "plan", "anatomy", weight=0.5, sc=sc, hidden=True))
+                         for n, sc in moving if sc.queries]
         return self.st
 
     def plan_record(self) -> Path | None:
@@ -528,12 +529,12 @@ def run(args) -> int:
         # (errplan.cli.warmup): the arm's kinematics first (a few seconds, so that this process finds
         # them), the spatial search (the longest, ready about when this process has built the map), the
         # planner's and the gains' kernels in the order a scenario's steps call them, the anatomy's. The
-        # bundled scenarios are loaded when their turn comes. Their weights, side by side: the fields of
-        # the abdomen first (the longest), then the planar ones (short: its plan and its queries, the
-        # longest of the demo, come early, while the other core computes fields), the PHANToM's, the
-        # setup's triad placement and its arms'; the queries the longest first.
+        # bundled scenarios are loaded when their turn comes. Their weights, side by side: the planar
+        # fields first (loaded already and short: they run while this process loads the abdomen, and the
+        # planar plan and queries, the demo's longest, come early), then the abdomen's (the longest), the
+        # PHANToM's, the setup's triad placement and its arms'; the queries the longest first.
         warmup.start(("plan2", "arm", "fields3g", "plan3", "gains3", "anatomy"))
-        jobs = [DemoJob(path, weight=2.5, query_weight=3.0, sc=load_scenario(path)),
+        jobs = [DemoJob(path, weight=3.5, query_weight=3.0, sc=load_scenario(path)),
                 DemoJob(BUNDLED_SPATIAL, True, "arm", weight=2.0, query_weight=1.5)]
         if BUNDLED_ANATOMY.exists():
             jobs.append(DemoJob(BUNDLED_ANATOMY, "own", "anatomy", weight=3.0, query_weight=2.0))
