@@ -8,7 +8,9 @@ Without ``--scenario`` the demo runs P1's planar Phantom (``beasley2004_bounded.
 ``--record``, default ``errplan-demo.rrd``) and then the spatial PHANToM 1.5 on its URDF
 (``phantom15_spatial.toml``, recorded beside it as ``<stem>-3d.rrd``), then the bundled abdomen
 (``abdomen.toml``: the PHANToM among mesh organs, a vessel and the body wall; at its own 8 mm
-grid, recorded as ``<stem>-abdomen.rrd``). The PHANToM's spatial fields are
+grid, recorded as ``<stem>-abdomen.rrd``), and last the several-instrument setup
+(``abdomen_triad.toml``, :class:`TriadBlock`: its chosen port triad and each arm's queries planned among
+the held shafts, recorded as ``<stem>-triad.rrd`` and ``<stem>-triad-plan.rrd``). The PHANToM's spatial fields are
 computed at ``SPATIAL_RESOLUTION`` over the scenario's task region (its own 4 mm grid takes about a
 minute of CPU) with the metrics the planner and the recording use (G_norm, phi_hat_max, rho_star).
 With ``--scenario F`` only that scenario runs (planar or spatial), recorded to ``--record``.
