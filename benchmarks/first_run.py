@@ -1,4 +1,4 @@
-"""First run against a later one (issue 17): the whole `errplan demo` with empty caches, then again warm.
+"""First run against a later one: the whole `errplan demo` with empty caches, then again warm.
 
     python benchmarks/first_run.py [--pairs 3] [--scenario F] [--keep DIR]
 
@@ -11,7 +11,7 @@ after the other, so a drift of the machine's speed lands on both halves of a pai
 gives every pair and the median ratio. The target is a cold run within 1.5 times the warm one, and the
 notice within 10 s.
 
-``--scenario F`` runs `errplan demo --scenario F` instead of the three bundled scenarios.
+``--scenario F`` runs `errplan demo --scenario F` instead of the bundled scenarios and setup.
 
 ``--steps``: every run also writes its steps (``ERRPLAN_DEMO_PROFILE``: scenario, step, process, start,
 end, CPU) and the table gives, per run, the CPU of each scenario's steps and the wall time two quiet
@@ -44,13 +44,17 @@ NOTICE_S = 10.0
 
 def cpu_bound(prof: dict, cores: int = 2) -> dict:
     """From a demo's steps (``ERRPLAN_DEMO_PROFILE``): CPU seconds per scenario and step kind (fields,
-    plan, queries, record), the total, and the least wall time ``cores`` quiet cores need for it: the larger
-    of total / cores and the longest scenario chain (fields over the cores it may use, plan, its longest
-    query, record: the steps that wait for each other). One step after another the chain is the sum."""
+    plan, queries, record; the setup's triad placement counts as fields), the total, and the least wall
+    time ``cores`` quiet cores need for it: the larger of total / cores and the longest scenario chain
+    (fields, in one process side by side, plan, its longest query, record: the steps that wait for each
+    other). One step after another the chain is the sum."""
     per: dict = {}
     for e in prof["steps"]:
         d = per.setdefault(e["scenario"], {"fields": 0.0, "plan": 0.0, "queries": 0.0, "record": 0.0,
                                            "query_max": 0.0})
+        if e["step"] == "triad":
+            d["fields"] += e["cpu"]
+            continue
         kind = "queries" if e["step"].startswith("query") or e["step"] == "queries+record" else e["step"]
         d[kind] += e["cpu"]
         if e["step"].startswith("query"):
@@ -59,7 +63,7 @@ def cpu_bound(prof: dict, cores: int = 2) -> dict:
     if prof.get("workers", 1) <= 1:
         chain = sum(d["fields"] / cores + d["plan"] + d["queries"] + d["record"] for d in per.values())
     else:
-        chain = max((d["fields"] / cores + d["plan"] + d["query_max"] + d["record"] for d in per.values()), default=0)
+        chain = max((d["fields"] + d["plan"] + d["query_max"] + d["record"] for d in per.values()), default=0)
     return {"per": per, "total": total, "bound": max(total / cores, chain), "chain": chain}
 
 
@@ -117,7 +121,7 @@ def steps_table(label: str, r: dict) -> str:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--pairs", type=int, default=3, help="cold + warm pairs (default 3)")
-    ap.add_argument("--scenario", default=None, help="one scenario file instead of the bundled three")
+    ap.add_argument("--scenario", default=None, help="one scenario file instead of the bundled ones")
     ap.add_argument("--keep", default=None, help="keep the caches and recordings under this directory")
     ap.add_argument("--steps", action="store_true", help="per-step CPU of every run and its least wall time")
     ap.add_argument("--compare", action="store_true",

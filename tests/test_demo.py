@@ -1,5 +1,5 @@
 """`errplan demo`: the bundled scenarios end to end (fields, plan, gains, simulation, recording): P1's
-planar Phantom, the spatial PHANToM 1.5 on its URDF and the abdomen (issue 18), the plan JSON keys of docs/interfaces.md
+planar Phantom, the spatial PHANToM 1.5 on its URDF, the abdomen and the several-instrument setup, the plan JSON keys of docs/interfaces.md
 (`gains` S objects, `simulation` R objects) in both, every planned segment certified and every corner
 replay monotonic, every recording verified, the abdomen's runs clear of its anatomy."""
 from __future__ import annotations
@@ -103,7 +103,37 @@ def test_demo_direct_path_fails_where_its_certificate_does(demo):
     assert not q["simulation"]["corners"]["direct_all_monotonic"]
 
 
-@pytest.mark.parametrize("name", ["errplan-demo.rrd", "errplan-demo-3d.rrd", "errplan-demo-abdomen.rrd"])
+def test_demo_setup_block_chooses_a_triad_and_plans_each_arm(demo):
+    """The several-instrument setup (abdomen_triad.toml) closes the demo: its chosen port triad keeps the
+    ports apart by the query's port spacing (plain vector algebra on the JSON ports) and is the row the
+    block prints; each arm's planned query keeps its shaft the required distance from the held shafts, is
+    certified, converges, and the endoscope sees it."""
+    import math
+
+    import numpy as np
+
+    _, out, rec, doc = demo
+    st = doc["setup"]
+    assert st["scenario"] == "abdomen-triad" and "errplan demo: abdomen-triad" in out
+    assert out.index("errplan demo: abdomen (") < out.index("errplan demo: abdomen-triad")
+    best = st["triads"][0]["best"]
+    ports = {k: np.asarray(v, float) for k, v in best["ports"].items()}
+    assert set(ports) == {"left", "right", "endoscope"}
+    d = [float(np.linalg.norm(ports[a] - ports[b])) for a, b in (("left", "right"), ("left", "endoscope"),
+                                                                  ("right", "endoscope"))]
+    assert min(d) >= 0.06 - 1e-12 and min(d) == pytest.approx(best["port_spacing_min"], abs=1e-9)
+    row = next(ln for ln in out.splitlines() if ln.strip().startswith("1  ["))
+    assert "[" + ", ".join(f"{1000 * v:.1f}" for v in ports["left"]) + "]" in row
+    assert {q["arm"] for q in st["queries"]} == {"left", "right"}
+    for q in st["queries"]:
+        assert q["name"] in out
+        assert q["min_shaft_clearance"] >= 0.008 and 0.0 <= q["visible"] <= 1.0 and math.isfinite(q["visible"])
+        assert q["certified"] and q["converged"]
+    assert rec.with_name("errplan-demo-triad.rrd").exists() and rec.with_name("errplan-demo-triad-plan.rrd").exists()
+
+
+@pytest.mark.parametrize("name", ["errplan-demo.rrd", "errplan-demo-3d.rrd", "errplan-demo-abdomen.rrd",
+                                  "errplan-demo-triad.rrd", "errplan-demo-triad-plan.rrd"])
 def test_demo_recording_verifies(demo, name):
     rec = demo[2].with_name(name)
     exe = shutil.which("rerun")

@@ -8,7 +8,9 @@ Without ``--scenario`` the demo runs P1's planar Phantom (``beasley2004_bounded.
 ``--record``, default ``errplan-demo.rrd``) and then the spatial PHANToM 1.5 on its URDF
 (``phantom15_spatial.toml``, recorded beside it as ``<stem>-3d.rrd``), then the bundled abdomen
 (``abdomen.toml``: the PHANToM among mesh organs, a vessel and the body wall; at its own 8 mm
-grid, recorded as ``<stem>-abdomen.rrd``). The PHANToM's spatial fields are
+grid, recorded as ``<stem>-abdomen.rrd``), and last the several-instrument setup
+(``abdomen_triad.toml``, :class:`TriadBlock`: its chosen port triad and each arm's queries planned among
+the held shafts, recorded as ``<stem>-triad.rrd`` and ``<stem>-triad-plan.rrd``). The PHANToM's spatial fields are
 computed at ``SPATIAL_RESOLUTION`` over the scenario's task region (its own 4 mm grid takes about a
 minute of CPU) with the metrics the planner and the recording use (G_norm, phi_hat_max, rho_star).
 With ``--scenario F`` only that scenario runs (planar or spatial), recorded to ``--record``.
@@ -19,7 +21,7 @@ import contextlib
 import json
 import os
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
 
@@ -31,14 +33,17 @@ SCENARIOS = Path(__file__).resolve().parents[2] / "scenarios"
 BUNDLED = SCENARIOS / "beasley2004_bounded.toml"
 BUNDLED_SPATIAL = SCENARIOS / "phantom15_spatial.toml"
 BUNDLED_ANATOMY = SCENARIOS / "abdomen.toml"
+BUNDLED_TRIAD = SCENARIOS / "abdomen_triad.toml"
 #: grid spacing (m) of the demo's spatial fields (the scenario's [fields] resolution is 4 mm)
 SPATIAL_RESOLUTION = 0.010
 SPATIAL_METRICS = ("G_norm", "phi_hat_max", "rho_star")
 #: processes the demo runs its steps in (1: one after another); default: every core
 WORKERS_ENV = "ERRPLAN_DEMO_WORKERS"
-#: one-process tasks that go on while the demo plans (the rest is paused): none, so that the planner (a time
-#: budget; on a loaded machine its search may end by time) gets what it gets one step after another
-PLAN_BESIDE = 0
+#: one-process tasks that go on while the demo plans (the rest is paused): one, on the other core. A plan
+#: ends at its iteration cap (a function of the seed), reached well before its hard stop
+#: (errplan.planning.plan.HARD_STOP) with a core of its own; only a machine loaded beyond its cores can make
+#: it end by time instead (its ``stopped_by`` then says "time"), as it can one step after another
+PLAN_BESIDE = 1
 #: a JSON file to write the demo's steps to (scenario, step, start and end s, CPU s): benchmarks/first_run.py
 PROFILE_ENV = "ERRPLAN_DEMO_PROFILE"
 _STEPS: list[dict] = []
@@ -72,18 +77,22 @@ def spatial_record_path(rec: Path, tag: str = "3d") -> Path:
     return rec.with_name(f"{rec.stem}-{tag}{rec.suffix or '.rrd'}")
 
 
-def _fields(sc, spatial_demo: bool | str, progress):
+def _fields(sc, spatial_demo: bool | str, progress, workers: int | None = None):
     """The scenario's worst-case fields for the demo: planar with rho* at its own grid; the PHANToM at
     ``SPATIAL_RESOLUTION`` (``spatial_demo`` True), the abdomen at its own grid ("own"), with
-    ``SPATIAL_METRICS``, on every core."""
+    ``SPATIAL_METRICS``, on ``workers`` processes (None: every core; the tiles' results are the same)."""
     from ..fields import compute_fields
 
     # a first run compiles ahead in the background (errplan.cli.warmup); the spatial demo's metrics have no
     # exact |phi_max|, its search is compiled without it
     warmup.wait(_fields_part(sc, spatial_demo))
+    if spatial_demo == "plan":  # an arm of the several-instrument setup: the fields `errplan plan` makes, here
+        from ..planning.plan import fields_for_planning
+
+        return fields_for_planning(sc, progress=progress, workers=1)
     if spatial_demo:  # True: the PHANToM at SPATIAL_RESOLUTION; "own": the abdomen at its own resolution
         res = SPATIAL_RESOLUTION if spatial_demo is True else None
-        return compute_fields(sc, res, metrics=SPATIAL_METRICS, progress=progress, workers=None)
+        return compute_fields(sc, res, metrics=SPATIAL_METRICS, progress=progress, workers=workers)
     return compute_fields(sc, rho_star=True, progress=progress)
 
 
@@ -158,7 +167,11 @@ class DemoJob:
     load_part: str | None = None
     weight: float = 1.0
     record: Path | None = None
+    #: the order of its queries among the others' when side by side (the longest first; default ``weight``)
+    query_weight: float | None = None
     sc: object = None
+    #: an arm of the several-instrument setup (:class:`TriadBlock`): no block of its own
+    hidden: bool = False
 
     def load(self):
         from ..api import load_scenario
@@ -170,6 +183,124 @@ class DemoJob:
         if not self.sc.queries:
             raise ErrplanError(f"{self.path}: the scenario has no [[query]] to plan")
         return self.sc
+
+
+@dataclass
+class TriadBlock:
+    """The several-instrument setup of the demo (``abdomen_triad.toml``): its ``triad_placement`` queries
+    (:func:`errplan.tolerance.run.run_setup_query`, one process) and each arm's queries planned among the
+    held shafts as ``errplan plan`` plans them (:meth:`errplan.scenario.Setup.moving`: the arm's fields as
+    :func:`errplan.planning.plan.fields_for_planning` makes them, its plan, gains and replays), one short
+    block (:func:`_triad_report`) and two recordings: ``record`` (the chosen triad,
+    :func:`errplan.recording.setup.record_triad`) and ``<stem>-plan`` beside it (the arms' planned motions,
+    :func:`errplan.recording.setup.record_setup_plan`). The arms are :class:`DemoJob` s with ``hidden``."""
+
+    path: Path
+    record: Path | None = None
+    st: object = None
+    #: (arm name, its DemoJob) of every arm with queries
+    arms: list = field(default_factory=list)
+
+    def load(self):
+        from ..api import load_setup
+
+        if self.st is None:
+            st = load_setup(self.path)
+            if not st.several or not st.triads:
+                raise ErrplanError(f"{self.path}: the demo's setup needs several [[arm]] tables and a "
+                                   "triad_placement [[tolerance]] query")
+            self.st = st
+            moving = [(n, st.moving(n)) for n in st.arm_names]
+            self.arms = [(n, DemoJob(self.path, "plan", "anatomy", weight=0.5, sc=sc, hidden=True))
+                         for n, sc in moving if sc.queries]
+        return self.st
+
+    def plan_record(self) -> Path | None:
+        return None if self.record is None else self.record.with_name(f"{self.record.stem}-plan{self.record.suffix}")
+
+
+def _triad_task(st) -> list:
+    """The setup's ``triad_placement`` results, one process."""
+    from ..tolerance.run import run_setup_query
+
+    return [run_setup_query(st, tol, workers=1) for tol in st.triads]
+
+
+def _triad_report(tb: TriadBlock, results: list, arm_runs: list, times: dict) -> tuple[str, dict]:
+    """The setup's printed block and JSON document: the chosen triad of each ``triad_placement`` query
+    (:func:`errplan.cli.tolerance.triad_table`, its best row) and per planned query its arm, the smallest
+    distance of its shaft to the held shafts, the share the endoscope sees
+    (:func:`errplan.planning.setup_checks.path_figures`), whether its gains are certified and its replays
+    converge. ``arm_runs``: (arm name, plans, runs) per arm. Writes the recordings."""
+    from ..planning.setup_checks import path_figures
+    from ..report import format_table
+    from .tolerance import triad_table
+
+    st = tb.st
+    lines = [f"errplan demo: {st.name} ({tb.path.name}): the chosen port triad, then every query planned among "
+             "the held shafts"]
+    for r in results:
+        lines.append(triad_table(r, 1))
+    rows, qdocs = [], []
+    for n, plans, runs in arm_runs:
+        for qp, run in zip(plans, runs):
+            fig = path_figures(st, n, qp.planned.path)
+            ms, vis = fig["min_shaft_clearance"], fig["visible"]
+            reps = run.corner_planned
+            cost = qp.planned.cost
+            rows.append([run.name, n, float("nan") if cost is None else float(cost), 1000 * float(qp.planned.length),
+                         float("nan") if ms is None else 1000 * ms, float("nan") if vis is None else 100 * vis,
+                         "yes" if run.schedule.certified else "NO", "yes" if run.sim_planned.sim.converged else "NO",
+                         f"{sum(x.sim.converged for x in reps)}/{len(reps)}" if reps else "-"])
+            qdocs.append({"name": run.name, **fig, "certified": bool(run.schedule.certified),
+                          "converged": bool(run.sim_planned.sim.converged)})
+    lines.append(format_table(["query", "arm", "cost (m)", "length (mm)", "min shaft clearance (mm)", "visible %",
+                               "certified", "converged", "corners converged"], rows,
+                              f"planned paths of {st.name} (required shaft clearance "
+                              f"{st.shaft_clearance * 1000:g} mm)"))
+    lines.append(f"time: triad placement {times['triad']:.1f} s, arms' fields + plans + gains + simulation "
+                 f"{times['arms']:.1f} s, total {times['total']:.1f} s")
+    if tb.record:
+        from ..recording.setup import record_setup_plan, record_triad
+        from types import SimpleNamespace
+
+        record_triad(tb.record, st, results)
+        pr = tb.plan_record()
+        record_setup_plan(pr, st, [(n, None, SimpleNamespace(queries=plans)) for n, plans, _ in arm_runs])
+        lines.append(f"recording: {tb.record} (triad) and {pr} (planned motions)  (open them with `errplan view`)")
+    doc = {"scenario": st.name, "triads": [{"name": r.name, "best": r.data["best"]} for r in results],
+           "queries": qdocs, "timing_s": times}
+    return "\n".join(lines), doc
+
+
+def _arm_run(job: DemoJob, quiet: bool) -> tuple[list, list]:
+    """An arm of the setup one step after another: fields, plan, gains and replays; (plans, runs)."""
+    from ..pipeline import run_pipeline
+
+    sc = job.load()
+    with _step(sc.name, "fields"):
+        mf = _fields(sc, job.spatial_demo, Progress(f"fields ({sc.name})", quiet=quiet))
+    with _step(sc.name, "plan"):
+        plans = _plans(sc, mf)
+    warmup.wait(f"gains{sc.dim}")
+    with _step(sc.name, "queries+record"):
+        res = run_pipeline(sc, plans, mf)
+    return plans, res["runs"]
+
+
+def _run_triad(tb: TriadBlock, quiet: bool) -> dict:
+    """The setup's block one step after another (prints it)."""
+    t0 = time.perf_counter()
+    with _step(tb.st.name, "triad"):
+        results = _triad_task(tb.st)
+    t1 = time.perf_counter()
+    arm_runs = [(n, *_arm_run(job, quiet)) for n, job in tb.arms]
+    t2 = time.perf_counter()
+    times = {"triad": t1 - t0, "arms": t2 - t1, "total": t2 - t0}
+    with _step(tb.st.name, "record"):
+        text, doc = _triad_report(tb, results, arm_runs, times)
+    print(text)
+    return doc
 
 
 def demo_workers() -> int:
@@ -189,30 +320,36 @@ def demo_workers() -> int:
     return n
 
 
-def run_jobs(jobs: list[DemoJob], quiet: bool, workers: int = 1) -> list[dict]:
-    """Every scenario of ``jobs``, its block printed in the jobs' order (a blank line between blocks);
-    returns their JSON documents. ``workers`` 1: one scenario after the other in this process
-    (:func:`run_scenario`); more: side by side (:func:`_run_side_by_side`), the same blocks."""
+def run_jobs(jobs: list[DemoJob], quiet: bool, workers: int = 1, triad: TriadBlock | None = None) -> list[dict]:
+    """Every scenario of ``jobs``, its block printed in the jobs' order (a blank line between blocks), then
+    the several-instrument setup's block (``triad``, optional); returns their JSON documents (the setup's
+    last). ``workers`` 1: one scenario after the other in this process (:func:`run_scenario`,
+    :func:`_run_triad`); more: side by side (:func:`_run_side_by_side`), the same blocks."""
     if workers <= 1:
         docs = []
         for i, job in enumerate(jobs):
             if i:
                 print()
             docs.append(run_scenario(job.load(), job.path, job.record, quiet, spatial_demo=job.spatial_demo))
+        if triad is not None:
+            triad.load()
+            if jobs:
+                print()
+            docs.append(_run_triad(triad, quiet))
         return docs
-    return _run_side_by_side(jobs, quiet, workers)
+    return _run_side_by_side(jobs, quiet, workers, triad)
 
 
 def _fields_task(sc, spatial_demo, quiet: bool):
-    """A scenario's fields in a worker process (its own worker processes for the tiles where
-    :func:`_fields` uses all cores)."""
+    """A scenario's fields in a worker process, its tiles one after another (one process: the other
+    core has the demo's other steps)."""
     prog = Progress(f"fields ({sc.name})", quiet=quiet)
-    mf = _fields(sc, spatial_demo, prog)
+    mf = _fields(sc, spatial_demo, prog, workers=1)
     prog.done()
     return mf
 
 
-def _run_side_by_side(jobs: list[DemoJob], quiet: bool, slots: int) -> list[dict]:
+def _run_side_by_side(jobs: list[DemoJob], quiet: bool, slots: int, triad: TriadBlock | None = None) -> list[dict]:
     """The scenarios' steps spread over ``slots`` worker processes (:class:`errplan.cluster.ForkedTasks`,
     forked: each step has the models and kernels this process holds), with the same results and the same
     printed blocks, in the same order, as :func:`run_scenario` one after the other.
@@ -223,15 +360,31 @@ def _run_side_by_side(jobs: list[DemoJob], quiet: bool, slots: int) -> list[dict
     replays (:func:`errplan.pipeline.run_query`) is a task; its recording and its block are made here
     once all its queries are back. Fields first (the heaviest scenario's first, or with a first run's
     warm-up the jobs' order, the order the warm-up compiles in), then the queries, the heaviest
-    scenario's first; a step whose kernels the warm-up still compiles waits for them.
+    scenario's first; a step whose kernels the warm-up still compiles waits for them. The setup
+    (``triad``): its triad placement is one task among the fields, each of its arms a scenario without a
+    block of its own; its block comes last, once the placement and every arm are back.
     """
     from ..cluster import ForkedTasks
     from ..pipeline import finish_pipeline, query_jobs, run_query
     from ..gains import options_from_scenario
 
+    n_shown = len(jobs)
+    tstate = {"t0": None, "results": None, "text": None, "doc": None}
+    arm_idx: list[int] = []
+    if triad is not None:
+        triad.load()
+        jobs = list(jobs)
+        arm_idx = list(range(len(jobs), len(jobs) + len(triad.arms)))
+        jobs.extend(job for _, job in triad.arms)
     n = len(jobs)
-    order = list(range(n)) if warmup.active() else sorted(range(n), key=lambda i: -jobs[i].weight)
+    # the setup's triad placement: unit -1 (a task among the fields), weighed between the planar and the
+    # spatial scenario (a few seconds of one process)
+    units = list(range(n)) + ([-1] if triad is not None else [])
+    weight = {i: (jobs[i].weight if i >= 0 else 1.5) for i in units}
+    order = units if warmup.active() else sorted(units, key=lambda i: -weight[i])
     rank = {i: r for r, i in enumerate(order)}
+    qorder = sorted(range(n), key=lambda i: -(jobs[i].weight if jobs[i].query_weight is None else jobs[i].query_weight))
+    qrank = {i: r for r, i in enumerate(qorder)}
     state = [{"runs": None, "text": None, "doc": None} for _ in jobs]
     pending: list[tuple] = [(0, rank[i], 0, i) for i in order]  # (kind 0 fields / 1 query, rank, query, job)
     tasks = ForkedTasks(slots)
@@ -241,6 +394,8 @@ def _run_side_by_side(jobs: list[DemoJob], quiet: bool, slots: int) -> list[dict
         kind, _, _, i = item
         if kind:
             return True
+        if i < 0:
+            return warmup.ready("anatomy")
         job = jobs[i]
         if job.sc is None and job.load_part and not warmup.ready(job.load_part):
             return False
@@ -262,7 +417,7 @@ def _run_side_by_side(jobs: list[DemoJob], quiet: bool, slots: int) -> list[dict
         s["opts"] = options_from_scenario(sc)
         s["runs"] = [None] * len(s["qjs"])
         s["prog"] = Progress(f"gains+simulation ({sc.name})", quiet=quiet)
-        pending.extend((1, rank[i], q, i) for q in range(len(s["qjs"])))
+        pending.extend((1, qrank[i], q, i) for q in range(len(s["qjs"])))
 
     def on_query(i: int, q: int, run) -> None:
         job, s = jobs[i], state[i]
@@ -270,6 +425,10 @@ def _run_side_by_side(jobs: list[DemoJob], quiet: bool, slots: int) -> list[dict
         left = sum(r is None for r in s["runs"])
         s["prog"](1.0 - left / len(s["runs"]), f"{run.name} done")
         if left:
+            return
+        if job.hidden:  # an arm of the setup: its figures go into the setup's block
+            s["prog"].done()
+            s["text"], s["end"] = "", time.perf_counter()
             return
         with _step(job.sc.name, "record"):
             res = finish_pipeline(job.sc, s["plans"], s["runs"], s["mf"],
@@ -280,8 +439,20 @@ def _run_side_by_side(jobs: list[DemoJob], quiet: bool, slots: int) -> list[dict
                  "total": end - s["t0"]}
         s["text"], s["doc"] = _report(job.sc, job.path, job.record, res, job.spatial_demo, times)
 
+    def triad_block() -> None:
+        if tstate["results"] is None or any(state[j]["text"] is None for j in arm_idx):
+            return
+        t1 = min(state[j]["t0"] for j in arm_idx) if arm_idx else tstate["t_end"]
+        end = time.perf_counter()
+        times = {"triad": tstate["t_end"] - tstate["t0"], "arms": max([state[j]["end"] for j in arm_idx] or [t1]) - t1,
+                 "total": end - min(t1, tstate["t0"])}
+        with _step(triad.st.name, "record"):
+            tstate["text"], tstate["doc"] = _triad_report(
+                triad, tstate["results"], [(nm, state[j]["plans"], state[j]["runs"])
+                                           for (nm, _), j in zip(triad.arms, arm_idx)], times)
+
     try:
-        while printed < n:
+        while printed < n_shown or (triad is not None and tstate["doc"] is None):
             pending.sort()
             blocked = False
             while tasks.free > 0 and pending:
@@ -291,10 +462,13 @@ def _run_side_by_side(jobs: list[DemoJob], quiet: bool, slots: int) -> list[dict
                     break
                 pending.remove(item)
                 kind, _, q, i = item
-                job, s = jobs[i], state[i]
-                if kind == 0:
+                job, s = (jobs[i], state[i]) if i >= 0 else (None, None)
+                if kind == 0 and i < 0:
+                    tstate["t0"] = time.perf_counter()
+                    tasks.start((0, i, 0), _triad_task, triad.st, light=True)
+                elif kind == 0:
                     s["t0"] = time.perf_counter()
-                    tasks.start((0, i, 0), _fields_task, job.sc, job.spatial_demo, quiet, light=not job.spatial_demo)
+                    tasks.start((0, i, 0), _fields_task, job.sc, job.spatial_demo, quiet, light=True)
                 else:
                     tasks.start((1, i, q), partial(run_query, options=s["opts"], model=s["model"]), job.sc,
                                 s["qjs"][q], light=True)
@@ -304,22 +478,31 @@ def _run_side_by_side(jobs: list[DemoJob], quiet: bool, slots: int) -> list[dict
                 time.sleep(0.05)  # waiting for the warm-up
                 continue
             for (kind, i, q), res in tasks.collect(0.05 if blocked else None):
-                if kind == 0:
+                if kind == 0 and i < 0:
+                    tstate["results"], tstate["t_end"] = res, time.perf_counter()
+                elif kind == 0:
                     on_fields(i, res)
                 else:
                     on_query(i, q, res)
-            while printed < n and state[printed]["text"] is not None:
+            while printed < n_shown and state[printed]["text"] is not None:
                 if printed:
                     print()
                 print(state[printed]["text"], flush=True)
                 printed += 1
+            if triad is not None and printed == n_shown and tstate["doc"] is None:
+                triad_block()
+                if tstate["doc"] is not None:
+                    if n_shown:
+                        print()
+                    print(tstate["text"], flush=True)
     finally:
         tasks.close()
         for e in tasks.log:
             kind, i, q = e["key"]
-            _STEPS.append({"scenario": jobs[i].sc.name, "step": "fields" if kind == 0 else f"query {q}",
+            _STEPS.append({"scenario": jobs[i].sc.name if i >= 0 else triad.st.name,
+                           "step": "triad" if i < 0 else "fields" if kind == 0 else f"query {q}",
                            "process": "worker", "start": e["start"], "end": e["end"], "cpu": e["cpu"]})
-    return [s["doc"] for s in state]
+    return [s["doc"] for s in state[:n_shown]] + ([tstate["doc"]] if triad is not None else [])
 
 
 def run(args) -> int:
@@ -348,13 +531,17 @@ def run(args) -> int:
         # (errplan.cli.warmup): the arm's kinematics first (a few seconds, so that this process finds
         # them), the spatial search (the longest, ready about when this process has built the map), the
         # planner's and the gains' kernels in the order a scenario's steps call them, the anatomy's. The
-        # bundled scenarios are loaded when their turn comes. Their weights: the work of each (the
-        # abdomen's queries are the longest, then the PHANToM's fields and queries).
+        # bundled scenarios are loaded when their turn comes. Their weights, side by side: the planar
+        # fields first (loaded already and short: they run while this process loads the abdomen, and the
+        # planar plan and queries, the demo's longest, come early), then the abdomen's (the longest), the
+        # PHANToM's, the setup's triad placement and its arms'; the queries the longest first.
         warmup.start(("plan2", "arm", "fields3g", "plan3", "gains3", "anatomy"))
-        jobs = [DemoJob(path, sc=load_scenario(path)),
-                DemoJob(BUNDLED_SPATIAL, True, "arm", weight=2.0)]
+        jobs = [DemoJob(path, weight=3.5, query_weight=3.0, sc=load_scenario(path)),
+                DemoJob(BUNDLED_SPATIAL, True, "arm", weight=2.0, query_weight=1.5)]
         if BUNDLED_ANATOMY.exists():
-            jobs.append(DemoJob(BUNDLED_ANATOMY, "own", "anatomy", weight=3.0))
+            jobs.append(DemoJob(BUNDLED_ANATOMY, "own", "anatomy", weight=3.0, query_weight=2.0))
+    # the several-instrument setup after the scenarios (with --scenario: none)
+    triad = TriadBlock(BUNDLED_TRIAD) if not args.scenario and BUNDLED_TRIAD.exists() else None
     rec = check_output("--record", args.record)
     check_output("--json", args.json)
     recs = [rec] + [spatial_record_path(rec, tag) if rec else None for tag in ("3d", "abdomen")[:len(jobs) - 1]]
@@ -363,12 +550,18 @@ def run(args) -> int:
             check_output("--record", str(r))
     for job, r in zip(jobs, recs):
         job.record = r
-    docs = run_jobs(jobs, quiet, workers)
+    if triad is not None and rec:
+        triad.record = spatial_record_path(rec, "triad")
+        for r in (triad.record, triad.plan_record()):
+            check_output("--record", str(r))
+    docs = run_jobs(jobs, quiet, workers, triad)
     doc = dict(docs[0])
-    if len(docs) > 1:
+    if len(jobs) > 1:
         doc["spatial"] = docs[1]
-    if len(docs) > 2:
+    if len(jobs) > 2:
         doc["anatomy"] = docs[2]
+    if triad is not None:
+        doc["setup"] = docs[-1]
     doc["total_s"] = time.perf_counter() - t0
     if args.json:
         write_json(args.json, doc)

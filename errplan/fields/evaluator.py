@@ -80,9 +80,15 @@ class Evaluator:
 
     def parts(self, x: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Conformal parts ``(mu, nu)`` of ``M = J Jhat^-1`` (..., c) and validity (...)."""
+        return self.parts_reach(x, theta)[:3]
+
+    def parts_reach(self, x: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`parts` and the truth's reach of :meth:`true_wrist` (...), the true wrist solved once."""
         if self.effects:
-            return self._effect_parts(np.asarray(x, float), np.asarray(theta, float))
+            mu, nu, ok = self._effect_parts(np.asarray(x, float), np.asarray(theta, float))
+            return mu, nu, ok, self.true_wrist(x, theta)[1]
         w, ok = self.true_wrist(x, theta)
+        reach = ok
         wsafe = np.where(ok[..., None], w, np.asarray(self.arm.base))
         port = self.errors.port(theta)
         t = theta[..., 2]
@@ -97,8 +103,7 @@ class Evaluator:
         bad = singular | ~np.isfinite(mu) | ~np.isfinite(nu)
         # A singular or unidentifiable controller Jacobian is unbounded error: not a valid tip.
         ok = ok & ~np.any(bad, axis=-1)
-        return mu, nu, ok
-
+        return mu, nu, ok, reach
 
     def plant(self, theta: np.ndarray) -> Plant:
         """The truth of instance(s) ``theta`` with the scenario's effects."""

@@ -48,8 +48,7 @@ def _pairs(ev: Evaluator, x: np.ndarray, th: np.ndarray):
     n, m = len(x), len(th)
     X = np.repeat(x, m, axis=0)
     TH = np.tile(th, (n, 1))
-    _, reach = ev.true_wrist(X, TH)
-    mu, nu, ok = ev.parts(X, TH)
+    mu, nu, ok, reach = ev.parts_reach(X, TH)
     c = mu.shape[-1]
     return mu.reshape(n, m, c), nu.reshape(n, m, c), reach.reshape(n, m), ok.reshape(n, m)
 

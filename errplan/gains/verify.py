@@ -23,22 +23,28 @@ def _pair_g(ev, k: np.ndarray, singular: np.ndarray):
         return lambda x, th, i: _g3(ev, x, th, k[i], singular[i])
 
     def g1(x, th, kk):
-        mu, nu, ok = ev.parts(x, th)
-        _, reach = ev.true_wrist(x, th)
+        mu, nu, ok, reach = ev.parts_reach(x, th)
         return _worst_g(mu, nu, reach, ok, kk)
 
-    return lambda x, th, i: _per_segment(lambda xs, ts, s: g1(xs, ts, k[s]), x, th, i)
+    return lambda x, th, i: _per_segment(lambda xs, ts, s: g1(xs, ts, k[s][:, None]), x, th, i)
 
 
 def _per_segment(f, x: np.ndarray, th: np.ndarray, i: np.ndarray) -> np.ndarray:
-    """``f(x, th, s)`` one segment ``s`` at a time (``i`` the pairs' segment indices, nondecreasing): the
-    planar physics (numpy) takes the straight-shaft fast path when no pair of a call carries a load,
-    so a call holds the pairs of one segment only, as when each segment was verified on its own."""
+    """``f(x, th, s)`` with ``s`` the pairs' segment indices (``i``), the values each segment's pairs get
+    on their own: the planar physics (numpy) is elementwise but for one choice per call, the
+    straight-shaft fast path when no pair of the call carries a load (the flexed beam's formulas at zero
+    load agree only to rounding). So the segments whose pairs carry some load go in one call and those
+    whose pairs carry none in another: each pair takes the path it takes when its segment is verified
+    alone, in at most two calls."""
     out = np.empty(len(x))
-    cut = np.flatnonzero(np.diff(i)) + 1
-    for lo, hi in zip(np.r_[0, cut], np.r_[cut, len(x)]):
-        if hi > lo:
-            out[lo:hi] = f(x[lo:hi], th[lo:hi], i[lo])
+    if not len(x):
+        return out
+    seg_loaded = np.zeros(int(i.max()) + 1, bool)
+    seg_loaded[i[th[:, 2] != 0]] = True
+    loaded = seg_loaded[i]
+    for sel in (loaded, ~loaded):
+        if np.any(sel):
+            out[sel] = f(x[sel], th[sel], i[sel])
     return out
 
 
