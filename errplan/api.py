@@ -227,11 +227,26 @@ def _scenario(scenario):
 
 
 def load_models(path: str | Path) -> tuple:
-    """Every instrument arm of a scenario file built once (:func:`errplan.models.build`): one
-    :class:`~errplan.models.ArmModel` per ``[[arm]]`` (in file order; a one-instrument file gives one,
+    """Every instrument arm of a scenario file built once (:func:`errplan.models.build`).
+
+    One :class:`~errplan.models.ArmModel` per ``[[arm]]`` (in file order; a one-instrument file gives one,
     named ``"arm"``), each as it moves among the others (their held shafts and the endoscope's among its
     obstacles). Every function here takes a model where it takes a scenario, and uses its built parts
-    (arm, error set, truth, anatomy) instead of building them again.
+    (arm, error set, truth, anatomy) instead of building them again; a model also answers every table of
+    its scenario (``m.queries``, ``m.planner``, ...).
+
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        A scenario file (one instrument, or several ``[[arm]]`` tables); read and checked as
+        :func:`load_setup` does.
+
+    Returns
+    -------
+    tuple of ArmModel
+        ``.name``, ``.dim``, ``.scenario`` (the plain data), ``.arm`` (kinematics), ``.errors`` /
+        ``.true_errors`` (error sets), ``.truth`` (the true robot), ``.anatomy`` (obstacles as this arm
+        sees them, or None), the controller's ``.jacobian``, ``.gain``, ``.noise``, ``.estimate``.
 
     Examples
     --------
