@@ -244,15 +244,15 @@ def load_models(path: str | Path) -> tuple:
     Returns
     -------
     tuple of ArmModel
-        ``.name``, ``.dim``, ``.scenario`` (the plain data), ``.arm`` (kinematics), ``.errors`` /
-        ``.true_errors`` (error sets), ``.truth`` (the true robot), ``.anatomy`` (obstacles as this arm
+        ``.arm_name``, ``.dim``, ``.scenario`` (the plain data), ``.arm`` (kinematics), ``.errors`` /
+        ``.true_errors`` (error sets), ``.truth`` (the true robot), ``.anatomy_model`` (obstacles as this arm
         sees them, or None), the controller's ``.jacobian``, ``.gain``, ``.noise``, ``.estimate``.
 
     Examples
     --------
     >>> import errplan
     >>> (m,) = errplan.api.load_models("scenarios/beasley2004_port.toml")
-    >>> m.name, m.dim, m.errors.dim, m.truth.dim
+    >>> m.arm_name, m.dim, m.errors.dim, m.truth.dim
     ('arm', 2, 2, 2)
     """
     from .models import build

@@ -13,7 +13,7 @@ one-instrument scenario is the one-arm case, its arm named ``"arm"``). An :class
   that change the true Jacobian),
 - the truth (``truth``: the :class:`~errplan.kinematics.truth.Plant` at the load of the error set
   closest to 0, with its ``[effects]``, without sensor noise),
-- the anatomy as this arm sees it (``anatomy``: an :class:`errplan.anatomy.ShaftClearance` of its
+- the anatomy as this arm sees it (``anatomy_model``: an :class:`errplan.anatomy.ShaftClearance` of its
   obstacles, the held shafts of the others included, for the port box of ``true_errors``; None without
   obstacles), built on first use and then shared,
 - the controller's parameters (``jacobian``, ``gain``, ``noise``, ``estimate``, ``length``) and the
@@ -48,7 +48,7 @@ class ArmModel:
     """One instrument arm built once (see the module docstring). Immutable: the per-call scratch of a
     computation stays out of it (as pinocchio's Model and Data)."""
 
-    name: str
+    arm_name: str
     scenario: Scenario
 
     # -- plain data, named -------------------------------------------------------------------------
@@ -128,7 +128,7 @@ class ArmModel:
         return Plant.from_model(self, load=self.truth_load)
 
     @cached_property
-    def anatomy(self):
+    def anatomy_model(self):
         """The :class:`errplan.anatomy.ShaftClearance` of this arm's obstacles (the others' held shafts
         included) for the port box of :attr:`true_errors`, or None. Built on first use, then shared."""
         an = self.scenario.anatomy
@@ -145,17 +145,17 @@ class ArmModel:
         return getattr(self.scenario, name)
 
     def __reduce__(self):  # to a worker process: the plain data; a worker builds what it uses, once
-        return (ArmModel, (self.name, self.scenario))
+        return (ArmModel, (self.arm_name, self.scenario))
 
     def __repr__(self) -> str:
-        return f"ArmModel({self.name!r}, dim={self.dim}, source={self.scenario.source!r})"
+        return f"ArmModel({self.arm_name!r}, dim={self.dim}, source={self.scenario.source!r})"
 
 
-def build_arm(sc: Scenario, name: str = "arm") -> ArmModel:
+def build_arm(sc: Scenario, arm_name: str = "arm") -> ArmModel:
     """The :class:`ArmModel` of one arm's scenario (as it moves among the others: :meth:`Setup.moving`)."""
     if isinstance(sc, ArmModel):
         return sc
-    m = ArmModel(name, sc)
+    m = ArmModel(arm_name, sc)
     m.arm, m.true_errors  # the kinematics and the error sets now: a bad robot fails at the top
     return m
 
@@ -170,6 +170,6 @@ def build(source: Setup | Scenario | ArmModel) -> tuple[ArmModel, ...]:
     return (build_arm(source),)
 
 
-def arm_model(x: Scenario | ArmModel, name: str = "arm") -> ArmModel:
+def arm_model(x: Scenario | ArmModel, arm_name: str = "arm") -> ArmModel:
     """``x`` itself when it is a model (what the top built), else the model of scenario ``x``."""
-    return x if isinstance(x, ArmModel) else build_arm(x, name)
+    return x if isinstance(x, ArmModel) else build_arm(x, arm_name)

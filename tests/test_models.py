@@ -49,14 +49,15 @@ def _box(sc) -> ErrorSet:
 def test_one_instrument_scenario_is_the_one_arm_case():
     sc = api.load_scenario(BOUNDED)
     (m,) = build(sc)
-    assert isinstance(m, ArmModel) and m.name == "arm" and m.scenario is sc
+    assert isinstance(m, ArmModel) and m.arm_name == "arm" and m.scenario is sc
+    assert m.name == sc.name and m.anatomy is sc.anatomy  # the tables answer as the scenario's
     assert m.dim == sc.dim == 2 and m.estimate == tuple(sc.port.estimate) and m.gain == sc.controller.gain
     assert m.errors == _box(sc)
     assert build(m) == (m,) and arm_model(m) is m  # what the top built passes through
     (m2,) = api.load_models(BOUNDED)
     assert m2.errors == m.errors and m2.queries == sc.queries  # a model answers its scenario's tables
     with pytest.raises(dataclasses.FrozenInstanceError):
-        m.name = "other"
+        m.arm_name = "other"
 
 
 def test_planar_steps_from_the_model_equal_the_tables():
@@ -147,7 +148,7 @@ def test_the_urdf_and_the_anatomy_are_built_once(monkeypatch):
         assert sm.arm is m.arm and plant.arm is m.arm and ctl.arm is m.arm and ms[1].arm is m.arm
         assert len(loads) == n_load
         if m.scenario.anatomy is not None:
-            assert sm.anatomy is m.anatomy and m.anatomy is m.anatomy
+            assert sm.anatomy_model is m.anatomy_model and m.anatomy_model is m.anatomy_model
             assert len(builds) == 1
     finally:
         _urdf_arm.cache_clear()
@@ -156,8 +157,8 @@ def test_the_urdf_and_the_anatomy_are_built_once(monkeypatch):
 def test_a_model_pickles_to_its_plain_data():
     (m,) = api.load_models(SPATIAL)
     m2 = pickle.loads(pickle.dumps(m))
-    assert set(m2.__dict__) == {"name", "scenario"}  # the built parts are not carried: a worker builds its own
-    assert isinstance(m2, ArmModel) and m2.name == m.name and m2.errors == m.errors
+    assert set(m2.__dict__) == {"arm_name", "scenario"}  # the built parts are not carried: a worker builds its own
+    assert isinstance(m2, ArmModel) and m2.arm_name == m.arm_name and m2.errors == m.errors
     assert m2.arm is m.arm  # (in this process: the same cached URDF arm)
 
 
@@ -165,15 +166,15 @@ def test_a_model_pickles_to_its_plain_data():
 def test_two_arms_each_see_the_others_held_shaft():
     st = api.load_setup(TRIAD)
     ms = build(st)
-    assert [m.name for m in ms] == list(st.arm_names) and len(ms) == 2
+    assert [m.arm_name for m in ms] == list(st.arm_names) and len(ms) == 2
     for m, other in ((ms[0], ms[1]), (ms[1], ms[0])):
         names = [o.name for o in m.scenario.anatomy.obstacles]
-        assert f"{other.name} shaft (held)" in names and f"{m.name} shaft (held)" not in names
-        rest = np.asarray(st.rest(other.name), float)
-        alone = build_arm(st.arm(m.name)).anatomy
+        assert f"{other.arm_name} shaft (held)" in names and f"{m.arm_name} shaft (held)" not in names
+        rest = np.asarray(st.rest(other.arm_name), float)
+        alone = build_arm(st.arm(m.arm_name)).anatomy_model
         # the other's tip at rest lies on its held shaft: this arm's tip there is not clear, alone it is
-        assert float(m.anatomy.tip(rest[None])[0]) < m.anatomy.required
-        assert float(alone.tip(rest[None])[0]) > float(m.anatomy.tip(rest[None])[0])
+        assert float(m.anatomy_model.tip(rest[None])[0]) < m.anatomy_model.required
+        assert float(alone.tip(rest[None])[0]) > float(m.anatomy_model.tip(rest[None])[0])
     assert all(a.arm is b.arm for a, b in zip(ms, build(st)))  # each robot loaded once
 
 
@@ -192,6 +193,16 @@ def test_no_step_builds_from_the_scenario():
     dims = [f"{p}: {line.strip()}" for p, text in _sources() for line in text.splitlines()
             if re.search(r"getattr\([^)]*[\"']dim[\"']", line)]
     assert not dims, "\n".join(dims)
+
+
+def test_a_model_shadows_no_table_of_its_scenario():
+    """A model goes where a scenario went: none of its own names may hide one of the scenario's (its
+    ``name`` is the scenario's, its ``anatomy`` the ``[anatomy]`` table), except ``dim`` (the same)."""
+    from errplan.scenario import Scenario
+
+    own = {n for n in dir(ArmModel) if not n.startswith("_")} | {f.name for f in dataclasses.fields(ArmModel)}
+    theirs = {n for n in dir(Scenario) if not n.startswith("_")} | {f.name for f in dataclasses.fields(Scenario)}
+    assert own & theirs == {"dim"}
 
 
 def test_every_scenario_object_has_a_dim():

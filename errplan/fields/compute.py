@@ -459,7 +459,7 @@ def anatomy_model(sc, es: ErrorSet | None = None):
     """The :class:`errplan.anatomy.ShaftClearance` of a spatial scenario's ``[anatomy]`` (obstacles and
     body wall) for the port box of its error set, or None (no anatomy, or nothing in it)."""
     if hasattr(type(sc), "true_errors") and (es is None or es == sc.true_errors):
-        return sc.anatomy  # an errplan.models.ArmModel: built once
+        return sc.anatomy_model  # an errplan.models.ArmModel: built once
     an = getattr(sc, "anatomy", None)
     if an is None or (not an.obstacles and an.body_wall is None):
         return None

@@ -173,7 +173,7 @@ class SpatialModel:
         self.delta = float(np.max(np.linalg.norm(es.port_corners() - self.estimate, axis=-1)))
         tmax = float(max(abs(es.lo[3]), abs(es.hi[3])))
         self.deviation = self.length * math.atan(tmax * self.length ** 2 / 12.0)
-        self.anatomy = m.anatomy  # [anatomy] obstacles (errplan.anatomy.ShaftClearance) or None, built once
+        self.anatomy = m.anatomy_model  # [anatomy] obstacles (errplan.anatomy.ShaftClearance) or None, built once
 
     @classmethod
     def from_model(cls, m) -> "SpatialModel":
