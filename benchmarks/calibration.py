@@ -35,6 +35,7 @@ from errplan.report import format_table  # noqa: E402
 from errplan.scenario import Robot  # noqa: E402
 from errplan.api import load_scenario
 from errplan.simulation import Plant  # noqa: E402
+from errplan.models import build_arm
 
 PORT = ROOT / "scenarios" / "beasley2004_port.toml"
 GRAVITY = {"gravity_sag": {"c1": 0.004, "c2": 0.002, "c3": 0.003}}
@@ -69,7 +70,7 @@ def _wrong_link(sc):
     r = sc.robot
     wrong = sc.with_(robot=Robot(r.base, (r.link_lengths[0], r.link_lengths[1] + 0.004), r.home_angles,
                                  r.joint_limits, r.joint_sum_limits))
-    return Plant.from_scenario(wrong, noise=True)
+    return Plant.from_model(build_arm(wrong), noise=True)
 
 
 def _long_shaft(sc):

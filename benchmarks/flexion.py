@@ -22,6 +22,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from errplan.models import build_arm
 
 REPO = Path(__file__).resolve().parents[1]
 FLEX = REPO / "scenarios" / "phantom15_flexion.toml"
@@ -52,8 +53,8 @@ def main() -> int:
 
     sc = load_scenario(FLEX)
     k = float(sc.controller.gain)
-    ev = SpatialFlexionEvaluator.from_scenario(sc)
-    ref = NumpyFlexionEvaluator.from_scenario(sc)
+    ev = SpatialFlexionEvaluator.from_model(build_arm(sc))
+    ref = NumpyFlexionEvaluator.from_model(build_arm(sc))
     X = widened_tips()
     load0 = os.getloadavg()[0]
     numpy_worst_case(ev, X[:2], k)  # load (or compile) the kernels outside the measurement

@@ -35,6 +35,7 @@ from errplan.pipeline import replay, truth_plant  # noqa: E402
 from errplan.report import format_table  # noqa: E402
 from errplan.api import load_scenario  # noqa: E402
 from errplan.simulation import ControllerModel  # noqa: E402
+from errplan.models import build_arm
 
 
 def predicted_steps(radii, rhos, tols):
@@ -55,7 +56,7 @@ def main() -> int:
             ev = SpatialModel(sc)
             mf = compute_fields(sc, SPATIAL_RESOLUTION, metrics=SPATIAL_METRICS, workers=None)
         else:
-            ev = Evaluator.from_scenario(sc)
+            ev = Evaluator.from_model(build_arm(sc))
             mf = compute_fields(sc, rho_star=True)
         for qp in planning.plan_scenario(sc, mf).queries:
             t0 = time.perf_counter()
@@ -72,7 +73,7 @@ def main() -> int:
             alone = predicted_steps(radii, [o[0] for o in own], tols)
             jump_joint = float(np.max(np.abs(np.diff(gs.gains)))) if len(segs) > 1 else 0.0
             jump_alone = float(np.max(np.abs(np.diff([o[1] for o in own])))) if len(segs) > 1 else 0.0
-            sim = replay(truth_plant(sc), ControllerModel.from_scenario(sc), qp.planned.path[0], gs.waypoints,
+            sim = replay(truth_plant(sc), ControllerModel.from_model(build_arm(sc)), qp.planned.path[0], gs.waypoints,
                          gs.gains, gs.options, sc.planner.seed)
             cas = f"{gs.solver.get('time_s', float('nan')):.4f}"
             if sc.dim == 3:

@@ -11,7 +11,7 @@ The Python API (:mod:`errplan.api`, loaded on first use so that ``import errplan
 from .errors import DataError, ErrplanError, InfeasibleError, ScenarioError
 
 __version__ = "0.1.0"
-_API = ("load_scenario", "parse_scenario", "compute_fields", "plan", "tolerances", "run_experiment", "calibrate", "Scenario")
+_API = ("load_scenario", "load_models", "parse_scenario", "compute_fields", "plan", "tolerances", "run_experiment", "calibrate", "Scenario")
 __all__ = [*_API, "ErrplanError", "ScenarioError", "DataError", "InfeasibleError", "__version__"]
 
 

@@ -6,6 +6,7 @@ function              command                     returns
 ====================  ==========================  ==========================================================
 :func:`load_scenario` every command               :class:`~errplan.scenario.Scenario` (validated, checked
                                                   against its robot)
+:func:`load_models`   (the steps below)           one :class:`~errplan.models.ArmModel` per arm, built once
 :func:`compute_fields` ``errplan fields``         :class:`~errplan.fields.MetricField` (``.save(npz)``,
                                                   ``.summary()``, the arrays by name)
 :func:`plan`          ``errplan plan``            :class:`~errplan.planning.ScenarioPlan` with gains and
@@ -32,7 +33,7 @@ from typing import Any, Callable, Mapping, Sequence
 from .kinematics import check_scenario
 from .scenario import Scenario, Setup, read_scenario, read_setup, scenario_from_dict
 
-__all__ = ["Scenario", "Setup", "load_scenario", "load_setup", "load_arm", "parse_scenario", "compute_fields", "plan", "tolerances", "run_experiment",
+__all__ = ["Scenario", "Setup", "load_scenario", "load_setup", "load_arm", "load_models", "parse_scenario", "compute_fields", "plan", "tolerances", "run_experiment",
            "calibrate"]
 
 Progress = Callable[[float, str], None]
@@ -235,8 +236,48 @@ def _part(progress: Progress | None, lo: float, hi: float) -> Progress | None:
     return lambda f, msg="": progress(lo + (hi - lo) * f, msg)
 
 
-def _scenario(scenario: Scenario | str | Path) -> Scenario:
-    return scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
+def _scenario(scenario):
+    """The arm's model (:class:`errplan.models.ArmModel`), built here once for every step below: a model
+    passes through, a scenario is built, a path is loaded and built."""
+    from .models import ArmModel, arm_model
+
+    if isinstance(scenario, ArmModel):
+        return scenario
+    return arm_model(scenario if isinstance(scenario, Scenario) else load_scenario(scenario))
+
+
+def load_models(path: str | Path) -> tuple:
+    """Every instrument arm of a scenario file built once (:func:`errplan.models.build`).
+
+    One :class:`~errplan.models.ArmModel` per ``[[arm]]`` (in file order; a one-instrument file gives one,
+    named ``"arm"``), each as it moves among the others (their held shafts and the endoscope's among its
+    obstacles). Every function here takes a model where it takes a scenario, and uses its built parts
+    (arm, error set, truth, anatomy) instead of building them again; a model also answers every table of
+    its scenario (``m.queries``, ``m.planner``, ...).
+
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        A scenario file (one instrument, or several ``[[arm]]`` tables); read and checked as
+        :func:`load_setup` does.
+
+    Returns
+    -------
+    tuple of ArmModel
+        ``.arm_name``, ``.dim``, ``.scenario`` (the plain data), ``.arm`` (kinematics), ``.errors`` /
+        ``.true_errors`` (error sets), ``.truth`` (the true robot), ``.anatomy_model`` (obstacles as this arm
+        sees them, or None), the controller's ``.jacobian``, ``.gain``, ``.noise``, ``.estimate``.
+
+    Examples
+    --------
+    >>> import errplan
+    >>> (m,) = errplan.api.load_models("scenarios/beasley2004_port.toml")
+    >>> m.arm_name, m.dim, m.errors.dim, m.truth.dim
+    ('arm', 2, 2, 2)
+    """
+    from .models import build
+
+    return build(load_setup(path))
 
 
 def compute_fields(scenario: Scenario | str | Path, resolution: float | None = None, *,

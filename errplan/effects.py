@@ -170,7 +170,7 @@ def catalogue(sc, names: Sequence[str] | None = None, *, skip_without_gravity: b
     with identically zero joints fixed. A URDF without inertial data has no gravity sag: one clear
     error, or (``skip_without_gravity``) the catalogue without it."""
     names = [c.name for c in CATALOGUE] if names is None else list(names)
-    if getattr(sc, "dim", 2) == 2:
+    if sc.dim == 2:
         return [make_effect(n) for n in names]
     from .kinematics import arm_for
 
@@ -226,7 +226,7 @@ class _GravityCache:
 
 def with_gravity_cache(plant):
     """``plant`` with its URDF arm's generalized gravity memoised (a planar plant as it is)."""
-    if getattr(plant, "dim", 2) != 3 or isinstance(plant.arm, _GravityCache):
+    if plant.dim != 3 or isinstance(plant.arm, _GravityCache):
         return plant
     return plant.with_(arm=_GravityCache(plant.arm))
 

@@ -61,7 +61,7 @@ def csv_columns(dim: int = 2, n_joints: int = 2) -> tuple[str, ...]:
 
 def data_shape(sc) -> tuple[int, int]:
     """``(dim, n_joints)`` of the measured data of scenario ``sc``."""
-    if getattr(sc, "dim", 2) == 3:
+    if sc.dim == 3:
         return 3, len(sc.robot.joints)
     return 2, 2
 
@@ -316,7 +316,7 @@ def read_measured_csv(path: str | Path, sc=None) -> MeasuredData:
 
 def require_planar(sc, what: str) -> None:
     """Bench runs and calibration are planar for now: a spatial scenario gets one clear error."""
-    if getattr(sc, "dim", 2) != 2:
+    if sc.dim != 2:
         raise ErrplanError(f"{sc.source}: {what} of a spatial scenario (robot from a URDF) is not available yet; "
                            f"it runs on planar scenarios")
 
@@ -485,7 +485,9 @@ def truth_plant(sc, *, effects: bool = True, noise: bool = True):
     :func:`scenario_load`, its ``[effects]`` and (by default) its sensor noise."""
     from .simulation import Plant
 
-    return Plant.from_scenario(sc, load=scenario_load(sc), effects=effects, noise=noise)
+    from .models import arm_model
+
+    return Plant.from_model(arm_model(sc), load=scenario_load(sc), effects=effects, noise=noise)
 
 
 def bench_controller(sc):
@@ -494,7 +496,9 @@ def bench_controller(sc):
     shaft does not bend, as ``ControllerModel.J_hat`` documents)."""
     from .simulation import ControllerModel
 
-    return ControllerModel.from_scenario(sc)
+    from .models import arm_model
+
+    return ControllerModel.from_model(arm_model(sc))
 
 
 @dataclass
@@ -647,7 +651,7 @@ def run_experiment(sc, seed: int = 0, *, plant=None, starts=None, n_starts: int 
         n_runs = len(runs)
     else:
         S = np.atleast_2d(np.asarray(starts, float)) if starts is not None else choose_starts(sc, n_starts)
-        offs = target_offsets(dim=getattr(sc, "dim", 2))
+        offs = target_offsets(dim=sc.dim)
         groups = [[s + o for o in offs] for s in S]
         n_runs = len(S) * len(offs)
     check_allocation("--max-steps", max_steps, n_runs * (max_steps + 1.0), BENCH_ROW_BYTES,

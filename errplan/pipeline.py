@@ -33,6 +33,7 @@ import numpy as np
 
 from .errors import ErrplanError, InfeasibleError
 from .fields import ErrorSet
+from .models import arm_model
 from .gains import GainOptions, GainSchedule, SpatialModel, options_from_scenario, schedule_gains, single_segment
 from .report import format_table
 from .simulation import ControllerModel, Plant, SimResult, g_norm_along, simulate
@@ -128,17 +129,16 @@ def truth_plant(sc) -> Plant:
     """The scenario's truth: ``[port] position``, its ``[effects]``, and the tip load of the error
     set closest to 0 (0 when the set allows it; P2's scenarios declare a fixed load there). In 3-D
     that load is a magnitude: a world load of that size along -y (:class:`Plant`)."""
-    tl = sc.uncertainty.tip_force_over_ei
-    load = float(np.clip(0.0, tl[0], tl[1])) if tl is not None else 0.0
-    return Plant.from_scenario(sc, load=load)
+    m = arm_model(sc)
+    return m.truth if m is sc else Plant.from_model(m, load=m.truth_load)
 
 
 def corner_instances(sc) -> np.ndarray:
     """Corners (c, 3) of the scenario's error box as ``(dy, dz, t)`` around its base port. In 3-D:
     the corners (c, 4) of the port box as ``(dx, dy, dz, load)`` with the truth's load magnitude
     (:func:`truth_plant`)."""
-    es = ErrorSet.from_scenario(sc)
-    if getattr(sc, "dim", 2) == 3:
+    es = arm_model(sc).errors
+    if sc.dim == 3:
         ports = es.port_corners() - np.asarray(es.base_port)
         return np.hstack([ports, np.full((len(ports), 1), _truth_load(sc))])
     return es.corners()
@@ -151,10 +151,11 @@ def _truth_load(sc) -> float:
 
 def corner_plant(sc, theta) -> Plant:
     """The truth at one error-set instance (no ``[effects]``)."""
-    es = ErrorSet.from_scenario(sc)
+    m = arm_model(sc)
+    es = m.errors
     theta = np.asarray(theta, float)
     d = es.dim
-    return Plant.from_scenario(sc, port=tuple(es.port(theta)), load=float(theta[d]), effects=False)
+    return Plant.from_model(m, port=tuple(es.port(theta)), load=float(theta[d]), effects=False)
 
 
 def check_query_endpoints(sc, name: str, start, goal, model: SpatialModel, margin: float) -> None:
@@ -195,7 +196,7 @@ def run_query(sc, qjson: dict, *, options: GainOptions | None = None, corners: b
               progress: Progress | None = None, model: SpatialModel | None = None) -> QueryRun:
     """Gains and simulations for one query JSON (``name``, ``start``, ``goal``, ``planned``, ``direct``)."""
     opts = options or options_from_scenario(sc)
-    dim = getattr(sc, "dim", 2)
+    dim = sc.dim
     name = str(qjson.get("name", "query"))
     start = np.asarray(qjson["start"], float)
     goal = np.asarray(qjson["goal"], float)
@@ -203,7 +204,7 @@ def run_query(sc, qjson: dict, *, options: GainOptions | None = None, corners: b
     dpath = _path_of(qjson["direct"], f"query {name!r}: direct", dim) if "direct" in qjson else np.array([start, goal])
     src = sc
     if dim == 3:
-        src = model if model is not None else SpatialModel(sc)
+        src = model if model is not None else SpatialModel.from_model(arm_model(sc))
         check_query_endpoints(sc, name, ppath[0], ppath[-1], src, opts.margin)
     an_model = src if dim == 3 else None  # its .anatomy: the obstacles, for min_clearance
     if progress:
@@ -216,7 +217,7 @@ def run_query(sc, qjson: dict, *, options: GainOptions | None = None, corners: b
         kd, src = float(sc.controller.gain), "scenario"
     if progress:
         progress(0.5, f"{name}: simulating")
-    ctrl = ControllerModel.from_scenario(sc)
+    ctrl = ControllerModel.from_model(arm_model(sc))
     truth = truth_plant(sc)
     seed = int(sc.planner.seed)
     sp = _clearance(an_model, truth, replay(truth, ctrl, ppath[0], sched.waypoints, sched.gains, opts, seed))
@@ -276,7 +277,7 @@ def run_pipeline(sc, query_plans, fields=None, *, record: str | None = None, pro
 def query_jobs(sc, query_plans) -> tuple[SpatialModel | None, list[dict]]:
     """The scenario's certificate physics (3-D: one :class:`SpatialModel` for every query; planar:
     None) and the query JSONs :func:`run_query` takes, one per plan."""
-    model = SpatialModel(sc) if getattr(sc, "dim", 2) == 3 else None
+    model = SpatialModel.from_model(arm_model(sc)) if sc.dim == 3 else None
     return model, [dict(_as_query_json(q)) for q in query_plans]
 
 

@@ -1001,6 +1001,11 @@ class Setup:
     triads: tuple[Tolerance, ...] = ()
     several: bool = False
 
+    @property
+    def dim(self) -> int:
+        """The dimension of its arms (3 for several arms: URDF arms; a one-instrument file: its scenario's)."""
+        return self.arms[0].dim
+
     def arm(self, name: str | None, option: str = "--arm") -> Scenario:
         """The scenario of arm ``name`` (None: the only arm). One :class:`ScenarioError` otherwise."""
         if name is None:

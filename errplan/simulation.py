@@ -42,16 +42,10 @@ class ControllerModel:
     noise: tuple[float, float] = (0.0, 0.0)  # flexion: uniform bounds on (position, angle)
 
     @classmethod
-    def from_scenario(cls, sc) -> "ControllerModel":
-        n = sc.uncertainty.sensor_noise
-        if getattr(sc, "dim", 2) == 3:
-            from .kinematics import arm_for
-
-            arm = arm_for(sc.robot)
-        else:
-            arm = Arm.from_robot(sc.robot)
-        return cls(arm, sc.instrument.length, tuple(sc.port.estimate),
-                   sc.controller.jacobian, (n.position, n.angle) if n else (0.0, 0.0))
+    def from_model(cls, m) -> "ControllerModel":
+        """The controller of an arm's model (:class:`errplan.models.ArmModel`): its arm, shaft length,
+        port estimate, Jacobian model and noise bounds."""
+        return cls(m.arm, m.length, m.estimate, m.jacobian, m.noise)
 
     @property
     def dim(self) -> int:

@@ -21,6 +21,7 @@ import pytest
 
 from errplan.api import parse_scenario
 from errplan.errors import ScenarioError
+from errplan.models import build_arm
 
 ROOT = Path(__file__).resolve().parents[1]
 PHANTOM = ROOT / "scenarios" / "phantom15_spatial.toml"
@@ -115,7 +116,7 @@ def ball_samples(center, radius, n, rng):
 
 def port_corners(sc):
     from errplan.fields import ErrorSet
-    return ErrorSet.from_scenario(sc).port_corners()
+    return build_arm(sc).errors.port_corners()
 
 
 # ----------------------------------------------------------------------------- built scenarios
@@ -222,7 +223,7 @@ def test_ball_clearance_is_a_lower_bound_for_the_wall_and_obstacles():
     from errplan.gains.certificate import ball_clearance
     doc = tomllib.loads((ROOT / "scenarios" / "abdomen.toml").read_text())
     sc = parse_scenario(doc, str(ROOT / "scenarios" / "abdomen.toml"))
-    model = anatomy_model(sc, ErrorSet.from_scenario(sc))
+    model = anatomy_model(sc, build_arm(sc).errors)
     rng = np.random.default_rng(3)
     # inside the task region, and near the body wall's side (x = 0.16 m at z = 0.36)
     centres = np.vstack([rng.uniform([-0.08, -0.08, 0.30], [0.08, 0.08, 0.44], (30, 3)),
@@ -238,7 +239,7 @@ def test_ball_clearance_is_a_lower_bound_for_the_wall_and_obstacles():
             assert depth < 0.03 and b <= depth - R + 1e-12
     # the nodule: closed form
     nod = parse_scenario(scenario_doc("nodule", Path("/nonexistent")), str(PHANTOM))
-    m2 = anatomy_model(nod, ErrorSet.from_scenario(nod))
+    m2 = anatomy_model(nod, build_arm(nod).errors)
     corners = port_corners(nod)
     for c in rng.uniform([-0.03, -0.10, 0.33], [0.03, -0.06, 0.37], (20, 3)):
         R = 0.003

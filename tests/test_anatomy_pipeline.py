@@ -24,6 +24,7 @@ import pytest
 
 from errplan.api import parse_scenario
 from errplan.errors import ScenarioError
+from errplan.models import build_arm
 
 ROOT = Path(__file__).resolve().parents[1]
 PHANTOM = ROOT / "scenarios" / "phantom15_spatial.toml"
@@ -88,7 +89,7 @@ def shaft_clearance(ports, tips):
 
 def box_ports(sc, n):
     from errplan.fields import ErrorSet
-    es = ErrorSet.from_scenario(sc)
+    es = build_arm(sc).errors
     c = es.port_corners()
     axes = [np.linspace(c[:, k].min(), c[:, k].max(), n) for k in range(3)]
     return np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3), c

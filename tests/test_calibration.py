@@ -27,6 +27,7 @@ from errplan.experiment import bench_controller, parse_measured_csv, run_experim
 from errplan.scenario import Robot
 from errplan.api import load_scenario, parse_scenario
 from errplan.simulation import Plant, simulate
+from errplan.models import build_arm
 
 try:
     import tomllib
@@ -133,7 +134,7 @@ class ScaledTracker(Plant):
 
 def test_link_length_error_is_not_explained(port):
     """A 4 mm error of link 2 is in no catalogue: the best candidates leave a structured residual."""
-    truth = Plant.from_scenario(_with_link2(port, 0.004), noise=True)
+    truth = Plant.from_model(build_arm(_with_link2(port, 0.004)), noise=True)
     data = bench(port, {}, 41, plant=truth)
     rep = calibrate(port, data, seed=0)
     assert not rep.explained
@@ -144,7 +145,7 @@ def test_link_length_error_is_not_explained(port):
 
 
 def test_tracker_scale_error_is_not_explained(port):
-    base = Plant.from_scenario(port, noise=True)
+    base = Plant.from_model(build_arm(port), noise=True)
     truth = ScaledTracker(**{f: getattr(base, f) for f in base.__dataclass_fields__}, scale=0.015)
     data = bench(port, {}, 42, plant=truth)
     rep = calibrate(port, data, seed=0)
@@ -328,7 +329,7 @@ def test_batched_replay_equals_simulate(port):
     """The calibration's replay of every run at once matches simulation.simulate run by run."""
     sc = port.with_(effects={"port_friction": {"fa": 0.001, "fn": 0.0005}, "gravity_sag": {"c1": 0.002, "c2": 0.0, "c3": 0.0}})
     d = bench(sc, sc.effects, 53)
-    plant = Plant.from_scenario(sc)
+    plant = Plant.from_model(build_arm(sc))
     ctrl = bench_controller(sc)
     pred, alive = replay(d, plant, ctrl)
     for r in range(0, d.runs, 5):
@@ -598,7 +599,7 @@ def test_spatial_noise_floor_and_csv_round_trip(spatial, tmp_path):
 def test_spatial_batched_replay_equals_simulate(spatial):
     """The calibration's replay of every run at once matches simulation.simulate run by run (3-D)."""
     sc = spatial.with_(effects={"gravity_sag": SPATIAL_TRUTHS["gravity_sag"]})
-    truth = Plant.from_scenario(sc, effects=True, noise=False)
+    truth = Plant.from_model(build_arm(sc), effects=True, noise=False)
     data = run_experiment(sc, plant=truth, n_starts=1).data
     ctrl = bench_controller(sc)
     pred, alive = replay(data, truth, ctrl, motion_model(sc))

@@ -16,6 +16,7 @@ from errplan.kinematics.shaft import flexed_tip, lever_tip
 from errplan.scenario import EFFECT_PARAMS
 from errplan.api import load_scenario
 from errplan.simulation import Plant
+from errplan.models import build_arm
 
 ROOT = Path(__file__).resolve().parents[1]
 PORT = ROOT / "scenarios" / "beasley2004_port.toml"
@@ -23,7 +24,7 @@ PORT = ROOT / "scenarios" / "beasley2004_port.toml"
 
 @pytest.fixture(scope="module")
 def base():
-    return Plant.from_scenario(load_scenario(PORT), effects=False)
+    return Plant.from_model(build_arm(load_scenario(PORT)), effects=False)
 
 
 @pytest.fixture(scope="module")

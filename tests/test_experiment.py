@@ -16,6 +16,7 @@ from errplan.kinematics.shaft import lever_tip
 from errplan.metrics import inv2
 from errplan.api import load_scenario, parse_scenario
 from errplan.simulation import ControllerModel, Plant
+from errplan.models import build_arm
 
 try:
     import tomllib
@@ -63,7 +64,7 @@ def test_starts_on_a_scenario_without_p1_points():
     sc = parse_scenario(doc, "shifted")
     S = choose_starts(sc, 5)
     assert 1 <= len(S) <= 5
-    plant = Plant.from_scenario(sc)
+    plant = Plant.from_model(build_arm(sc))
     for s in S:  # every start and its eight targets reachable by the truth
         for x in np.vstack([s[None], s + target_offsets()]):
             plant.configuration_for_tip(x)
@@ -79,7 +80,7 @@ def test_csv_columns_and_step_semantics(port, bench):
     back = parse_measured_csv(text)
     assert back.rows == d.rows and back.runs == d.runs
     assert np.allclose(back.q, d.q, atol=1e-11) and np.allclose(back.tip, d.tip, atol=1e-12)
-    ctrl = ControllerModel.from_scenario(port)
+    ctrl = ControllerModel.from_model(build_arm(port))
     k = port.controller.gain
     assert np.all(d.gain == k)
     i = np.flatnonzero(d.step[1:] > 0)  # rows t with a successor t+1 in the same run
@@ -101,7 +102,7 @@ def test_csv_columns_and_step_semantics(port, bench):
 
 def test_tracked_tip_is_truth_plus_tracker_noise(port, bench):
     d = bench.data
-    plant = Plant.from_scenario(port)
+    plant = Plant.from_model(build_arm(port))
     r = d.tip - plant.tip(d.q, d.commanded_directions(plant.declared()))
     sigma = port.sensors.tracker_sigma
     assert np.std(r) == pytest.approx(sigma, rel=0.06)
@@ -119,7 +120,7 @@ def test_effects_reach_the_data(port):
     """The truth carries the scenario's [effects]: a tracker offset shifts every tracked tip."""
     sc = port.with_(effects={"tracker_offset": {"by": 0.003, "bz": -0.002}})
     d = run_experiment(sc, seed=1, n_starts=2).data
-    r = d.tip - Plant.from_scenario(port).tip(d.q, d.commanded_directions(Plant.from_scenario(port)))
+    r = d.tip - Plant.from_model(build_arm(port)).tip(d.q, d.commanded_directions(Plant.from_model(build_arm(port))))
     assert np.allclose(r.mean(axis=0), [0.003, -0.002], atol=4e-5)
 
 
@@ -157,7 +158,7 @@ def test_reader_accepts_good_csv_in_any_run_order():
     d = parse_measured_csv(shuffled)
     assert d.run_ids == ["b", "a"] and d.rows == 4
     assert np.array_equal(d.step, [0, 1, 0, 1])
-    model = Plant.from_scenario(load_scenario(PORT), effects=False)
+    model = Plant.from_model(build_arm(load_scenario(PORT)), effects=False)
     u = d.commanded_directions(model)
     # b moved from q = (0, 0) to (0.01, 0): u is the direction of the declared model's tip motion,
     # the lever through the declared port (by hand), not the desired direction target - tip = (0.02, 0)
@@ -223,7 +224,7 @@ def test_u_from_rows_follows_the_definition_step_by_step():
             "b,1,0.02,0.32,1,0.012,0.0,0.01,0.32\n"
             "b,2,0.02,0.32,1,0.012,0.0,0.01,0.32\n"
             "b,3,0.02,0.32,1,0.011,-0.01,0.01,0.32\n")
-    model = Plant.from_scenario(load_scenario(PORT), effects=False)
+    model = Plant.from_model(build_arm(load_scenario(PORT)), effects=False)
     d = parse_measured_csv(text)
     u = d.commanded_directions(model)
     for r in range(d.runs):
@@ -261,8 +262,8 @@ def test_bench_simulation_and_rows_agree_on_friction_exactly(port):
     sc, truth_sc = _one_cm_bench(port, FRICTION)
     truth_sc = truth_sc.with_(sensors=replace(truth_sc.sensors, tracker_sigma=0.0))
     d = run_experiment(truth_sc, seed=0, n_starts=3).data
-    truth = Plant.from_scenario(truth_sc)
-    model = Plant.from_scenario(sc, effects=False)
+    truth = Plant.from_model(build_arm(truth_sc))
+    model = Plant.from_model(build_arm(sc), effects=False)
     u = d.commanded_directions(model)
     for r in range(0, d.runs, 3):  # the definition, by hand
         m = d.run == r
@@ -287,8 +288,8 @@ def test_bench_friction_residual_is_the_tracker_noise(port):
     tracker noise (0.2 mm); with the desired direction it is well above it."""
     sc, truth_sc = _one_cm_bench(port, FRICTION)
     d = run_experiment(truth_sc, seed=11, n_starts=5).data
-    truth = Plant.from_scenario(truth_sc)
-    u = d.commanded_directions(Plant.from_scenario(sc, effects=False))
+    truth = Plant.from_model(build_arm(truth_sc))
+    u = d.commanded_directions(Plant.from_model(build_arm(sc), effects=False))
     r = d.tip - truth.tip(d.q, u)
     assert np.sqrt(np.mean(r ** 2)) == pytest.approx(sc.sensors.tracker_sigma, rel=0.05)
     err = d.target - d.tip
@@ -345,11 +346,11 @@ def test_spatial_bench_rows_and_noise(spatial_bench):
     back = parse_measured_csv(text, dim=3, n_joints=3)
     assert np.allclose(back.q, d.q, atol=1e-11) and np.array_equal(back.step, d.step)
     # tracked tip = the truth's tip (with the scenario's joint offset) + the tracker's noise
-    plant = Plant.from_scenario(sc)
+    plant = Plant.from_model(build_arm(sc))
     r = d.tip - plant.tip(d.q, d.commanded_directions(plant.declared()))
     assert np.std(r) == pytest.approx(sc.sensors.tracker_sigma, rel=0.06)
     # every run: the encoders at step t+1 read the command of step t (the 3-D controller law)
-    ctrl = ControllerModel.from_scenario(sc)
+    ctrl = ControllerModel.from_model(build_arm(sc))
     for rid in range(0, d.runs, 5):
         m = d.run == rid
         q, tip, tg = d.q[m], d.tip[m], d.target[m][0]

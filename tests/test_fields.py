@@ -24,6 +24,7 @@ from errplan.fields import REFINE_LEVELS, ErrorSet, Evaluator, MetricField, comp
 from errplan.metrics import g_norm_from_parts
 from errplan.scenario import Uncertainty
 from errplan.api import load_scenario, parse_scenario
+from errplan.models import build_arm
 
 TOL_G = 1e-3      # ||G||: absolute, relative above 1 (near singular tips ||G|| reaches 1e4)
 TOL_PHI = 3e-3    # |phi_max|, rad
@@ -353,7 +354,7 @@ def test_worst_case_stable_under_refinement(which, bounded):
 
 
 def test_chunked_worst_case_is_the_same(bounded):
-    ev = Evaluator.from_scenario(bounded)
+    ev = Evaluator.from_model(build_arm(bounded))
     mf = compute_fields(bounded, 0.02)
     x = mf.points()[mf.valid][:300]
     a = worst_case(ev, x, 1.0)
@@ -368,7 +369,7 @@ def test_robust_validity_every_instance_reaches_every_valid_tip(bounded):
     (errplan's own evaluator, 11 x 11 x 11 instances, and the independent model on 9 x 9 x 5),
     and tips that some instance cannot reach are not valid."""
     mf = compute_fields(bounded, 0.01)
-    ev = Evaluator.from_scenario(bounded)
+    ev = Evaluator.from_model(build_arm(bounded))
     pts = mf.points().reshape(-1, 2)
     cand = np.flatnonzero(np.isfinite(pts).all(-1) & (np.linalg.norm(pts - bounded.port.estimate, axis=-1) < 0.34))
     ok_all = np.ones(len(cand), bool)
@@ -492,7 +493,7 @@ def test_rho_star_and_k_star_vs_brute_force_gain_scan(rho_field):
     """At 60 tips: rho* = min over a dense k grid of the max over a dense 9 x 9 x 9 sample of the
     error set (errplan's evaluator), and errplan's k* attains it."""
     sc, mf = rho_field
-    ev = Evaluator.from_scenario(sc)
+    ev = Evaluator.from_model(build_arm(sc))
     rng = np.random.default_rng(5)
     pts = mf.points()[mf.valid]
     idx = rng.choice(len(pts), 60, replace=False)
@@ -544,7 +545,7 @@ def test_flexion_controller_corner_worst_case_is_sound_where_certified():
     mf = compute_fields(sc, 0.012)
     v = mf.valid
     assert np.mean(mf.G_norm[v] < 1) > 0.1
-    ev = Evaluator.from_scenario(sc)
+    ev = Evaluator.from_model(build_arm(sc))
     cert = mf.points()[v & (mf.G_norm < 1)]
     th = np.array([0.0, 0.0, 3.0])
     w, ok = ev.true_wrist(cert, np.broadcast_to(th, (len(cert), 3)))
@@ -578,11 +579,11 @@ def test_error_set_from_scenario_semantics():
     """interfaces.md: with a port box the true port is estimate + offset; without one it is
     [port] position (and a tip-load range alone keeps it there)."""
     sc = parse_scenario(make_scenario_dict(uncertainty={"port_y": [-0.01, 0.02]}))
-    es = ErrorSet.from_scenario(sc)
+    es = build_arm(sc).errors
     assert es.base_port == (0.02, 0.17) and es.lo[:2] == (-0.01, 0.0) and es.hi[:2] == (0.02, 0.0)
     assert es.active.tolist() == [True, False, False]
     sc = parse_scenario(make_scenario_dict(uncertainty={"tip_force_over_ei": [-1.0, 2.0]}))
-    es = ErrorSet.from_scenario(sc)
+    es = build_arm(sc).errors
     assert es.base_port == (0.0, 0.16) and es.lo[2] == -1.0 and es.hi[2] == 2.0
     grid = es.sample_grid(4)
     assert grid.shape == (4, 3) and np.allclose(grid[:, 2], np.linspace(-1, 2, 4))
@@ -657,7 +658,7 @@ def test_compiled_kernel_equals_the_numpy_search(name):
     sc = load_scenario(SCENARIOS / name)
     mf = compute_fields(sc, 0.006, rho_star=True)
     P = mf.points().reshape(-1, 2)
-    ref = C._numpy_tile(Evaluator.from_scenario(sc), P, sc.controller.gain, None, REFINE_LEVELS, True)
+    ref = C._numpy_tile(Evaluator.from_model(build_arm(sc)), P, sc.controller.gain, None, REFINE_LEVELS, True)
     v = mf.valid.ravel()
     assert np.array_equal(v, ref["valid"]) and v.sum() > 1000
     for key, tol in (("G_norm", 1e-12), ("phi_max", 1e-12), ("rho_star", 1e-12), ("k_star", 1e-6)):

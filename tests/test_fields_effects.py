@@ -8,6 +8,7 @@ from scipy.optimize import fsolve
 from errplan.fields import Evaluator, compute_fields
 from errplan.api import load_scenario
 from errplan.simulation import ControllerModel, Plant
+from errplan.models import build_arm
 
 SC = load_scenario("scenarios/beasley2004_port.toml")
 
@@ -24,7 +25,7 @@ def test_port_offset_effect_equals_moving_the_true_port():
 def test_general_effect_path_reproduces_the_closed_form_without_effects():
     f = compute_fields(SC, 0.006)
     pts = f.points()[f.valid]
-    ev = Evaluator.from_scenario(SC)
+    ev = Evaluator.from_model(build_arm(SC))
     mu, nu, ok = ev.parts(pts, np.zeros(3))
     ev.effects = {"joint_offset": (0.0, 0.0)}  # forces the Newton + finite-difference path
     mu2, nu2, ok2 = ev.parts(pts, np.zeros(3))
@@ -40,8 +41,8 @@ def test_general_effect_path_reproduces_the_closed_form_without_effects():
 def test_effect_fields_match_an_independent_solve(effects):
     sc = SC.with_(effects=effects)
     f = compute_fields(sc, 0.01)
-    plant, ctl = Plant.from_scenario(sc), ControllerModel.from_scenario(sc)
-    plant0 = Plant.from_scenario(SC)
+    plant, ctl = Plant.from_model(build_arm(sc)), ControllerModel.from_model(build_arm(sc))
+    plant0 = Plant.from_model(build_arm(SC))
     P = f.points()
     idx = np.argwhere(f.valid)
     rng = np.random.default_rng(3)
@@ -69,7 +70,7 @@ def test_flexion_controller_on_an_unbent_shaft_falls_back_to_the_lever():
     # The rigid controller runs the compiled kernel, the flexion controller the numpy search: equal to
     # rounding, relative to max(1, ||G||) (||G|| reaches 83 near the port).
     assert np.nanmax(np.abs(a.G_norm - b.G_norm) / np.maximum(1.0, np.abs(b.G_norm))) < 1e-13
-    plant = Plant.from_scenario(SC)
+    plant = Plant.from_model(build_arm(SC))
     q = plant.configuration_for_tip(np.array([0.0, 0.375]))
-    J_flex = ControllerModel.from_scenario(flex).J_hat(q, plant)
-    assert np.allclose(J_flex, ControllerModel.from_scenario(SC).J_hat(q), atol=1e-12)
+    J_flex = ControllerModel.from_model(build_arm(flex)).J_hat(q, plant)
+    assert np.allclose(J_flex, ControllerModel.from_model(build_arm(SC)).J_hat(q), atol=1e-12)

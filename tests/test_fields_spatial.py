@@ -21,6 +21,7 @@ from errplan.kinematics.shaft import flexed_tip, flexed_wrist_plane
 from errplan.api import load_scenario
 
 from arms import OMNI, SHARED_ROBOTS, arm_scenario, needs_omni
+from errplan.models import build_arm
 
 ROOT = Path(__file__).resolve().parents[1]
 PHANTOM = ROOT / "scenarios" / "phantom15_spatial.toml"
@@ -445,7 +446,7 @@ def test_spatial_effects_that_move_the_arm_are_honoured(tmp_path):
     for dx in (-0.005, 0.005):
         for dy in (-0.005, 0.005):
             for dz in (-0.005, 0.005):
-                plant = Plant.from_scenario(real, port=np.add(real.port.estimate, (dx, dy, dz)))
+                plant = Plant.from_model(build_arm(real), port=np.add(real.port.estimate, (dx, dy, dz)))
                 q = plant.configuration_for_tip(x)
                 from scipy.optimize import fsolve
 

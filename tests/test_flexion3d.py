@@ -20,6 +20,7 @@ from errplan.fields.errorset import spatial_noise_corners
 from errplan.kinematics import shaft
 from errplan.metrics import g_norm
 from errplan.tolerance.insertion import InsertionModel, insertion_worst
+from errplan.models import build_arm
 
 ROOT = Path(__file__).resolve().parents[1]
 FLEX2 = ROOT / "scenarios" / "beasley_howe_flexion.toml"
@@ -79,7 +80,7 @@ def test_x0_plane_fields_equal_the_planar_controller(tmp_path):
     P2's planar controller itself."""
     sc2 = load_scenario(FLEX2)
     sc3 = load_scenario(spatial_flexion_scenario(tmp_path))
-    ev2 = Evaluator.from_scenario(sc2)
+    ev2 = Evaluator.from_model(build_arm(sc2))
     k = 0.8
     # psi = 0 is the in-plane load direction of positive planar t (f1 = e1 x x_hat = dir'(theta))
     es3 = ErrorSet((0.0, 0.0, 0.160), (0.0, 0.0, 0.0, 3.0, 0.0), (0.0, 0.0, 0.0, 3.0, 0.0), (POS, ANG), 3)
@@ -138,7 +139,7 @@ def test_diagonal_load_sees_the_noise_box_diagonal(tmp_path):
     planar worst over that box (an independent check of the 3-D noise set and of the bending
     plane estimate), and exceeds the in-plane load's (itself at least the planar worst case)."""
     sc3 = load_scenario(spatial_flexion_scenario(tmp_path))
-    ev = SpatialFlexionEvaluator.from_scenario(sc3)
+    ev = SpatialFlexionEvaluator.from_model(build_arm(sc3))
     m = InsertionModel(L, 3.0, 1.0)
     for rl in (0.66, 0.72, 0.8):
         x = np.array([[0.0, 0.0, 0.160 + rl * L]])
@@ -262,10 +263,10 @@ def test_simulation_runs_the_3d_flexion_controller_on_the_urdf_arm(tmp_path):
     from errplan.simulation import ControllerModel, Plant, simulate
 
     sc = load_scenario(spatial_flexion_scenario(tmp_path))
-    ctrl = ControllerModel.from_scenario(sc)
+    ctrl = ControllerModel.from_model(build_arm(sc))
     assert ctrl.jacobian == "flexion" and ctrl.dim == 3 and ctrl.noise == (POS, ANG)
     # a load normal to the shaft along z: (0, -3, 0); at the start the truth's J equals Jhat
-    plant = Plant.from_scenario(sc, load=3.0)
+    plant = Plant.from_model(build_arm(sc), load=3.0)
     start = np.array([0.0, 0.0, 0.160 + 0.70 * L])
     goal = np.array([0.008, -0.004, 0.160 + 0.73 * L])
     q0 = plant.configuration_for_tip(start)
@@ -390,7 +391,7 @@ def test_noise_refinement_reaches_a_dense_search(tmp_path):
     import itertools
 
     sc = load_scenario(spatial_flexion_scenario(tmp_path))
-    ev = SpatialFlexionEvaluator.from_scenario(sc)
+    ev = SpatialFlexionEvaluator.from_model(build_arm(sc))
     k = 0.8
     x = np.array([[0.004, -0.003, 0.160 + 0.72 * L]])
     half = ev.noise_bounds()
@@ -418,8 +419,8 @@ def test_effects_path_runs_the_3d_flexion_controller(tmp_path):
     from errplan.fields.evaluator import SpatialEffectsEvaluator
 
     sc = load_scenario(spatial_flexion_scenario(tmp_path))
-    ev = SpatialEffectsEvaluator.from_scenario(sc.with_(effects={"joint_offset": {"dq1": 0.0, "dq2": 0.0, "dq3": 0.0}}))
-    fe = SpatialFlexionEvaluator.from_scenario(sc)
+    ev = SpatialEffectsEvaluator.from_model(build_arm(sc.with_(effects={"joint_offset": {"dq1": 0.0, "dq2": 0.0, "dq3": 0.0}})))
+    fe = SpatialFlexionEvaluator.from_model(build_arm(sc))
     assert ev.jacobian == "flexion" and ev.noise.shape == fe.noise.shape
     x = np.array([[0.003, 0.002, 0.41], [0.0, -0.004, 0.40]])
     for psi in (0.0, 1.0):
@@ -447,7 +448,7 @@ def test_region_queries_take_the_3d_flexion_controller(tmp_path):
     x = np.array([[0.003, 0.002, 0.41], [0.0, -0.004, 0.40]])
     th = np.array([[0.001, 0.0, -0.002, 3.0, 0.3], [0.0, 0.002, 0.0, 3.0, 2.0]])
     g, ok = phys.g(x, th, 0.8)
-    fe = SpatialFlexionEvaluator.from_scenario(sc)  # true port = estimate + offset: shift the offsets
+    fe = SpatialFlexionEvaluator.from_model(build_arm(sc))  # true port = estimate + offset: shift the offsets
     M, _, ok2 = fe.parts(x, th + np.array([*np.subtract(base, sc.port.estimate), 0.0, 0.0]))
     assert ok.all() and ok2.all()
     np.testing.assert_allclose(g, g_norm(M, 0.8).max(axis=1), rtol=1e-12)

@@ -15,6 +15,7 @@ from errplan.api import load_scenario
 from errplan.fields.compute import numpy_worst_case
 from errplan.fields.evaluator import NumpyFlexionEvaluator, SpatialFlexionEvaluator
 from errplan.metrics import g_norm, phi_max
+from errplan.models import build_arm
 
 ROOT = Path(__file__).resolve().parents[1]
 FLEX = ROOT / "scenarios" / "phantom15_flexion.toml"
@@ -31,7 +32,7 @@ def close(a, b) -> bool:
 @pytest.fixture(scope="module")
 def evs():
     sc = load_scenario(FLEX)
-    return sc, SpatialFlexionEvaluator.from_scenario(sc), NumpyFlexionEvaluator.from_scenario(sc)
+    return sc, SpatialFlexionEvaluator.from_model(build_arm(sc)), NumpyFlexionEvaluator.from_model(build_arm(sc))
 
 
 def _pairs(n, seed, offsets=0.0):

@@ -21,6 +21,7 @@ from errplan.kinematics.arm import Arm
 from errplan.kinematics.shaft import flexed_jacobian, flexed_tip, flexed_wrist, lever_jacobian
 from errplan.api import load_scenario
 from errplan.scenario import read_scenario
+from errplan.models import build_arm
 
 ROOT = Path(__file__).resolve().parents[1]
 BOUNDED = ROOT / "scenarios" / "beasley2004_bounded.toml"
@@ -43,7 +44,7 @@ def _scan_best(mu, nu, n=20001):
 ])
 def test_casadi_gain_matches_brute_force_scan(scenario, a, b):
     sc = load_scenario(scenario)
-    ev = Evaluator.from_scenario(sc)
+    ev = Evaluator.from_model(build_arm(sc))
     opts = options_from_scenario(sc)
     R = float(np.hypot(*np.subtract(b, a))) + opts.switch_tolerance
     smp = _sample_segment(ev, np.array(a), np.array(b), R, opts)
@@ -64,7 +65,7 @@ def test_pruned_joint_problem_matches_per_segment_scan():
     chosen gain, and each gain is within the scan's sublevel set."""
     sc = load_scenario(PORT)
     gs = schedule_gains(sc, np.array([[0.0, 0.415], [0.0, 0.320]]))
-    ev = Evaluator.from_scenario(sc)
+    ev = Evaluator.from_model(build_arm(sc))
     for s in gs.segments:
         smp = _sample_segment(ev, s.start, s.end, s.radius, gs.options)
         assert abs(rho_of_k(smp["mu"], smp["nu"], s.gain)[0] - s.predicted_G_norm) < 1e-12
@@ -76,7 +77,7 @@ def test_pruned_joint_problem_matches_per_segment_scan():
 
 def _brute_G(sc, x, theta, k):
     """||I - k J Jhat^-1|| with full 2x2 matrices and numpy's SVD (independent of conformal parts)."""
-    es = ErrorSet.from_scenario(sc)
+    es = build_arm(sc).errors
     L = sc.instrument.length
     port = es.port(theta)
     w = flexed_wrist(x, port, L, theta[..., 2])
@@ -93,7 +94,7 @@ def test_certificate_bounds_random_brute_force():
     gs = schedule_gains(sc, np.array([[-0.1, 0.40], [0.0, 0.385], [0.1, 0.40]]))
     assert gs.certified
     arm = Arm.from_robot(sc.robot)
-    es = ErrorSet.from_scenario(sc)
+    es = build_arm(sc).errors
     rng = np.random.default_rng(7)
     worst_excess = -1.0
     for s in gs.segments:
@@ -114,7 +115,7 @@ def test_certificate_bounds_random_brute_force():
 def test_nonlinear_step_ratio_matches_a_hand_step():
     """step_ratio against one step of the controller written out with matrices."""
     sc = load_scenario(PORT)
-    ev = Evaluator.from_scenario(sc)
+    ev = Evaluator.from_model(build_arm(sc))
     arm = Arm.from_robot(sc.robot)
     L = sc.instrument.length
     b = np.array([0.0, 0.40])
@@ -218,7 +219,7 @@ def _replay(sc, theta, start, waypoints, gains, tol_switch, tol_final, max_steps
     """An independent quasi-static controller loop (P1 eq. 1-5) for the rigid lever controller:
     the truth is the flexed shaft through port = estimate + (dy, dz) under tip load t."""
     arm = Arm.from_robot(sc.robot)
-    es = ErrorSet.from_scenario(sc)
+    es = build_arm(sc).errors
     L = sc.instrument.length
     port, t = es.port(theta), theta[2]
     q, ok = arm.inverse(flexed_wrist(np.asarray(start, float), port, L, t))
@@ -263,7 +264,7 @@ def test_bundled_plans_converge_monotonically_under_every_corner(bundled):
     for sc, name, path, gs in bundled:
         if sc.controller.jacobian != "rigid":
             continue  # P2's flexion controller is replayed by tests/test_simulation.py (needs noise)
-        es = ErrorSet.from_scenario(sc)
+        es = build_arm(sc).errors
         for theta in es.corners():
             ok, steps = _replay(sc, theta, path[0], gs.waypoints, gs.gains, gs.options.switch_tolerance,
                                 gs.options.tolerance)

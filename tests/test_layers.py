@@ -22,7 +22,7 @@ LAYERS = {
     "linalg": 2,
     "kinematics": 3, "anatomy": 3,
     "metrics": 4, "effects": 4,
-    "fields": 5,
+    "fields": 5, "models": 5,  # models: each arm built once (kinematics, error set, truth, anatomy)
     "planning": 6, "gains": 6, "tolerance": 6,
     "simulation": 7,
     "recording": 8, "experiment": 8,

@@ -16,6 +16,7 @@ from errplan.fields import Evaluator, compute_fields, worst_case
 from errplan.kinematics.shaft import flexed_jacobian, flexed_tip, flexed_wrist, lever_jacobian, lever_tip, lever_wrist
 from errplan.metrics import g_norm, motion_map, phi_max, phi_of_direction
 from errplan.api import load_scenario
+from errplan.models import build_arm
 
 DEG = np.pi / 180
 L_P, M_P, N_P = (0.0, 0.320), (0.0, 0.375), (0.0, 0.415)
@@ -90,7 +91,7 @@ def test_experiment_points_L_M_N_lie_in_areas_of_increasing_error(fig5):
 def test_phi_max_does_not_depend_on_gain_but_g_norm_does(p1):
     """'This plot (|phi_max|) is unaffected by changes in the controller's gain'; ||G|| tends to 1 as
     k -> 0 and grows proportionally as k grows."""
-    ev = Evaluator.from_scenario(p1)
+    ev = Evaluator.from_model(build_arm(p1))
     x = np.array([L_P, M_P, N_P, (-0.1, 0.3), (0.05, 0.25)])
     w1 = worst_case(ev, x, 1.0)
     for k in (0.01, 0.5, 4.0):
@@ -120,7 +121,7 @@ def test_fig7_tips_on_the_line_of_the_port_error(p1, name):
     p = np.asarray(sc.port.position)
     u = np.asarray(FIG7[name]) / 0.01
     n = np.array([u[1], -u[0]])
-    ev = Evaluator.from_scenario(sc)
+    ev = Evaluator.from_model(build_arm(sc))
     checked = 0
     for s in np.arange(-0.30, 0.301, 0.02):
         d = np.linspace(-0.04, 0.04, 81)
@@ -148,7 +149,7 @@ def test_fig7_y_port_error_hurts_more_than_z_along_y0(p1):
     x = np.stack([np.zeros(61), np.linspace(0.30, 0.42, 61)], -1)
     worst = {}
     for name, off in FIG7.items():
-        wc = worst_case(Evaluator.from_scenario(_with_estimate(p1, off)), x, 1.0)
+        wc = worst_case(Evaluator.from_model(build_arm(_with_estimate(p1, off))), x, 1.0)
         assert wc["valid"].all()
         worst[name] = (wc["G_norm"].max(), wc["phi_max"].max())
     gy = max(worst["+y"][0], worst["-y"][0])

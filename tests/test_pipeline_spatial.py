@@ -45,6 +45,7 @@ from errplan.api import load_scenario
 
 from arms import needs_omni, ur5_scenario
 from test_fields_spatial import omni_scenario
+from errplan.models import build_arm
 
 ROOT = Path(__file__).resolve().parents[1]
 PHANTOM = ROOT / "scenarios" / "phantom15_spatial.toml"
@@ -226,7 +227,7 @@ def test_certificates_bound_an_independent_random_sample(run):
     in a random direction normal to the port->tip line): the SVD norm of I - k J Jhat^-1 never exceeds the
     certified value by more than 1e-3 (a sample, not a bound)."""
     sc, _, out, _ = run
-    es = ErrorSet.from_scenario(sc)
+    es = build_arm(sc).errors
     arm = arm_for(sc.robot)
     L = sc.instrument.length
     est = np.asarray(sc.port.estimate, float)
@@ -268,7 +269,7 @@ def test_corner_replays_converge_monotonically_on_an_independent_arm(run):
     the number of steps errplan.simulation took (its corner replays)."""
     sc, _, out, _ = run
     parm = PinArm(sc)
-    es = ErrorSet.from_scenario(sc)
+    es = build_arm(sc).errors
     corners = es.port_corners()
     assert len(corners) == 8
     opts = out["runs"][0].schedule.options
@@ -470,7 +471,7 @@ def test_recorded_robot_puts_the_wrist_where_the_simulation_had_it(run):
         animated[j] = rows
     from errplan.kinematics.truth import Plant
 
-    truth = Plant.from_scenario(sc)
+    truth = Plant.from_model(build_arm(sc))
     offset = 0
     checked = 0
     for r in out["runs"]:

@@ -27,6 +27,7 @@ from errplan.fields import Evaluator, KernelEvaluator, compute_fields
 from errplan.scenario import Fields, Port
 from errplan.api import load_scenario, parse_scenario
 from errplan.tolerance import candidate_scenario, port_placement, rank_key, run_all, run_query
+from errplan.models import build_arm
 
 ROOT = Path(__file__).resolve().parents[1]
 URDF = str(ROOT / "scenarios" / "phantom15.urdf")
@@ -118,7 +119,7 @@ def _box_samples(lo, hi, n):
 def brute_planar(sc, c, X, n=7):
     """(valid, rho*) at points X for nominal port c: Evaluator parts over a 7^3 sample of the box."""
     sc_c = replace(sc, port=Port(tuple(c), tuple(c)))
-    ev = Evaluator.from_scenario(sc_c)
+    ev = Evaluator.from_model(build_arm(sc_c))
     u = sc.uncertainty
     th = _box_samples([u.port_y[0], u.port_z[0], u.tip_force_over_ei[0]],
                       [u.port_y[1], u.port_z[1], u.tip_force_over_ei[1]], n)  # (s, 3)

@@ -39,7 +39,7 @@ class Problem:
         self.mf = fields_for_planning(self.sc, resolution)
         self.cm = costmap_for(self.sc, self.mf)
         self.graph = GridGraph(self.cm, 4)
-        self.settings = PlannerSettings.from_scenario(self.sc)
+        self.settings = PlannerSettings.from_model(self.sc)
 
     def ref(self, s, g):
         return grid_optimum(self.cm, s, g, 4, graph=self.graph)

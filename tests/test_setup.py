@@ -18,6 +18,7 @@ from errplan.anatomy import setup as geo
 from errplan.cli import main
 from errplan.errors import ScenarioError
 from errplan.scenario import read_scenario, read_setup, setup_from_dict
+from errplan.models import build_arm
 
 try:
     import tomllib
@@ -337,7 +338,7 @@ def _check_figures(st, tol, r):
     arm = st.arm((n1, n2)[i_near])
     from errplan.fields import ErrorSet
 
-    es = ErrorSet.from_scenario(arm)
+    es = build_arm(arm).errors
     off_i = es.port_corners() - np.asarray(es.base_port)
     P = np.vstack([(p1, p2)[i_near] + off_i, X[k]])
     Q = np.vstack([pe + off_e, lens])

@@ -12,6 +12,7 @@ from errplan.errors import ErrplanError
 from errplan.metrics import g_norm, motion_map, v_sigma
 from errplan.api import load_scenario, parse_scenario
 from errplan.simulation import ControllerModel, Plant, g_norm_along, simulate
+from errplan.models import build_arm
 
 ROOT = Path(__file__).resolve().parents[1]
 PORT = ROOT / "scenarios" / "beasley2004_port.toml"
@@ -41,7 +42,7 @@ def test_exact_model_unit_gain_converges_in_one_step(x0):
     """Estimate = truth, k = 1: G = 0, so one step lands on the target up to the second-order term of the
     nonlinear kinematics (Newton's method): the error after one step shrinks like the square of the first."""
     sc = _port_scenario(estimate=(0.0, 0.160))
-    plant, ctrl = Plant.from_scenario(sc), ControllerModel.from_scenario(sc)
+    plant, ctrl = Plant.from_model(build_arm(sc)), ControllerModel.from_model(build_arm(sc))
     ratios = []
     for e0 in (1e-3, 1e-4):
         target = np.asarray(x0) + e0 * np.array([0.6, 0.8])
@@ -61,7 +62,7 @@ def test_g_norm_predicts_the_step_contraction(x0, k):
     """For a small error e, one simulated step maps it to G e: along the right singular vector v_sigma
     the ratio |e1|/|e0| is ||G||, and along any direction it is |G e|/|e| (P1 eq. 5-6)."""
     sc = _port_scenario()  # P1 Fig. 5: port estimate off by (+20, +10) mm
-    plant, ctrl = Plant.from_scenario(sc), ControllerModel.from_scenario(sc)
+    plant, ctrl = Plant.from_model(build_arm(sc)), ControllerModel.from_model(build_arm(sc))
     q0 = plant.configuration_for_tip(np.asarray(x0, float))
     M, _ = motion_map(plant.true_jacobian(q0), ctrl.J_hat(q0))
     G = np.eye(2) - k * M
@@ -86,7 +87,7 @@ OFFSETS = {"+z": (0, D), "-z": (0, -D), "+y": (D, 0), "-y": (-D, 0),
 
 def _lmn_runs(z):
     sc = _port_scenario()
-    plant, ctrl = Plant.from_scenario(sc), ControllerModel.from_scenario(sc)
+    plant, ctrl = Plant.from_model(build_arm(sc)), ControllerModel.from_model(build_arm(sc))
     x0 = np.array([0.0, z])
     q0 = plant.configuration_for_tip(x0)
     out = {}
@@ -126,7 +127,7 @@ def test_p1_l_and_m_targets_converge_monotonically(z):
 
 def test_switch_tolerance_and_segments():
     sc = _port_scenario(estimate=(0.0, 0.160))
-    plant, ctrl = Plant.from_scenario(sc), ControllerModel.from_scenario(sc)
+    plant, ctrl = Plant.from_model(build_arm(sc)), ControllerModel.from_model(build_arm(sc))
     x0 = np.array([0.0, 0.32])
     wps = np.array([[0.0, 0.33], [0.0, 0.34], [0.01, 0.34]])
     q0 = plant.configuration_for_tip(x0)
@@ -144,7 +145,7 @@ def test_switch_tolerance_and_segments():
 
 def test_g_norm_along_matches_metrics():
     sc = _port_scenario()
-    plant, ctrl = Plant.from_scenario(sc), ControllerModel.from_scenario(sc)
+    plant, ctrl = Plant.from_model(build_arm(sc)), ControllerModel.from_model(build_arm(sc))
     q0 = plant.configuration_for_tip(np.array([0.0, 0.40]))
     r = simulate(plant, ctrl, q0, [[0.0, 0.38]], [0.7])
     g = g_norm_along(r, plant, ctrl)
@@ -162,7 +163,7 @@ def test_direct_path_non_monotonic_where_g_exceeds_one():
     few percent) where the actual ||G|| exceeded 1, and every step obeys |e1|/|e0| <= ||G|| + c |e0| (first
     order plus the kinematics' curvature, c = 60 1/m here)."""
     sc = _port_scenario()
-    plant, ctrl = Plant.from_scenario(sc), ControllerModel.from_scenario(sc)
+    plant, ctrl = Plant.from_model(build_arm(sc)), ControllerModel.from_model(build_arm(sc))
     start, goal = np.array([0.0, 0.36]), np.array([0.0, 0.43])
     wps = start + np.linspace(0, 1, 15)[1:, None] * (goal - start)
     r = simulate(plant, ctrl, plant.configuration_for_tip(start), wps, [1.0] * len(wps), tolerance=1e-5)
@@ -187,7 +188,7 @@ def test_flexion_controller_plan_certified_and_monotonic_with_sensor_noise():
     q = sc.queries[0]
     gs = schedule_gains(sc, np.array([q.start, q.goal]))
     assert gs.certified
-    plant, ctrl = truth_plant(sc), ControllerModel.from_scenario(sc)
+    plant, ctrl = truth_plant(sc), ControllerModel.from_model(build_arm(sc))
     assert plant.load == 3.0 and ctrl.jacobian == "flexion" and any(ctrl.noise)
     for seed in range(5):
         rep = replay(plant, ctrl, q.start, gs.waypoints, gs.gains, gs.options, seed)
@@ -214,8 +215,8 @@ def test_friction_opposes_the_motion_the_command_produces(x0, target):
     is not the desired direction target - tip. Checked step by step against the formulas by hand."""
     sc = _port_scenario()
     fa, fn = 0.002, 0.0012
-    plant = Plant.from_scenario(sc.with_(effects={"port_friction": {"fa": fa, "fn": fn}}))
-    ctrl = ControllerModel.from_scenario(sc)
+    plant = Plant.from_model(build_arm(sc.with_(effects={"port_friction": {"fa": fa, "fn": fn}})))
+    ctrl = ControllerModel.from_model(build_arm(sc))
     q0 = plant.configuration_for_tip(np.asarray(x0, float))
     r = simulate(plant, ctrl, q0, [target], [0.3], max_steps=8, tolerance=1e-12)
     assert r.steps == 8
@@ -244,8 +245,8 @@ def test_friction_keeps_u_when_a_command_moves_nothing():
     """A plant/model pair whose declared model does not move for a command (the target is the tracked
     tip): u keeps its last value; before the first command u = 0 (no friction at step 0)."""
     sc = _port_scenario(estimate=(0.0, 0.160))
-    plant = Plant.from_scenario(sc.with_(effects={"port_friction": {"fa": 0.002, "fn": 0.001}}))
-    ctrl = ControllerModel.from_scenario(sc)
+    plant = Plant.from_model(build_arm(sc.with_(effects={"port_friction": {"fa": 0.002, "fn": 0.001}})))
+    ctrl = ControllerModel.from_model(build_arm(sc))
     q0 = plant.configuration_for_tip(np.array([0.0, 0.36]))
     assert np.allclose(simulate(plant, ctrl, q0, [[0.0, 0.37]], [0.5], max_steps=0).tip[0],
                        plant.tip(q0), atol=1e-15)
@@ -258,7 +259,7 @@ def test_friction_keeps_u_when_a_command_moves_nothing():
 
 def test_simulation_size_is_checked_before_running():
     sc = _port_scenario()
-    plant, ctrl = Plant.from_scenario(sc), ControllerModel.from_scenario(sc)
+    plant, ctrl = Plant.from_model(build_arm(sc)), ControllerModel.from_model(build_arm(sc))
     q0 = plant.configuration_for_tip(np.array([0.0, 0.36]))
     with pytest.raises(ErrplanError, match=r"max_steps = 1000000000000000: the simulated run would need .*PiB"):
         simulate(plant, ctrl, q0, [[0.0, 0.37]], [0.5], max_steps=10**15)
@@ -283,7 +284,7 @@ def test_spatial_exact_model_converges_quadratically(x0):
     """The URDF arm with the port where the controller believes it (the bundled PHANToM), k = 1: one
     step is a Newton step, the error after it shrinks like the square of the error before."""
     sc = _phantom()
-    plant, ctrl = Plant.from_scenario(sc), ControllerModel.from_scenario(sc)
+    plant, ctrl = Plant.from_model(build_arm(sc)), ControllerModel.from_model(build_arm(sc))
     assert plant.dim == 3 and ctrl.dim == 3
     q0 = plant.configuration_for_tip(np.asarray(x0))
     assert np.allclose(plant.tip(q0), x0, atol=1e-12)
@@ -299,7 +300,7 @@ def test_spatial_g_norm_along_matches_finite_differences():
     """g_norm_along in 3-D: the truth's Jacobian (true port off the estimate) against central differences
     of the plant's tip, the controller's against differences of its model tip, numpy's SVD."""
     sc = _phantom(position=[0.004, -0.003, 0.165])
-    plant, ctrl = Plant.from_scenario(sc), ControllerModel.from_scenario(sc)
+    plant, ctrl = Plant.from_model(build_arm(sc)), ControllerModel.from_model(build_arm(sc))
     q0 = plant.configuration_for_tip(np.array([0.03, 0.02, 0.38]))
     r = simulate(plant, ctrl, q0, [np.array([-0.02, -0.01, 0.36])], [0.7], tolerance=1e-6)
     assert r.converged and r.monotonic
@@ -321,7 +322,7 @@ def test_spatial_friction_holds_the_tip_back_against_the_motion():
     """physics.md "Effects in 3-D": tip = model tip - (fa (u.s) s + fn (u - (u.s) s)), s the shaft axis
     wrist -> tip; and the motion direction u is the declared model's tip motion of the command."""
     sc = _phantom()
-    plant = Plant.from_scenario(sc).with_(friction=(0.002, 0.001))
+    plant = Plant.from_model(build_arm(sc)).with_(friction=(0.002, 0.001))
     q = plant.configuration_for_tip(np.array([0.02, -0.01, 0.37]))
     w = plant.wrist(q)
     free = plant.tip(q)
@@ -349,7 +350,7 @@ def test_spatial_effects_and_world_load():
     assert kw == {"port_offset": (1e-3, 2e-3, 3e-3), "joint_offset": (0.01, 0.02, 0.03), "gravity_sag": (0.0, 0.01, 0.02),
                   "world_load": (0.0, -1.0, 0.0), "friction": (0.001, 0.002), "tracker_offset": (1e-4, 0.0, 0.0)}
     sc = _phantom()
-    base = Plant.from_scenario(sc)
+    base = Plant.from_model(build_arm(sc))
     arm = base.arm
     q = np.array([0.2, 0.1, 0.3])
     plant = base.with_(joint_offset=(0.01, 0.02, 0.03), gravity_sag=(0.0, 0.01, 0.02))

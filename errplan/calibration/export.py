@@ -100,7 +100,7 @@ def corrected_scenario_toml(sc, report: CalibrationReport) -> str:
     except (OSError, tomllib.TOMLDecodeError) as e:
         raise ErrplanError(f"{sc.source}: cannot re-read the scenario to export it: {e}") from None
     robot = doc.get("robot")
-    if getattr(sc, "dim", 2) == 3 and isinstance(robot, dict):
+    if sc.dim == 3 and isinstance(robot, dict):
         # the URDF (and package paths) as absolute paths: the corrected file may be written anywhere
         robot["urdf"] = str(sc.robot.urdf)
         if "package_path" in robot:

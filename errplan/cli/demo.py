@@ -175,11 +175,12 @@ class DemoJob:
 
     def load(self):
         from ..api import load_scenario
+        from ..models import arm_model
 
         if self.sc is None:
             if self.load_part:
                 warmup.wait(self.load_part)
-            self.sc = load_scenario(self.path)
+            self.sc = arm_model(load_scenario(self.path))  # built once: every step below takes it
         if not self.sc.queries:
             raise ErrplanError(f"{self.path}: the scenario has no [[query]] to plan")
         return self.sc
@@ -508,13 +509,14 @@ def _run_side_by_side(jobs: list[DemoJob], quiet: bool, slots: int, triad: Triad
 def run(args) -> int:
     from ..inputs import check_output
     from ..api import load_scenario
+    from ..models import arm_model
 
     t0 = time.perf_counter()
     quiet = getattr(args, "quiet", False)
     workers = demo_workers()
     if args.scenario:
         path = Path(args.scenario)
-        sc = load_scenario(path)
+        sc = arm_model(load_scenario(path))
         jobs = [DemoJob(path, sc=sc)]
         # a first run compiles the planner's (and in 3-D the gains') kernels meanwhile
         if sc.dim == 3:
@@ -536,7 +538,7 @@ def run(args) -> int:
         # planar plan and queries, the demo's longest, come early), then the abdomen's (the longest), the
         # PHANToM's, the setup's triad placement and its arms'; the queries the longest first.
         warmup.start(("plan2", "arm", "fields3g", "plan3", "gains3", "anatomy"))
-        jobs = [DemoJob(path, weight=3.5, query_weight=3.0, sc=load_scenario(path)),
+        jobs = [DemoJob(path, weight=3.5, query_weight=3.0, sc=arm_model(load_scenario(path))),
                 DemoJob(BUNDLED_SPATIAL, True, "arm", weight=2.0, query_weight=1.5)]
         if BUNDLED_ANATOMY.exists():
             jobs.append(DemoJob(BUNDLED_ANATOMY, "own", "anatomy", weight=3.0, query_weight=2.0))

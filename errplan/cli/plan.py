@@ -97,9 +97,12 @@ def _run_setup(st, args) -> int:
     names = [args.arm] if args.arm is not None else list(st.arm_names)
     if args.arm is not None:
         st.arm(args.arm)
+    from ..models import build
+
+    models = dict(zip(st.arm_names, build(st)))  # each arm built once, as it moves among the others
     jobs = []
     for n in names:
-        sc = st.moving(n)
+        sc = models[n]
         qs = [q for q in sc.queries if args.query is None or q.name == args.query]
         if qs:
             jobs.append((n, sc))

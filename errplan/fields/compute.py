@@ -369,14 +369,16 @@ def compute_fields(sc, resolution: float | None = None, rho_star: bool = False, 
     if compiled:
         job = FieldJob(Pc, k, want_phi, want_rho, refine, samples, kargs)
     else:
+        from ..models import arm_model
         from .evaluator import Evaluator, SpatialEffectsEvaluator, SpatialFlexionEvaluator
 
+        m = arm_model(sc)  # what the top built (a scenario is built into its model here)
         if sc.dim == 2:
-            ev = Evaluator.from_scenario(sc)
+            ev = Evaluator.from_model(m)
         elif sc.controller.jacobian == "flexion" and not jac_effects:
-            ev = SpatialFlexionEvaluator.from_scenario(sc)
+            ev = SpatialFlexionEvaluator.from_model(m)
         else:
-            ev = SpatialEffectsEvaluator.from_scenario(sc)
+            ev = SpatialEffectsEvaluator.from_model(m)
         job = FieldJob(Pc, k, want_phi, want_rho, refine, samples, None, ev)
     if tile_points is None:
         per = len(cand) // (16 * (default_workers() if workers is None else max(1, int(workers))))
@@ -456,6 +458,8 @@ def compute_fields(sc, resolution: float | None = None, rho_star: bool = False, 
 def anatomy_model(sc, es: ErrorSet | None = None):
     """The :class:`errplan.anatomy.ShaftClearance` of a spatial scenario's ``[anatomy]`` (obstacles and
     body wall) for the port box of its error set, or None (no anatomy, or nothing in it)."""
+    if hasattr(type(sc), "true_errors") and (es is None or es == sc.true_errors):
+        return sc.anatomy_model  # an errplan.models.ArmModel: built once
     an = getattr(sc, "anatomy", None)
     if an is None or (not an.obstacles and an.body_wall is None):
         return None

@@ -28,15 +28,16 @@ class ErrorSet:
     samples: int = 5
 
     @classmethod
-    def from_scenario(cls, sc) -> "ErrorSet":
-        u = sc.uncertainty
-        d = sc.dim
+    def from_tables(cls, port, uncertainty, dim: int) -> "ErrorSet":
+        """The box of a scenario's ``[port]`` and ``[uncertainty]`` tables in ``dim`` dimensions (the
+        builder of :mod:`errplan.models` makes it once per arm: ``ArmModel.errors``)."""
+        u, d = uncertainty, dim
         names = ("port_x", "port_y", "port_z")[3 - d:]
         boxes = [getattr(u, n) for n in names]
         if all(b is None for b in boxes):
-            base, offs = sc.port.position, [(0.0, 0.0)] * d
+            base, offs = port.position, [(0.0, 0.0)] * d
         else:
-            base, offs = sc.port.estimate, [b or (0.0, 0.0) for b in boxes]
+            base, offs = port.estimate, [b or (0.0, 0.0) for b in boxes]
         tl = u.tip_force_over_ei or (0.0, 0.0)
         noise = (u.sensor_noise.position, u.sensor_noise.angle) if u.sensor_noise else (0.0, 0.0)
         lo = [o[0] for o in offs] + [tl[0]]
@@ -158,14 +159,17 @@ def spatial_noise_corners(position: float, angle: float, azimuths: int = 4,
 JACOBIAN_EFFECTS = ("port_offset", "joint_offset", "gravity_sag", "world_load")
 
 
-def error_set(sc) -> tuple[ErrorSet, dict]:
-    """The scenario's error set with a ``port_offset`` effect folded into the true port, and the
-    remaining effects that change the true Jacobian (Plant keyword arguments)."""
+def error_set(sc, es: ErrorSet | None = None) -> tuple[ErrorSet, dict]:
+    """The scenario's error set (``es``, default from its tables) with a ``port_offset`` effect folded
+    into the true port, and the remaining effects that change the true Jacobian (Plant keyword arguments).
+    An :class:`errplan.models.ArmModel` answers with what it was built with."""
     from dataclasses import replace
 
     from ..kinematics.truth import effect_kwargs
 
-    es = ErrorSet.from_scenario(sc)
+    if es is None and hasattr(type(sc), "true_errors"):  # an ArmModel: built once
+        return sc.true_errors, dict(sc.jacobian_effects)
+    es = es or ErrorSet.from_tables(sc.port, sc.uncertainty, sc.dim)
     if sc.dim == 2:
         kw = {k: v for k, v in effect_kwargs(sc.effects).items() if k in JACOBIAN_EFFECTS and any(x != 0 for x in v)}
         off = kw.pop("port_offset", None)

@@ -28,15 +28,10 @@ class Evaluator:
     effects: dict = field(default_factory=dict)  # Plant keyword arguments of the truth's [effects]
 
     @classmethod
-    def from_scenario(cls, sc) -> "Evaluator":
-        kw = {k: v for k, v in effect_kwargs(sc.effects).items()
-              if k in JACOBIAN_EFFECTS and any(x != 0 for x in v)}
-        errors = ErrorSet.from_scenario(sc)
-        if "port_offset" in kw:  # the true port moves: fold it into the error set (fast path kept)
-            off = kw.pop("port_offset")
-            errors = replace(errors, base_port=(errors.base_port[0] + off[0], errors.base_port[1] + off[1]))
-        return cls(Arm.from_robot(sc.robot), sc.instrument.length, tuple(sc.port.estimate),
-                   sc.controller.jacobian, errors, kw)
+    def from_model(cls, m) -> "Evaluator":
+        """The planar evaluator of an arm's model (:class:`errplan.models.ArmModel`): its arm, the error
+        set with ``port_offset`` folded in (fast path kept) and the truth's other Jacobian effects."""
+        return cls(m.arm, m.length, m.estimate, m.jacobian, m.true_errors, dict(m.jacobian_effects))
 
     def true_wrist(self, x: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Wrist putting the true tip at ``x`` and its validity (reachable, shaft through port)."""
@@ -208,11 +203,12 @@ class SpatialEffectsEvaluator:
     jacobian: str = "rigid"
 
     @classmethod
-    def from_scenario(cls, sc) -> "SpatialEffectsEvaluator":
-        es, _ = error_set(sc)  # the port_offset effect folded into the box's base port
-        effects = {name: p for name, p in sc.effects.items() if name != "port_offset"}
-        plant = Plant.from_scenario(sc.with_(effects=effects), port=es.base_port)
-        return cls(plant, tuple(sc.port.estimate), es, sc.controller.jacobian)
+    def from_model(cls, m) -> "SpatialEffectsEvaluator":
+        """From an arm's model: the truth with its ``[effects]`` (``port_offset`` folded into the box's base port)."""
+        es = m.true_errors
+        effects = {name: p for name, p in m.scenario.effects.items() if name != "port_offset"}
+        plant = Plant.from_model(m, port=es.base_port, effects=effects)
+        return cls(plant, m.estimate, es, m.jacobian)
 
     @property
     def noise(self) -> np.ndarray | None:
@@ -361,16 +357,17 @@ class SpatialFlexionEvaluator:
             self.noise = self.errors.noise_corners()
 
     @classmethod
-    def from_scenario(cls, sc, noise: np.ndarray | None = None) -> "SpatialFlexionEvaluator":
+    def from_model(cls, m, noise: np.ndarray | None = None) -> "SpatialFlexionEvaluator":
+        """From an arm's model (:class:`errplan.models.ArmModel`); one :class:`ErrplanError` when the
+        truth has ``[effects]`` that move the arm."""
         from ..errors import ErrplanError
-        from ..kinematics import arm_for
 
-        es, kw = error_set(sc)
+        es, kw = m.true_errors, m.jacobian_effects
         if kw:
-            raise ErrplanError(f"{sc.source}: [effects] {sorted(kw)} with P2's flexion controller in 3-D: not "
+            raise ErrplanError(f"{m.scenario.source}: [effects] {sorted(kw)} with P2's flexion controller in 3-D: not "
                                "supported yet (the 3-D flexion controller runs with a truth whose effects do not "
                                "move the arm)")
-        return cls(arm_for(sc.robot), float(sc.instrument.length), tuple(sc.port.estimate), es, noise)
+        return cls(m.arm, float(m.length), m.estimate, es, noise)
 
     def truth(self, x: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """True wrist, world load, port (n, 3) and validity (n,) putting the true tip at ``x``."""

@@ -151,10 +151,11 @@ class SpatialModel:
 
     dim = 3
 
-    def __init__(self, sc):
+    def __init__(self, m):
         from ..fields import KernelEvaluator
-        from ..kinematics import arm_for
+        from ..models import arm_model
 
+        sc = m = arm_model(m)  # an errplan.models.ArmModel (a scenario is built into one)
         self.jacobian = sc.controller.jacobian
         try:
             self.kev = KernelEvaluator(sc) if self.jacobian == "rigid" else FlexionKernel(sc)
@@ -164,20 +165,19 @@ class SpatialModel:
                                "are not supported yet") from None
         self.scenario = sc
         self.errors = self.kev.errors
-        self.arm = arm_for(sc.robot)
+        self.arm = m.arm
         self.length = float(sc.instrument.length)
         self.estimate = np.asarray(sc.port.estimate, float)
         es = self.errors
         self.delta = float(np.max(np.linalg.norm(es.port_corners() - self.estimate, axis=-1)))
         tmax = float(max(abs(es.lo[3]), abs(es.hi[3])))
         self.deviation = self.length * math.atan(tmax * self.length ** 2 / 12.0)
-        from ..fields.compute import anatomy_model
-
-        self.anatomy = anatomy_model(sc, es)  # [anatomy] obstacles (errplan.anatomy.ShaftClearance) or None
+        self.anatomy = m.anatomy_model  # [anatomy] obstacles (errplan.anatomy.ShaftClearance) or None, built once
 
     @classmethod
-    def from_scenario(cls, sc) -> "SpatialModel":
-        return cls(sc)
+    def from_model(cls, m) -> "SpatialModel":
+        """The certificate's physics of an arm's model (:class:`errplan.models.ArmModel`)."""
+        return cls(m)
 
     def instances(self, samples: int) -> np.ndarray:
         """The error set's grid with ``samples`` per axis (8 load directions), one row per distinct
@@ -332,7 +332,7 @@ class FlexionKernel:
         from ..fields import SpatialFlexionEvaluator
 
         self.scenario = sc
-        self.fev = SpatialFlexionEvaluator.from_scenario(sc)
+        self.fev = SpatialFlexionEvaluator.from_model(sc)
         self.errors = self.fev.errors
 
     def motion_maps(self, x: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -34,9 +34,10 @@ def _as_evaluator(src):
     """The physics of a scenario: the planar :class:`Evaluator` or, in 3-D, a :class:`SpatialModel`."""
     if isinstance(src, (Evaluator, SpatialModel)):
         return src
-    if getattr(src, "dim", 2) == 3:
-        return SpatialModel(src)
-    return Evaluator.from_scenario(src)
+    from ..models import arm_model
+
+    m = arm_model(src)
+    return SpatialModel.from_model(m) if m.dim == 3 else Evaluator.from_model(m)
 
 
 def _default_options(src) -> GainOptions:
@@ -50,7 +51,7 @@ def _default_options(src) -> GainOptions:
 def options_from_scenario(sc, **overrides) -> GainOptions:
     kw = {"margin": sc.planner.certify_margin}
     kw.update(overrides)
-    return GainOptions.for_dim(getattr(sc, "dim", 2), **kw).validate()
+    return GainOptions.for_dim(sc.dim, **kw).validate()
 
 
 def schedule_gains(src, path, options: GainOptions | None = None, *, progress=None) -> GainSchedule:

@@ -69,19 +69,19 @@ class Plant:
                 object.__setattr__(self, name, (0.0,) * size)
 
     @classmethod
-    def from_scenario(cls, sc, *, port=None, load=0.0, effects: bool = True, noise: bool = False) -> "Plant":
-        """The scenario's truth (``port.position``), optionally with its ``[effects]`` and sensor noise."""
-        if getattr(sc, "dim", 2) == 3:
-            from . import arm_for
-
-            arm = arm_for(sc.robot)
-            kw = effect_kwargs(sc.effects, 3, arm.n) if effects else {}
+    def from_model(cls, m, *, port=None, load=0.0, effects=True, noise: bool = False) -> "Plant":
+        """The truth of an arm's model (:class:`errplan.models.ArmModel`, its arm built once):
+        ``port.position`` (or ``port``), with the ``[effects]`` (``effects`` True; a mapping: those effect
+        tables instead; False: none) and optionally the sensor noise."""
+        sc = m.scenario
+        tables = sc.effects if effects is True else (effects or {})
+        if m.dim == 3:
+            kw = effect_kwargs(tables, 3, m.arm.n) if tables else {}
             ld = tuple(float(v) for v in np.broadcast_to(np.asarray(load, float), (3,))) if np.ndim(load) else float(load)
         else:
-            arm = Arm.from_robot(sc.robot)
-            kw = effect_kwargs(sc.effects) if effects else {}
+            kw = effect_kwargs(tables) if tables else {}
             ld = float(load)
-        return cls(arm, sc.instrument.length, tuple(sc.port.position if port is None else port), ld,
+        return cls(m.arm, sc.instrument.length, tuple(sc.port.position if port is None else port), ld,
                    tracker_sigma=sc.sensors.tracker_sigma if noise else 0.0,
                    encoder_sigma=sc.sensors.encoder_sigma if noise else 0.0, **kw)
 

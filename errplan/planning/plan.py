@@ -56,9 +56,10 @@ class PlannerSettings:
     grid_seed: bool | None = None  # add the coarse cell-graph candidate (None: GRID_SEED[dim])
 
     @classmethod
-    def from_scenario(cls, sc, planner: str | None = None, time: float | None = None,
-                      seed: int | None = None, **kw) -> "PlannerSettings":
-        p = sc.planner
+    def from_model(cls, m, planner: str | None = None, time: float | None = None,
+                   seed: int | None = None, **kw) -> "PlannerSettings":
+        """The ``[planner]`` table of an arm's model (or scenario), ``planner``/``time``/``seed`` overriding it."""
+        p = m.planner
         return cls(planner=planner or p.planner, time=float(time if time is not None else p.time),
                    seed=int(seed if seed is not None else p.seed), **kw)
 
@@ -314,9 +315,9 @@ def costmap_for(sc, mf) -> CostMap:
     if need_rho and getattr(mf, "rho_star", None) is None:
         raise ErrplanError("the fields have no rho_star (needed by [planner] certifiable = true or metric = "
                            "\"rho_star\"): compute them with rho_star=True (errplan fields --rho-star)")
-    dim = getattr(sc, "dim", 2)
-    if getattr(mf, "dim", 2) != dim:
-        raise ErrplanError(f"{sc.source}: the fields are {getattr(mf, 'dim', 2)}-D but the scenario is {dim}-D")
+    dim = sc.dim
+    if mf.dim != dim:
+        raise ErrplanError(f"{sc.source}: the fields are {mf.dim}-D but the scenario is {dim}-D")
     from ..fields.compute import anatomy_model
 
     margin = BALL_MARGIN if p.certifiable else 0.0
@@ -359,7 +360,7 @@ def plan_scenario(sc, mf=None, *, query: str | None = None, planner: str | None 
     :class:`ScenarioPlan`.
     """
     qs = select_queries(sc, query)
-    st = settings or PlannerSettings.from_scenario(sc, planner=planner, time=time, seed=seed)
+    st = settings or PlannerSettings.from_model(sc, planner=planner, time=time, seed=seed)
     st.check()
     t0 = _time.perf_counter()
     if mf is None:

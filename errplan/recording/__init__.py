@@ -34,7 +34,7 @@ def record_plan(path: str | os.PathLike, sc, mf, runs, *, app_id: str = "errplan
     """Write one ``.rrd`` with the fields, workspace, ports, paths, gains and simulations (planar: the tip
     plane, :mod:`.plane`; spatial: the 3-D scene, :mod:`.space`). Nothing half-written on error."""
     fields_logged = [n for n in ("G_norm", "phi_hat_max", "rho_star") if getattr(mf, n, None) is not None]
-    if getattr(sc, "dim", 2) == 3:
+    if sc.dim == 3:
         scene = SpatialScene(sc, mf, runs)
         bp, log = blueprint_spatial(runs, scene), lambda rec, rr: _log_plan_spatial(rec, rr, sc, mf, runs, scene)
     else:

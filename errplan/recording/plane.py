@@ -37,7 +37,7 @@ from .style import DIRECT_COLOR, FIELD_COLORMAPS, FIELD_RANGES, PLANNED_COLOR, P
 
 
 def _markdown_summary(sc, runs) -> str:
-    if getattr(sc, "dim", 2) == 3:
+    if sc.dim == 3:
         head = ("World frame [x, y, z] (m), y up, z toward the patient. Field slices: worst-case ||G|| at the "
                 f"scenario gain {sc.controller.gain:g} (colormap Turbo, 0 to 1.2: red where it reaches 1 or more).")
     else:

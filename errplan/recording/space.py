@@ -44,11 +44,11 @@ class SpatialScene:
     state), the slice positions and the mesh URIs with whether they resolve."""
 
     def __init__(self, sc, mf, runs):
-        from ..kinematics import arm_for
-        from ..kinematics.truth import Plant
+        from ..models import arm_model
 
-        self.arm = arm_for(sc.robot)
-        truth = Plant.from_scenario(sc)
+        m = arm_model(sc)
+        self.arm = m.arm
+        truth = m.truth if m.truth_load == 0.0 else m.truth.with_(load=0.0)
         self.names = entity_names(runs)
         self.replays = []  # (label, query entity, kind, link angles (n, joints), tips (n, 3), wrists (n, 3))
         self.offsets: dict = {}  # {query entity: {kind: first state on the replay timeline}}
@@ -215,7 +215,7 @@ def _log_anatomy(rec, rr, sc, mf, runs, scene) -> None:
     ``world/fields/blocked`` the grid tips that are reachable but not robustly clear (the blocked part
     of the workspace), and ``series/<query>/<kind>/clearance``: the shaft's clearance (m) at every
     state of the runs under the truth (true port to tip), on the ``step`` and ``replay`` timelines."""
-    from ..kinematics.truth import Plant
+    from ..models import arm_model
 
     an = log_anatomy_meshes(rec, rr, sc)
     if an is None:
@@ -227,7 +227,7 @@ def _log_anatomy(rec, rr, sc, mf, runs, scene) -> None:
         if blocked.any():
             rec.log("world/fields/blocked", rr.Points3D(mf.points()[blocked], colors=BLOCKED_COLOR, radii=ui(1.5)),
                     static=True)
-    port = Plant.from_scenario(sc).true_port
+    port = arm_model(sc).truth.true_port
     mt = an.with_box(port)
     for r, q in zip(runs, scene.names):
         for kind, rep, col in (("planned", r.sim_planned, PLANNED_COLOR), ("direct", r.sim_direct, DIRECT_COLOR)):

@@ -167,7 +167,7 @@ def candidate_scenario(sc, c) -> Any:
     from ..scenario import Port
 
     c = tuple(float(v) for v in c)
-    return replace(sc, port=Port(c, c))
+    return sc.with_(port=Port(c, c))
 
 
 def _candidate_item(sc, c) -> Candidate:

@@ -277,11 +277,13 @@ class _SpatialPhysics:
 
         # No error box: the evaluator's true port is ``port.position`` = base; instances give offsets.
         noise = sc.uncertainty.sensor_noise if jacobian == "flexion" else None
-        sc0 = replace(sc, effects={}, port=Port(tuple(float(v) for v in base_port), tuple(sc.port.estimate)),
+        sc0 = sc.with_(effects={}, port=Port(tuple(float(v) for v in base_port), tuple(sc.port.estimate)),
                       uncertainty=Uncertainty(sensor_noise=noise, samples=sc.uncertainty.samples),
                       controller=replace(sc.controller, jacobian=jacobian))
         # P2's flexion controller in 3-D: the numpy evaluator, the worst over its noise corners
-        self.fev = SpatialFlexionEvaluator.from_scenario(sc0) if jacobian == "flexion" else None
+        from ..models import build_arm
+
+        self.fev = SpatialFlexionEvaluator.from_model(build_arm(sc0)) if jacobian == "flexion" else None
         self.kev = None if self.fev is not None else KernelEvaluator(sc0)
 
     def g(self, x: np.ndarray, th: np.ndarray, k: float) -> tuple[np.ndarray, np.ndarray]:

@@ -296,7 +296,7 @@ def triad_placement(st, tol, *, workers: int | None = 1, scheduler: str | None =
         if sc.controller.jacobian != "rigid" or jac_effects:
             raise ErrplanError(f"{where}: arm {name!r}: the triad covers the rigid controller without [effects] that "
                                "move the arm (not supported yet otherwise)")
-        es = ErrorSet.from_scenario(sc)
+        es = ErrorSet.from_tables(sc.port, sc.uncertainty, sc.dim)
         model = anatomy_model(sc, es)
         if o["candidates"] == "body_wall" and (model is None or not model.wall[6] > 0):
             raise ErrplanError(f'{where}: candidates = "body_wall" needs [anatomy.body_wall]')

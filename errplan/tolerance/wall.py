@@ -125,7 +125,7 @@ def wall_port_placement(sc, spacing: float, region: dict, *, resolution: float |
     if len(ports) > MAX_CANDIDATES:
         raise ErrplanError(f"{where} spacing = {spacing:g}: {len(ports)} wall candidates, more than the sweep's "
                            f"budget of {MAX_CANDIDATES:,}: use a larger spacing")
-    es = ErrorSet.from_scenario(sc)
+    es = ErrorSet.from_tables(sc.port, sc.uncertainty, sc.dim)
     offsets = es.port_corners() - np.asarray(es.base_port, float)
     job = WallJob(PlacementJob(X, k, bound, evaluator=KernelEvaluator(sc)), model, offsets)
     t1 = time.perf_counter()
