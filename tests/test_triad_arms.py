@@ -54,7 +54,8 @@ def phantom_with_collision(d: Path) -> Path:
         v = re.search(r"<visual>(.*?)</visual>", body, re.S)
         if 'name="base"' in body or 'name="torso"' in body or v is None:
             return body
-        return body.replace("</link>", "<collision>" + re.sub(r"<material[^>]*/>", "", v.group(1)) + "</collision></link>")
+        geometry = re.sub(r"<material[^>]*/>", "", v.group(1))
+        return body.replace("</link>", "<collision>" + geometry + "</collision></link>")
 
     p = d / "phantom15_collision.urdf"
     p.write_text(re.sub(r"<link .*?</link>", link, text, flags=re.S))
