@@ -99,7 +99,8 @@ def check_setup(st: Setup) -> None:
     clear of the anatomy, with the arm checks on every arm's collision geometry readable and the arms
     at rest (each at the IK putting its wrist on the rigid shaft from its rest point through its
     estimated port) at least ``arm_clearance`` apart, the endoscope's port on the body wall, and the
-    scenario's ports at least each ``triad_placement`` query's ``port_spacing`` apart. One :class:`errplan.ScenarioError`."""
+    scenario's ports at least each ``triad_placement`` query's ``port_spacing`` apart. One
+    :class:`errplan.ScenarioError`."""
     if not st.several:
         return
     import numpy as np

@@ -54,7 +54,8 @@ def phantom_with_collision(d: Path) -> Path:
         v = re.search(r"<visual>(.*?)</visual>", body, re.S)
         if 'name="base"' in body or 'name="torso"' in body or v is None:
             return body
-        return body.replace("</link>", "<collision>" + re.sub(r"<material[^>]*/>", "", v.group(1)) + "</collision></link>")
+        geometry = re.sub(r"<material[^>]*/>", "", v.group(1))
+        return body.replace("</link>", "<collision>" + geometry + "</collision></link>")
 
     p = d / "phantom15_collision.urdf"
     p.write_text(re.sub(r"<link .*?</link>", link, text, flags=re.S))
@@ -219,12 +220,12 @@ def test_clear_of_answers_as_the_exact_distance():
     A, B = (ArmCollision.from_arm(arm_for(sc.robot)) for sc in st.arms)
     rng = np.random.default_rng(5)
     lo, hi = np.array([-1.2, -2.6, -0.3]), np.array([1.2, -0.4, 2.6])
-    qa, qb = rng.uniform(lo, hi, (150, 3)), rng.uniform(lo, hi, (150, 3))
+    qa, qb = rng.uniform(lo, hi, (81, 3)), rng.uniform(lo, hi, (81, 3))
     qa[0, 1] = np.nan  # an arm that cannot stand there: not clear
     d = clearances(A, qa, B, qb)
     assert np.isnan(d[0]) and np.all(np.isfinite(d[1:]))
     s = np.sort(d[1:])
-    for c in (0.01, 0.03, 0.1, float(0.5 * (s[74] + s[75]))):  # the last one splits the sample in halves
+    for c in (0.01, 0.03, 0.1, float(0.5 * (s[39] + s[40]))):  # the last one splits the sample in halves
         got = clear_of(A, qa, B, qb, c)
         assert not got[0]
         assert np.array_equal(got[1:], d[1:] >= c), c

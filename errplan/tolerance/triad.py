@@ -488,7 +488,8 @@ def triad_placement(st, tol, *, workers: int | None = 1, scheduler: str | None =
     if not found["best"]:
         arms = "" if arm_c is None else f", arm clearance {arm_c:g} m"
         raise ErrplanError(f"{where}: no triad of the {found['triads']} meets the hard constraints (port spacing "
-                           f"{o['port_spacing']:g} m, shaft clearance {st.shaft_clearance:g} m{arms} at covered targets)")
+                           f"{o['port_spacing']:g} m, shaft clearance {st.shaft_clearance:g} m{arms} at covered "
+                           "targets)")
     ranked = [figures(*b) for b in found["best"]]
     return {
         "best": ranked[0], "ranked": ranked[1:],
@@ -499,7 +500,8 @@ def triad_placement(st, tol, *, workers: int | None = 1, scheduler: str | None =
         "search": {"triads": found["triads"], "pairs": found["pairs"], "evaluated": found["evaluated"],
                    "pruned": found["pruned"], "pruned_share": found["pruned"] / max(found["triads"], 1),
                    "waves": found["waves"], "method": "branch and bound" if prune else "brute force",
-                   "rejected_over": "the evaluated triads"},
+                   "rejected_over": "the evaluated triads" if arm_c is None else
+                   "the evaluated triads (arm_clearance: those whose instrument ports meet port_spacing)"},
         "instruments": [n1, n2], "region": {a: list(region[a]) for a in "xyz"}, "resolution": res,
         "weights": {"coverage_weight": data.W, "manipulation_angle": mstar, "manipulation_tolerance": mtol,
                     "azimuth_tolerance": data.a_tol},
