@@ -142,22 +142,34 @@ class HeldPoints:
 def arm_distances(st, tips) -> np.ndarray:
     """Per tip (k, 3) of the left arm: the dense-point distance between the left arm (configuration from
     the previous tip's, least squares) and the right arm held at its rest."""
-    from test_arm_collision import surfaces_of
-
-    from errplan.planning.arm_checks import ArmChecks
-
-    doc = setup_doc()
-    surf = surfaces_of(packages.resolve_package_uri(UR5))
-    left, right = (FreshArm(a["robot"], a["port"]["estimate"], a["instrument"]["length"], surf) for a in doc["arm"])
-    checks = ArmChecks.from_scenario(st.moving("left"))  # only to pick the same branches as the planner
-    q_right = right.at_tip(np.asarray(st.rest("right")), checks.held[0].q)
-    held = HeldPoints(right.links(q_right))
-    q = checks.config(tips[0])
+    left, held, q0 = _independent(st)
+    q = q0(tips[0])
     out = []
     for t in tips:
         q = left.at_tip(t, q)
         out.append(held.distance(left.links(q)))
     return np.array(out)
+
+
+_CACHE: dict = {}
+
+
+def _independent(st):
+    """The fresh arms (built once per test session), the held arm's points, and the starting guess of the
+    least squares at a first tip: errplan's configuration there, only to pick the planner's branch."""
+    if st.source not in _CACHE:
+        from test_arm_collision import surfaces_of
+
+        from errplan.planning.arm_checks import ArmChecks
+
+        doc = setup_doc()
+        surf = surfaces_of(packages.resolve_package_uri(UR5))
+        left, right = (FreshArm(a["robot"], a["port"]["estimate"], a["instrument"]["length"], surf)
+                       for a in doc["arm"])
+        checks = ArmChecks.from_scenario(st.moving("left"))
+        q_right = right.at_tip(np.asarray(st.rest("right")), checks.held[0].q)
+        _CACHE[st.source] = (left, HeldPoints(right.links(q_right)), checks.config)
+    return _CACHE[st.source]
 
 
 def _seg_seg(p0, p1, q0, q1) -> float:
