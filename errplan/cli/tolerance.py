@@ -53,6 +53,7 @@ def triad_table(r, top: int = 5) -> str:
     """The best triad and the next ones of a ``triad_placement`` result: ports, score, per-criterion figures."""
     d = r.data
     names = d["instruments"]
+    arms = d.get("arm_clearance") is not None  # arm checks on: a column of their figure
     rows = []
     for rank, t in enumerate([d["best"]] + d["ranked"][:max(top - 1, 0)], 1):
         ma = t["manipulation_angle"]
@@ -61,14 +62,15 @@ def triad_table(r, top: int = 5) -> str:
                      t["score"], 100 * t["coverage"][names[0]], 100 * t["coverage"][names[1]],
                      100 * t["coverage"]["both"], 100 * t["visible"], math.degrees(ma["mean"]),
                      math.degrees(ma["min"]), math.degrees(t["azimuth_difference_mean"]),
-                     1000 * t["port_spacing_min"], math.nan if sc_ is None else 1000 * sc_])
+                     1000 * t["port_spacing_min"], math.nan if sc_ is None else 1000 * sc_]
+                    + ([math.nan if t["arm_clearance_min"] is None else 1000 * t["arm_clearance_min"]] if arms else []))
     s = d["search"]
     title = (f"{r.name}: {len(d['candidates'][names[0]])} x {len(d['candidates'][names[1]])} x "
              f"{len(d['candidates']['endoscope'])} candidate ports ({names[0]} x {names[1]} x endoscope), "
              f"{d['targets']} targets; score S lower is better")
     lines = [format_table(["rank", f"{names[0]} (mm)", f"{names[1]} (mm)", "endoscope (mm)", "S",
                            f"cov {names[0]} %", f"cov {names[1]} %", "both %", "visible %", "m mean (deg)",
-                           "m min (deg)", "|a1-a2| (deg)", "spacing (mm)", "shaft clear (mm)"], rows, title)]
+                           "m min (deg)", "|a1-a2| (deg)", "spacing (mm)", "shaft clear (mm)"] + (["arm clear (mm)"] if arms else []), rows, title)]
     rej = d["rejected"]
     lines.append(f"search: {s['method']}, {s['evaluated']:,} of {s['triads']:,} triads evaluated "
                  f"({100 * s['pruned_share']:.1f}% pruned by the lower bound); rejected among them: port spacing "
