@@ -371,30 +371,20 @@ def clear_of(geo_a: ArmCollision, qs_a, geo_b: ArmCollision, qs_b, clearance: fl
     they are closer than it; it stops at the first such triangle pair), asked only for the pairs of
     objects whose bounding spheres lie less than ``clearance`` apart (the others cannot be closer). On
     the UR5's meshes about 20 times faster than :func:`clearances`; the tests compare the two."""
-    import coal
-
     c = float(clearance)
     if not (math.isfinite(c) and c > 0.0):
         raise ErrplanError(f"clearance must be a positive number (m), got {clearance!r}")
     qs_a, qs_b, cache = _pairs_of(geo_a, qs_a, geo_b, qs_b)
-    req = coal.CollisionRequest()
-    req.security_margin = c
-    req.num_max_contacts = 1
+    held: dict = {}
     out = np.zeros(len(qs_a), bool)
     for k, (qa, qb) in enumerate(zip(qs_a, qs_b)):
         if not (np.all(np.isfinite(qa)) and np.all(np.isfinite(qb))):
             continue
-        Pa, Ta = _placed(cache, geo_a, qa)
-        Pb, Tb = _placed(cache, geo_b, qb)
-        ca = np.einsum("gij,gj->gi", Pa[:, :3, :3], geo_a._center) + Pa[:, :3, 3]
-        cb = np.einsum("gij,gj->gi", Pb[:, :3, :3], geo_b._center) + Pb[:, :3, 3]
-        lower = np.linalg.norm(ca[:, None] - cb[None], axis=-1) - geo_a._radius[:, None] - geo_b._radius[None]
-        ok = True
-        for i, j in zip(*np.nonzero(lower < c)):
-            if coal.collide(geo_a._geoms[i], Ta[i], geo_b._geoms[j], Tb[j], req, coal.CollisionResult()):
-                ok = False
-                break
-        out[k] = ok
+        Pa, _ = _placed(cache, geo_a, qa)
+        hb = held.get(qb.tobytes())
+        if hb is None:
+            hb = held[qb.tobytes()] = HeldArm(geo_b, qb)
+        out[k] = not _any_within(geo_a, Pa, (hb,), c)
     return out
 
 
