@@ -32,7 +32,6 @@ from typing import Any, Callable
 import numpy as np
 
 from .errors import ErrplanError, InfeasibleError
-from .fields import ErrorSet
 from .models import arm_model
 from .gains import GainOptions, GainSchedule, SpatialModel, options_from_scenario, schedule_gains, single_segment
 from .report import format_table

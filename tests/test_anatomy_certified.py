@@ -115,7 +115,6 @@ def ball_samples(center, radius, n, rng):
 
 
 def port_corners(sc):
-    from errplan.fields import ErrorSet
     return build_arm(sc).errors.port_corners()
 
 
@@ -218,7 +217,6 @@ def test_ball_clearance_is_a_lower_bound_for_the_wall_and_obstacles():
     """One function for obstacles and the body wall: its value is at most the clearance of every sampled
     tip of the ball (the model's own tip query, and, for the nodule, the closed form) and equals the
     centre's clearance less the radius."""
-    from errplan.fields import ErrorSet
     from errplan.fields.compute import anatomy_model
     from errplan.gains.certificate import ball_clearance
     doc = tomllib.loads((ROOT / "scenarios" / "abdomen.toml").read_text())

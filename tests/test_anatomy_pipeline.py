@@ -88,7 +88,6 @@ def shaft_clearance(ports, tips):
 
 
 def box_ports(sc, n):
-    from errplan.fields import ErrorSet
     es = build_arm(sc).errors
     c = es.port_corners()
     axes = [np.linspace(c[:, k].min(), c[:, k].max(), n) for k in range(3)]

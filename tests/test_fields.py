@@ -20,7 +20,7 @@ from scipy.spatial import cKDTree
 
 from conftest import SCENARIOS, make_scenario_dict
 from errplan.errors import ErrplanError
-from errplan.fields import REFINE_LEVELS, ErrorSet, Evaluator, MetricField, compute_fields, minimize_gain, worst_case
+from errplan.fields import REFINE_LEVELS, Evaluator, MetricField, compute_fields, minimize_gain, worst_case
 from errplan.metrics import g_norm_from_parts
 from errplan.scenario import Uncertainty
 from errplan.api import load_scenario, parse_scenario

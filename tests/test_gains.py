@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from errplan.errors import ErrplanError
-from errplan.fields import ErrorSet, Evaluator, compute_fields
+from errplan.fields import Evaluator, compute_fields
 from errplan.gains.certificate import _sample_segment
 from errplan.gains import (GainOptions, ball_tips, cut_path, options_from_scenario, rho_of_k,
                            schedule_gains, single_segment, solve_gains, step_ratio)

@@ -35,7 +35,7 @@ import pytest
 
 from errplan.cli import main
 from errplan.errors import InfeasibleError
-from errplan.fields import ErrorSet, compute_fields
+from errplan.fields import compute_fields
 from errplan.kinematics import arm_for
 from errplan.kinematics.shaft import flexed_tip, flexed_wrist_plane
 from errplan.pipeline import run_pipeline

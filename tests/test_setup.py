@@ -336,8 +336,6 @@ def _check_figures(st, tol, r):
     off_e = geo.endoscope_box(endo) - np.asarray(endo.port.estimate)
     i_near = 0 if data.D1[i1, ie, k] <= data.D2[i2, ie, k] else 1
     arm = st.arm((n1, n2)[i_near])
-    from errplan.fields import ErrorSet
-
     es = build_arm(arm).errors
     off_i = es.port_corners() - np.asarray(es.base_port)
     P = np.vstack([(p1, p2)[i_near] + off_i, X[k]])

@@ -3,16 +3,16 @@ conformal parts of ``M = J Jhat^-1`` (planar), including P2's flexion controller
 ``[effects]``. The reference the compiled kernels (:mod:`.kernels`) are tested against."""
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from ..kinematics.arm import Arm
 from ..kinematics.shaft import (estimate_from_ends, flexed_end_angles, flexed_jacobian, flexed_wrist,
                                 flexed_wrist_plane, lever_jacobian, lever_parts, lever_wrist)
-from ..kinematics.truth import Plant, effect_kwargs
+from ..kinematics.truth import Plant
 from ..metrics import conformal_parts, compose_parts, inv2, inverse_parts
-from .errorset import JACOBIAN_EFFECTS, ErrorSet, error_set
+from .errorset import JACOBIAN_EFFECTS, ErrorSet  # noqa: F401  (JACOBIAN_EFFECTS: re-exported by errplan.fields)
 
 
 # ----------------------------------------------------------------------------- evaluator
