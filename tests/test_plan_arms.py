@@ -21,6 +21,7 @@ from scipy.spatial import cKDTree
 
 from conftest import SCENARIOS, to_toml
 from errplan import api, packages
+from errplan.models import arm_model
 from errplan.anatomy import setup as geo
 from errplan.cli import main
 
@@ -166,7 +167,7 @@ def _independent(st):
         surf = surfaces_of(packages.resolve_package_uri(UR5))
         left, right = (FreshArm(a["robot"], a["port"]["estimate"], a["instrument"]["length"], surf)
                        for a in doc["arm"])
-        checks = ArmChecks.from_scenario(st.moving("left"))
+        checks = ArmChecks.from_model(arm_model(st.moving("left")))
         q_right = right.at_tip(np.asarray(st.rest("right")), checks.held[0].q)
         _CACHE[st.source] = (left, HeldPoints(right.links(q_right)), checks.config)
     return _CACHE[st.source]
@@ -278,7 +279,7 @@ def test_held_arm_checks_against_coal_distances():
 
     doc = setup_doc()
     st = api_setup(doc)
-    ch = ArmChecks.from_scenario(st.moving("left"))
+    ch = ArmChecks.from_model(arm_model(st.moving("left")))
     h = ch.held[0]
     rng = np.random.default_rng(7)
     lo, hi = np.array([-0.11, -0.04, 0.27]), np.array([0.0, 0.04, 0.43])

@@ -55,7 +55,7 @@ TIP_STEP = 0.001
 
 @dataclass
 class ArmChecks:
-    """The moving arm's links against the held arms' (module docstring). Build with :meth:`from_scenario`.
+    """The moving arm's links against the held arms' (module docstring). Build with :meth:`from_model`.
 
     ``arm`` (the moving ``UrdfArm``), ``geo`` (its :class:`ArmCollision`), ``port`` (3,) its port
     estimate, ``length`` its shaft, ``held`` (:class:`HeldArm` per other arm, named), ``clearance`` (m),
@@ -71,13 +71,15 @@ class ArmChecks:
     tip_step: float = TIP_STEP
 
     @classmethod
-    def from_scenario(cls, sc) -> "ArmChecks | None":
-        """The checks of the moving arm's scenario (``sc.held_arms``, set by
-        :meth:`errplan.scenario.Setup.moving`); None without ``[setup] arm_clearance``."""
-        spec = getattr(sc, "held_arms", None)
+    def from_model(cls, m) -> "ArmChecks | None":
+        """The checks of the moving arm's model (:class:`errplan.models.ArmModel`: its kinematics, and
+        ``held_arms`` of its scenario, set by :meth:`errplan.scenario.Setup.moving`); None without
+        ``[setup] arm_clearance``."""
+        sc = m.scenario
+        spec = sc.held_arms
         if spec is None:
             return None
-        arm = arm_for(sc.robot)
+        arm = m.arm
         geo = ArmCollision.from_arm(arm)
         held = []
         for name, robot, port, length, rest in spec.arms:

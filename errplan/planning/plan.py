@@ -326,9 +326,10 @@ def costmap_for(sc, mf) -> CostMap:
         from .setup_checks import view_checker
 
         cm.attach_view(view_checker(sc))
+    from ..models import arm_model
     from .arm_checks import ArmChecks, attach
 
-    return attach(cm, ArmChecks.from_scenario(sc))  # [setup] arm_clearance (errplan.scenario.Setup.moving)
+    return attach(cm, ArmChecks.from_model(arm_model(sc)))  # [setup] arm_clearance (errplan.scenario.Setup.moving)
 
 
 def select_queries(sc, name: str | None = None) -> list:
