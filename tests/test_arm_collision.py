@@ -13,6 +13,8 @@ import math
 import os
 import xml.etree.ElementTree as ET
 
+from pathlib import Path
+
 import numpy as np
 import pinocchio as pin
 import pytest
@@ -76,9 +78,10 @@ def surfaces():
     return surfaces_of(ur5_path())
 
 
-def surfaces_of(urdf):
-    """Per collision element of the URDF: (link, origin (4, 4), vertices of the mesh (or box), the same
-    surface's points subdivided to edges <= H)."""
+def surfaces_of(urdf, base_dir=None, h=None):
+    """Per collision element of the URDF: (link, origin (4, 4), vertices of the mesh (or primitive), the
+    same surface's points subdivided to edges <= ``h`` (default H). Meshes by package:// URI or relative to
+    ``base_dir``, scaled as the URDF says; boxes, cylinders and spheres as trimesh builds them."""
     import trimesh
 
     out = []
@@ -88,11 +91,18 @@ def surfaces_of(urdf):
             O = pose(_floats(o, "xyz"), _floats(o, "rpy"))
             g = c.find("geometry")[0]
             if g.tag == "mesh":
-                m = trimesh.load(str(packages.resolve_package_uri(g.get("filename"))), force="mesh")
-            else:
-                assert g.tag == "box"
+                uri = g.get("filename")
+                path = packages.resolve_package_uri(uri) if uri.startswith("package://") else Path(base_dir) / uri
+                m = trimesh.load(str(path), force="mesh")
+                m.apply_scale(_floats(g, "scale", "1 1 1"))
+            elif g.tag == "box":
                 m = trimesh.creation.box(extents=_floats(g, "size"))
-            v, _ = trimesh.remesh.subdivide_to_size(m.vertices, m.faces, max_edge=H)
+            elif g.tag == "cylinder":
+                m = trimesh.creation.cylinder(radius=float(g.get("radius")), height=float(g.get("length")), sections=48)
+            else:
+                assert g.tag == "sphere", g.tag
+                m = trimesh.creation.icosphere(subdivisions=4, radius=float(g.get("radius")))
+            v, _ = trimesh.remesh.subdivide_to_size(m.vertices, m.faces, max_edge=h or H)
             out.append((link.get("name"), O, np.asarray(m.vertices, float), np.unique(np.asarray(v), axis=0)))
     return out
 

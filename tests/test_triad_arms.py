@@ -15,7 +15,6 @@ from __future__ import annotations
 import dataclasses
 import math
 import re
-import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import numpy as np
@@ -29,7 +28,7 @@ from errplan.errors import ErrplanError
 from errplan.kinematics import arm_for
 from errplan.kinematics.urdf.collision import ArmCollision, clear_of, clearances
 from errplan.tolerance import triad as tr
-from test_arm_collision import _floats, pose, sampled_distance
+from test_arm_collision import pose, sampled_distance, surfaces_of
 from test_setup import _check_figures, triad_doc
 
 try:
@@ -91,39 +90,12 @@ def ur5_coarse(d: Path, **setup) -> Path:
 
 
 # ----------------------------------------------------------------------------- the independent arm clearance
-def surfaces_of(urdf: Path, base_dir: Path):
-    """Per collision element: (link, origin (4, 4), points on its surface with edges <= H)."""
-    import trimesh
-
-    out = []
-    for link in ET.parse(urdf).getroot().iter("link"):
-        for c in link.findall("collision"):
-            o = c.find("origin")
-            O = pose(_floats(o, "xyz"), _floats(o, "rpy"))
-            g = c.find("geometry")[0]
-            if g.tag == "mesh":
-                uri = g.get("filename")
-                path = packages.resolve_package_uri(uri) if uri.startswith("package://") else base_dir / uri
-                m = trimesh.load(str(path), force="mesh")
-                m.apply_scale(_floats(g, "scale", "1 1 1"))
-            elif g.tag == "box":
-                m = trimesh.creation.box(extents=_floats(g, "size"))
-            elif g.tag == "cylinder":
-                m = trimesh.creation.cylinder(radius=float(g.get("radius")), height=float(g.get("length")), sections=48)
-            else:
-                assert g.tag == "sphere", g.tag
-                m = trimesh.creation.icosphere(subdivisions=4, radius=float(g.get("radius")))
-            v, _ = trimesh.remesh.subdivide_to_size(m.vertices, m.faces, max_edge=H)
-            out.append((link.get("name"), O, np.unique(np.asarray(v), axis=0)))
-    return out
-
-
 def world_points(arm, q, surfaces) -> np.ndarray:
     data = arm.model.createData()
     pin.framesForwardKinematics(arm.model, data, arm.pinocchio_configuration(np.asarray(q, float)))
     B = pose(list(arm.base_position), list(arm.base_rpy))
     pts = []
-    for name, O, fine in surfaces:
+    for name, O, _, fine in surfaces:
         M = B @ data.oMf[arm.model.getFrameId(name)].homogeneous @ O
         pts.append(fine @ M[:3, :3].T + M[:3, 3])
     return np.concatenate(pts)
@@ -145,7 +117,7 @@ def check_arms(st, r):
         u = (X[c] - p) / np.linalg.norm(X[c] - p, axis=1)[:, None]
         assert np.allclose(arm.forward(Q[name][c]), X[c] - sc.instrument.length * u, atol=1e-6)
         assert np.all(arm.within_limits(Q[name][c]))
-        surf = surfaces_of(arm.urdf_path, arm.urdf_path.parent)
+        surf = surfaces_of(arm.urdf_path, arm.urdf_path.parent, h=H)
         sampled.append([world_points(arm, q, surf) for q in Q[name][c]])
     d = np.array([sampled_distance(a, b_) for a, b_ in zip(*sampled)])
     assert np.all(d >= st.arm_clearance - SAG)  # the hard constraint, by the second method

@@ -187,14 +187,7 @@ def attach(cm, checks: ArmChecks | None):
         return cm
     if cm.dim != 3:
         raise ErrplanError("arm checks are spatial: the cost map is planar")
-    clear = cm._clear
-    arm_ok = checks.motion_ok
-    if clear is None:
-        cm._clear = arm_ok
-    else:
-        cm._clear = lambda ax, ay, az, bx, by, bz: (clear(ax, ay, az, bx, by, bz)
-                                                    and arm_ok(ax, ay, az, bx, by, bz))
-    return cm
+    return cm.and_clear(checks.motion_ok)
 
 
 def path_clear(cm, path) -> bool:

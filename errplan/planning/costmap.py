@@ -258,13 +258,19 @@ class CostMap:
             return self
         if self.dim != 3:
             raise ErrplanError("an endoscope's view is spatial: the cost map is planar")
-        clear = self._clear
         self._view = visible
+        return self.and_clear(visible)
+
+    def and_clear(self, check) -> "CostMap":
+        """Join ``check(ax, ay, az, bx, by, bz) -> bool`` (a straight motion's extra test: the view, the
+        arms) to the motion check: a motion is valid when the current check and ``check`` both pass
+        (``check`` asked only after the current one passes)."""
+        clear = self._clear
         if clear is None:
-            self._clear = visible
+            self._clear = check
         else:
             self._clear = lambda ax, ay, az, bx, by, bz: (clear(ax, ay, az, bx, by, bz)
-                                                         and visible(ax, ay, az, bx, by, bz))
+                                                         and check(ax, ay, az, bx, by, bz))
         return self
 
     def point_ok(self, *p: float) -> bool:
