@@ -111,7 +111,7 @@ def _search(X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L,
     M = np.empty((1, d, d))
     P1 = np.empty((1, 5))
     S = np.zeros((8, 3, 3))
-    V = np.zeros((8, 3))
+    V = np.zeros((9, 3))
     th = np.empty(na)
     cand = np.empty(na)
     results = np.empty(2)
@@ -335,7 +335,7 @@ def _motion_maps(X, TH, base_port, est, L, arm, chain, rmap, out_M, out_ok):
     """:func:`motion_maps`' loop; compiled once per dimension (``_maps2``, ``_maps3``) as :func:`_search`."""
     d = _D
     S = np.zeros((8, 3, 3))
-    V = np.zeros((8, 3))
+    V = np.zeros((9, 3))
     Pb = np.empty((X.shape[0], 5))
     geo = map_geometry(rmap)
     mst = rmap.state
