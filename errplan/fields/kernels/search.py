@@ -159,6 +159,8 @@ def _pattern(d, which, k, x, th, best, step0, lo, hi, active, periodic, refine, 
                         ok = s_ == 1 or (s_ == 2 and reach_boundary(chain, rmap, ix, iy, iz, w0, w1, w2))
                     if not ok:
                         return best, False
+                    if which == 0 and d == 3 and not P1[0, 0] == P1[0, 0] and _gnorm_ub(M, 0, k) <= best:
+                        continue  # a loaded instance whose bound cannot raise the worst ||G||
                     if _PHI:
                         if which == 1 and d == 3 and phi_bound(M, 0) <= best:
                             continue  # this instance cannot raise the worst |phi_max|
@@ -287,6 +289,18 @@ def _pattern_lanes(d, k, s0, s1, XS, TH, best, known, live, owner, step0, lo, hi
             if want_rho:
                 out_rho[i_], out_k[i_] = _rho_final(best_all, out_rho[i_], out_k[i_], k)
         t0 = t1
+
+
+@njit(cache=True, error_model="numpy")
+def _gnorm_ub(Mb, j, k):
+    """:func:`_gval_ub` from ``M = Mb[j]`` (3 x 3) itself: the Frobenius norm of ``I - k M``, raised as there."""
+    t = Mb[j, 0, 0] + Mb[j, 1, 1] + Mb[j, 2, 2]
+    s = 0.0
+    for a in range(3):
+        for b in range(3):
+            s += Mb[j, a, b] ** 2
+    q = 3.0 - 2.0 * k * t + k * k * s
+    return math.sqrt(max(q, 0.0)) * (1.0 + 1e-6) + 1e-9
 
 
 @njit(cache=True, error_model="numpy", literal_args="d")
