@@ -287,8 +287,8 @@ def test_gnorm_bound_above_exact_value():
         for j in range(len(Ms)):
             ub = _gnorm_ub(Ms, j, k)
             assert ub >= exact[j] and ub >= gval(3, Ms, Pb, j, k)
-            assert _gval_ub(3, Pb, j, k, tr, f2) == pytest.approx(ub, rel=1e-12, abs=1e-15)
-            tight += ub < 1.01 * exact[j] + 2e-9
+            assert _gval_ub(3, Pb, j, k, tr, f2) == pytest.approx(ub, rel=1e-6, abs=1e-9)
+            tight += ub < 1.01 * exact[j] + 1e-6
     assert tight > 0  # tight for some (rank-one-like I - k M, k = 0): the test can fail
     Pb[0, 0] = 0.5  # a lever's reduced form: no bound needed (inf)
     assert _gval_ub(3, Pb, 0, 1.0, tr, f2) == np.inf

@@ -292,6 +292,14 @@ def _pattern_lanes(d, k, s0, s1, XS, TH, best, known, live, owner, step0, lo, hi
 
 
 @njit(cache=True, error_model="numpy")
+def _fro_ub(q, scale):
+    """``sqrt(q)`` (``q = ||I - k M||_F^2`` summed as ``3 - 2 k tr M + k^2 ||M||_F^2``) raised over rounding:
+    ``1e-13 scale`` (the sum's terms' magnitudes) for its cancellation, then 1e-6 relative + 1e-9 for the
+    3 x 3 sigma_max's own rounding."""
+    return math.sqrt(max(q, 0.0) + 1e-13 * scale) * (1.0 + 1e-6) + 1e-9
+
+
+@njit(cache=True, error_model="numpy")
 def _gnorm_ub(Mb, j, k):
     """:func:`_gval_ub` from ``M = Mb[j]`` (3 x 3) itself: the Frobenius norm of ``I - k M``, raised as there."""
     t = Mb[j, 0, 0] + Mb[j, 1, 1] + Mb[j, 2, 2]
@@ -299,8 +307,7 @@ def _gnorm_ub(Mb, j, k):
     for a in range(3):
         for b in range(3):
             s += Mb[j, a, b] ** 2
-    q = 3.0 - 2.0 * k * t + k * k * s
-    return math.sqrt(max(q, 0.0)) * (1.0 + 1e-6) + 1e-9
+    return _fro_ub(3.0 - 2.0 * k * t + k * k * s, 3.0 + 2.0 * k * abs(t) + k * k * s)
 
 
 @njit(cache=True, error_model="numpy", literal_args="d")
@@ -314,8 +321,7 @@ def _gval_ub(d, Pb, j, k, tr, f2):
         return math.inf
     if Pb[j, 0] == Pb[j, 0]:
         return math.inf
-    q = 3.0 - 2.0 * k * tr[j] + k * k * f2[j]
-    return math.sqrt(max(q, 0.0)) * (1.0 + 1e-6) + 1e-9
+    return _fro_ub(3.0 - 2.0 * k * tr[j] + k * k * f2[j], 3.0 + 2.0 * k * abs(tr[j]) + k * k * f2[j])
 
 
 @njit(cache=True, error_model="numpy", literal_args="d")
