@@ -269,3 +269,43 @@ def test_the_lanes_load_where_and_only_where_the_search_records_lanes(tmp_path, 
     monkeypatch.setattr(kernels.loops, "run_lanes", lambda *a: loaded.append(a))  # what load_lanes calls
     kernels.load_lanes(sc.dim, *compute._tile_args(job))
     assert (lanes.count[0] > 0) == bool(loaded) == straight
+
+
+def test_gnorm_bound_above_exact_value():
+    """The bound the golden section and the pattern search skip instances by (_gnorm_ub, _gval_ub) is never
+    below ||I - k M||_2 (numpy's SVD), for general 3 x 3 M, near-identity M and k over [0, 3]."""
+    from errplan.fields.kernels import _gnorm_ub, _gval_ub
+
+    rng = np.random.default_rng(7)
+    Ms = np.concatenate([rng.normal(size=(300, 3, 3)), np.eye(3) + 1e-3 * rng.normal(size=(100, 3, 3))])
+    Pb = np.full((len(Ms), 5), np.nan)
+    tr = np.trace(Ms, axis1=1, axis2=2).copy()
+    f2 = (Ms ** 2).sum(axis=(1, 2))
+    tight = 0
+    for k in (0.0, 0.3, 1.0, 2.7):
+        exact = np.linalg.norm(np.eye(3) - k * Ms, 2, axis=(1, 2))
+        for j in range(len(Ms)):
+            ub = _gnorm_ub(Ms, j, k)
+            assert ub >= exact[j] and ub >= gval(3, Ms, Pb, j, k)
+            assert _gval_ub(3, Pb, j, k, tr, f2) == pytest.approx(ub, rel=1e-6, abs=1e-9)
+            tight += ub < 1.01 * exact[j] + 1e-6
+    assert tight > 0  # tight for some (rank-one-like I - k M, k = 0): the test can fail
+    Pb[0, 0] = 0.5  # a lever's reduced form: no bound needed (inf)
+    assert _gval_ub(3, Pb, 0, 1.0, tr, f2) == np.inf
+
+
+def test_instance3_reuse_gives_fresh_values():
+    """A loaded instance after others (V holding the previous one's basis and beam) gives bit for bit the
+    M and wrist of the same instance on zeroed scratch."""
+    x = np.array([0.01, -0.02, 0.33])
+    bp, est, L = np.array([0.0, 0.0, 0.16]), np.array([0.0, 0.0, 0.16]), 0.32
+    rng = np.random.default_rng(3)
+    thetas = [np.array([0.002, -0.001, 0.003, tau, psi]) for tau in (0.5, 1.0) for psi in np.linspace(0, 6, 5)]
+    thetas += [np.array([*rng.uniform(-0.005, 0.005, 3), 1.0, 1.0]) for _ in range(4)]
+    S, V = np.zeros((8, 3, 3)), np.zeros((9, 3))
+    M, Pb = np.empty((1, 3, 3)), np.empty((1, 5))
+    for th in thetas:
+        r1 = _instance3(x, th, bp, est, L, M, Pb, 0, S, V, True)
+        M1 = M.copy()
+        r0 = _instance3(x, th, bp, est, L, M, Pb, 0, np.zeros((8, 3, 3)), np.zeros((9, 3)), True)
+        assert r1 == r0 and r1[0] and np.array_equal(M1, M)

@@ -145,7 +145,8 @@ def _flexed_J3(V, iw, ip, it, L, a, J, S):
 # plane, :func:`_instance3` in 3-D; ``(ok, w0, w1, w2)``: ``ok`` False where the shaft does not pass the
 # port, the controller's Jacobian is singular or (planar) the arm cannot place the wrist; in 3-D the wrist
 # ``w`` is returned and the caller checks its reachability (:func:`reach_point`) unless :func:`_tip_reach`
-# certified the tip. ``S`` (8, 3, 3) and ``V`` (8, 3) are scratch.
+# certified the tip. ``S`` (8, 3, 3) and ``V`` (9, 3) are scratch (``V`` zeros at first: rows 1, 7, 8 keep
+# what :func:`_instance3` reuses between calls).
 #
 # :func:`_instance3` is the only kernel forced inline: a call would reference-count every array argument,
 # which costs more than the arithmetic in the 3-D search (about 10 % of a spatial field without it).
@@ -339,13 +340,28 @@ def _instance3(x, theta, base_port, est, L, Mb, Pb, jm, S, V, full):
     f1 = V[5]
     f2 = V[6]
     p[0], p[1], p[2] = p0, p1, p2
-    e1v[0], e1v[1], e1v[2] = e0 / r, e1 / r, e2 / r
-    _perp_basis(e1v, f1, f2)
+    # The parts that do not depend on the load direction psi are kept in V from the previous loaded
+    # instance and reused where their inputs are the same numbers (the sampled directions of one port
+    # and load follow each other): the basis from e (V[1]: its key), the beam's b and angle from
+    # (r, tau, L) (V[7]: key r, tau, b; V[8]: cos, sin, L). The same arithmetic on the same inputs:
+    # the same values. V starts at zero, which no loaded instance matches (r > 0, tau != 0).
+    ek = V[1]
+    if not (ek[0] == e0 and ek[1] == e1 and ek[2] == e2):
+        e1v[0], e1v[1], e1v[2] = e0 / r, e1 / r, e2 / r
+        _perp_basis(e1v, f1, f2)
+        ek[0], ek[1], ek[2] = e0, e1, e2
     cp, sp = math.cos(theta[4]), math.sin(theta[4])
-    b = _solve_b(r, L, tau)
+    bk = V[7]
+    ak = V[8]
+    if bk[0] == r and bk[1] == tau and ak[2] == L:
+        b, ca, sa = bk[2], ak[0], ak[1]
+    else:
+        b = _solve_b(r, L, tau)
+        al = math.atan(tau * (L - b) * b / 3.0)
+        ca, sa = math.cos(al), math.sin(al)
+        bk[0], bk[1], bk[2] = r, tau, b
+        ak[0], ak[1], ak[2] = ca, sa, L
     a = L - b
-    al = math.atan(tau * a * b / 3.0)
-    ca, sa = math.cos(al), math.sin(al)
     for i in range(3):
         w[i] = x[i] - L * (ca * e1v[i] - sa * (cp * f1[i] + sp * f2[i]))
     # world load: tau along the normal of the wrist->port line toward the chord

@@ -12,7 +12,7 @@ from ...kinematics.urdf.chain import map_geometry, map_state, reach_boundary
 from .instance import _corners_out2, _instance2, _instance3, _lever_out, _levers2, _levers3
 from .metrics import _phimax, gval, phi_bound
 from .reach import _planar_reachable, _tip_reach, _tip_reach2
-from .search import (LANE_TIPS, _far, _golden_gain, _local_max, _pattern, _pattern_g, _pattern_lanes, _peak_raise,
+from .search import (LANE_TIPS, _far, _golden_gain, _gval_ub, _local_max, _pattern, _pattern_g, _pattern_lanes, _peak_raise,
                      _rho_final, _sample_table)
 
 
@@ -111,11 +111,13 @@ def _search(X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L,
     M = np.empty((1, d, d))
     P1 = np.empty((1, 5))
     S = np.zeros((8, 3, 3))
-    V = np.zeros((8, 3))
+    V = np.zeros((9, 3))
     th = np.empty(na)
     cand = np.empty(na)
     results = np.empty(2)
     idx = np.empty(m, np.int64)
+    trM = np.empty(m)  # the sampled M's traces and squared Frobenius norms (_golden_gain, _gval_ub)
+    f2M = np.empty(m)
     pos = np.empty((m, na), np.int64)
     stride = np.empty(na, np.int64)
     nbr = np.empty((m, 2 * na), np.int64)
@@ -292,12 +294,14 @@ def _search(X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L,
         out_g[ii] = results[0]
         out_p[ii] = results[1] if _PHI else np.nan
         if want_rho:
-            rs, ks = _golden_gain(d, Ms, Pbs, m, 60, k, idx)
+            rs, ks = _golden_gain(d, Ms, Pbs, m, 60, k, idx, trM, f2M)
             if ks > 0:
                 # certify at k*: the refined worst case over the continuous set at that gain
                 jbest = 0
                 vbest = -1.0
                 for j in range(m):
+                    if _gval_ub(d, Pbs, j, ks, trM, f2M) <= vbest:
+                        continue  # cannot be the worst (trM, f2M: filled by _golden_gain)
                     v = gval(d, Ms, Pbs, j, ks)
                     if v > vbest:
                         vbest, jbest = v, j
@@ -331,7 +335,7 @@ def _motion_maps(X, TH, base_port, est, L, arm, chain, rmap, out_M, out_ok):
     """:func:`motion_maps`' loop; compiled once per dimension (``_maps2``, ``_maps3``) as :func:`_search`."""
     d = _D
     S = np.zeros((8, 3, 3))
-    V = np.zeros((8, 3))
+    V = np.zeros((9, 3))
     Pb = np.empty((X.shape[0], 5))
     geo = map_geometry(rmap)
     mst = rmap.state

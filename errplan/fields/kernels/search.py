@@ -159,6 +159,8 @@ def _pattern(d, which, k, x, th, best, step0, lo, hi, active, periodic, refine, 
                         ok = s_ == 1 or (s_ == 2 and reach_boundary(chain, rmap, ix, iy, iz, w0, w1, w2))
                     if not ok:
                         return best, False
+                    if which == 0 and d == 3 and not P1[0, 0] == P1[0, 0] and _gnorm_ub(M, 0, k) <= best:
+                        continue  # a loaded instance whose bound cannot raise the worst ||G||
                     if _PHI:
                         if which == 1 and d == 3 and phi_bound(M, 0) <= best:
                             continue  # this instance cannot raise the worst |phi_max|
@@ -289,35 +291,74 @@ def _pattern_lanes(d, k, s0, s1, XS, TH, best, known, live, owner, step0, lo, hi
         t0 = t1
 
 
+@njit(cache=True, error_model="numpy")
+def _fro_ub(q, scale):
+    """``sqrt(q)`` (``q = ||I - k M||_F^2`` summed as ``3 - 2 k tr M + k^2 ||M||_F^2``) raised over rounding:
+    ``1e-13 scale`` (the sum's terms' magnitudes) for its cancellation, then 1e-6 relative + 1e-9 for the
+    3 x 3 sigma_max's own rounding."""
+    return math.sqrt(max(q, 0.0) + 1e-13 * scale) * (1.0 + 1e-6) + 1e-9
+
+
+@njit(cache=True, error_model="numpy")
+def _gnorm_ub(Mb, j, k):
+    """:func:`_gval_ub` from ``M = Mb[j]`` (3 x 3) itself: the Frobenius norm of ``I - k M``, raised as there."""
+    t = Mb[j, 0, 0] + Mb[j, 1, 1] + Mb[j, 2, 2]
+    s = 0.0
+    for a in range(3):
+        for b in range(3):
+            s += Mb[j, a, b] ** 2
+    return _fro_ub(3.0 - 2.0 * k * t + k * k * s, 3.0 + 2.0 * k * abs(t) + k * k * s)
+
+
 @njit(cache=True, error_model="numpy", literal_args="d")
-def _golden(d, Ms, Pb, idx, na_, kmax, iters):
-    """``min over k in [0, kmax] of max_{i in idx[:na_]} ||I - k Ms[i]||`` by golden section (convex in k)."""
+def _gval_ub(d, Pb, j, k, tr, f2):
+    """A cheap upper bound of :func:`gval` of instance ``j`` at gain ``k`` where its value costs a 3 x 3
+    sigma_max (a loaded 3-D instance, ``Pb[j, 0]`` NaN): the Frobenius norm ``sqrt(3 - 2 k tr(M) + k^2
+    ||M||_F^2)`` from ``tr[j]``, ``f2[j]``, raised by 1e-6 (relative) + 1e-9 over the rounding of both;
+    inf where the value is cheap (the plane, the 3-D lever: no bound needed). A sample whose bound
+    cannot beat the running maximum is skipped: the maximum, and which sample attains it, do not change."""
+    if d == 2:
+        return math.inf
+    if Pb[j, 0] == Pb[j, 0]:
+        return math.inf
+    return _fro_ub(3.0 - 2.0 * k * tr[j] + k * k * f2[j], 3.0 + 2.0 * k * abs(tr[j]) + k * k * f2[j])
+
+
+@njit(cache=True, error_model="numpy", literal_args="d")
+def _golden(d, Ms, Pb, idx, na_, kmax, iters, tr, f2):
+    """``min over k in [0, kmax] of max_{i in idx[:na_]} ||I - k Ms[i]||`` by golden section (convex in k).
+    ``tr``, ``f2``: the instances' trace and squared Frobenius norm (:func:`_gval_ub`: an instance whose
+    bound is not above the running maximum is not evaluated, the maximum is the same)."""
     gr = (math.sqrt(5.0) - 1.0) / 2.0
     a, b = 0.0, kmax
     c, e = b - gr * (b - a), a + gr * (b - a)
     fc = 0.0
     fd = 0.0
     for q in range(na_):
-        fc = max(fc, gval(d, Ms, Pb, idx[q], c))
-        fd = max(fd, gval(d, Ms, Pb, idx[q], e))
+        if not _gval_ub(d, Pb, idx[q], c, tr, f2) <= fc:
+            fc = max(fc, gval(d, Ms, Pb, idx[q], c))
+        if not _gval_ub(d, Pb, idx[q], e, tr, f2) <= fd:
+            fd = max(fd, gval(d, Ms, Pb, idx[q], e))
     for _ in range(iters):
         if fc < fd:
             b, e, fd = e, c, fc
             c = b - gr * (b - a)
             fc = 0.0
             for q in range(na_):
-                fc = max(fc, gval(d, Ms, Pb, idx[q], c))
+                if not _gval_ub(d, Pb, idx[q], c, tr, f2) <= fc:
+                    fc = max(fc, gval(d, Ms, Pb, idx[q], c))
         else:
             a, c, fc = c, e, fd
             e = a + gr * (b - a)
             fd = 0.0
             for q in range(na_):
-                fd = max(fd, gval(d, Ms, Pb, idx[q], e))
+                if not _gval_ub(d, Pb, idx[q], e, tr, f2) <= fd:
+                    fd = max(fd, gval(d, Ms, Pb, idx[q], e))
     return 0.5 * (a + b)
 
 
 @njit(cache=True, error_model="numpy", literal_args="d")
-def _golden_gain(d, Ms, Pb, m, iters, k0, idx):
+def _golden_gain(d, Ms, Pb, m, iters, k0, idx, tr, f2):
     """``min over k > 0 of max_i ||I - k M_i||`` over the m sampled instances; ``(rho, k)``,
     ``(1, 0)`` where no gain contracts.
 
@@ -325,17 +366,25 @@ def _golden_gain(d, Ms, Pb, m, iters, k0, idx):
     scenario gain ``k0``), then every instance is checked at the minimiser and the worst one
     joins the set, until none exceeds the active maximum. At the end the maximum over all
     instances at k equals the active minimum, so k minimises the full maximum (each function is
-    convex in k, so is their maximum). ``idx`` is (m,) int scratch."""
+    convex in k, so is their maximum). ``idx`` is (m,) int scratch; ``tr``, ``f2`` (m,) float scratch,
+    filled here with the instances' trace and squared Frobenius norm (:func:`_gval_ub`: instances
+    that cannot change a maximum are not evaluated)."""
     amax = 0.0
     for i in range(m):
         s = 0.0
+        t = 0.0
         for a in range(Ms.shape[1]):
+            t += Ms[i, a, a]
             for b in range(Ms.shape[2]):
                 s += Ms[i, a, b] ** 2
+        tr[i] = t
+        f2[i] = s
         amax = max(amax, math.sqrt(s))
     kmax = 2.0 / amax if amax > 0 else 1.0
     jw, vw = 0, -1.0
     for i in range(m):
+        if _gval_ub(d, Pb, i, k0, tr, f2) <= vw:
+            continue
         v = gval(d, Ms, Pb, i, k0)
         if v > vw:
             jw, vw = i, v
@@ -344,14 +393,17 @@ def _golden_gain(d, Ms, Pb, m, iters, k0, idx):
     kk = 0.0
     rho = 1.0
     while True:
-        kk = _golden(d, Ms, Pb, idx, n_act, kmax, iters)
+        kk = _golden(d, Ms, Pb, idx, n_act, kmax, iters, tr, f2)
         act = 0.0
         for q in range(n_act):
             act = max(act, gval(d, Ms, Pb, idx[q], kk))
         jw, vw = -1, act
         for i in range(m):
+            thr = vw * (1.0 + 1e-13) + 1e-15
+            if _gval_ub(d, Pb, i, kk, tr, f2) <= thr:
+                continue
             v = gval(d, Ms, Pb, i, kk)
-            if v > vw * (1.0 + 1e-13) + 1e-15:
+            if v > thr:
                 jw, vw = i, v
         rho = vw
         if jw < 0 or n_act >= m:
