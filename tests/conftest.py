@@ -154,3 +154,22 @@ def scenario_file(tmp_path):
 
 REPO = Path(__file__).resolve().parents[1]
 SCENARIOS = REPO / "scenarios"
+
+
+def assert_refused(tmp_path: Path, capsys, doc: dict, command: str, *words: str) -> str:
+    """Write ``doc`` to ``tmp_path/s.toml``, run ``errplan -q COMMAND s.toml --json out.json`` and check the
+    bad-input contract: exit code 2, one line on stderr holding every one of ``words``, no traceback, and
+    nothing written beside the scenario. Returns the line."""
+    from errplan.cli import main
+
+    p = tmp_path / "s.toml"
+    p.write_text(to_toml(doc), encoding="utf-8")
+    capsys.readouterr()
+    rc = main(["-q", command, str(p), "--json", str(tmp_path / "out.json")])
+    err = capsys.readouterr().err
+    assert rc == 2, err
+    assert err.count("\n") == 1 and "Traceback" not in err, err
+    for w in words:
+        assert w in err, (w, err)
+    assert sorted(x.name for x in tmp_path.iterdir()) == ["s.toml"]
+    return err

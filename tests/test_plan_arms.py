@@ -19,7 +19,7 @@ import pytest
 from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
 
-from conftest import SCENARIOS, to_toml
+from conftest import SCENARIOS, assert_refused, to_toml
 from errplan import api, packages
 from errplan.models import arm_model
 from errplan.anatomy import setup as geo
@@ -248,26 +248,13 @@ def test_arm_checks_on_a_urdf_without_collision_geometry_is_one_line_exit_2(tmp_
 
     doc = triad_doc()  # two PHANToMs: their URDF has no collision geometry
     doc["setup"]["arm_clearance"] = 0.02
-    src = tmp_path / "s.toml"
-    src.write_text(to_toml(doc), encoding="utf-8")
-    capsys.readouterr()
-    assert main(["-q", "plan", str(src), "--json", str(tmp_path / "p.json")]) == 2
-    err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "[setup] arm_clearance" in err and "no collision geometry" in err, err
-    assert sorted(x.name for x in tmp_path.iterdir()) == ["s.toml"]
+    assert_refused(tmp_path, capsys, doc, "plan", "[setup] arm_clearance", "no collision geometry")
 
 
 def test_a_start_too_near_the_held_arm_is_one_line_exit_2(tmp_path, capsys):
     doc = setup_doc()
     doc["query"][0]["start"] = [-0.10, 0.0, 0.34]
-    src = tmp_path / "s.toml"
-    src.write_text(to_toml(doc), encoding="utf-8")
-    capsys.readouterr()
-    assert main(["-q", "plan", str(src), "--json", str(tmp_path / "p.json")]) == 2
-    err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "start" in err and "arm 'right' held at rest" in err, err
-    assert "[setup] arm_clearance = 35 mm" in err
-    assert sorted(x.name for x in tmp_path.iterdir()) == ["s.toml"]
+    assert_refused(tmp_path, capsys, doc, "plan", "start", "arm 'right' held at rest", "[setup] arm_clearance = 35 mm")
 
 
 def test_held_arm_checks_against_coal_distances():

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import SCENARIOS, to_toml
+from conftest import SCENARIOS, assert_refused, to_toml
 from errplan import api
 from errplan.anatomy import setup as geo
 from errplan.cli import main
@@ -136,16 +136,7 @@ def test_bad_setup_is_one_line_exit_2_nothing_written(case, tmp_path, capsys):
         doc["endoscope"] = triad_doc()["endoscope"]
     else:
         doc = _bad(change)
-    p = tmp_path / "s.toml"
-    p.write_text(to_toml(doc), encoding="utf-8")
-    capsys.readouterr()
-    rc = main(["-q", "tolerance", str(p), "--json", str(tmp_path / "out.json")])
-    err = capsys.readouterr().err
-    assert rc == 2, err
-    assert err.count("\n") == 1 and "Traceback" not in err, err
-    for w in words:
-        assert w in err, (w, err)
-    assert sorted(x.name for x in tmp_path.iterdir()) == ["s.toml"]
+    assert_refused(tmp_path, capsys, doc, "tolerance", *words)
 
 
 def test_unknown_key_names_the_key_not_the_whole_table(tmp_path):

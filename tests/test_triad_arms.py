@@ -21,9 +21,8 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from conftest import SCENARIOS, to_toml
+from conftest import SCENARIOS, assert_refused, to_toml
 from errplan import api, packages
-from errplan.cli import main
 from errplan.errors import ErrplanError
 from errplan.kinematics import arm_for
 from errplan.kinematics.urdf.collision import ArmCollision, clear_of, clearances
@@ -226,13 +225,5 @@ def test_ur5_triad_loads_with_its_rest_arms_clear():
 def test_rest_arms_closer_than_arm_clearance_is_one_line_exit_2(tmp_path, capsys):
     doc = ur5_doc()
     doc["setup"]["arm_clearance"] = 0.5  # the UR5s at rest are closer than that
-    p = tmp_path / "s.toml"
-    p.write_text(to_toml(doc), encoding="utf-8")
-    capsys.readouterr()
-    rc = main(["-q", "tolerance", str(p), "--json", str(tmp_path / "out.json")])
-    err = capsys.readouterr().err
-    assert rc == 2, err
-    assert err.count("\n") == 1 and "Traceback" not in err, err
-    for w in ["'left' rest", "'right' rest", "mm apart", "arm_clearance = 0.5", "rest point not clear"]:
-        assert w in err, (w, err)
-    assert sorted(x.name for x in tmp_path.iterdir()) == ["s.toml"]
+    assert_refused(tmp_path, capsys, doc, "tolerance", "'left' rest", "'right' rest", "mm apart",
+                   "arm_clearance = 0.5", "rest point not clear")

@@ -585,16 +585,7 @@ def _corner_maps(Z, nb, J, k):
         i02 = (a01 * a12 - a02 * a11) * r
         i12 = (a02 * a10 - a00 * a12) * r
         i22 = (a00 * a11 - a01 * a10) * r
-        f = 0.0
-        f += a00 * a00
-        f += a01 * a01
-        f += a02 * a02
-        f += a10 * a10
-        f += a11 * a11
-        f += a12 * a12
-        f += a20 * a20
-        f += a21 * a21
-        f += a22 * a22
+        f = _sumsq9(a00, a01, a02, a10, a11, a12, a20, a21, a22)
         sing = not abs(det) > RCOND_INV * f * math.sqrt(f)
         m00 = j00 * i00 + j01 * i10 + j02 * i20
         m01 = j00 * i01 + j01 * i11 + j02 * i21
@@ -614,18 +605,26 @@ def _corner_maps(Z, nb, J, k):
         Z[ZBAD * CS + j] = 1.0 if (sing | (not fin)) else 0.0
         Z[ZGB * CS + j] = _gbound9(m00, m01, m02, m10, m11, m12, m20, m21, m22, k)
         tr = m00 + m11 + m22
-        f = 0.0
-        f += m00 * m00
-        f += m01 * m01
-        f += m02 * m02
-        f += m10 * m10
-        f += m11 * m11
-        f += m12 * m12
-        f += m20 * m20
-        f += m21 * m21
-        f += m22 * m22
+        f = _sumsq9(m00, m01, m02, m10, m11, m12, m20, m21, m22)
         pb = _gbound9(m00, m01, m02, m10, m11, m12, m20, m21, m22, tr / f)
         Z[ZPB * CS + j] = pb if ((tr > 0.0) & (f > 0.0)) else 2.0
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _sumsq9(a00, a01, a02, a10, a11, a12, a20, a21, a22):
+    """The squared Frobenius norm of a 3 x 3 matrix given by its entries, summed in one fixed order (row by
+    row; inlined, so the figures are those of the sums written out in place)."""
+    f = 0.0
+    f += a00 * a00
+    f += a01 * a01
+    f += a02 * a02
+    f += a10 * a10
+    f += a11 * a11
+    f += a12 * a12
+    f += a20 * a20
+    f += a21 * a21
+    f += a22 * a22
+    return f
 
 
 @njit(cache=True, error_model="numpy")
