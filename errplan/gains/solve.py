@@ -67,7 +67,8 @@ def solve_gains(samples: list[dict], opts: GainOptions, *, fixed: list[bool] | N
 def _solve(samples: list[dict], opts: GainOptions, fixed: list[bool],
            active: list[np.ndarray] | None = None) -> tuple[np.ndarray, dict, list[np.ndarray]]:
     """:func:`solve_gains` from the active rows ``active[s]`` (indices; :func:`_first_active` when
-    None), adding left-out rows until the solution satisfies them all. Returns the active rows too."""
+    None), adding left-out rows until the solution satisfies them all (should IPOPT fail on the active
+    rows, the whole problem is solved instead). Returns the active rows too."""
     data = [_rows(smp) for smp in samples]
     if active is None:
         active = [_first_active(A, B, C, smp["k0"], ku, fx) for (A, B, C, ku), smp, fx in zip(data, samples, fixed)]
@@ -78,9 +79,12 @@ def _solve(samples: list[dict], opts: GainOptions, fixed: list[bool],
         xs, f, stats = _ipopt(samples, data, active, opts, fixed)
         solves += 1
         iterations += int(stats.get("iter_count", -1))
-        ok = bool(stats.get("success", False)) and np.all(np.isfinite(xs))
+        ok = bool(stats.get("success", False)) and bool(np.all(np.isfinite(xs)))
         if not ok:
-            break
+            if all(len(a) == len(d[0]) for a, d in zip(active, data)):
+                break
+            active = [np.arange(len(d[0])) for d in data]  # once more with every row, as the whole problem
+            continue
         S = len(samples)
         grew = False
         for s, (A, B, C, ku) in enumerate(data):
