@@ -162,6 +162,10 @@ def _row_max(smp, k):
 def test_planar_gains_match_whole_problem(seed):
     probs, opts, fixed = _planar_problem(seed)
     assert any(fixed) and not all(fixed)
+    # a segment without a reachable pair, as the schedule gives it (fixed, no rows)
+    probs.insert(2, {"mu": np.zeros(0, complex), "nu": np.zeros(0, complex), "d": 0.01,
+                     "tol": opts.switch_tolerance, "k0": 1.0, "rho0": 1.0})
+    fixed.insert(2, True)
     ks_ref, info_ref = _ref_solve_gains(copy.deepcopy(probs), opts, fixed=fixed)
     ks, info = solve_gains(copy.deepcopy(probs), opts, fixed=fixed)
     assert info_ref["success"] and info["success"], (info_ref, info)
