@@ -206,7 +206,8 @@ def test_active_rows_grow_from_a_poor_start(kind):
     else:
         probs, _, opts, fixed = _spatial_problem(6, S=3, n=200)
     data = [solve_mod._rows(p) for p in probs]
-    start = [np.array([int(np.argmin(solve_mod._row_values(A, B, C, p["k0"])))]) for (A, B, C, _), p in zip(data, probs)]
+    start = [np.array([int(np.argmin(solve_mod._row_values(A, B, C, p["k0"])))])
+             for (A, B, C, _), p in zip(data, probs)]
     ks, info, active = _solve(copy.deepcopy(probs), opts, list(fixed), start)
     ks_ref, info_ref = _ref_solve_gains(copy.deepcopy(probs), opts, fixed=fixed)
     assert info["success"] and info["solves"] >= 2
