@@ -222,6 +222,106 @@ def sym_top_candidates(S: np.ndarray) -> np.ndarray:
     return np.flatnonzero(lam >= lam.max() - tol)
 
 
+@njit(cache=True, error_model="numpy")
+def _gnorm_bound(A, k):
+    """An upper bound of ``||I - k A||_2`` (3 x 3 ``A``; NaN if ``A`` has a NaN): the least of
+    ``|1 - k c| + |k| ||A - c I||_F`` (``c = tr(A) / 3``) and ``||I - k A||_F``."""
+    c = (A[0, 0] + A[1, 1] + A[2, 2]) / 3.0
+    f = 0.0
+    fg = 0.0
+    for a in range(3):
+        for b in range(3):
+            e = A[a, b] - (c if a == b else 0.0)
+            f += e * e
+            g = (1.0 if a == b else 0.0) - k * A[a, b]
+            fg += g * g
+    u = abs(1.0 - k * c) + abs(k) * math.sqrt(f)
+    u3 = math.sqrt(fg)
+    if math.isnan(u) or math.isnan(u3):
+        return np.nan
+    return min(u, u3)
+
+
+@njit(cache=True, error_model="numpy")
+def _worst_instances(Ms, ok, k, singular, best, jbest):
+    """Per tip ``t`` of ``Ms`` (n, m, c, 3, 3) (instances, noise corners) and validity ``ok`` (n, m):
+    ``best[t] = max_j g[t, j]`` and ``jbest[t]`` its first index (``np.argmax``), where ``g`` is the
+    verification's masked ``||G||`` (:func:`errplan.gains.verify._mask3` of the largest
+    ``||I - k M||_2`` over the corners, NaN if any is): -inf where not ``ok``, +inf where ``ok`` and
+    ``singular`` or not finite. The instance of largest bound (:func:`_gnorm_bound`, with
+    :data:`_BOUND_SLACK`) is evaluated first; then, in order, a pair whose bound is below the largest
+    value so far is not evaluated: it cannot be the maximum nor its first index. Returns the number of
+    ``||I - k M||`` evaluated."""
+    n, m, nc = Ms.shape[0], Ms.shape[1], Ms.shape[2]
+    evals = 0
+    u = np.empty(m)
+    vals = np.empty(m)
+    for t in range(n):
+        js = -1
+        us = -np.inf
+        for j in range(m):
+            if not ok[t, j]:
+                u[j] = -np.inf
+                vals[j] = -np.inf
+                continue
+            if singular:
+                u[j] = np.inf
+                vals[j] = np.inf
+                continue
+            ub = -np.inf
+            for q in range(nc):
+                b = _gnorm_bound(Ms[t, j, q], k)
+                if math.isnan(b):
+                    ub = np.inf  # no bound: evaluate
+                    break
+                if b > ub:
+                    ub = b
+            u[j] = ub * (1.0 + _BOUND_SLACK) + _BOUND_SLACK
+            vals[j] = np.nan  # not evaluated yet
+            if u[j] > us:
+                us = u[j]
+                js = j
+        bv = -np.inf  # the largest value evaluated so far
+        for s in range(-1, m):
+            j = js if s < 0 else s
+            if j < 0 or not math.isnan(vals[j]) or u[j] < bv:
+                continue
+            v = -np.inf
+            for q in range(nc):
+                g = g_norm3(Ms[t, j, q], k)
+                evals += 1
+                if math.isnan(g):
+                    v = np.nan
+                    break
+                if g > v:
+                    v = g
+            vals[j] = v if math.isfinite(v) else np.inf
+            if vals[j] > bv:
+                bv = vals[j]
+        # the maximum and its first index over the evaluated values (the others are below it)
+        bv = -np.inf
+        bj = 0
+        for j in range(m):
+            if not math.isnan(vals[j]) and vals[j] > bv:
+                bv = vals[j]
+                bj = j
+        best[t] = bv
+        jbest[t] = bj
+    return evals
+
+
+def worst_instances(M: np.ndarray, ok: np.ndarray, k: float, singular: bool) -> tuple[np.ndarray, np.ndarray]:
+    """``(best, jbest)`` (n,) of the masked worst ``||G||`` over the instances of each tip: ``M`` (n, m, 3, 3)
+    or (n, m, c, 3, 3) over noise corners, ``ok`` (n, m); see :func:`_worst_instances`. The values and
+    indices of ``G.max(axis=1)``, ``G.argmax(axis=1)`` for ``G = _mask3(max_c ||I - k M||, ok, singular)``."""
+    n, m = ok.shape
+    Ms = np.ascontiguousarray(np.asarray(M, float).reshape(n, m, -1, 3, 3))
+    best = np.empty(n)
+    jbest = np.empty(n, np.int64)
+    _worst_instances(Ms, np.ascontiguousarray(ok, bool), float(k), bool(singular), best, jbest)
+    return best, jbest
+
+
 def grid_top(M: np.ndarray, k: np.ndarray, top: int) -> tuple[np.ndarray, np.ndarray]:
     """``(max_i ||I - k_j M_i||_2`` (len(k),), the indices of the ``top`` largest per gain (len(k), top))``
     for 3 x 3 ``M`` (n, 3, 3), ``n > top``: the values and the index sets of ``G = gnorm3_grid(M, k)``,
