@@ -561,7 +561,11 @@ class SpatialModel:
         if not len(x):
             return out
         p, w, t, reach = self.wrists(x, theta)
-        q, okq = self.arm.inverse(np.where(reach[:, None], w, w[reach][0] if reach.any() else 0.0))
+        ir = np.flatnonzero(reach)  # the arm's inverse of the reachable wrists only (row by row: the same q)
+        q = np.full((len(x), self.arm.n), np.nan)
+        okq = np.zeros(len(x), bool)
+        if len(ir):
+            q[ir], okq[ir] = self.arm.inverse(w[ir])
         reach &= okq
         idx = np.flatnonzero(reach)
         if not len(idx):
