@@ -169,3 +169,26 @@ def test_worst_instances_equals_masked_argmax(corners, eps):
     Ms = np.ascontiguousarray(M.reshape(n, m, -1, 3, 3))
     evals = _worst_instances(Ms, ok, 0.9, False, np.empty(n), np.empty(n, np.int64))
     assert evals < 0.8 * ok.sum() * Ms.shape[2]
+
+
+def test_spatial_step_ratio_rows_independent_of_unreachable_pairs():
+    """The 3-D one-step replay inverts only the reachable wrists: a batch mixing pairs the truth cannot
+    reach gives each reachable pair the value it gets alone, NaN to the others."""
+    from pathlib import Path
+
+    from errplan.api import load_scenario
+    from errplan.gains import SpatialModel
+
+    sc = load_scenario(Path(__file__).resolve().parents[1] / "scenarios" / "phantom15_spatial.toml")
+    ev = SpatialModel(sc)
+    th = ev.corner_instances()
+    b = np.array([0.0, 0.0, 0.33])
+    rng = np.random.default_rng(11)
+    x = b + 0.01 * rng.normal(size=(12, 3))
+    x[[2, 7]] = [5.0, 5.0, 5.0]  # far outside the arm's reach
+    X, TH = np.repeat(x, len(th), axis=0), np.tile(th, (len(x), 1))
+    batch = ev.step_ratio(b, X, TH, 0.8)
+    assert np.isnan(batch[2 * len(th):3 * len(th)]).all() and np.isfinite(batch[:len(th)]).any()
+    for i in range(0, len(X), 17):
+        alone = ev.step_ratio(b, X[i:i + 1], TH[i:i + 1], 0.8)
+        assert np.array_equal(alone, batch[i:i + 1], equal_nan=True)

@@ -323,11 +323,11 @@ def worst_instances(M: np.ndarray, ok: np.ndarray, k: float, singular: bool) -> 
 
 
 def grid_top(M: np.ndarray, k: np.ndarray, top: int) -> tuple[np.ndarray, np.ndarray]:
-    """``(max_i ||I - k_j M_i||_2`` (len(k),), the indices of the ``top`` largest per gain (len(k), top))``
-    for 3 x 3 ``M`` (n, 3, 3), ``n > top``: the values and the index sets of ``G = gnorm3_grid(M, k)``,
-    ``G.max(axis=1)`` and ``np.argpartition(-G, top, axis=1)[:, :top]`` (as sets), with most of ``G``
-    skipped by a bound (:func:`_grid_top`); a gain whose set the values do not determine (a tie at the
-    ``top``-th value, a NaN) is computed in full as that expression."""
+    """``vals`` (len(k),) and ``tops`` (len(k), top) for 3 x 3 ``M`` (n, 3, 3), ``n > top``: with
+    ``G = gnorm3_grid(M, k)``, ``vals = G.max(axis=1)`` and the rows of ``tops`` the index sets of
+    ``np.argpartition(-G, top, axis=1)[:, :top]``, with most of ``G`` skipped by bounds
+    (:func:`_grid_top`); a gain whose set the values do not determine (a tie at the ``top``-th value,
+    a NaN) is computed in full as that expression."""
     M = np.ascontiguousarray(np.asarray(M, float).reshape(-1, 3, 3))
     k = np.ascontiguousarray(np.atleast_1d(np.asarray(k, float)))
     if len(M) <= top:
