@@ -8,7 +8,7 @@ import numpy as np
 
 from ..fields import Evaluator
 from .options import GainOptions
-from .physics import _is_spatial, _pairs, ball_tips, gnorm3_grid
+from .physics import _is_spatial, _pairs, ball_tips, gnorm3_grid, grid_top, sym_top_candidates
 
 
 def _sample_segment(ev: Evaluator, a, b, radius: float, opts: GainOptions) -> dict:
@@ -60,7 +60,12 @@ def _k_upper_M(M: np.ndarray) -> float:
     """Above ``2 / max_i lambda_max(sym M_i)`` no gain contracts (``|1 - k v.Mv| >= 1``)."""
     if not len(M):
         return 1.0
-    lam = np.linalg.eigvalsh(0.5 * (M + np.swapaxes(M, -1, -2)))[:, -1].max()
+    S = 0.5 * (M + np.swapaxes(M, -1, -2))
+    if np.all(np.isfinite(S)):
+        # only the matrices whose closed-form top eigenvalue is within rounding of the largest can hold the
+        # largest: LAPACK on those alone (the same values, one matrix at a time)
+        S = S[sym_top_candidates(S)]
+    lam = np.linalg.eigvalsh(S)[:, -1].max()
     return 2.0 / lam if lam > 0 else 1.0
 
 
@@ -71,12 +76,12 @@ def _scan_M(M: np.ndarray, n: int = 81, top: int = 3, ku: float | None = None):
     of ``M`` when the caller has it."""
     ku = _k_upper_M(M) if ku is None else ku
     kg = np.linspace(ku / n, ku, n)
-    G = gnorm3_grid(M, kg)                                   # (n, p)
-    vals = G.max(axis=1)
     if len(M) <= 64:
+        vals = gnorm3_grid(M, kg).max(axis=1)                # (n,)
         idx = np.arange(len(M))
-    else:
-        idx = np.unique(np.argpartition(-G, top, axis=1)[:, :top].ravel())
+    else:  # the grid's maxima and top pairs with most of the (n, p) grid skipped by bounds (exact)
+        vals, tops = grid_top(M, kg, top)
+        idx = np.unique(tops.ravel())
     Mp = M[idx]
     k = _golden(lambda q: rho_of_k_M(Mp, q), kg, vals)
     return float(rho_of_k_M(M, k)[0]), float(k), kg, idx

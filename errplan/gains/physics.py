@@ -11,7 +11,8 @@ from ..jit import njit
 from ..errors import ErrplanError
 from ..fields import Evaluator
 from ..kinematics.shaft import flexed_tip, flexed_wrist_plane, lever_jacobian
-from ..linalg import g_norm3, v_sigma3
+from ..linalg import g_norm3, sigma_max3, v_sigma3
+from ..linalg.eigen import _sym3_max
 from ..metrics import inv, inv2, inverse_parts
 
 GOLDEN_ANGLE = math.pi * (3.0 - math.sqrt(5.0))
@@ -69,6 +70,279 @@ def _gnorm_grid(Ms, ks, out):
     for j in range(ks.shape[0]):
         for i in range(Ms.shape[0]):
             out[j, i] = g_norm3(Ms[i], ks[j])
+
+
+#: relative (and absolute) slack on the bound ``|1 - k c| + k r`` before it may skip a pair: the closed-form
+#: ``sigma_max`` is exact to ~1e-15 relative, so a skipped pair is far below the kept ones, never tied
+_BOUND_SLACK = 1e-9
+
+
+@njit(cache=True, error_model="numpy")
+def _scalar_offsets(Ms, c, r):
+    """Per 3 x 3 ``Ms[i]``: ``c[i] = tr(Ms[i]) / 3`` and ``r[i] = ||Ms[i] - c[i] I||_2``, so that at
+    every gain ``||I - k Ms[i]||_2 <= |1 - k c[i]| + k r[i]`` (triangle inequality). Returns False when
+    some value is not finite (no bound then)."""
+    A = np.empty((3, 3))
+    for i in range(Ms.shape[0]):
+        ci = (Ms[i, 0, 0] + Ms[i, 1, 1] + Ms[i, 2, 2]) / 3.0
+        for a in range(3):
+            for b in range(3):
+                A[a, b] = Ms[i, a, b] - (ci if a == b else 0.0)
+        ri = sigma_max3(A)
+        if not (math.isfinite(ci) and math.isfinite(ri)):
+            return False
+        c[i] = ci
+        r[i] = ri
+    return True
+
+
+@njit(cache=True, error_model="numpy")
+def _insert_top(v, i, bv, bi, nb, cap):
+    """Insert value ``v`` (index ``i``) into the descending list ``bv``/``bi`` of ``nb`` entries, kept to
+    its ``cap`` largest; returns the new length."""
+    if nb == cap and not v > bv[cap - 1]:
+        return nb
+    pos = nb if nb < cap else cap - 1
+    while pos > 0 and bv[pos - 1] < v:
+        bv[pos] = bv[pos - 1]
+        bi[pos] = bi[pos - 1]
+        pos -= 1
+    bv[pos] = v
+    bi[pos] = i
+    return nb + 1 if nb < cap else nb
+
+
+@njit(cache=True, error_model="numpy")
+def _grid_top(Ms, c, r, ks, order, left, right, top, vals, tops, clear):
+    """For each gain ``ks[j]``: ``vals[j] = max_i ||I - ks[j] Ms[i]||_2`` and ``tops[j]`` the indices of
+    its ``top`` largest values (any order), the numbers of the full grid (:func:`_gnorm_grid`), but
+    ``||I - k M_i||`` evaluated only where an upper bound of it reaches the ``top``-th largest value found
+    so far; a pair skipped is strictly below it. The gains are visited in ``order``; ``left[j]`` and
+    ``right[j]`` are gains visited before ``j`` on either side (-1 for none). The bound of pair ``i``:
+    ``|1 - k c_i| + |k| r_i`` (:func:`_scalar_offsets`) and, between two visited gains, the chord of the
+    pair's values (or bounds) there (``||I - k M||`` is convex in ``k``), with :data:`_BOUND_SLACK`. The
+    seeds: the top pairs of the neighbour gains and the pairs of largest bound. ``clear[j]`` is False
+    where the ``top``-th largest value is tied with the next or some value is NaN (the set is then not
+    determined by the values: the caller recomputes that gain in full). Returns the number of
+    ``||I - k M||`` evaluated."""
+    p = Ms.shape[0]
+    nk = ks.shape[0]
+    cap = top + 1
+    bv = np.empty(cap)
+    bi = np.empty(cap, np.int64)
+    uv = np.empty(cap)
+    ui = np.empty(cap, np.int64)
+    topx = np.full((nk, cap), -1, np.int64)
+    seen = np.full(p, -1, np.int64)
+    U = np.empty((nk, p))
+    seeds = np.empty(3 * cap, np.int64)
+    evals = 0
+    for j in order:
+        k = ks[j]
+        l, h = left[j], right[j]
+        u = U[j]
+        nu = 0
+        if l >= 0 and h >= 0:
+            w = (k - ks[l]) / (ks[h] - ks[l])
+        for i in range(p):
+            ub = abs(1.0 - k * c[i]) + abs(k) * r[i]
+            if l >= 0 and h >= 0:
+                ch = U[l, i] + w * (U[h, i] - U[l, i])
+                if ch < ub:
+                    ub = ch
+            u[i] = ub * (1.0 + _BOUND_SLACK) + _BOUND_SLACK
+            nu = _insert_top(u[i], i, uv, ui, nu, cap)
+        ns = 0
+        for nbr in (l, h):
+            if nbr >= 0:
+                for t in range(cap):
+                    if topx[nbr, t] >= 0:
+                        seeds[ns] = topx[nbr, t]
+                        ns += 1
+        for t in range(nu):
+            seeds[ns] = ui[t]
+            ns += 1
+        nb = 0
+        nan = False
+        for s in range(ns + p):
+            i = seeds[s] if s < ns else s - ns
+            if seen[i] == j or (s >= ns and nb >= top and u[i] < bv[top - 1]):
+                continue
+            seen[i] = j
+            g = g_norm3(Ms[i], k)
+            evals += 1
+            if math.isnan(g):
+                nan = True
+            else:
+                u[i] = g
+                nb = _insert_top(g, i, bv, bi, nb, cap)
+        vals[j] = bv[0] if nb > 0 else np.nan
+        for t in range(nb):
+            topx[j, t] = bi[t]
+        for t in range(top):
+            tops[j, t] = bi[t] if t < nb else -1
+        clear[j] = (not nan) and nb >= top and (nb < cap or bv[top - 1] > bv[top])
+    return evals
+
+
+def _bisection_order(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Indices ``0..n-1`` in the order ``0, n-1``, then midpoints of visited neighbours, with each one's
+    visited neighbours ``(order, left, right)`` (-1 for none)."""
+    left = np.full(n, -1, np.int64)
+    right = np.full(n, -1, np.int64)
+    order = [0] + ([n - 1] if n > 1 else [])
+    stack = [(0, n - 1)] if n > 2 else []
+    while stack:
+        nxt = []
+        for lo, hi in stack:
+            m = (lo + hi) // 2
+            order.append(m)
+            left[m], right[m] = lo, hi
+            nxt += [iv for iv in ((lo, m), (m, hi)) if iv[1] - iv[0] > 1]
+        stack = nxt
+    return np.array(order, np.int64), left, right
+
+
+@njit(cache=True, error_model="numpy")
+def _sym_top(Ms, out):
+    """``out[i]``: the largest eigenvalue of ``(Ms[i] + Ms[i]^T) / 2`` in closed form (a few ulps of its norm)."""
+    for i in range(Ms.shape[0]):
+        out[i] = _sym3_max(Ms[i, 0, 0], 0.5 * (Ms[i, 0, 1] + Ms[i, 1, 0]), 0.5 * (Ms[i, 0, 2] + Ms[i, 2, 0]),
+                           Ms[i, 1, 1], 0.5 * (Ms[i, 1, 2] + Ms[i, 2, 1]), Ms[i, 2, 2])
+
+
+def sym_top_candidates(S: np.ndarray) -> np.ndarray:
+    """Indices of the symmetric 3 x 3 matrices ``S`` (n, 3, 3), all finite, that may hold the largest
+    eigenvalue of them all: those whose closed-form top eigenvalue (:func:`_sym_top`) is within
+    :data:`_BOUND_SLACK` of the largest entry's scale of the largest one."""
+    S = np.ascontiguousarray(S, float)
+    lam = np.empty(len(S))
+    _sym_top(S, lam)
+    tol = _BOUND_SLACK * (3.0 * float(np.abs(S).max()) + 1e-300)
+    return np.flatnonzero(lam >= lam.max() - tol)
+
+
+@njit(cache=True, error_model="numpy")
+def _gnorm_bound(A, k):
+    """An upper bound of ``||I - k A||_2`` (3 x 3 ``A``; NaN if ``A`` has a NaN): the least of
+    ``|1 - k c| + |k| ||A - c I||_F`` (``c = tr(A) / 3``) and ``||I - k A||_F``."""
+    c = (A[0, 0] + A[1, 1] + A[2, 2]) / 3.0
+    f = 0.0
+    fg = 0.0
+    for a in range(3):
+        for b in range(3):
+            e = A[a, b] - (c if a == b else 0.0)
+            f += e * e
+            g = (1.0 if a == b else 0.0) - k * A[a, b]
+            fg += g * g
+    u = abs(1.0 - k * c) + abs(k) * math.sqrt(f)
+    u3 = math.sqrt(fg)
+    if math.isnan(u) or math.isnan(u3):
+        return np.nan
+    return min(u, u3)
+
+
+@njit(cache=True, error_model="numpy")
+def _worst_instances(Ms, ok, k, singular, best, jbest):
+    """Per tip ``t`` of ``Ms`` (n, m, c, 3, 3) (instances, noise corners) and validity ``ok`` (n, m):
+    ``best[t] = max_j g[t, j]`` and ``jbest[t]`` its first index (``np.argmax``), where ``g`` is the
+    verification's masked ``||G||`` (:func:`errplan.gains.verify._mask3` of the largest
+    ``||I - k M||_2`` over the corners, NaN if any is): -inf where not ``ok``, +inf where ``ok`` and
+    ``singular`` or not finite. The instance of largest bound (:func:`_gnorm_bound`, with
+    :data:`_BOUND_SLACK`) is evaluated first; then, in order, a pair whose bound is below the largest
+    value so far is not evaluated: it cannot be the maximum nor its first index. Returns the number of
+    ``||I - k M||`` evaluated."""
+    n, m, nc = Ms.shape[0], Ms.shape[1], Ms.shape[2]
+    evals = 0
+    u = np.empty(m)
+    vals = np.empty(m)
+    for t in range(n):
+        js = -1
+        us = -np.inf
+        for j in range(m):
+            if not ok[t, j]:
+                u[j] = -np.inf
+                vals[j] = -np.inf
+                continue
+            if singular:
+                u[j] = np.inf
+                vals[j] = np.inf
+                continue
+            ub = -np.inf
+            for q in range(nc):
+                b = _gnorm_bound(Ms[t, j, q], k)
+                if math.isnan(b):
+                    ub = np.inf  # no bound: evaluate
+                    break
+                if b > ub:
+                    ub = b
+            u[j] = ub * (1.0 + _BOUND_SLACK) + _BOUND_SLACK
+            vals[j] = np.nan  # not evaluated yet
+            if u[j] > us:
+                us = u[j]
+                js = j
+        bv = -np.inf  # the largest value evaluated so far
+        for s in range(-1, m):
+            j = js if s < 0 else s
+            if j < 0 or not math.isnan(vals[j]) or u[j] < bv:
+                continue
+            v = -np.inf
+            for q in range(nc):
+                g = g_norm3(Ms[t, j, q], k)
+                evals += 1
+                if math.isnan(g):
+                    v = np.nan
+                    break
+                if g > v:
+                    v = g
+            vals[j] = v if math.isfinite(v) else np.inf
+            if vals[j] > bv:
+                bv = vals[j]
+        # the maximum and its first index over the evaluated values (the others are below it)
+        bv = -np.inf
+        bj = 0
+        for j in range(m):
+            if not math.isnan(vals[j]) and vals[j] > bv:
+                bv = vals[j]
+                bj = j
+        best[t] = bv
+        jbest[t] = bj
+    return evals
+
+
+def worst_instances(M: np.ndarray, ok: np.ndarray, k: float, singular: bool) -> tuple[np.ndarray, np.ndarray]:
+    """``(best, jbest)`` (n,) of the masked worst ``||G||`` over the instances of each tip: ``M`` (n, m, 3, 3)
+    or (n, m, c, 3, 3) over noise corners, ``ok`` (n, m); see :func:`_worst_instances`. The values and
+    indices of ``G.max(axis=1)``, ``G.argmax(axis=1)`` for ``G = _mask3(max_c ||I - k M||, ok, singular)``."""
+    n, m = ok.shape
+    Ms = np.ascontiguousarray(np.asarray(M, float).reshape(n, m, -1, 3, 3))
+    best = np.empty(n)
+    jbest = np.empty(n, np.int64)
+    _worst_instances(Ms, np.ascontiguousarray(ok, bool), float(k), bool(singular), best, jbest)
+    return best, jbest
+
+
+def grid_top(M: np.ndarray, k: np.ndarray, top: int) -> tuple[np.ndarray, np.ndarray]:
+    """``vals`` (len(k),) and ``tops`` (len(k), top) for 3 x 3 ``M`` (n, 3, 3), ``n > top``: with
+    ``G = gnorm3_grid(M, k)``, ``vals = G.max(axis=1)`` and the rows of ``tops`` the index sets of
+    ``np.argpartition(-G, top, axis=1)[:, :top]``, with most of ``G`` skipped by bounds
+    (:func:`_grid_top`); a gain whose set the values do not determine (a tie at the ``top``-th value,
+    a NaN) is computed in full as that expression."""
+    M = np.ascontiguousarray(np.asarray(M, float).reshape(-1, 3, 3))
+    k = np.ascontiguousarray(np.atleast_1d(np.asarray(k, float)))
+    if len(M) <= top:
+        raise ValueError(f"grid_top: {len(M)} matrices, at most top = {top}")
+    c, r = np.empty(len(M)), np.empty(len(M))
+    vals = np.empty(len(k))
+    tops = np.empty((len(k), top), np.int64)
+    clear = np.zeros(len(k), bool)
+    if _scalar_offsets(M, c, r) and np.all(np.isfinite(k)):
+        _grid_top(M, c, r, k, *_bisection_order(len(k)), top, vals, tops, clear)
+    for j in np.flatnonzero(~clear):
+        G = gnorm3_grid(M, k[j])
+        vals[j] = G.max(axis=1)[0]
+        tops[j] = np.argpartition(-G, top, axis=1)[0, :top]
+    return vals, tops
 
 
 @njit(cache=True, error_model="numpy")
@@ -287,7 +561,11 @@ class SpatialModel:
         if not len(x):
             return out
         p, w, t, reach = self.wrists(x, theta)
-        q, okq = self.arm.inverse(np.where(reach[:, None], w, w[reach][0] if reach.any() else 0.0))
+        ir = np.flatnonzero(reach)  # the arm's inverse of the reachable wrists only (row by row: the same q)
+        q = np.full((len(x), self.arm.n), np.nan)
+        okq = np.zeros(len(x), bool)
+        if len(ir):
+            q[ir], okq[ir] = self.arm.inverse(w[ir])
         reach &= okq
         idx = np.flatnonzero(reach)
         if not len(idx):

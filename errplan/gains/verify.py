@@ -10,7 +10,7 @@ import numpy as np
 from ..fields import Evaluator
 from .options import GainOptions
 from .physics import (SpatialModel, _instance_grid, _is_spatial, _pairs, _worst_g, ball_tips, gnorm3_pairs,
-                      step_ratio)
+                      step_ratio, worst_instances)
 
 
 def _pair_g(ev, k: np.ndarray, singular: np.ndarray):
@@ -91,31 +91,30 @@ def verify_segments(ev: Evaluator, segments, opts: GainOptions) -> list[dict]:
     th = _instance_grid(ev, opts.verify_samples)
     m = len(th)
     # The grid: one call per segment (n m pairs each: large enough, and the maps of one segment at a time
-    # stay small in memory)
-    G = np.empty((S * n, m))
+    # stay small in memory); of it, each tip's worst instance (value and first index)
+    best = np.empty(S * n)
+    j = np.empty(S * n, np.int64)
     reach = np.empty((S * n, m), bool)
     n_sing = np.zeros(S, np.int64)
     for i in range(S):
         rows = slice(i * n, (i + 1) * n)
         if spatial:
             M, ok = ev.maps(xs[i], th)  # (n, m, 3, 3), or (n, m, c, 3, 3) over the flexion controller's noise corners
-            g = gnorm3_pairs(M, K[i]).reshape(M.shape[:-2])
-            G[rows] = _mask3(g.max(axis=-1) if g.ndim == 3 else g, ok, sing[i])
+            best[rows], j[rows] = worst_instances(M, ok, K[i], sing[i])  # compiled, most pairs skipped by a bound
             reach[rows] = ok
             n_sing[i] = int(ok.sum()) if sing[i] else 0
         else:
             mu, nu, rch, ok = _pairs(ev, xs[i], th)
-            G[rows] = _worst_g(mu, nu, rch, ok, K[i])
+            G = _worst_g(mu, nu, rch, ok, K[i])
+            j[rows] = np.argmax(G, axis=1)
+            best[rows] = G[np.arange(n), j[rows]]
             reach[rows] = rch
             n_sing[i] = int((rch & ~ok).sum())
             corners = int(mu.shape[-1])
     if spatial:
         corners = ev.noise_corners
     pair_g = _pair_g(ev, K, sing)
-    Gs = G.reshape(S, n, m)
-    grid_max = Gs.max(axis=(1, 2))
-    j = np.argmax(G, axis=1)
-    best = G[np.arange(S * n), j]
+    grid_max = best.reshape(S, n).max(axis=1)
     th_best = th[j].copy()
     # Nonlinear one-step replay from every tip (but the centre) under every replay instance.
     rp = [_replay_pairs(ev, B[i], xs[i], opts) for i in range(S)]
