@@ -7,21 +7,31 @@ All functions take joint angles ``q`` of shape ``(..., 2)`` (rad) and points of 
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
+
+from ..jit import kernel_array, njit
 
 
 def direction(a: np.ndarray) -> np.ndarray:
     """Unit vector ``[sin a, cos a]`` of angle ``a`` (any shape) -> shape ``(..., 2)``."""
     a = np.asarray(a, dtype=float)
-    return np.stack([np.sin(a), np.cos(a)], axis=-1)
+    out = np.empty(a.shape + (2,))
+    np.sin(a, out=out[..., 0])
+    np.cos(a, out=out[..., 1])
+    return out
 
 
 def direction_derivative(a: np.ndarray) -> np.ndarray:
     """``d dir(a) / da = [cos a, -sin a]``: the unit normal on the side of increasing angle."""
     a = np.asarray(a, dtype=float)
-    return np.stack([np.cos(a), -np.sin(a)], axis=-1)
+    out = np.empty(a.shape + (2,))
+    np.cos(a, out=out[..., 0])
+    np.sin(a, out=out[..., 1])
+    np.negative(out[..., 1], out=out[..., 1])
+    return out
 
 
 def angle_of(v: np.ndarray) -> np.ndarray:
@@ -65,7 +75,16 @@ class Arm:
         return np.asarray(self.base) + self.l1 * direction(a1)
 
     def forward(self, q: np.ndarray) -> np.ndarray:
-        """Wrist position ``w`` (..., 2) for joint angles ``q`` (..., 2)."""
+        """Wrist position ``w`` (..., 2) for joint angles ``q`` (..., 2). Compiled
+        (:func:`_forward_kernel`), the operations of :meth:`_forward_numpy` (the reference)."""
+        q = np.asarray(q, dtype=float)
+        if q.shape[-1:] != (2,):
+            return self._forward_numpy(q)
+        out = np.empty(q.shape)
+        _forward_kernel(kernel_array(q).reshape(-1, 2), self._reach_params(), out.reshape(-1, 2))
+        return out
+
+    def _forward_numpy(self, q: np.ndarray) -> np.ndarray:
         a1, a2 = self.link_angles(q)
         return np.asarray(self.base) + self.l1 * direction(a1) + self.l2 * direction(a2)
 
@@ -73,7 +92,16 @@ class Arm:
         return np.asarray(self.base) + self.l1 * direction(a1) + self.l2 * direction(a2)
 
     def jacobian(self, q: np.ndarray) -> np.ndarray:
-        """``dw/dq`` of shape (..., 2, 2): rows [y, z], columns [q1, q2]."""
+        """``dw/dq`` of shape (..., 2, 2): rows [y, z], columns [q1, q2]. Compiled
+        (:func:`_jacobian_kernel`), the operations of :meth:`_jacobian_numpy` (the reference)."""
+        q = np.asarray(q, dtype=float)
+        if q.shape[-1:] != (2,):
+            return self._jacobian_numpy(q)
+        out = np.empty(q.shape + (2,))
+        _jacobian_kernel(kernel_array(q).reshape(-1, 2), self._reach_params(), out.reshape(-1, 2, 2))
+        return out
+
+    def _jacobian_numpy(self, q: np.ndarray) -> np.ndarray:
         a1, a2 = self.link_angles(q)
         d1, d2 = direction_derivative(a1), direction_derivative(a2)
         c1 = self.l1 * d1 + self.l2 * d2
@@ -134,8 +162,19 @@ class Arm:
 
         Returns ``(q, ok)``: ``q`` (..., 2) is the home-pose elbow branch where it is inside the
         limits, else the other branch where that is, else NaN; ``ok`` marks reachable wrists.
-        The second branch is only computed where the first fails.
+        The second branch is only computed where the first fails. Compiled (:func:`_inverse_kernel`),
+        the operations of :meth:`_inverse_numpy` (the reference).
         """
+        w = np.asarray(w, dtype=float)
+        if w.shape[-1:] != (2,):
+            return self._inverse_numpy(w)
+        q = np.empty(w.shape)
+        ok = np.empty(w.shape[:-1], bool)
+        _inverse_kernel(kernel_array(w).reshape(-1, 2), self._reach_params(), self._preferred_sign(),
+                        q.reshape(-1, 2), ok.reshape(-1))
+        return q, ok
+
+    def _inverse_numpy(self, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         d, c, reach = self._annulus(w)
         sgn = self._preferred_sign()
         q = self._branch(d, c, sgn)
@@ -159,7 +198,32 @@ class Arm:
 
         Same answer as ``inverse(w)[1]`` without building the angles: both branches' joint angles
         come from complex products (one ``arctan2`` each, already wrapped), the fields' hot path.
+        Compiled (:func:`_reachable_kernel`), the operations of :meth:`_reachable_numpy` (the reference).
         """
+        w = np.asarray(w, dtype=float)
+        if w.shape[-1:] != (2,):
+            return self._reachable_numpy(w)
+        S = w.shape[:-1]
+        out = np.empty(S, bool)
+        _reachable_kernel(kernel_array(w).reshape(-1, 2), self._reach_params(), out.reshape(-1))
+        return out[()]
+
+    def _reach_params(self) -> np.ndarray:
+        """``[base y, base z, l1, l2, cos h1, sin h1, cos h2, sin h2]``, the six limits with the
+        tolerance of :meth:`within_limits` (lower - tol, upper + tol for q1, q2, q1 + q2), ``[h1, h2, l1**2, l2**2]``."""
+        p = self.__dict__.get("_reach_p")
+        if p is None:
+            tol = 1e-12
+            p = np.array([self.base[0], self.base[1], self.l1, self.l2,
+                          np.cos(self.home[0]), np.sin(self.home[0]), np.cos(self.home[1]), np.sin(self.home[1]),
+                          self.q1_limits[0] - tol, self.q1_limits[1] + tol, self.q2_limits[0] - tol,
+                          self.q2_limits[1] + tol, self.sum_limits[0] - tol, self.sum_limits[1] + tol,
+                          self.home[0], self.home[1], self.l1**2, self.l2**2], float)
+            object.__setattr__(self, "_reach_p", p)
+        return p
+
+    def _reachable_numpy(self, w: np.ndarray) -> np.ndarray:
+        """:meth:`reachable` in numpy: the reference of the compiled path."""
         w = np.asarray(w, dtype=float)
         dy = w[..., 0] - self.base[0]
         dz = w[..., 1] - self.base[1]
@@ -202,3 +266,93 @@ class Arm:
         if len(w) == 0:
             return float("inf")
         return float(np.min(np.linalg.norm(w - np.asarray(p, dtype=float), axis=-1)))
+
+
+@njit(cache=True, error_model="numpy")
+def _reachable_kernel(W, prm, out):
+    """:meth:`Arm.reachable` per wrist ``W[i]`` into ``out[i]``, the operations of
+    :meth:`Arm._reachable_numpy` in the same order (``prm`` from :meth:`Arm._reach_params`)."""
+    by, bz, l1, l2 = prm[0], prm[1], prm[2], prm[3]
+    ch1, sh1, ch2, sh2 = prm[4], prm[5], prm[6], prm[7]
+    den = 2 * l1 * l2
+    for i in range(W.shape[0]):
+        dy = W[i, 0] - by
+        dz = W[i, 1] - bz
+        c = (dy * dy + dz * dz - l1 * l1 - l2 * l2) / den
+        res = False
+        if c >= -1.0 and c <= 1.0:
+            sn = math.sqrt(1.0 - c * c)
+            for k in range(2):
+                s_d = (1.0 if k == 0 else -1.0) * sn
+                q2 = math.atan2(s_d * ch2 - c * sh2, c * ch2 + s_d * sh2)
+                vz, vy = l1 + l2 * c, l2 * s_d
+                rz, ry = dz * vz + dy * vy, dy * vz - dz * vy
+                q1 = math.atan2(ry * ch1 - rz * sh1, rz * ch1 + ry * sh1)
+                s = q1 + q2
+                if (q1 >= prm[8] and q1 <= prm[9] and q2 >= prm[10] and q2 <= prm[11]
+                        and s >= prm[12] and s <= prm[13]):
+                    res = True
+                    break
+        out[i] = res
+
+
+@njit(cache=True, error_model="numpy")
+def _forward_kernel(Q, prm, out):
+    """:meth:`Arm.forward` per row of ``Q`` into ``out`` (:meth:`Arm._forward_numpy`'s operations)."""
+    l1, l2, h1, h2 = prm[2], prm[3], prm[14], prm[15]
+    for i in range(Q.shape[0]):
+        a1 = Q[i, 0] + h1
+        a2 = a1 + Q[i, 1] + h2
+        out[i, 0] = prm[0] + l1 * math.sin(a1) + l2 * math.sin(a2)
+        out[i, 1] = prm[1] + l1 * math.cos(a1) + l2 * math.cos(a2)
+
+
+@njit(cache=True, error_model="numpy")
+def _jacobian_kernel(Q, prm, out):
+    """:meth:`Arm.jacobian` per row of ``Q`` into ``out`` (n, 2, 2) (:meth:`Arm._jacobian_numpy`'s operations)."""
+    l1, l2, h1, h2 = prm[2], prm[3], prm[14], prm[15]
+    for i in range(Q.shape[0]):
+        a1 = Q[i, 0] + h1
+        a2 = a1 + Q[i, 1] + h2
+        c1, s1 = math.cos(a1), -math.sin(a1)
+        c2, s2 = math.cos(a2), -math.sin(a2)
+        out[i, 0, 0] = l1 * c1 + l2 * c2
+        out[i, 1, 0] = l1 * s1 + l2 * s2
+        out[i, 0, 1] = l2 * c2
+        out[i, 1, 1] = l2 * s2
+
+
+@njit(cache=True, error_model="numpy")
+def _wrap1(a):
+    return (a + np.pi) % (2 * np.pi) - np.pi
+
+
+@njit(cache=True, error_model="numpy")
+def _inverse_kernel(W, prm, sgn, Q, ok):
+    """:meth:`Arm.inverse` per wrist ``W[i]`` into ``Q[i]``, ``ok[i]`` (:meth:`Arm._inverse_numpy`'s
+    operations: the preferred branch ``sgn``, else the other one, inside the limits; NaN elsewhere)."""
+    l1, l2, h1, h2 = prm[2], prm[3], prm[14], prm[15]
+    for i in range(W.shape[0]):
+        dy = W[i, 0] - prm[0]
+        dz = W[i, 1] - prm[1]
+        c = (dy * dy + dz * dz - prm[16] - prm[17]) / (2 * l1 * l2)
+        good = False
+        q1 = q2 = math.nan
+        if c >= -1.0 and c <= 1.0:
+            ad = math.atan2(dy, dz)
+            ac = math.acos(min(max(c, -1.0), 1.0))
+            for k in range(2):
+                delta = (sgn if k == 0 else -sgn) * ac
+                a1 = ad - math.atan2(l2 * math.sin(delta), l1 + l2 * math.cos(delta))
+                q1 = _wrap1(a1 - h1)
+                q2 = _wrap1(delta - h2)
+                s = q1 + q2
+                if (q1 >= prm[8] and q1 <= prm[9] and q2 >= prm[10] and q2 <= prm[11]
+                        and s >= prm[12] and s <= prm[13]):
+                    good = True
+                    break
+        ok[i] = good
+        if good:
+            Q[i, 0], Q[i, 1] = q1, q2
+        else:
+            Q[i, 0], Q[i, 1] = math.nan, math.nan
