@@ -210,7 +210,10 @@ class Arm:
 
     def _reach_params(self) -> np.ndarray:
         """``[base y, base z, l1, l2, cos h1, sin h1, cos h2, sin h2]``, the six limits with the
-        tolerance of :meth:`within_limits` (lower - tol, upper + tol for q1, q2, q1 + q2), ``[h1, h2, l1**2, l2**2]``."""
+        tolerance of :meth:`within_limits` (lower - tol, upper + tol for q1, q2, q1 + q2), ``[h1, h2, l1**2, l2**2]``; then per limit
+        interval of q2, q1 and q1 + q2 ``cos m, sin m, cos hw`` (m its middle, hw its half-width) and 1.0
+        where :func:`_arc_class` decides exactly (every interval inside (-pi, pi) by 1e-5 and wider than
+        2e-3 rad, q1 + q2 of any q1, q2 within their limits inside (-pi, pi)), else 0.0."""
         p = self.__dict__.get("_reach_p")
         if p is None:
             tol = 1e-12
@@ -219,6 +222,14 @@ class Arm:
                           self.q1_limits[0] - tol, self.q1_limits[1] + tol, self.q2_limits[0] - tol,
                           self.q2_limits[1] + tol, self.sum_limits[0] - tol, self.sum_limits[1] + tol,
                           self.home[0], self.home[1], self.l1**2, self.l2**2], float)
+            arcs, fast = [], True
+            for lo, hi in (self.q2_limits, self.q1_limits, self.sum_limits):
+                m, hw = 0.5 * (lo + hi), 0.5 * (hi - lo)
+                arcs += [math.cos(m), math.sin(m), math.cos(hw)]
+                fast &= -math.pi + 1e-5 < lo and hi < math.pi - 1e-5 and 1e-3 < hw
+            fast &= (-math.pi + 1e-5 < self.q1_limits[0] + self.q2_limits[0]
+                     and self.q1_limits[1] + self.q2_limits[1] < math.pi - 1e-5)
+            p = np.concatenate([p, arcs, [1.0 if fast else 0.0]])
             object.__setattr__(self, "_reach_p", p)
         return p
 
@@ -269,11 +280,30 @@ class Arm:
 
 
 @njit(cache=True, error_model="numpy")
+def _arc_class(x, y, n, cm, sm, chw):
+    """Where the angle of the vector ``(x, y)`` (length ``n``) lies against an arc of half-width hw
+    around m (``cm, sm = cos m, sin m``, ``chw = cos hw``), without an arctangent: 1 certainly inside,
+    0 certainly outside, -1 too close to an end to say. The margin (1e-9 in the cosine, at least 1e-9
+    rad in the angle) is far above the rounding of either test and the exact test's 1e-12 rad
+    tolerance, so a certain answer is the exact test's answer."""
+    cd = x * cm + y * sm
+    if cd > (chw + 1e-9) * n:
+        return 1
+    if cd < (chw - 1e-9) * n:
+        return 0
+    return -1
+
+
+@njit(cache=True, error_model="numpy")
 def _reachable_kernel(W, prm, out):
-    """:meth:`Arm.reachable` per wrist ``W[i]`` into ``out[i]``, the operations of
-    :meth:`Arm._reachable_numpy` in the same order (``prm`` from :meth:`Arm._reach_params`)."""
+    """:meth:`Arm.reachable` per wrist ``W[i]`` into ``out[i]``: the answers of :meth:`Arm._reachable_numpy`
+    (``prm`` from :meth:`Arm._reach_params`). Each branch's angles are first placed against their limit
+    intervals by one dot product each (:func:`_arc_class`, where ``prm[27]`` says it is exact); the
+    arctangents, in the reference's operations and order, run only for a branch that comes within about
+    1e-9 rad of a limit."""
     by, bz, l1, l2 = prm[0], prm[1], prm[2], prm[3]
     ch1, sh1, ch2, sh2 = prm[4], prm[5], prm[6], prm[7]
+    fast = prm[27] == 1.0
     den = 2 * l1 * l2
     for i in range(W.shape[0]):
         dy = W[i, 0] - by
@@ -284,10 +314,28 @@ def _reachable_kernel(W, prm, out):
             sn = math.sqrt(1.0 - c * c)
             for k in range(2):
                 s_d = (1.0 if k == 0 else -1.0) * sn
-                q2 = math.atan2(s_d * ch2 - c * sh2, c * ch2 + s_d * sh2)
+                y2, x2 = s_d * ch2 - c * sh2, c * ch2 + s_d * sh2
                 vz, vy = l1 + l2 * c, l2 * s_d
                 rz, ry = dz * vz + dy * vy, dy * vz - dz * vy
-                q1 = math.atan2(ry * ch1 - rz * sh1, rz * ch1 + ry * sh1)
+                y1, x1 = ry * ch1 - rz * sh1, rz * ch1 + ry * sh1
+                if fast:
+                    n2 = math.sqrt(x2 * x2 + y2 * y2)
+                    k2 = _arc_class(x2, y2, n2, prm[18], prm[19], prm[20])
+                    if k2 == 0:
+                        continue
+                    n1 = math.sqrt(x1 * x1 + y1 * y1)
+                    k1 = _arc_class(x1, y1, n1, prm[21], prm[22], prm[23])
+                    if k1 == 0:
+                        continue
+                    # q1 + q2 stays inside (-pi, pi): the angle of the product of the two rotations is the sum
+                    ks = _arc_class(x1 * x2 - y1 * y2, y1 * x2 + x1 * y2, n1 * n2, prm[24], prm[25], prm[26])
+                    if ks == 0:
+                        continue
+                    if k2 == 1 and k1 == 1 and ks == 1:
+                        res = True
+                        break
+                q2 = math.atan2(y2, x2)
+                q1 = math.atan2(y1, x1)
                 s = q1 + q2
                 if (q1 >= prm[8] and q1 <= prm[9] and q2 >= prm[10] and q2 <= prm[11]
                         and s >= prm[12] and s <= prm[13]):

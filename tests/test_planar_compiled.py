@@ -1,0 +1,144 @@
+"""The compiled planar kinematics (numba loops in errplan.kinematics.shaft / .arm and the evaluator's true
+wrist) against the numpy paths they replaced, kept as references: the same operations in the same order,
+so the same values to the last bit (NaN where NaN, the sign of zero included), for the batch shapes the
+callers use and the edge cases (zero and mixed loads, tips the shaft misses, unreachable wrists, NaN)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from conftest import SCENARIOS
+from errplan.api import load_scenario
+from errplan.fields import Evaluator
+from errplan.kinematics import shaft
+from errplan.kinematics.arm import Arm, direction, direction_derivative
+from errplan.models import build_arm
+
+L = 0.320
+
+
+def same(a, b) -> bool:
+    """Equal to the last bit: the same numbers, the sign of zero included (a NaN's sign bit means nothing)."""
+    a, b = np.asarray(a), np.asarray(b)
+    if not (a.shape == b.shape and a.dtype == b.dtype and np.array_equal(a, b, equal_nan=a.dtype.kind == "f")):
+        return False
+    return a.dtype.kind != "f" or np.array_equal(np.signbit(a) & ~np.isnan(a), np.signbit(b) & ~np.isnan(b))
+
+
+@pytest.fixture(scope="module")
+def arms():
+    sc = load_scenario(SCENARIOS / "beasley2004_port.toml")
+    other = Arm((0.05, -0.31), 0.3, 0.25, (0.3, -1.2), (-2.5, 1.5), (-2.5, 2.5), (-3.0, 3.0))
+    return [Arm.from_robot(sc.robot), other]
+
+
+def _shaft_inputs(seed: int, n: int = 4000):
+    rng = np.random.default_rng(seed)
+    w = rng.normal(size=(n, 2)) * 0.15
+    p = rng.normal(size=(n, 2)) * 0.05 + [0.0, 0.16]
+    t = rng.normal(size=n) * 30.0
+    t[::7] = 0.0  # mixed: some unloaded entries in a loaded batch
+    w[5] = np.nan
+    t[9] = np.nan
+    p[11] = w[11]  # rho = 0
+    return w, p, t
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_flexed_shaft_compiled_equals_numpy(seed):
+    w, p, t = _shaft_inputs(seed)
+    with np.errstate(all="ignore"):
+        for tt in (t, np.zeros_like(t), np.float64(4.0), 0.0):
+            g, r = shaft.flexed_geometry(w, p, L, tt), shaft._flexed_geometry_numpy(w, p, L, tt)
+            assert set(g) == set(r) and all(same(g[k], r[k]) for k in r)
+            assert same(shaft.flexed_tip(w, p, L, tt), r["tip"])
+            assert same(shaft.flexed_jacobian(w, p, L, tt), shaft._flexed_jacobian2_numpy(w, p, L, tt))
+            assert same(shaft.flexed_wrist(w, p, L, tt), shaft._flexed_wrist_numpy(w, p, L, tt))
+        # broadcast batches (n, c, 2) against (n, 1, 2) ports and (n, c) loads, and single points
+        W = w[:50, None, :] + np.linspace(-0.01, 0.01, 4)[:, None]
+        P, T = p[:50, None, :], np.broadcast_to(t[:50, None], (50, 4))
+        assert same(shaft.flexed_jacobian(W, P, L, T), shaft._flexed_jacobian2_numpy(W, P, L, T))
+        assert same(shaft.flexed_wrist(W, P, L, T), shaft._flexed_wrist_numpy(W, P, L, T))
+        for i in (0, 3, 7):
+            g, r = shaft.flexed_geometry(w[i], p[i], L, t[i]), shaft._flexed_geometry_numpy(w[i], p[i], L, t[i])
+            assert all(same(g[k], r[k]) and type(g[k]) is type(r[k]) for k in r)
+        # a load that widens the points' batch keeps numpy's shapes (the reference path)
+        g, r = shaft.flexed_geometry(w[0], p[0], L, t[:3]), shaft._flexed_geometry_numpy(w[0], p[0], L, t[:3])
+        assert all(same(g[k], r[k]) for k in r)
+
+
+def test_flexed_shaft_compiled_is_the_beam():
+    """Independent of the numpy path: the wrist the compiled inverse returns puts the compiled tip back at
+    the target, and the compiled Jacobian is the central difference of the compiled tip."""
+    rng = np.random.default_rng(3)
+    p = np.array([0.0, 0.16])
+    x = p + rng.uniform(0.03, 0.15, 200)[:, None] * direction(rng.uniform(-0.8, 0.8, 200))
+    t = rng.uniform(-20.0, 20.0, 200)
+    w = shaft.flexed_wrist(x, p, L, t)
+    assert np.max(np.abs(shaft.flexed_tip(w, p, L, t) - x)) < 1e-12
+    h = 1e-6
+    fd = np.stack([(shaft.flexed_tip(w + e, p, L, t) - shaft.flexed_tip(w - e, p, L, t)) / (2 * h)
+                   for e in (np.array([h, 0.0]), np.array([0.0, h]))], axis=-1)
+    assert np.max(np.abs(shaft.flexed_jacobian(w, p, L, t) - fd)) < 1e-6
+
+
+def test_arm_compiled_equals_numpy(arms):
+    rng = np.random.default_rng(4)
+    for arm in arms:
+        W = rng.normal(size=(20000, 2)) * 0.4 + np.asarray(arm.base)
+        W[3] = np.nan
+        Q = rng.uniform(-4.0, 4.0, size=(20000, 2))
+        r = arm.reachable(W)
+        assert same(r, arm._reachable_numpy(W)) and 0.05 < r.mean() < 0.95
+        q, ok = arm.inverse(W)
+        qr, okr = arm._inverse_numpy(W)
+        assert same(q, qr) and same(ok, okr) and same(ok, r)
+        assert same(arm.forward(Q), arm._forward_numpy(Q))
+        assert same(arm.jacobian(Q), arm._jacobian_numpy(Q))
+        Q3 = Q[:60].reshape(5, 12, 2)
+        assert same(arm.forward(Q3), arm._forward_numpy(Q3)) and same(arm.jacobian(Q3), arm._jacobian_numpy(Q3))
+        assert same(arm.reachable(W[:60].reshape(5, 12, 2)), arm._reachable_numpy(W[:60].reshape(5, 12, 2)))
+        for i in range(8):
+            assert same(arm.reachable(W[i]), arm._reachable_numpy(W[i]))
+            assert all(same(a, b) for a, b in zip(arm.inverse(W[i]), arm._inverse_numpy(W[i])))
+            assert same(arm.forward(Q[i]), arm._forward_numpy(Q[i]))
+        # independent: the inverse's angles put the wrist back where it was
+        assert np.max(np.abs(arm.forward(q[ok]) - W[ok])) < 1e-12
+        # wrists whose joint angles sit on a limit, or just inside or outside it (the arctangent-free
+        # test's uncertain band and the 1e-12 rad tolerance)
+        eps = np.array([-1e-7, -1e-9, -2e-12, -5e-13, 0.0, 5e-13, 2e-12, 1e-9, 1e-7])
+        Qb = []
+        for j, lim in ((0, arm.q1_limits), (1, arm.q2_limits)):
+            for v in lim:
+                q = rng.uniform([arm.q1_limits[0], arm.q2_limits[0]], [arm.q1_limits[1], arm.q2_limits[1]], (len(eps), 2))
+                q[:, j] = v + eps
+                Qb.append(q)
+        for v in arm.sum_limits:  # on the q1 + q2 limits
+            q1 = rng.uniform(*arm.q1_limits, len(eps))
+            Qb.append(np.stack([q1, v - q1 + eps], axis=-1))
+        Wb = arm.forward(np.concatenate(Qb))
+        assert same(arm.reachable(Wb), arm._reachable_numpy(Wb))
+        assert all(same(a, b) for a, b in zip(arm.inverse(Wb), arm._inverse_numpy(Wb)))
+    assert arms[0]._reach_params()[27] == 1.0 and arms[1]._reach_params()[27] == 0.0  # both paths run
+
+
+def test_direction_values():
+    a = np.random.default_rng(5).uniform(-7, 7, (3, 4))
+    assert same(direction(a), np.stack([np.sin(a), np.cos(a)], axis=-1))
+    assert same(direction_derivative(a), np.stack([np.cos(a), -np.sin(a)], axis=-1))
+    assert same(direction(0.3), np.array([np.sin(0.3), np.cos(0.3)]))
+
+
+def test_true_wrist_compiled_equals_numpy():
+    sc = load_scenario(SCENARIOS / "beasley2004_bounded.toml")
+    ev = Evaluator.from_model(build_arm(sc))
+    rng = np.random.default_rng(6)
+    th = ev.errors.sample_grid(5)
+    n = 6000
+    theta = th[rng.integers(0, len(th), n)]
+    x = np.asarray(ev.errors.base_port)[None] + rng.normal(size=(n, 2)) * 0.1
+    x[7] = ev.errors.port(theta[7])  # the shaft misses the tip (r = 0)
+    for T in (theta, theta * [1.0, 1.0, 0.0], theta * [1.0, 1.0, 1e-3]):
+        w, ok = ev.true_wrist(x, T)
+        wr, okr = ev._true_wrist_numpy(x, T)
+        assert same(w, wr) and same(ok, okr) and 0.05 < ok.mean() < 0.95
