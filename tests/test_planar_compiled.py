@@ -4,6 +4,9 @@ so the same values to the last bit (NaN where NaN, the sign of zero included), f
 callers use and the edge cases (zero and mixed loads, tips the shaft misses, unreachable wrists, NaN)."""
 from __future__ import annotations
 
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
@@ -142,3 +145,11 @@ def test_true_wrist_compiled_equals_numpy():
         w, ok = ev.true_wrist(x, T)
         wr, okr = ev._true_wrist_numpy(x, T)
         assert same(w, wr) and same(ok, okr) and 0.05 < ok.mean() < 0.95
+
+
+def test_importing_the_kinematics_does_not_load_numba():
+    """The compiled kernels load on first use: a command that only reads a scenario starts without numba."""
+    code = ("import sys, errplan.kinematics.arm, errplan.kinematics.shaft, errplan.kinematics.truth, errplan.metrics\n"
+            "assert 'numba' not in sys.modules\nprint('ok')\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr[-2000:]

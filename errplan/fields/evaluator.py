@@ -9,8 +9,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..jit import kernel_array, njit
-from ..kinematics.arm import Arm, _reachable_kernel
-from ..kinematics.shaft import _wrist2_kernel
+from ..kinematics.arm import Arm
+from ..kinematics.compiled import _reachable_kernel, _wrist2_kernel
 from ..kinematics.shaft import (estimate_from_ends, flexed_end_angles, flexed_jacobian, flexed_wrist,
                                 flexed_wrist_plane, lever_jacobian, lever_parts, lever_wrist)
 from ..kinematics.truth import Plant

@@ -12,7 +12,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..jit import kernel_array, njit
 
 
 def direction(a: np.ndarray) -> np.ndarray:
@@ -76,12 +75,13 @@ class Arm:
 
     def forward(self, q: np.ndarray) -> np.ndarray:
         """Wrist position ``w`` (..., 2) for joint angles ``q`` (..., 2). Compiled
-        (:func:`_forward_kernel`), the operations of :meth:`_forward_numpy` (the reference)."""
+        (:func:`.compiled._forward_kernel`), the operations of :meth:`_forward_numpy` (the reference)."""
         q = np.asarray(q, dtype=float)
         if q.shape[-1:] != (2,):
             return self._forward_numpy(q)
         out = np.empty(q.shape)
-        _forward_kernel(kernel_array(q).reshape(-1, 2), self._reach_params(), out.reshape(-1, 2))
+        k = _compiled()
+        k._forward_kernel(k.kernel_array(q).reshape(-1, 2), self._reach_params(), out.reshape(-1, 2))
         return out
 
     def _forward_numpy(self, q: np.ndarray) -> np.ndarray:
@@ -93,12 +93,13 @@ class Arm:
 
     def jacobian(self, q: np.ndarray) -> np.ndarray:
         """``dw/dq`` of shape (..., 2, 2): rows [y, z], columns [q1, q2]. Compiled
-        (:func:`_jacobian_kernel`), the operations of :meth:`_jacobian_numpy` (the reference)."""
+        (:func:`.compiled._jacobian_kernel`), the operations of :meth:`_jacobian_numpy` (the reference)."""
         q = np.asarray(q, dtype=float)
         if q.shape[-1:] != (2,):
             return self._jacobian_numpy(q)
         out = np.empty(q.shape + (2,))
-        _jacobian_kernel(kernel_array(q).reshape(-1, 2), self._reach_params(), out.reshape(-1, 2, 2))
+        k = _compiled()
+        k._jacobian_kernel(k.kernel_array(q).reshape(-1, 2), self._reach_params(), out.reshape(-1, 2, 2))
         return out
 
     def _jacobian_numpy(self, q: np.ndarray) -> np.ndarray:
@@ -162,7 +163,7 @@ class Arm:
 
         Returns ``(q, ok)``: ``q`` (..., 2) is the home-pose elbow branch where it is inside the
         limits, else the other branch where that is, else NaN; ``ok`` marks reachable wrists.
-        The second branch is only computed where the first fails. Compiled (:func:`_inverse_kernel`),
+        The second branch is only computed where the first fails. Compiled (:func:`.compiled._inverse_kernel`),
         the operations of :meth:`_inverse_numpy` (the reference).
         """
         w = np.asarray(w, dtype=float)
@@ -170,8 +171,9 @@ class Arm:
             return self._inverse_numpy(w)
         q = np.empty(w.shape)
         ok = np.empty(w.shape[:-1], bool)
-        _inverse_kernel(kernel_array(w).reshape(-1, 2), self._reach_params(), self._preferred_sign(),
-                        q.reshape(-1, 2), ok.reshape(-1))
+        k = _compiled()
+        k._inverse_kernel(k.kernel_array(w).reshape(-1, 2), self._reach_params(), self._preferred_sign(),
+                          q.reshape(-1, 2), ok.reshape(-1))
         return q, ok
 
     def _inverse_numpy(self, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -198,14 +200,15 @@ class Arm:
 
         Same answer as ``inverse(w)[1]`` without building the angles: both branches' joint angles
         come from complex products (one ``arctan2`` each, already wrapped), the fields' hot path.
-        Compiled (:func:`_reachable_kernel`), the operations of :meth:`_reachable_numpy` (the reference).
+        Compiled (:func:`.compiled._reachable_kernel`), the operations of :meth:`_reachable_numpy` (the reference).
         """
         w = np.asarray(w, dtype=float)
         if w.shape[-1:] != (2,):
             return self._reachable_numpy(w)
         S = w.shape[:-1]
         out = np.empty(S, bool)
-        _reachable_kernel(kernel_array(w).reshape(-1, 2), self._reach_params(), out.reshape(-1))
+        k = _compiled()
+        k._reachable_kernel(k.kernel_array(w).reshape(-1, 2), self._reach_params(), out.reshape(-1))
         return out[()]
 
     def _reach_params(self) -> np.ndarray:
@@ -279,128 +282,8 @@ class Arm:
         return float(np.min(np.linalg.norm(w - np.asarray(p, dtype=float), axis=-1)))
 
 
-@njit(cache=True, error_model="numpy")
-def _arc_class(x, y, n, cm, sm, chw):
-    """Where the angle of the vector ``(x, y)`` (length ``n``) lies against an arc of half-width hw
-    around m (``cm, sm = cos m, sin m``, ``chw = cos hw``), without an arctangent: 1 certainly inside,
-    0 certainly outside, -1 too close to an end to say. The margin (1e-9 in the cosine, at least 1e-9
-    rad in the angle) is far above the rounding of either test and the exact test's 1e-12 rad
-    tolerance, so a certain answer is the exact test's answer."""
-    cd = x * cm + y * sm
-    if cd > (chw + 1e-9) * n:
-        return 1
-    if cd < (chw - 1e-9) * n:
-        return 0
-    return -1
-
-
-@njit(cache=True, error_model="numpy")
-def _reachable_kernel(W, prm, out):
-    """:meth:`Arm.reachable` per wrist ``W[i]`` into ``out[i]``: the answers of :meth:`Arm._reachable_numpy`
-    (``prm`` from :meth:`Arm._reach_params`). Each branch's angles are first placed against their limit
-    intervals by one dot product each (:func:`_arc_class`, where ``prm[27]`` says it is exact); the
-    arctangents, in the reference's operations and order, run only for a branch that comes within about
-    1e-9 rad of a limit."""
-    by, bz, l1, l2 = prm[0], prm[1], prm[2], prm[3]
-    ch1, sh1, ch2, sh2 = prm[4], prm[5], prm[6], prm[7]
-    fast = prm[27] == 1.0
-    den = 2 * l1 * l2
-    for i in range(W.shape[0]):
-        dy = W[i, 0] - by
-        dz = W[i, 1] - bz
-        c = (dy * dy + dz * dz - l1 * l1 - l2 * l2) / den
-        res = False
-        if c >= -1.0 and c <= 1.0:
-            sn = math.sqrt(1.0 - c * c)
-            for k in range(2):
-                s_d = (1.0 if k == 0 else -1.0) * sn
-                y2, x2 = s_d * ch2 - c * sh2, c * ch2 + s_d * sh2
-                vz, vy = l1 + l2 * c, l2 * s_d
-                rz, ry = dz * vz + dy * vy, dy * vz - dz * vy
-                y1, x1 = ry * ch1 - rz * sh1, rz * ch1 + ry * sh1
-                if fast:
-                    n2 = math.sqrt(x2 * x2 + y2 * y2)
-                    k2 = _arc_class(x2, y2, n2, prm[18], prm[19], prm[20])
-                    if k2 == 0:
-                        continue
-                    n1 = math.sqrt(x1 * x1 + y1 * y1)
-                    k1 = _arc_class(x1, y1, n1, prm[21], prm[22], prm[23])
-                    if k1 == 0:
-                        continue
-                    # q1 + q2 stays inside (-pi, pi): the angle of the product of the two rotations is the sum
-                    ks = _arc_class(x1 * x2 - y1 * y2, y1 * x2 + x1 * y2, n1 * n2, prm[24], prm[25], prm[26])
-                    if ks == 0:
-                        continue
-                    if k2 == 1 and k1 == 1 and ks == 1:
-                        res = True
-                        break
-                q2 = math.atan2(y2, x2)
-                q1 = math.atan2(y1, x1)
-                s = q1 + q2
-                if (q1 >= prm[8] and q1 <= prm[9] and q2 >= prm[10] and q2 <= prm[11]
-                        and s >= prm[12] and s <= prm[13]):
-                    res = True
-                    break
-        out[i] = res
-
-
-@njit(cache=True, error_model="numpy")
-def _forward_kernel(Q, prm, out):
-    """:meth:`Arm.forward` per row of ``Q`` into ``out`` (:meth:`Arm._forward_numpy`'s operations)."""
-    l1, l2, h1, h2 = prm[2], prm[3], prm[14], prm[15]
-    for i in range(Q.shape[0]):
-        a1 = Q[i, 0] + h1
-        a2 = a1 + Q[i, 1] + h2
-        out[i, 0] = prm[0] + l1 * math.sin(a1) + l2 * math.sin(a2)
-        out[i, 1] = prm[1] + l1 * math.cos(a1) + l2 * math.cos(a2)
-
-
-@njit(cache=True, error_model="numpy")
-def _jacobian_kernel(Q, prm, out):
-    """:meth:`Arm.jacobian` per row of ``Q`` into ``out`` (n, 2, 2) (:meth:`Arm._jacobian_numpy`'s operations)."""
-    l1, l2, h1, h2 = prm[2], prm[3], prm[14], prm[15]
-    for i in range(Q.shape[0]):
-        a1 = Q[i, 0] + h1
-        a2 = a1 + Q[i, 1] + h2
-        c1, s1 = math.cos(a1), -math.sin(a1)
-        c2, s2 = math.cos(a2), -math.sin(a2)
-        out[i, 0, 0] = l1 * c1 + l2 * c2
-        out[i, 1, 0] = l1 * s1 + l2 * s2
-        out[i, 0, 1] = l2 * c2
-        out[i, 1, 1] = l2 * s2
-
-
-@njit(cache=True, error_model="numpy")
-def _wrap1(a):
-    return (a + np.pi) % (2 * np.pi) - np.pi
-
-
-@njit(cache=True, error_model="numpy")
-def _inverse_kernel(W, prm, sgn, Q, ok):
-    """:meth:`Arm.inverse` per wrist ``W[i]`` into ``Q[i]``, ``ok[i]`` (:meth:`Arm._inverse_numpy`'s
-    operations: the preferred branch ``sgn``, else the other one, inside the limits; NaN elsewhere)."""
-    l1, l2, h1, h2 = prm[2], prm[3], prm[14], prm[15]
-    for i in range(W.shape[0]):
-        dy = W[i, 0] - prm[0]
-        dz = W[i, 1] - prm[1]
-        c = (dy * dy + dz * dz - prm[16] - prm[17]) / (2 * l1 * l2)
-        good = False
-        q1 = q2 = math.nan
-        if c >= -1.0 and c <= 1.0:
-            ad = math.atan2(dy, dz)
-            ac = math.acos(min(max(c, -1.0), 1.0))
-            for k in range(2):
-                delta = (sgn if k == 0 else -sgn) * ac
-                a1 = ad - math.atan2(l2 * math.sin(delta), l1 + l2 * math.cos(delta))
-                q1 = _wrap1(a1 - h1)
-                q2 = _wrap1(delta - h2)
-                s = q1 + q2
-                if (q1 >= prm[8] and q1 <= prm[9] and q2 >= prm[10] and q2 <= prm[11]
-                        and s >= prm[12] and s <= prm[13]):
-                    good = True
-                    break
-        ok[i] = good
-        if good:
-            Q[i, 0], Q[i, 1] = q1, q2
-        else:
-            Q[i, 0], Q[i, 1] = math.nan, math.nan
+def _compiled():
+    """The compiled planar kernels (:mod:`errplan.kinematics.compiled`), imported on first use: numba
+    loads only for commands that compute."""
+    from . import compiled
+    return compiled

@@ -25,7 +25,6 @@ import math
 
 import numpy as np
 
-from ..jit import kernel_array, njit
 from .arm import angle_of, direction, direction_derivative
 
 _NEWTON_ITERS = 8
@@ -114,7 +113,7 @@ def flexed_geometry(w: np.ndarray, p: np.ndarray, L: float, t) -> dict[str, np.n
     Returns a dict with ``rho`` (|p - w|), ``theta`` (angle of p - w), ``a``, ``b``, ``phi``
     (chord angle) and ``tip``.
 
-    Planar (d = 2): compiled, one pass over the batch (:func:`_geometry2_kernel`), the same operations in
+    Planar (d = 2): compiled, one pass over the batch (:func:`.compiled._geometry2_kernel`), the same operations in
     the same order as :func:`_flexed_geometry_numpy` (the reference), so the same values to the last bit.
     """
     w, p = np.asarray(w, float), np.asarray(p, float)
@@ -125,7 +124,7 @@ def flexed_geometry(w: np.ndarray, p: np.ndarray, L: float, t) -> dict[str, np.n
     S, W, P, T = flat
     n = len(T)
     O = np.empty((7, n))
-    _geometry2_kernel(W, P, float(L), T, bool(np.any(t != 0)), O)
+    _compiled()._geometry2_kernel(W, P, float(L), T, bool(np.any(t != 0)), O)
     tip = O[5:7].T.reshape(S + (2,))
     rho, theta, a, b, phi = (O[i].reshape(S)[()] for i in range(5))
     return {"rho": rho, "theta": theta, "a": a, "b": b, "phi": phi, "tip": tip}
@@ -164,122 +163,7 @@ def _planar_batch(a: np.ndarray, b: np.ndarray, t: np.ndarray):
 def _flat(a: np.ndarray, shape: tuple) -> np.ndarray:
     if a.shape != shape:
         a = np.broadcast_to(a, shape)
-    return kernel_array(a)
-
-
-@njit(cache=True, error_model="numpy")
-def _newton_a2(R, L, T, X):
-    """:func:`_solve_a` over a batch into ``X`` (:func:`_solve_length` with its ``s(a)``, the same
-    operations). An iteration at a time over the whole batch: a loop without calls, which LLVM
-    vectorizes (one element at a time the divisions' latency would dominate)."""
-    n = R.shape[0]
-    for i in range(n):
-        X[i] = R[i]
-    for _ in range(_NEWTON_ITERS):
-        for i in range(n):
-            x, t, rho = X[i], T[i], R[i]
-            la = L - x
-            s = t * (la * la) / 3.0
-            ds = -2.0 * t * la / 3.0
-            g = 1.0 + s * s
-            X[i] = x - (x * x * g - rho * rho) / (2.0 * x * g + 2.0 * x * x * s * ds)
-
-
-@njit(cache=True, error_model="numpy")
-def _newton_b2(R, L, T, X):
-    """:func:`_solve_b` over a batch into ``X`` (:func:`_solve_length` with its ``s(b)``), as :func:`_newton_a2`."""
-    n = R.shape[0]
-    for i in range(n):
-        X[i] = R[i]
-    for _ in range(_NEWTON_ITERS):
-        for i in range(n):
-            x, t, r = X[i], T[i], R[i]
-            s = t * (L - x) * x / 3.0
-            ds = t * (L - 2.0 * x) / 3.0
-            g = 1.0 + s * s
-            X[i] = x - (x * x * g - r * r) / (2.0 * x * g + 2.0 * x * x * s * ds)
-
-
-@njit(cache=True, error_model="numpy")
-def _geometry2_batch(W, P, L, T, anyt, O):
-    """``O[0:5]`` = rho, theta, a, b, phi of a planar batch (:func:`_flexed_geometry_numpy`)."""
-    n = T.shape[0]
-    for i in range(n):
-        d0, d1 = P[i, 0] - W[i, 0], P[i, 1] - W[i, 1]
-        O[0, i] = math.sqrt(d0 * d0 + d1 * d1)
-    if anyt:
-        _newton_a2(O[0], L, T, O[2])
-    else:
-        for i in range(n):
-            O[2, i] = O[0, i] + 0.0 * T[i]
-    for i in range(n):
-        O[3, i] = L - O[2, i]
-    for i in range(n):
-        b = O[3, i]
-        O[1, i] = math.atan2(P[i, 0] - W[i, 0], P[i, 1] - W[i, 1])
-        O[4, i] = O[1, i] + math.atan(T[i] * b * b / 3.0)
-
-
-@njit(cache=True, error_model="numpy")
-def _geometry2_kernel(W, P, L, T, anyt, O):
-    """:func:`flexed_geometry` over a planar batch into ``O`` (7, n): rho, theta, a, b, phi, tip y, tip z."""
-    _geometry2_batch(W, P, L, T, anyt, O)
-    for i in range(T.shape[0]):
-        phi = O[4, i]
-        O[5, i] = W[i, 0] + L * math.sin(phi)
-        O[6, i] = W[i, 1] + L * math.cos(phi)
-
-
-@njit(cache=True, error_model="numpy")
-def _jacobian2_kernel(W, P, L, T, anyt, J):
-    """:func:`flexed_jacobian` over a planar batch into ``J`` (n, 2, 2) (:func:`_flexed_jacobian2_numpy`)."""
-    n = T.shape[0]
-    O = np.empty((5, n))
-    _geometry2_batch(W, P, L, T, anyt, O)
-    for i in range(n):
-        t = T[i]
-        rho, theta, a, b, phi = O[0, i], O[1, i], O[2, i], O[3, i], O[4, i]
-        st, ct = math.sin(theta), math.cos(theta)
-        u0, u1 = st, ct
-        n0, n1 = ct, -st
-        q0, q1 = math.cos(phi), -math.sin(phi)
-        s = t * b * b / 3.0
-        gg = 1.0 + s * s
-        dgg = -(4.0 * t * b / 3.0) * s
-        beta_p = -(2.0 * t * b / 3.0) / gg
-        a_p = 2.0 * rho / (2.0 * a * gg + a * a * dgg)
-        c = beta_p * a_p
-        g0 = -n0 / rho - c * u0
-        g1 = -n1 / rho - c * u1
-        J[i, 0, 0] = 1.0 + L * (q0 * g0)
-        J[i, 0, 1] = 0.0 + L * (q0 * g1)
-        J[i, 1, 0] = 0.0 + L * (q1 * g0)
-        J[i, 1, 1] = 1.0 + L * (q1 * g1)
-
-
-@njit(cache=True, error_model="numpy")
-def _wrist2_kernel(X, P, L, T, anyt, O):
-    """:func:`flexed_wrist` over a planar batch into ``O`` (n, 2) (:func:`_flexed_wrist_numpy`)."""
-    n = T.shape[0]
-    R = np.empty(n)
-    for i in range(n):
-        d0, d1 = X[i, 0] - P[i, 0], X[i, 1] - P[i, 1]
-        R[i] = math.sqrt(d0 * d0 + d1 * d1)
-    if not anyt:
-        for i in range(n):
-            r, t = R[i], T[i]
-            O[i, 0] = X[i, 0] - L * (X[i, 0] - P[i, 0]) / r + 0.0 * t
-            O[i, 1] = X[i, 1] - L * (X[i, 1] - P[i, 1]) / r + 0.0 * t
-        return
-    B = np.empty(n)
-    _newton_b2(R, L, T, B)
-    for i in range(n):
-        x0, x1 = X[i, 0], X[i, 1]
-        t, b = T[i], B[i]
-        a = L - b
-        phi = math.atan2(x0 - P[i, 0], x1 - P[i, 1]) - math.atan(t * a * b / 3.0)
-        O[i, 0] = x0 - L * math.sin(phi)
-        O[i, 1] = x1 - L * math.cos(phi)
+    return _compiled().kernel_array(a)
 
 
 def flexed_tip(w: np.ndarray, p: np.ndarray, L: float, t) -> np.ndarray:
@@ -390,7 +274,7 @@ def flexed_jacobian(w: np.ndarray, p: np.ndarray, L: float, t) -> np.ndarray:
         return _flexed_jacobian2_numpy(w, p, L, t)
     S, W, P, T = flat
     J = np.empty((len(T), 2, 2))
-    _jacobian2_kernel(W, P, float(L), T, bool(np.any(t != 0)), J)
+    _compiled()._jacobian2_kernel(W, P, float(L), T, bool(np.any(t != 0)), J)
     return J.reshape(S + (2, 2))
 
 
@@ -447,7 +331,7 @@ def flexed_wrist(x: np.ndarray, p: np.ndarray, L: float, t) -> np.ndarray:
         return _flexed_wrist_numpy(x, p, L, t)
     S, X, P, T = flat
     w = np.empty((len(T), 2))
-    _wrist2_kernel(X, P, float(L), T, bool(np.any(t != 0)), w)
+    _compiled()._wrist2_kernel(X, P, float(L), T, bool(np.any(t != 0)), w)
     return w.reshape(S + (2,))
 
 
@@ -640,3 +524,10 @@ def tilt(d: np.ndarray, delta: np.ndarray, e1: np.ndarray, e2: np.ndarray) -> np
     safe = np.where(ang > 0, ang, 1.0)
     k = (delta[..., 0:1] * e1 + delta[..., 1:2] * e2) / safe[..., None]
     return np.cos(ang)[..., None] * d + np.sin(ang)[..., None] * k
+
+
+def _compiled():
+    """The compiled planar kernels (:mod:`errplan.kinematics.compiled`), imported on first use: numba
+    loads only for commands that compute."""
+    from . import compiled
+    return compiled
