@@ -120,6 +120,21 @@ def inv2(A: np.ndarray, rcond: float = 1e-12) -> tuple[np.ndarray, np.ndarray]:
     A = np.asarray(A, dtype=float)
     if _dim(A) != 2:
         raise ValueError(f"inv2 takes (..., 2, 2) matrices, got shape {A.shape}; use inv()")
+    if A.flags.c_contiguous:
+        # compiled (errplan.kinematics.compiled._inv2_kernel): the operations below in the same order, the
+        # Frobenius sum as numpy's einsum adds a C-contiguous 2 x 2 block, (a00^2 + a10^2) + (a01^2 + a11^2)
+        from .kinematics import compiled
+
+        out = np.empty(A.shape)
+        singular = np.empty(A.shape[:-2], bool)
+        compiled._inv2_kernel(compiled.kernel_array(A).reshape(-1, 2, 2), float(rcond), out.reshape(-1, 2, 2),
+                              singular.reshape(-1))
+        return out, singular
+    return _inv2_numpy(A, rcond)
+
+
+def _inv2_numpy(A: np.ndarray, rcond: float = 1e-12) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`inv2` in numpy: the reference of the compiled path (and the path of other memory layouts)."""
     det = A[..., 0, 0] * A[..., 1, 1] - A[..., 0, 1] * A[..., 1, 0]
     scale = np.einsum("...ij,...ij->...", A, A)
     singular = ~(np.abs(det) > rcond * scale)

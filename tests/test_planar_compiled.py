@@ -23,6 +23,8 @@ L = 0.320
 def same(a, b) -> bool:
     """Equal to the last bit: the same numbers, the sign of zero included (a NaN's sign bit means nothing)."""
     a, b = np.asarray(a), np.asarray(b)
+    if a.dtype.kind == "c" and b.dtype.kind == "c":
+        return a.shape == b.shape and same(a.real, b.real) and same(a.imag, b.imag)
     if not (a.shape == b.shape and a.dtype == b.dtype and np.array_equal(a, b, equal_nan=a.dtype.kind == "f")):
         return False
     return a.dtype.kind != "f" or np.array_equal(np.signbit(a) & ~np.isnan(a), np.signbit(b) & ~np.isnan(b))
@@ -153,3 +155,47 @@ def test_importing_the_kinematics_does_not_load_numba():
             "assert 'numba' not in sys.modules\nprint('ok')\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr[-2000:]
+
+
+def test_inv2_compiled_equals_numpy():
+    from errplan.metrics import _inv2_numpy, inv2
+
+    rng = np.random.default_rng(7)
+    buf = rng.normal(size=40_000) * rng.lognormal(size=40_000)
+    for n in (1, 3, 8, 33, 5000):
+        for off in (0, 1, 3):  # contiguous at several alignments
+            A = buf[off:off + 4 * n].reshape(n, 2, 2).copy() if off == 0 else buf[off:off + 4 * n].reshape(n, 2, 2)
+            A[0] = [[1.0, 2.0], [2.0, 4.0]]  # singular
+            with np.errstate(all="ignore"):
+                assert all(same(a, b) for a, b in zip(inv2(A), _inv2_numpy(A)))
+    A = buf[:8].reshape(2, 2, 2)
+    assert all(same(a, b) for a, b in zip(inv2(A[0]), _inv2_numpy(A[0])))  # one matrix
+    B = buf[:240].reshape(3, 4, 5, 2, 2)
+    assert all(same(a, b) for a, b in zip(inv2(B), _inv2_numpy(B)))
+    inv, sing = inv2(B)  # independent: the inverse times the matrix, where it is well conditioned
+    good = np.linalg.cond(B) < 1e6
+    assert good.sum() > 30 and np.allclose((inv @ B)[good], np.eye(2), atol=1e-8)
+
+
+def test_lever_parts_compiled_equals_numpy():
+    """numpy's complex products round once (a fused multiply-add) on this platform; the kernel does the same."""
+    rng = np.random.default_rng(8)
+    w = rng.normal(size=(20_000, 2)) * 0.2
+    p = rng.normal(size=(20_000, 2)) * 0.05
+    w[3] = p[3]  # rho = 0
+    w[4] = np.nan
+    with np.errstate(all="ignore"):
+        for n in (1, 2, 5, 17, 20_000):
+            for pp in (p[:n], p[0]):
+                a, b = shaft.lever_parts(w[:n], pp, L), shaft._lever_parts_numpy(w[:n], pp, L)
+                assert all(same(x, y) for x, y in zip(a, b))
+        a, b = shaft.lever_parts(w[0], p[0], L), shaft._lever_parts_numpy(w[0], p[0], L)
+        assert all(same(x, y) and type(x) is type(y) for x, y in zip(a, b))
+        W = w[:60].reshape(3, 20, 2)
+        assert all(same(x, y) for x, y in zip(shaft.lever_parts(W, p[0], L), shaft._lever_parts_numpy(W, p[0], L)))
+    # independent: the parts rebuild the lever's Jacobian (errplan.metrics' convention)
+    from errplan.metrics import conformal_parts
+
+    mu, nu = shaft.lever_parts(w[5:50], p[5:50], L)
+    mu_j, nu_j = conformal_parts(shaft.lever_jacobian(w[5:50], p[5:50], L))
+    assert np.allclose(mu, mu_j, atol=1e-12, rtol=1e-12) and np.allclose(nu, nu_j, atol=1e-12, rtol=1e-12)

@@ -12,6 +12,10 @@ import math
 
 import numpy as np
 
+from llvmlite import ir as _ir  # noqa: F401  (numba's own dependency: the fused multiply-add below)
+from numba import types as _types
+from numba.core.extending import intrinsic
+
 from ..jit import kernel_array, njit  # noqa: F401  (kernel_array: for .arm and .shaft)
 from .shaft import _NEWTON_ITERS
 
@@ -260,3 +264,63 @@ def _wrist2_kernel(X, P, L, T, anyt, O):
         phi = math.atan2(x0 - P[i, 0], x1 - P[i, 1]) - math.atan(t * a * b / 3.0)
         O[i, 0] = x0 - L * math.sin(phi)
         O[i, 1] = x1 - L * math.cos(phi)
+
+
+
+# ----------------------------------------------------------------------------- 2 x 2 inverses
+@njit(cache=True, error_model="numpy")
+def _inv2_kernel(A, rcond, out, singular):
+    """:func:`errplan.metrics.inv2` per matrix ``A[i]`` into ``out[i]``, ``singular[i]``: its operations in the
+    same order (``||A||_F^2`` summed as numpy's einsum sums a C-contiguous 2 x 2 block)."""
+    for i in range(A.shape[0]):
+        a, b, c, d = A[i, 0, 0], A[i, 0, 1], A[i, 1, 0], A[i, 1, 1]
+        det = a * d - b * c
+        scale = (a * a + c * c) + (b * b + d * d)
+        sing = not (abs(det) > rcond * scale)
+        singular[i] = sing
+        if sing:
+            out[i, 0, 0] = out[i, 0, 1] = out[i, 1, 0] = out[i, 1, 1] = math.nan
+        else:
+            out[i, 0, 0] = d / det
+            out[i, 1, 1] = a / det
+            out[i, 0, 1] = -b / det
+            out[i, 1, 0] = -c / det
+
+
+
+# ----------------------------------------------------------------------------- complex parts
+@intrinsic
+def _fma(typingctx, a, b, c):
+    """``a * b + c`` rounded once (LLVM's ``fma``): how numpy's complex loops form a product on this
+    platform (re = fma(ar, br, -(ai bi)), im = fma(ar, bi, ai br)), checked bit for bit by the tests."""
+    sig = _types.float64(_types.float64, _types.float64, _types.float64)
+
+    def codegen(context, builder, signature, args):
+        return builder.fma(*args)
+
+    return sig, codegen
+
+
+@njit(cache=True, error_model="numpy")
+def _lever_parts_kernel(W, P, L, mu, nu):
+    """:func:`errplan.kinematics.shaft.lever_parts` per wrist ``W[i]`` (port ``P[i]``, or ``P[0]`` for all)
+    into ``mu[i]`` and ``nu[i]`` (real, imaginary): numpy's operations in its order, complex products as
+    its loops form them (:func:`_fma`), the division by the real ``rho^2`` as Smith's (times its inverse)."""
+    one = P.shape[0] == 1
+    for i in range(W.shape[0]):
+        j = 0 if one else i
+        dy = P[j, 0] - W[i, 0]
+        dz = P[j, 1] - W[i, 1]
+        rho2 = dy * dy + dz * dz
+        rho = math.sqrt(rho2)
+        t1r = _fma(0.0, dy, -0.0)  # 1j * dy
+        t1i = _fma(0.0, 0.0, dy)
+        zr = dz - t1r  # dz - 1j * dy
+        zi = 0.0 - t1i
+        sr = _fma(zr, zr, -(zi * zi))  # ** 2
+        si = _fma(zr, zi, zi * zr)
+        scl = 1.0 / rho2  # / rho2
+        h = L / (2.0 * rho)
+        mu[i] = 1.0 - h
+        nu[i, 0] = -h * (sr * scl)
+        nu[i, 1] = -h * (si * scl)

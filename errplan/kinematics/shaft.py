@@ -68,8 +68,24 @@ def lever_parts(w: np.ndarray, p: np.ndarray, L: float) -> tuple[np.ndarray, np.
     """Conformal parts ``(mu, nu)`` of :func:`lever_jacobian` (see :mod:`errplan.metrics`).
 
     ``J = I - (L/rho) n n^T``: ``mu = 1 - L/(2 rho)``, ``nu = -(L/(2 rho)) n_c^2`` with the normal
-    as a complex number ``n_c = (dz - i dy)/rho``. No trigonometry: the fields' fast path.
+    as a complex number ``n_c = (dz - i dy)/rho``. No trigonometry: the fields' fast path. Compiled
+    (:func:`.compiled._lever_parts_kernel`) where the ports are one or one per wrist: the operations of
+    :func:`_lever_parts_numpy` (the reference), the same bits.
     """
+    w, p = np.asarray(w, float), np.asarray(p, float)
+    if w.ndim < 2 or w.shape[-1] != 2 or not (p.shape == (2,) or p.shape == w.shape):
+        return _lever_parts_numpy(w, p, L)  # one point: numpy's scalar complex arithmetic rounds differently
+    k = _compiled()
+    S = w.shape[:-1]
+    mu = np.empty(S)
+    nu = np.empty(S, complex)
+    k._lever_parts_kernel(k.kernel_array(w).reshape(-1, 2), k.kernel_array(p).reshape(-1, 2), float(L),
+                          mu.reshape(-1), nu.reshape(-1).view(float).reshape(-1, 2))
+    return mu[()], nu[()]
+
+
+def _lever_parts_numpy(w: np.ndarray, p: np.ndarray, L: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`lever_parts` in numpy: the reference of the compiled path."""
     w, p = np.asarray(w, float), np.asarray(p, float)
     dy, dz = p[..., 0] - w[..., 0], p[..., 1] - w[..., 1]
     rho2 = dy * dy + dz * dz
