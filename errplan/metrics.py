@@ -85,7 +85,33 @@ def compose_parts(mu1, nu1, mu2, nu2):
 
 def inverse_parts(mu, nu, rcond: float = 1e-12):
     """Conformal parts of ``A^-1`` (``(conj(mu), -nu) / det``, ``det = |mu|^2 - |nu|^2``) and a
-    singular mask; singular entries are NaN."""
+    singular mask; singular entries are NaN. Compiled (``errplan.kinematics.compiled._inverse_parts_kernel``)
+    for arrays of one shape, ``mu`` float or complex and ``nu`` complex: the operations of
+    :func:`_inverse_parts_numpy` (the reference), the same bits."""
+    mu, nu = np.asarray(mu), np.asarray(nu)
+    if not (mu.ndim >= 1 and mu.shape == nu.shape and nu.dtype == np.complex128
+            and mu.dtype in (np.float64, np.complex128)):
+        return _inverse_parts_numpy(mu, nu, rcond)  # one number: numpy's scalar arithmetic rounds differently
+    from .kinematics import compiled
+
+    real_mu = mu.dtype == np.float64
+    n = mu.size
+    MU = np.zeros((n, 2))
+    if real_mu:
+        MU[:, 0] = mu.reshape(-1)
+    else:
+        MU[:] = mu.reshape(-1).view(float).reshape(n, 2)
+    NU = compiled.kernel_array(nu.reshape(-1)).view(float).reshape(n, 2)
+    IMU, INU = np.empty((n, 2)), np.empty(nu.shape, complex)
+    singular = np.empty(mu.shape, bool)
+    compiled._inverse_parts_kernel(MU, NU, bool(real_mu), float(rcond), IMU, INU.reshape(-1).view(float).reshape(n, 2),
+                                   singular.reshape(-1))
+    imu = IMU[:, 0].reshape(mu.shape) if real_mu else IMU.reshape(-1).view(complex).reshape(mu.shape)
+    return imu, INU, singular
+
+
+def _inverse_parts_numpy(mu, nu, rcond: float = 1e-12):
+    """:func:`inverse_parts` in numpy: the reference of the compiled path."""
     det = (mu * np.conj(mu)).real - (nu * np.conj(nu)).real
     scale = (mu * np.conj(mu)).real + (nu * np.conj(nu)).real
     singular = ~(np.abs(det) > rcond * scale)

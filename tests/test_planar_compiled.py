@@ -199,3 +199,26 @@ def test_lever_parts_compiled_equals_numpy():
     mu, nu = shaft.lever_parts(w[5:50], p[5:50], L)
     mu_j, nu_j = conformal_parts(shaft.lever_jacobian(w[5:50], p[5:50], L))
     assert np.allclose(mu, mu_j, atol=1e-12, rtol=1e-12) and np.allclose(nu, nu_j, atol=1e-12, rtol=1e-12)
+
+
+def test_inverse_parts_compiled_equals_numpy():
+    from errplan.metrics import _inverse_parts_numpy, compose_parts, inverse_parts
+
+    rng = np.random.default_rng(9)
+    n = 20_000
+    mr, mi, nr, ni = (rng.normal(size=(n // 4, 4)) * rng.lognormal(size=(n // 4, 4)) for _ in range(4))
+    nr[0, 0], ni[0, 0], mi[0, 0] = mr[0, 0], 0.0, 0.0  # |mu| = |nu|: singular
+    mr[1, 1] = np.nan
+    with np.errstate(all="ignore"):
+        for mu in (mr, mr + 1j * mi):
+            for sl in (np.s_[:], np.s_[:1, :1], np.s_[:3]):
+                a = inverse_parts(mu[sl], (nr + 1j * ni)[sl])
+                b = _inverse_parts_numpy(mu[sl], (nr + 1j * ni)[sl])
+                assert all(same(x, y) for x, y in zip(a, b))
+            assert a[2][0, 0] and not a[2][2:].all()
+        # independent: composed with the matrix's own parts, the inverse's parts give the identity (mu 1, nu 0)
+        mu, nu = (mr + 1j * mi)[2:], (nr + 1j * ni)[2:]
+        imu, inu, sing = inverse_parts(mu, nu)
+        cm, cn = compose_parts(mu, nu, imu, inu)
+        good = ~sing & (np.abs(np.abs(mu) ** 2 - np.abs(nu) ** 2) > 1e-3 * (np.abs(mu) ** 2 + np.abs(nu) ** 2))
+        assert good.sum() > 1000 and np.allclose(cm[good], 1.0, atol=1e-9) and np.allclose(cn[good], 0.0, atol=1e-9)

@@ -324,3 +324,36 @@ def _lever_parts_kernel(W, P, L, mu, nu):
         mu[i] = 1.0 - h
         nu[i, 0] = -h * (sr * scl)
         nu[i, 1] = -h * (si * scl)
+
+
+
+@njit(cache=True, error_model="numpy")
+def _smith_real(a, b, c):
+    """``(a + i b) / c`` for a real ``c`` as numpy divides complex numbers (Smith's method, ``c + 0i``)."""
+    rat = 0.0 / c
+    scl = 1.0 / (c + 0.0 * rat)
+    return (a + b * rat) * scl, (b - a * rat) * scl
+
+
+@njit(cache=True, error_model="numpy")
+def _inverse_parts_kernel(MU, NU, real_mu, rcond, IMU, INU, singular):
+    """:func:`errplan.metrics.inverse_parts` per element: ``MU`` (n, 2) (real, imaginary; imaginary 0 and
+    ``real_mu`` when numpy's mu is real), ``NU`` (n, 2), into ``IMU`` (n, 2), ``INU`` (n, 2), ``singular``;
+    numpy's operations, its complex products as fused multiply-adds (:func:`_fma`)."""
+    for i in range(MU.shape[0]):
+        mr, mi, nr, ni = MU[i, 0], MU[i, 1], NU[i, 0], NU[i, 1]
+        if real_mu:
+            mm = mr * mr
+        else:
+            mm = _fma(mr, mr, -(mi * -mi))
+        nn = _fma(nr, nr, -(ni * -ni))
+        det = mm - nn
+        scale = mm + nn
+        sing = not (abs(det) > rcond * scale)
+        singular[i] = sing
+        safe = math.nan if sing else det
+        if real_mu:
+            IMU[i, 0], IMU[i, 1] = mr / safe, 0.0
+        else:
+            IMU[i, 0], IMU[i, 1] = _smith_real(mr, -mi, safe)
+        INU[i, 0], INU[i, 1] = _smith_real(-nr, -ni, safe)
