@@ -115,7 +115,8 @@ def test_arm_compiled_equals_numpy(arms):
         Qb = []
         for j, lim in ((0, arm.q1_limits), (1, arm.q2_limits)):
             for v in lim:
-                q = rng.uniform([arm.q1_limits[0], arm.q2_limits[0]], [arm.q1_limits[1], arm.q2_limits[1]], (len(eps), 2))
+                lo, hi = [arm.q1_limits[0], arm.q2_limits[0]], [arm.q1_limits[1], arm.q2_limits[1]]
+                q = rng.uniform(lo, hi, (len(eps), 2))
                 q[:, j] = v + eps
                 Qb.append(q)
         for v in arm.sum_limits:  # on the q1 + q2 limits

@@ -50,7 +50,8 @@ class Evaluator:
         w = np.empty(x.shape)
         ok = np.empty(x.shape[:-1], bool)
         _true_wrist2(kernel_array(x).reshape(-1, 2), kernel_array(port).reshape(-1, 2), kernel_array(t).reshape(-1),
-                     float(self.length), bool(np.any(t != 0)), self.arm._reach_params(), w.reshape(-1, 2), ok.reshape(-1))
+                     float(self.length), bool(np.any(t != 0)), self.arm._reach_params(), w.reshape(-1, 2),
+                     ok.reshape(-1))
         return w, ok
 
     def _true_wrist_numpy(self, x: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -200,7 +200,8 @@ class Arm:
 
         Same answer as ``inverse(w)[1]`` without building the angles: both branches' joint angles
         come from complex products (one ``arctan2`` each, already wrapped), the fields' hot path.
-        Compiled (:func:`.compiled._reachable_kernel`), the operations of :meth:`_reachable_numpy` (the reference).
+        Compiled (:func:`.compiled._reachable_kernel`, an arctangent-free test first where it is certain):
+        the answers of :meth:`_reachable_numpy` (the reference).
         """
         w = np.asarray(w, dtype=float)
         if w.shape[-1:] != (2,):
@@ -213,8 +214,8 @@ class Arm:
 
     def _reach_params(self) -> np.ndarray:
         """``[base y, base z, l1, l2, cos h1, sin h1, cos h2, sin h2]``, the six limits with the
-        tolerance of :meth:`within_limits` (lower - tol, upper + tol for q1, q2, q1 + q2), ``[h1, h2, l1**2, l2**2]``; then per limit
-        interval of q2, q1 and q1 + q2 ``cos m, sin m, cos hw`` (m its middle, hw its half-width) and 1.0
+        tolerance of :meth:`within_limits` (lower - tol, upper + tol for q1, q2, q1 + q2),
+        ``[h1, h2, l1**2, l2**2]``; then per limit interval of q2, q1 and q1 + q2 ``cos m, sin m, cos hw`` (m its middle, hw its half-width) and 1.0
         where :func:`_arc_class` decides exactly (every interval inside (-pi, pi) by 1e-5 and wider than
         2e-3 rad, q1 + q2 of any q1, q2 within their limits inside (-pi, pi)), else 0.0."""
         p = self.__dict__.get("_reach_p")

@@ -12,7 +12,6 @@ import math
 
 import numpy as np
 
-from llvmlite import ir as _ir  # noqa: F401  (numba's own dependency: the fused multiply-add below)
 from numba import types as _types
 from numba.core.extending import intrinsic
 
