@@ -85,7 +85,33 @@ def compose_parts(mu1, nu1, mu2, nu2):
 
 def inverse_parts(mu, nu, rcond: float = 1e-12):
     """Conformal parts of ``A^-1`` (``(conj(mu), -nu) / det``, ``det = |mu|^2 - |nu|^2``) and a
-    singular mask; singular entries are NaN."""
+    singular mask; singular entries are NaN. Compiled (``errplan.kinematics.compiled._inverse_parts_kernel``)
+    for arrays of one shape, ``mu`` float or complex and ``nu`` complex: the operations of
+    :func:`_inverse_parts_numpy` (the reference), the same bits."""
+    mu, nu = np.asarray(mu), np.asarray(nu)
+    if not (mu.ndim >= 1 and mu.shape == nu.shape and nu.dtype == np.complex128
+            and mu.dtype in (np.float64, np.complex128)):
+        return _inverse_parts_numpy(mu, nu, rcond)  # one number: numpy's scalar arithmetic rounds differently
+    from .kinematics import compiled
+
+    real_mu = mu.dtype == np.float64
+    n = mu.size
+    MU = np.zeros((n, 2))
+    if real_mu:
+        MU[:, 0] = mu.reshape(-1)
+    else:
+        MU[:] = mu.reshape(-1).view(float).reshape(n, 2)
+    NU = compiled.kernel_array(nu.reshape(-1)).view(float).reshape(n, 2)
+    IMU, INU = np.empty((n, 2)), np.empty(nu.shape, complex)
+    singular = np.empty(mu.shape, bool)
+    compiled._inverse_parts_kernel(MU, NU, bool(real_mu), float(rcond), IMU, INU.reshape(-1).view(float).reshape(n, 2),
+                                   singular.reshape(-1))
+    imu = IMU[:, 0].reshape(mu.shape) if real_mu else IMU.reshape(-1).view(complex).reshape(mu.shape)
+    return imu, INU, singular
+
+
+def _inverse_parts_numpy(mu, nu, rcond: float = 1e-12):
+    """:func:`inverse_parts` in numpy: the reference of the compiled path."""
     det = (mu * np.conj(mu)).real - (nu * np.conj(nu)).real
     scale = (mu * np.conj(mu)).real + (nu * np.conj(nu)).real
     singular = ~(np.abs(det) > rcond * scale)
@@ -120,6 +146,21 @@ def inv2(A: np.ndarray, rcond: float = 1e-12) -> tuple[np.ndarray, np.ndarray]:
     A = np.asarray(A, dtype=float)
     if _dim(A) != 2:
         raise ValueError(f"inv2 takes (..., 2, 2) matrices, got shape {A.shape}; use inv()")
+    if A.flags.c_contiguous:
+        # compiled (errplan.kinematics.compiled._inv2_kernel): the operations below in the same order, the
+        # Frobenius sum as numpy's einsum adds a C-contiguous 2 x 2 block, (a00^2 + a10^2) + (a01^2 + a11^2)
+        from .kinematics import compiled
+
+        out = np.empty(A.shape)
+        singular = np.empty(A.shape[:-2], bool)
+        compiled._inv2_kernel(compiled.kernel_array(A).reshape(-1, 2, 2), float(rcond), out.reshape(-1, 2, 2),
+                              singular.reshape(-1))
+        return out, singular
+    return _inv2_numpy(A, rcond)
+
+
+def _inv2_numpy(A: np.ndarray, rcond: float = 1e-12) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`inv2` in numpy: the reference of the compiled path (and the path of other memory layouts)."""
     det = A[..., 0, 0] * A[..., 1, 1] - A[..., 0, 1] * A[..., 1, 0]
     scale = np.einsum("...ij,...ij->...", A, A)
     singular = ~(np.abs(det) > rcond * scale)

@@ -3,11 +3,14 @@ conformal parts of ``M = J Jhat^-1`` (planar), including P2's flexion controller
 ``[effects]``. The reference the compiled kernels (:mod:`.kernels`) are tested against."""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..jit import kernel_array, njit
 from ..kinematics.arm import Arm
+from ..kinematics.compiled import _reachable_kernel, _wrist2_kernel
 from ..kinematics.shaft import (estimate_from_ends, flexed_end_angles, flexed_jacobian, flexed_wrist,
                                 flexed_wrist_plane, lever_jacobian, lever_parts, lever_wrist)
 from ..kinematics.truth import Plant
@@ -34,7 +37,25 @@ class Evaluator:
         return cls(m.arm, m.length, m.estimate, m.jacobian, m.true_errors, dict(m.jacobian_effects))
 
     def true_wrist(self, x: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Wrist putting the true tip at ``x`` and its validity (reachable, shaft through port)."""
+        """Wrist putting the true tip at ``x`` and its validity (reachable, shaft through port).
+
+        Compiled in one pass (:func:`_true_wrist2`) where ``x`` and ``theta`` share their batch shape;
+        the operations of :meth:`_true_wrist_numpy` (the reference), the same values."""
+        port = self.errors.port(theta)
+        t = theta[..., 2]
+        x = np.asarray(x, float)
+        if not (isinstance(self.arm, Arm) and x.shape[-1:] == (2,) and x.shape == port.shape
+                and t.shape == x.shape[:-1]):
+            return self._true_wrist_numpy(x, theta)
+        w = np.empty(x.shape)
+        ok = np.empty(x.shape[:-1], bool)
+        _true_wrist2(kernel_array(x).reshape(-1, 2), kernel_array(port).reshape(-1, 2), kernel_array(t).reshape(-1),
+                     float(self.length), bool(np.any(t != 0)), self.arm._reach_params(), w.reshape(-1, 2),
+                     ok.reshape(-1))
+        return w, ok
+
+    def _true_wrist_numpy(self, x: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`true_wrist` in numpy: the reference of the compiled path."""
         port = self.errors.port(theta)
         t = theta[..., 2]
         d = x - port
@@ -151,6 +172,47 @@ class Evaluator:
 
 
 EFFECT_NEWTON_ITERS = 8
+
+
+@njit(cache=True, error_model="numpy")
+def _true_wrist2(X, PORT, T, L, anyt, prm, W, OK):
+    """:meth:`Evaluator.true_wrist` over a planar batch into ``W`` (n, 2), ``OK`` (n,): the operations of
+    :meth:`Evaluator._true_wrist_numpy` (the straight shaft's wrist, or :func:`flexed_wrist` on the tips
+    the shaft reaches, the others replaced by a point on the port's line; then :meth:`Arm.reachable`)."""
+    n = T.shape[0]
+    R = np.empty(n)
+    oks = np.empty(n, np.bool_)
+    for i in range(n):
+        d0, d1 = X[i, 0] - PORT[i, 0], X[i, 1] - PORT[i, 1]
+        r = math.sqrt(d0 * d0 + d1 * d1)
+        R[i] = r
+        oks[i] = (r > 1e-9) and (r < L)
+    if not anyt:
+        for i in range(n):
+            scale = L / (R[i] if oks[i] else 1.0)
+            W[i, 0] = X[i, 0] - scale * (X[i, 0] - PORT[i, 0])
+            W[i, 1] = X[i, 1] - scale * (X[i, 1] - PORT[i, 1])
+    else:
+        XS = np.empty((n, 2))
+        TS = np.empty(n)
+        any_s = False
+        h = 0.5 * L
+        for i in range(n):
+            if oks[i]:
+                XS[i, 0], XS[i, 1], TS[i] = X[i, 0], X[i, 1], T[i]
+            else:
+                XS[i, 0], XS[i, 1], TS[i] = PORT[i, 0] + 0.0, PORT[i, 1] + h, 0.0
+            any_s = any_s or TS[i] != 0
+        _wrist2_kernel(XS, PORT, L, TS, any_s, W)
+    WS = np.empty((n, 2))
+    for i in range(n):
+        if oks[i]:
+            WS[i, 0], WS[i, 1] = W[i, 0], W[i, 1]
+        else:
+            WS[i, 0], WS[i, 1] = 0.0, 0.0
+    _reachable_kernel(WS, prm, OK)
+    for i in range(n):
+        OK[i] = oks[i] and OK[i]
 
 
 def _fd_jacobian(f, q: np.ndarray, h: float = 1e-6) -> np.ndarray:

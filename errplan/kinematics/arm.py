@@ -7,21 +7,30 @@ All functions take joint angles ``q`` of shape ``(..., 2)`` (rad) and points of 
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
 
+
 def direction(a: np.ndarray) -> np.ndarray:
     """Unit vector ``[sin a, cos a]`` of angle ``a`` (any shape) -> shape ``(..., 2)``."""
     a = np.asarray(a, dtype=float)
-    return np.stack([np.sin(a), np.cos(a)], axis=-1)
+    out = np.empty(a.shape + (2,))
+    np.sin(a, out=out[..., 0])
+    np.cos(a, out=out[..., 1])
+    return out
 
 
 def direction_derivative(a: np.ndarray) -> np.ndarray:
     """``d dir(a) / da = [cos a, -sin a]``: the unit normal on the side of increasing angle."""
     a = np.asarray(a, dtype=float)
-    return np.stack([np.cos(a), -np.sin(a)], axis=-1)
+    out = np.empty(a.shape + (2,))
+    np.cos(a, out=out[..., 0])
+    np.sin(a, out=out[..., 1])
+    np.negative(out[..., 1], out=out[..., 1])
+    return out
 
 
 def angle_of(v: np.ndarray) -> np.ndarray:
@@ -65,7 +74,17 @@ class Arm:
         return np.asarray(self.base) + self.l1 * direction(a1)
 
     def forward(self, q: np.ndarray) -> np.ndarray:
-        """Wrist position ``w`` (..., 2) for joint angles ``q`` (..., 2)."""
+        """Wrist position ``w`` (..., 2) for joint angles ``q`` (..., 2). Compiled
+        (:func:`.compiled._forward_kernel`), the operations of :meth:`_forward_numpy` (the reference)."""
+        q = np.asarray(q, dtype=float)
+        if q.shape[-1:] != (2,):
+            return self._forward_numpy(q)
+        out = np.empty(q.shape)
+        k = _compiled()
+        k._forward_kernel(k.kernel_array(q).reshape(-1, 2), self._reach_params(), out.reshape(-1, 2))
+        return out
+
+    def _forward_numpy(self, q: np.ndarray) -> np.ndarray:
         a1, a2 = self.link_angles(q)
         return np.asarray(self.base) + self.l1 * direction(a1) + self.l2 * direction(a2)
 
@@ -73,7 +92,17 @@ class Arm:
         return np.asarray(self.base) + self.l1 * direction(a1) + self.l2 * direction(a2)
 
     def jacobian(self, q: np.ndarray) -> np.ndarray:
-        """``dw/dq`` of shape (..., 2, 2): rows [y, z], columns [q1, q2]."""
+        """``dw/dq`` of shape (..., 2, 2): rows [y, z], columns [q1, q2]. Compiled
+        (:func:`.compiled._jacobian_kernel`), the operations of :meth:`_jacobian_numpy` (the reference)."""
+        q = np.asarray(q, dtype=float)
+        if q.shape[-1:] != (2,):
+            return self._jacobian_numpy(q)
+        out = np.empty(q.shape + (2,))
+        k = _compiled()
+        k._jacobian_kernel(k.kernel_array(q).reshape(-1, 2), self._reach_params(), out.reshape(-1, 2, 2))
+        return out
+
+    def _jacobian_numpy(self, q: np.ndarray) -> np.ndarray:
         a1, a2 = self.link_angles(q)
         d1, d2 = direction_derivative(a1), direction_derivative(a2)
         c1 = self.l1 * d1 + self.l2 * d2
@@ -134,8 +163,20 @@ class Arm:
 
         Returns ``(q, ok)``: ``q`` (..., 2) is the home-pose elbow branch where it is inside the
         limits, else the other branch where that is, else NaN; ``ok`` marks reachable wrists.
-        The second branch is only computed where the first fails.
+        The second branch is only computed where the first fails. Compiled (:func:`.compiled._inverse_kernel`),
+        the operations of :meth:`_inverse_numpy` (the reference).
         """
+        w = np.asarray(w, dtype=float)
+        if w.shape[-1:] != (2,):
+            return self._inverse_numpy(w)
+        q = np.empty(w.shape)
+        ok = np.empty(w.shape[:-1], bool)
+        k = _compiled()
+        k._inverse_kernel(k.kernel_array(w).reshape(-1, 2), self._reach_params(), self._preferred_sign(),
+                          q.reshape(-1, 2), ok.reshape(-1))
+        return q, ok
+
+    def _inverse_numpy(self, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         d, c, reach = self._annulus(w)
         sgn = self._preferred_sign()
         q = self._branch(d, c, sgn)
@@ -159,7 +200,45 @@ class Arm:
 
         Same answer as ``inverse(w)[1]`` without building the angles: both branches' joint angles
         come from complex products (one ``arctan2`` each, already wrapped), the fields' hot path.
+        Compiled (:func:`.compiled._reachable_kernel`, an arctangent-free test first where it is certain):
+        the answers of :meth:`_reachable_numpy` (the reference).
         """
+        w = np.asarray(w, dtype=float)
+        if w.shape[-1:] != (2,):
+            return self._reachable_numpy(w)
+        S = w.shape[:-1]
+        out = np.empty(S, bool)
+        k = _compiled()
+        k._reachable_kernel(k.kernel_array(w).reshape(-1, 2), self._reach_params(), out.reshape(-1))
+        return out[()]
+
+    def _reach_params(self) -> np.ndarray:
+        """``[base y, base z, l1, l2, cos h1, sin h1, cos h2, sin h2]``, the six limits with the
+        tolerance of :meth:`within_limits` (lower - tol, upper + tol for q1, q2, q1 + q2),
+        ``[h1, h2, l1**2, l2**2]``; then per limit interval of q2, q1 and q1 + q2 ``cos m, sin m, cos hw`` (m its middle, hw its half-width) and 1.0
+        where :func:`_arc_class` decides exactly (every interval inside (-pi, pi) by 1e-5 and wider than
+        2e-3 rad, q1 + q2 of any q1, q2 within their limits inside (-pi, pi)), else 0.0."""
+        p = self.__dict__.get("_reach_p")
+        if p is None:
+            tol = 1e-12
+            p = np.array([self.base[0], self.base[1], self.l1, self.l2,
+                          np.cos(self.home[0]), np.sin(self.home[0]), np.cos(self.home[1]), np.sin(self.home[1]),
+                          self.q1_limits[0] - tol, self.q1_limits[1] + tol, self.q2_limits[0] - tol,
+                          self.q2_limits[1] + tol, self.sum_limits[0] - tol, self.sum_limits[1] + tol,
+                          self.home[0], self.home[1], self.l1**2, self.l2**2], float)
+            arcs, fast = [], True
+            for lo, hi in (self.q2_limits, self.q1_limits, self.sum_limits):
+                m, hw = 0.5 * (lo + hi), 0.5 * (hi - lo)
+                arcs += [math.cos(m), math.sin(m), math.cos(hw)]
+                fast &= -math.pi + 1e-5 < lo and hi < math.pi - 1e-5 and 1e-3 < hw
+            fast &= (-math.pi + 1e-5 < self.q1_limits[0] + self.q2_limits[0]
+                     and self.q1_limits[1] + self.q2_limits[1] < math.pi - 1e-5)
+            p = np.concatenate([p, arcs, [1.0 if fast else 0.0]])
+            object.__setattr__(self, "_reach_p", p)
+        return p
+
+    def _reachable_numpy(self, w: np.ndarray) -> np.ndarray:
+        """:meth:`reachable` in numpy: the reference of the compiled path."""
         w = np.asarray(w, dtype=float)
         dy = w[..., 0] - self.base[0]
         dz = w[..., 1] - self.base[1]
@@ -202,3 +281,10 @@ class Arm:
         if len(w) == 0:
             return float("inf")
         return float(np.min(np.linalg.norm(w - np.asarray(p, dtype=float), axis=-1)))
+
+
+def _compiled():
+    """The compiled planar kernels (:mod:`errplan.kinematics.compiled`), imported on first use: numba
+    loads only for commands that compute."""
+    from . import compiled
+    return compiled

@@ -68,8 +68,24 @@ def lever_parts(w: np.ndarray, p: np.ndarray, L: float) -> tuple[np.ndarray, np.
     """Conformal parts ``(mu, nu)`` of :func:`lever_jacobian` (see :mod:`errplan.metrics`).
 
     ``J = I - (L/rho) n n^T``: ``mu = 1 - L/(2 rho)``, ``nu = -(L/(2 rho)) n_c^2`` with the normal
-    as a complex number ``n_c = (dz - i dy)/rho``. No trigonometry: the fields' fast path.
+    as a complex number ``n_c = (dz - i dy)/rho``. No trigonometry: the fields' fast path. Compiled
+    (:func:`.compiled._lever_parts_kernel`) where the ports are one or one per wrist: the operations of
+    :func:`_lever_parts_numpy` (the reference), the same bits.
     """
+    w, p = np.asarray(w, float), np.asarray(p, float)
+    if w.ndim < 2 or w.shape[-1] != 2 or not (p.shape == (2,) or p.shape == w.shape):
+        return _lever_parts_numpy(w, p, L)  # one point: numpy's scalar complex arithmetic rounds differently
+    k = _compiled()
+    S = w.shape[:-1]
+    mu = np.empty(S)
+    nu = np.empty(S, complex)
+    k._lever_parts_kernel(k.kernel_array(w).reshape(-1, 2), k.kernel_array(p).reshape(-1, 2), float(L),
+                          mu.reshape(-1), nu.reshape(-1).view(float).reshape(-1, 2))
+    return mu[()], nu[()]
+
+
+def _lever_parts_numpy(w: np.ndarray, p: np.ndarray, L: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`lever_parts` in numpy: the reference of the compiled path."""
     w, p = np.asarray(w, float), np.asarray(p, float)
     dy, dz = p[..., 0] - w[..., 0], p[..., 1] - w[..., 1]
     rho2 = dy * dy + dz * dz
@@ -112,7 +128,26 @@ def flexed_geometry(w: np.ndarray, p: np.ndarray, L: float, t) -> dict[str, np.n
 
     Returns a dict with ``rho`` (|p - w|), ``theta`` (angle of p - w), ``a``, ``b``, ``phi``
     (chord angle) and ``tip``.
+
+    Planar (d = 2): compiled, one pass over the batch (:func:`.compiled._geometry2_kernel`), the same operations in
+    the same order as :func:`_flexed_geometry_numpy` (the reference), so the same values to the last bit.
     """
+    w, p = np.asarray(w, float), np.asarray(p, float)
+    t = np.asarray(t, float)
+    flat = _planar_batch(w, p, t)
+    if flat is None:
+        return _flexed_geometry_numpy(w, p, L, t)
+    S, W, P, T = flat
+    n = len(T)
+    O = np.empty((7, n))
+    _compiled()._geometry2_kernel(W, P, float(L), T, bool(np.any(t != 0)), O)
+    tip = O[5:7].T.reshape(S + (2,))
+    rho, theta, a, b, phi = (O[i].reshape(S)[()] for i in range(5))
+    return {"rho": rho, "theta": theta, "a": a, "b": b, "phi": phi, "tip": tip}
+
+
+def _flexed_geometry_numpy(w: np.ndarray, p: np.ndarray, L: float, t) -> dict[str, np.ndarray]:
+    """:func:`flexed_geometry` in numpy: the reference of the compiled planar path."""
     w, p = np.asarray(w, float), np.asarray(p, float)
     t = np.asarray(t, float)
     d = p - w
@@ -123,6 +158,28 @@ def flexed_geometry(w: np.ndarray, p: np.ndarray, L: float, t) -> dict[str, np.n
     phi = theta + np.arctan(t * b * b / 3.0)
     tip = w + L * direction(phi)
     return {"rho": rho, "theta": theta, "a": a, "b": b, "phi": phi, "tip": tip}
+
+
+# ----------------------------------------------------------------------------- compiled planar shaft
+# The planar flexed shaft per element in compiled loops: the numpy functions' operations in the same
+# order (IEEE arithmetic, no fast-math; sin, cos, atan and atan2 are the C library's, as numpy's), so the
+# same bits. A batch runs compiled only when every output has the batch's full shape (the common case);
+# otherwise the numpy reference runs, which keeps the shapes of its outputs.
+def _planar_batch(a: np.ndarray, b: np.ndarray, t: np.ndarray):
+    """``(S, A (n, 2), B (n, 2), T (n,))`` C arrays over the broadcast batch shape ``S`` of two planar
+    point arrays and a load, or None when not planar or when ``t`` would widen the points' batch."""
+    if a.shape[-1:] != (2,) or b.shape[-1:] != (2,):
+        return None
+    S = np.broadcast_shapes(a.shape[:-1], b.shape[:-1])
+    if np.broadcast_shapes(S, t.shape) != S:
+        return None
+    return S, _flat(a, S + (2,)).reshape(-1, 2), _flat(b, S + (2,)).reshape(-1, 2), _flat(t, S).reshape(-1)
+
+
+def _flat(a: np.ndarray, shape: tuple) -> np.ndarray:
+    if a.shape != shape:
+        a = np.broadcast_to(a, shape)
+    return _compiled().kernel_array(a)
 
 
 def flexed_tip(w: np.ndarray, p: np.ndarray, L: float, t) -> np.ndarray:
@@ -226,7 +283,20 @@ def flexed_jacobian(w: np.ndarray, p: np.ndarray, L: float, t) -> np.ndarray:
     """
     if np.shape(w)[-1] == 3:
         return _spatial_jacobian(w, p, L, t)
-    g = flexed_geometry(w, p, L, t)
+    w, p = np.asarray(w, float), np.asarray(p, float)
+    t = np.asarray(t, float)
+    flat = _planar_batch(w, p, t)
+    if flat is None:
+        return _flexed_jacobian2_numpy(w, p, L, t)
+    S, W, P, T = flat
+    J = np.empty((len(T), 2, 2))
+    _compiled()._jacobian2_kernel(W, P, float(L), T, bool(np.any(t != 0)), J)
+    return J.reshape(S + (2, 2))
+
+
+def _flexed_jacobian2_numpy(w: np.ndarray, p: np.ndarray, L: float, t) -> np.ndarray:
+    """The planar :func:`flexed_jacobian` in numpy: the reference of the compiled path."""
+    g = _flexed_geometry_numpy(w, p, L, t)
     t = np.asarray(t, float)
     rho, a, b = g["rho"], g["a"], g["b"]
     u = direction(g["theta"])
@@ -270,6 +340,19 @@ def _spatial_jacobian(w, p, L: float, t) -> np.ndarray:
 
 def flexed_wrist(x: np.ndarray, p: np.ndarray, L: float, t) -> np.ndarray:
     """The wrist that puts the flexed shaft's tip at ``x`` through port ``p`` under load ``t``."""
+    x, p = np.asarray(x, float), np.asarray(p, float)
+    t = np.asarray(t, float)
+    flat = _planar_batch(x, p, t)
+    if flat is None:
+        return _flexed_wrist_numpy(x, p, L, t)
+    S, X, P, T = flat
+    w = np.empty((len(T), 2))
+    _compiled()._wrist2_kernel(X, P, float(L), T, bool(np.any(t != 0)), w)
+    return w.reshape(S + (2,))
+
+
+def _flexed_wrist_numpy(x: np.ndarray, p: np.ndarray, L: float, t) -> np.ndarray:
+    """:func:`flexed_wrist` in numpy: the reference of the compiled planar path."""
     x, p = np.asarray(x, float), np.asarray(p, float)
     t = np.asarray(t, float)
     d = x - p
@@ -457,3 +540,10 @@ def tilt(d: np.ndarray, delta: np.ndarray, e1: np.ndarray, e2: np.ndarray) -> np
     safe = np.where(ang > 0, ang, 1.0)
     k = (delta[..., 0:1] * e1 + delta[..., 1:2] * e2) / safe[..., None]
     return np.cos(ang)[..., None] * d + np.sin(ang)[..., None] * k
+
+
+def _compiled():
+    """The compiled planar kernels (:mod:`errplan.kinematics.compiled`), imported on first use: numba
+    loads only for commands that compute."""
+    from . import compiled
+    return compiled
