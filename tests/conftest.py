@@ -20,7 +20,7 @@ os.environ["ERRPLAN_COMPILE_NOTICE"] = "0"
 
 #: compiled once before the tests, in two processes at once (errplan.cli.warmup), when the kernel cache is
 #: cold (a fresh clone): otherwise both test workers would compile the same kernels side by side
-_PRECOMPILE = (("anatomy", "fields3", "gains3", "plan2", "plan3", "lanes2"), ("urdf", "fields3g", "fields2", "lanes3"))
+_PRECOMPILE = (("anatomy", "fields3", "gains3", "gains2", "plan2", "plan3", "lanes2"), ("urdf", "fields3g", "fields2", "lanes3"))
 
 
 def pytest_configure(config):

@@ -522,7 +522,7 @@ def run(args) -> int:
         if sc.dim == 3:
             warmup.start(("plan3", "gains3") + (("anatomy",) if sc.anatomy is not None else ()))
         else:
-            warmup.start(("plan2",))
+            warmup.start(("plan2", "gains2"))
     else:
         path = bundled_scenario()
         if not BUNDLED_SPATIAL.exists():
@@ -537,7 +537,7 @@ def run(args) -> int:
         # fields first (loaded already and short: they run while this process loads the abdomen, and the
         # planar plan and queries, the demo's longest, come early), then the abdomen's (the longest), the
         # PHANToM's, the setup's triad placement and its arms'; the queries the longest first.
-        warmup.start(("plan2", "arm", "fields3g", "plan3", "gains3", "anatomy"))
+        warmup.start(("plan2", "gains2", "arm", "fields3g", "plan3", "gains3", "anatomy"))
         jobs = [DemoJob(path, weight=3.5, query_weight=3.0, sc=arm_model(load_scenario(path))),
                 DemoJob(BUNDLED_SPATIAL, True, "arm", weight=2.0, query_weight=1.5)]
         if BUNDLED_ANATOMY.exists():

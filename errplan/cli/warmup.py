@@ -14,7 +14,8 @@ Parts (each compiles, or loads, the kernels of one step at the argument types th
 ``fields2``/``fields3`` (the worst-case search with the exact |phi_max|, and the motion maps),
 ``fields2g``/``fields3g`` (the search without it: the planner's and the demo's spatial fields),
 ``lanes2``/``lanes3`` (the worst-||G|| refinement as lanes, for error sets without a load),
-``plan2``/``plan3`` (the planner's cell walks), ``gains3`` (the 3-D gains: ``||I - k M||`` grids, cuts,
+``plan2``/``plan3`` (the planner's cell walks), ``gains2`` (the planar kinematics the planar gains,
+simulation and replays call: arm, flexed shaft, lever, 2 x 2 inverses), ``gains3`` (the 3-D gains: ``||I - k M||`` grids, cuts,
 inverses, inverse kinematics), ``urdf`` (a URDF arm's kinematics and its reachability map's build: what
 loading a spatial scenario compiles), ``arm`` (of those, all but the map's build),
 ``anatomy`` (the robust clearance of ``[anatomy]``: its scenario checks,
@@ -113,6 +114,35 @@ def _gains3() -> None:
     _ik_many(chain, rmap, W, np.zeros((0, 1)), False, np.zeros((0, 1)), np.zeros(0, np.bool_))
 
 
+def _gains2() -> None:
+    """The planar kinematics' compiled kernels (:mod:`errplan.kinematics.compiled` and the evaluator's true
+    wrist): the arm's forward kinematics, Jacobian, reachability and inverse, the flexed shaft's geometry,
+    Jacobian and wrist, the lever's parts and the 2 x 2 inverses, each run once on a few points of a planar
+    arm (what the planar gains, simulation and replays call)."""
+    import math
+
+    import numpy as np
+
+    from .. import metrics
+    from ..fields.evaluator import _true_wrist2
+    from ..kinematics import shaft
+    from ..kinematics.arm import Arm
+
+    arm = Arm(base=(0.21, -0.21), l1=0.21, l2=0.21, home=(0.0, -math.pi / 2), q1_limits=(-1.9, 1.2),
+              q2_limits=(-0.7, 3.0), sum_limits=(-0.3, 3.5))
+    q = np.array([[0.1, -1.2], [0.2, -1.0], [0.3, -0.9]])
+    w = arm.forward(q)
+    arm.jacobian(q), arm.reachable(w), arm.inverse(w)
+    p, t = np.array([0.0, 0.1]), np.array([0.0, 0.01, -0.01])
+    x = shaft.flexed_tip(w, p, 0.3, t)
+    shaft.flexed_jacobian(w, p, 0.3, t), shaft.flexed_wrist(x, p, 0.3, t)
+    mu, nu = shaft.lever_parts(w, p, 0.3)
+    metrics.inverse_parts(mu, nu), metrics.inverse_parts(mu.real, nu)
+    metrics.inv2(arm.jacobian(q))
+    ok = np.empty(len(x), bool)
+    _true_wrist2(x, np.repeat(p[None], len(x), axis=0), t, 0.3, True, arm._reach_params(), np.empty_like(x), ok)
+
+
 def _arm() -> None:
     """A URDF arm's forward kinematics, Jacobians and reachability test and the map's coarse bounding box,
     run once on nothing with a placeholder chain: what a spatial scenario's load and run call besides the
@@ -177,7 +207,7 @@ def _anatomy() -> None:
 _PARTS = {"fields2": lambda: _fields(2), "fields3": lambda: _fields(3), "fields2g": lambda: _fields(2, False),
           "fields3g": lambda: _fields(3, False), "lanes2": lambda: _lanes(2), "lanes3": lambda: _lanes(3),
           "plan2": lambda: _plan(2), "plan3": lambda: _plan(3),
-          "gains3": _gains3, "anatomy": _anatomy, "urdf": _urdf, "arm": _arm}
+          "gains2": _gains2, "gains3": _gains3, "anatomy": _anatomy, "urdf": _urdf, "arm": _arm}
 
 
 def _cold(parts: Sequence[str]) -> bool:
@@ -211,6 +241,10 @@ def _cold(parts: Sequence[str]) -> bool:
             from ..planning import cellwalk
 
             entries += [getattr(cellwalk, f"walk{d}")]
+        elif p == "gains2":
+            from ..kinematics import compiled
+
+            entries += [compiled._geometry2_kernel, compiled._reachable_kernel]
         else:
             from ..gains import physics
 
