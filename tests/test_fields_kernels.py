@@ -14,6 +14,8 @@
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from conftest import SCENARIOS
@@ -296,7 +298,7 @@ def test_gnorm_bound_above_exact_value():
 
 def test_instance3_reuse_gives_fresh_values():
     """A loaded instance after others (V holding the previous one's basis and beam) gives bit for bit the
-    M and wrist of the same instance on zeroed scratch."""
+    M and wrist of the same instance on zeroed scratch, also given the load direction's cos and sin."""
     x = np.array([0.01, -0.02, 0.33])
     bp, est, L = np.array([0.0, 0.0, 0.16]), np.array([0.0, 0.0, 0.16]), 0.32
     rng = np.random.default_rng(3)
@@ -309,6 +311,10 @@ def test_instance3_reuse_gives_fresh_values():
         M1 = M.copy()
         r0 = _instance3(x, th, bp, est, L, M, Pb, 0, np.zeros((8, 3, 3)), np.zeros((9, 3)), True)
         assert r1 == r0 and r1[0] and np.array_equal(M1, M)
+        # the load direction's cos and sin given (the search's table, math's calls): the same bits
+        c = _instance3(x, th, bp, est, L, M, Pb, 0, np.zeros((8, 3, 3)), np.zeros((9, 3)), True,
+                       math.cos(th[4]), math.sin(th[4]))
+        assert c == r0 and np.array_equal(M1, M)
 
 
 def _hard_maps(rng):
