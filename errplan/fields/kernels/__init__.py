@@ -14,6 +14,14 @@ Straight-shaft (unloaded) instances are also computed in bulk, many per vectoriz
 polls of many tips' worst-||G|| refinements at once (:func:`_pattern_lanes`). Same arithmetic, same
 answers to the last bit, a fraction of the time.
 
+Under a load (3-D), ``||I - k M||`` costs a 3 x 3 sigma_max; the search computes it only where a comparison
+needs it. A tight upper bound (:func:`_gnorm_below`: Laguerre steps down the characteristic cubic of
+``G^T G``, each checked) settles most comparisons: the sampled values while the starts are chosen
+(:func:`_starts_lazy`), the polls of the pattern search, rho*'s golden section and its certification at
+k* (which also reuse the values already computed at the scenario gain and at k*). A sample or poll is
+skipped only where its bound shows it cannot change a maximum nor which instance attains it: the same
+results to the last bit.
+
 Error parameters ``theta``: planar ``(dy, dz, t)`` (port offset, lateral tip load over EI in the
 shaft frame, signed); spatial ``(dx, dy, dz, tau, psi)`` (port offset, lateral load magnitude and
 its direction angle around the port->tip line, periodic). Compiled once and cached on disk
