@@ -14,6 +14,8 @@
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from conftest import SCENARIOS
@@ -296,7 +298,7 @@ def test_gnorm_bound_above_exact_value():
 
 def test_instance3_reuse_gives_fresh_values():
     """A loaded instance after others (V holding the previous one's basis and beam) gives bit for bit the
-    M and wrist of the same instance on zeroed scratch."""
+    M and wrist of the same instance on zeroed scratch, also given the load direction's cos and sin."""
     x = np.array([0.01, -0.02, 0.33])
     bp, est, L = np.array([0.0, 0.0, 0.16]), np.array([0.0, 0.0, 0.16]), 0.32
     rng = np.random.default_rng(3)
@@ -309,3 +311,136 @@ def test_instance3_reuse_gives_fresh_values():
         M1 = M.copy()
         r0 = _instance3(x, th, bp, est, L, M, Pb, 0, np.zeros((8, 3, 3)), np.zeros((9, 3)), True)
         assert r1 == r0 and r1[0] and np.array_equal(M1, M)
+        # the load direction's cos and sin given (the search's table, math's calls): the same bits
+        c = _instance3(x, th, bp, est, L, M, Pb, 0, np.zeros((8, 3, 3)), np.zeros((9, 3)), True,
+                       math.cos(th[4]), math.sin(th[4]))
+        assert c == r0 and np.array_equal(M1, M)
+
+
+def _hard_maps(rng):
+    """3 x 3 maps where a bound of ||I - k M|| is hard: general, near the identity (G small and nearly
+    isotropic at k = 1), scaled rotations (G^T G a multiple of I: a triple eigenvalue), rank-one
+    ``I - k M`` at k = 1, a double top singular value."""
+    rot = np.linalg.qr(rng.normal(size=(60, 3, 3)))[0]
+    u = rng.normal(size=(60, 3))
+    u /= np.linalg.norm(u, axis=1)[:, None]
+    dbl = np.einsum("nij,j,nkj->nik", rot, np.array([1.3, 1.3, 0.2]), rot)
+    return np.concatenate([rng.normal(size=(300, 3, 3)), np.eye(3) + 1e-3 * rng.normal(size=(100, 3, 3)),
+                           np.eye(3) - 0.3 * rot, np.eye(3) - 2.0 * np.einsum("ni,nj->nij", u, u),
+                           np.eye(3) - dbl])
+
+
+def test_tight_gnorm_bound_never_below_the_exact_value():
+    """_gnorm_below (the Laguerre bound the golden section, the certification, the pattern search and the
+    lazy starts skip instances by) never says ||I - k M|| is below a threshold the exact value reaches
+    (numpy's SVD, and gval's closed form the search compares), and is tight: it says so within 1e-3 of
+    the value for most maps (the test can fail both ways)."""
+    from errplan.fields.kernels import _gnorm_below
+
+    Ms = _hard_maps(np.random.default_rng(11))
+    Pb = np.full((len(Ms), 5), np.nan)
+    tight = 0
+    total = 0
+    for k in (0.0, 0.3, 1.0, 1.4, 2.7):
+        exact = np.linalg.norm(np.eye(3) - k * Ms, 2, axis=(1, 2))
+        for j in range(len(Ms)):
+            v = gval(3, Ms, Pb, j, k)
+            assert v == pytest.approx(exact[j], rel=1e-12, abs=1e-14)
+            for thr in (v, exact[j], max(v, exact[j]) * (1 + 1e-12), 0.5 * v):
+                assert not _gnorm_below(Ms, j, k, thr)
+            tight += _gnorm_below(Ms, j, k, exact[j] * (1 + 1e-3) + 1e-6)
+            total += 1
+    assert tight > 0.7 * total
+    Ms[0, 1, 1] = np.nan  # not finite: never below (the exact value decides)
+    assert not _gnorm_below(Ms, 0, 1.0, 1e300)
+
+
+def _starts_reference(vals, m, na, second_start, pos, stride, counts, periodic, nbr):
+    """The search's choice of its starts from every value (loops._search before the lazy values)."""
+    from errplan.fields.kernels import _far, _local_max, _peak_raise
+
+    jbest = 0
+    for j in range(1, m):
+        if vals[j] > vals[jbest]:
+            jbest = j
+    j2 = -1
+    for j in range(m):
+        if (j2 < 0 or vals[j] > vals[j2]) and _far(j, jbest, pos, counts, periodic, na) and _local_max(vals, j, nbr):
+            j2 = j
+    if j2 >= 0:
+        v = vals[jbest]
+        if not (vals[j2] + 2.0 * _peak_raise(vals, j2, pos, stride, counts, periodic, na)
+                >= v - second_start * max(1.0, abs(v))):
+            j2 = -1
+    return jbest, j2
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_lazy_starts_are_the_starts_from_every_value(seed):
+    """_starts_lazy (loaded samples' ||G|| computed only where a comparison needs them) picks the worst
+    sample and the second start that the choice from every value picks, on the abdomen's grid shape
+    (3 x 3 x 3 port offsets, 3 loads, 8 periodic directions), with smooth maps (several local maxima),
+    rough ones, ties, and the planar-like case without a second start; NaN values: left to the caller."""
+    from errplan.fields.kernels import _sample_table, _starts_lazy
+
+    rng = np.random.default_rng(seed)
+    counts = np.array([3, 3, 3, 3, 8])
+    periodic = np.array([False, False, False, False, True])
+    na, m = 5, int(np.prod(counts))
+    pos = np.empty((m, na), np.int64)
+    stride = np.empty(na, np.int64)
+    nbr = np.empty((m, 2 * na), np.int64)
+    _sample_table(counts, periodic, na, m, pos, stride, nbr)
+    k = 1.0
+    for case in range(6):
+        # maps M = I + eps (a smooth field over the grid, with bumps) + noise; some samples "levers"
+        ph = pos / np.maximum(counts - 1, 1)
+        amp = np.sin(3.0 * ph @ rng.normal(size=na) + rng.uniform(0, 6)) + 0.5 * np.cos(2 * np.pi * pos[:, 4] / 8)
+        Ms = np.eye(3) + 0.2 * amp[:, None, None] * rng.normal(size=(1, 3, 3)) \
+            + (0.05 if case % 2 else 1e-4) * rng.normal(size=(m, 3, 3))
+        if case == 4:
+            Ms[::7] = Ms[3]  # ties: many samples with the very same value
+        Pbs = np.full((m, 5), np.nan)
+        vals_all = np.array([gval(3, Ms, Pbs, j, k) for j in range(m)])
+        known = pos[:, 3] == 0  # the unloaded samples: known up front (their reduced form's value)
+        for second_start in (0.002, 0.5, 0.0):
+            vals = np.where(known, vals_all, -7.0)
+            kn = known.copy()
+            st = np.empty(2, np.int64)
+            assert _starts_lazy(3, Ms, Pbs, k, vals, kn, m, na, second_start, pos, stride, counts, periodic, nbr, st)
+            ref = _starts_reference(vals_all, m, na, second_start, pos, stride, counts, periodic, nbr) \
+                if second_start > 0 else (int(np.argmax(vals_all)), -1)
+            assert (st[0], st[1]) == ref
+            assert np.array_equal(vals[kn], vals_all[kn])  # every value it computed is the value
+            assert kn.sum() < m  # it skipped some (the test can fail)
+    Ms[5, 0, 0] = np.nan
+    kn = pos[:, 3] == 0
+    vals = np.where(kn, np.array([gval(3, Ms, Pbs, j, k) for j in range(m)]), 0.0)
+    assert not _starts_lazy(3, Ms, Pbs, k, vals, kn, m, na, 0.002, pos, stride, counts, periodic, nbr, st)
+
+
+def test_golden_gain_from_the_worst_value_alone_is_the_same():
+    """rho*'s golden section (_golden_gain) given every value at the scenario gain, or only the worst one
+    (the lazy search's: the others are below it), returns the same rho* and k* to the bit, and the values
+    it leaves at k* (which the certification reads) are gval's there."""
+    from errplan.fields.kernels import _golden_gain
+
+    rng = np.random.default_rng(5)
+    for case in range(20):
+        m = 40
+        Ms = np.eye(3) + (0.3 if case % 2 else 0.05) * rng.normal(size=(m, 3, 3))
+        Pb = np.full((m, 5), np.nan)
+        v0 = np.array([gval(3, Ms, Pb, j, 1.0) for j in range(m)])
+        res = []
+        for kn in (np.ones(m, bool), v0 == v0.max()):
+            idx = np.empty(m, np.int64)
+            tr, f2, lk, lv = (np.empty(m) for _ in range(4))
+            rs, ks = _golden_gain(3, Ms, Pb, m, 60, 1.0, idx, tr, f2, np.where(kn, v0, np.nan), kn, lk, lv)
+            res.append((rs, ks))
+            at = lk == ks
+            assert np.array_equal(lv[at], [gval(3, Ms, Pb, j, ks) for j in np.flatnonzero(at)])
+        assert res[0] == res[1]
+        # the minimax against a scan of the gain over its bracket [0, 2 / max ||M||_F]
+        ks_grid = np.linspace(0.0, 2.0 / np.sqrt((Ms ** 2).sum(axis=(1, 2))).max(), 4001)
+        scan = np.linalg.norm(np.eye(3) - ks_grid[:, None, None, None] * Ms, 2, axis=(2, 3)).max(axis=1)
+        assert res[0][0] <= scan.min() + 1e-9

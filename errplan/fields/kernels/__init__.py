@@ -14,6 +14,14 @@ Straight-shaft (unloaded) instances are also computed in bulk, many per vectoriz
 polls of many tips' worst-||G|| refinements at once (:func:`_pattern_lanes`). Same arithmetic, same
 answers to the last bit, a fraction of the time.
 
+Under a load (3-D), ``||I - k M||`` costs a 3 x 3 sigma_max; the search computes it only where a comparison
+needs it. A tight upper bound (:func:`_gnorm_below`: Laguerre steps down the characteristic cubic of
+``G^T G``, each checked) settles most comparisons: the sampled values while the starts are chosen
+(:func:`_starts_lazy`), the polls of the pattern search, rho*'s golden section and its certification at
+k* (which also reuse the values already computed at the scenario gain and at k*). A sample or poll is
+skipped only where its bound shows it cannot change a maximum nor which instance attains it: the same
+results to the last bit.
+
 Error parameters ``theta``: planar ``(dy, dz, t)`` (port offset, lateral tip load over EI in the
 shaft frame, signed); spatial ``(dx, dy, dz, tau, psi)`` (port offset, lateral load magnitude and
 its direction angle around the port->tip line, periodic). Compiled once and cached on disk
@@ -31,7 +39,7 @@ from .instance import (NEWTON, RCOND, _compose2, _corners_out2, _est_inverse2, _
                        _gval_block, _instance2, _instance3, _lever3, _lever_block3, _lever_J, _lever_out, _levers2,
                        _levers3, _perp_basis, _solve_b, _straight2)
 from .metrics import _phimax, gnorm, gval, phi_bound, phimax
-from .search import (LANE_TIPS, _climbing, _far, _gnorm_ub, _golden, _golden_gain, _gval_ub, _local_max, _neighbour, _pattern, _pattern_g,
+from .search import (LANE_TIPS, _climbing, _far, _gnorm_ub, _golden, _gnorm_below, _golden_gain, _gval_skip, _gval_ub, _gval_ub_at, _local_max, _neighbour, _pattern, _pattern_g,
                      _pattern_lanes, _peak_raise, _poll_coord, _poll_value, _rho_final, _sample_table)
-from .loops import (_LANE_TILES, _TILES, _WANT_PHI, _Lanes, _lanes_tile, _maps2, _maps3, _motion_maps, _per_dim,
+from .loops import (_LANE_TILES, _TILES, _WANT_PHI, _Lanes, _lanes_tile, _starts_lazy, _maps2, _maps3, _motion_maps, _per_dim,
                     _search, _tile2, _tile2g, _tile3, _tile3g, load_lanes, motion_maps, run_lanes, worst_case_tile)

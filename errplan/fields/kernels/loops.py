@@ -12,7 +12,7 @@ from ...kinematics.urdf.chain import map_geometry, map_state, reach_boundary
 from .instance import _corners_out2, _instance2, _instance3, _lever_out, _levers2, _levers3
 from .metrics import _phimax, gval, phi_bound
 from .reach import _planar_reachable, _tip_reach, _tip_reach2
-from .search import (LANE_TIPS, _far, _golden_gain, _gval_ub, _local_max, _pattern, _pattern_g, _pattern_lanes, _peak_raise,
+from .search import (LANE_TIPS, _far, _gnorm_below, _golden_gain, _gval_skip, _gval_ub_at, _local_max, _neighbour, _pattern, _pattern_g, _pattern_lanes, _peak_raise,
                      _rho_final, _sample_table)
 
 
@@ -92,6 +92,90 @@ def _lanes_tile(ns, XS, TH, best, known, live, owner, step0, lo, hi, active, per
         s0 = s1
 
 
+@njit(cache=True, error_model="numpy", literal_args="d")
+def _lazy_g(d, Ms, Pbs, k, vals, kn, j):
+    """``vals[j]``, the sample's ||G|| at gain ``k`` (:func:`gval`), computed now if not yet (``kn[j]``)."""
+    if not kn[j]:
+        vals[j] = gval(d, Ms, Pbs, j, k)
+        kn[j] = True
+    return vals[j]
+
+
+@njit(cache=True, error_model="numpy", literal_args="d")
+def _g_below(d, Ms, Pbs, k, vals, kn, j, thr):
+    """The sample's ||G|| is certainly below ``thr``: its value if known, else its tight bound
+    (:func:`_gnorm_below`; a sample not yet computed is a loaded 3-D one)."""
+    if kn[j]:
+        return vals[j] < thr
+    return _gnorm_below(Ms, j, k, thr)
+
+
+@njit(cache=True, error_model="numpy", literal_args="d")
+def _starts_lazy(d, Ms, Pbs, k, vals, kn, m, na, second_start, pos, stride, counts, periodic, nbr, st):
+    """The starts of the worst-||G|| refinement, ``st[0]`` the first sample attaining the largest value,
+    ``st[1]`` the second start (-1 for none), exactly as :func:`_search` chooses them from every value,
+    computing a loaded sample's value (:func:`_lazy_g`) only where a comparison needs it: a sample whose
+    bound is below the value it is compared with (:func:`_g_below`) loses that comparison whatever its
+    value. False (a value is NaN: the comparisons are then not those of the bounds) and the caller
+    chooses from every value."""
+    # the worst: a running maximum in index order, a sample that cannot beat it skipped
+    jbest = 0
+    vb = _lazy_g(d, Ms, Pbs, k, vals, kn, 0)
+    for j in range(1, m):
+        if _g_below(d, Ms, Pbs, k, vals, kn, j, vb):
+            continue
+        v = _lazy_g(d, Ms, Pbs, k, vals, kn, j)
+        if not v == v:
+            return False
+        if v > vb:
+            jbest, vb = j, v
+    if not vb == vb:
+        return False
+    j2 = -1
+    v2 = 0.0
+    if second_start > 0 and m > 1:
+        for j in range(m):
+            if not _far(j, jbest, pos, counts, periodic, na):
+                continue
+            if j2 >= 0 and _g_below(d, Ms, Pbs, k, vals, kn, j, v2):
+                continue
+            v = _lazy_g(d, Ms, Pbs, k, vals, kn, j)
+            if not v == v:
+                return False
+            if j2 >= 0 and not v > v2:
+                continue
+            lm = True  # _local_max: no neighbour above
+            for c in range(nbr.shape[1]):
+                q = nbr[j, c]
+                if q < 0 or _g_below(d, Ms, Pbs, k, vals, kn, q, v):
+                    continue
+                vq = _lazy_g(d, Ms, Pbs, k, vals, kn, q)
+                if not vq == vq:
+                    return False
+                if vq > v:
+                    lm = False
+                    break
+            if lm:
+                j2, v2 = j, v
+        if j2 >= 0:
+            # the values _peak_raise reads: up to two steps either way along each axis
+            for ax in range(na):
+                if counts[ax] < 2:
+                    continue
+                for off in (-2, -1, 1, 2):
+                    q = _neighbour(j2, ax, off, pos, stride, counts, periodic)
+                    if q >= 0:
+                        vq = _lazy_g(d, Ms, Pbs, k, vals, kn, q)
+                        if not vq == vq:
+                            return False
+            if not (v2 + 2.0 * _peak_raise(vals, j2, pos, stride, counts, periodic, na)
+                    >= vb - second_start * max(1.0, abs(vb))):
+                j2 = -1
+    st[0] = jbest
+    st[1] = j2
+    return True
+
+
 def _search(X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L, k, arm, chain, rmap,
             refine, extra, second_start, want_phi, want_rho, out_valid, out_g, out_p, out_rho, out_k,
             XS, TH, bestL, knownL, liveL, ownerL, nlanes):
@@ -118,6 +202,10 @@ def _search(X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L,
     idx = np.empty(m, np.int64)
     trM = np.empty(m)  # the sampled M's traces and squared Frobenius norms (_golden_gain, _gval_ub)
     f2M = np.empty(m)
+    st = np.empty(2, np.int64)
+    kn = np.ones(m, np.bool_)  # vals_g[j] computed (lazy: a loaded 3-D sample's value only where needed)
+    lkM = np.empty(m)  # per sampled instance: the last gain of its exact ||G|| and that value (_golden_gain)
+    lvM = np.empty(m)
     pos = np.empty((m, na), np.int64)
     stride = np.empty(na, np.int64)
     nbr = np.empty((m, 2 * na), np.int64)
@@ -162,6 +250,19 @@ def _search(X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L,
                 corners[nc] = j
                 nc += 1
     corners = corners[:nc]
+    # the loaded 3-D samples' ||G|| only where the choice of the starts needs it (_starts_lazy): their full M
+    # is there (_instance3 forms it under a load), so is a tight bound of the value (_gnorm_below)
+    lazy = d == 3
+    # cos, sin of each loaded sample's load direction (_instance3's, once per tile; NaN: none). The
+    # previous row is reused where the direction repeats: a dependence between iterations, so the loop
+    # stays scalar (the calls are those _instance3 makes, to the bit)
+    CSj = np.full((m, 2), np.nan)
+    for j in range(m if d == 3 and na > 4 else 0):
+        if grid[j, 3] != 0.0:
+            if j > 0 and grid[j - 1, 3] != 0.0 and grid[j - 1, 4] == grid[j, 4]:
+                CSj[j, 0], CSj[j, 1] = CSj[j - 1, 0], CSj[j - 1, 1]
+            else:
+                CSj[j, 0], CSj[j, 1] = math.cos(grid[j, 4]), math.sin(grid[j, 4])
     XT = np.empty((d, nl))  # the tip, once per sampled straight instance (_levers2/_levers3 take one per lane)
     ns = 0
     for ii in range(n):
@@ -215,14 +316,18 @@ def _search(X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L,
             if d == 2:
                 okj, w0, w1, w2 = _instance2(x, grid[j], base_port, est, L, arm, Ms, j, S, V, known), 0.0, 0.0, 0.0
             else:
-                okj, w0, w1, w2 = _instance3(x, grid[j], base_port, est, L, Ms, Pbs, j, S, V, full)
+                okj, w0, w1, w2 = _instance3(x, grid[j], base_port, est, L, Ms, Pbs, j, S, V, full, CSj[j, 0], CSj[j, 1])
             if okj and d == 3 and not known:
                 s_, ix, iy, iz = map_state(geo, mst, w0, w1, w2)
                 okj = s_ == 1 or (s_ == 2 and reach_boundary(chain, rmap, ix, iy, iz, w0, w1, w2))
             if not okj:
                 ok = False
                 break
+            if lazy and not Pbs[j, 0] == Pbs[j, 0]:
+                kn[j] = False  # (a loaded 3-D sample: its ||G|| when a choice below needs it, _lazy_g)
+                continue
             vals_g[j] = gval(d, Ms, Pbs, j, k)
+            kn[j] = True
         if _PHI and ok:
             if d == 2:
                 for j in range(m):
@@ -243,22 +348,31 @@ def _search(X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L,
                     best_exact = max(best_exact, vals_p[j])
         for which in range((2 if _PHI else 1) if ok else 0):
             vals = vals_g if which == 0 else vals_p
-            jbest = 0
-            for j in range(1, m):
-                if vals[j] > vals[jbest]:
-                    jbest = j
-            # a second start: the best sampled local maximum more than one step from the worst
-            j2 = -1
-            if second_start > 0 and m > 1:
-                for j in range(m):  # the cheap comparison first
-                    if (j2 < 0 or vals[j] > vals[j2]) and _far(j, jbest, pos, counts, periodic, na) \
-                            and _local_max(vals, j, nbr):
-                        j2 = j
-                if j2 >= 0:
-                    v = vals[jbest]
-                    if not (vals[j2] + 2.0 * _peak_raise(vals, j2, pos, stride, counts, periodic, na)
-                            >= v - second_start * max(1.0, abs(v))):
-                        j2 = -1
+            if which == 0 and lazy and _starts_lazy(d, Ms, Pbs, k, vals_g, kn, m, na, second_start, pos, stride,
+                                                     counts, periodic, nbr, st):
+                jbest, j2 = st[0], st[1]
+            else:
+                if which == 0 and lazy:  # a NaN value: every value, and the choice as below
+                    for j in range(m):
+                        if not kn[j]:
+                            vals_g[j] = gval(d, Ms, Pbs, j, k)
+                            kn[j] = True
+                jbest = 0
+                for j in range(1, m):
+                    if vals[j] > vals[jbest]:
+                        jbest = j
+                # a second start: the best sampled local maximum more than one step from the worst
+                j2 = -1
+                if second_start > 0 and m > 1:
+                    for j in range(m):  # the cheap comparison first
+                        if (j2 < 0 or vals[j] > vals[j2]) and _far(j, jbest, pos, counts, periodic, na) \
+                                and _local_max(vals, j, nbr):
+                            j2 = j
+                    if j2 >= 0:
+                        v = vals[jbest]
+                        if not (vals[j2] + 2.0 * _peak_raise(vals, j2, pos, stride, counts, periodic, na)
+                                >= v - second_start * max(1.0, abs(v))):
+                            j2 = -1
             best_all = -math.inf
             for start in (jbest, j2):
                 if start < 0:
@@ -294,15 +408,17 @@ def _search(X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L,
         out_g[ii] = results[0]
         out_p[ii] = results[1] if _PHI else np.nan
         if want_rho:
-            rs, ks = _golden_gain(d, Ms, Pbs, m, 60, k, idx, trM, f2M)
+            rs, ks = _golden_gain(d, Ms, Pbs, m, 60, k, idx, trM, f2M, vals_g, kn, lkM, lvM)
             if ks > 0:
                 # certify at k*: the refined worst case over the continuous set at that gain
                 jbest = 0
                 vbest = -1.0
                 for j in range(m):
-                    if _gval_ub(d, Pbs, j, ks, trM, f2M) <= vbest:
-                        continue  # cannot be the worst (trM, f2M: filled by _golden_gain)
-                    v = gval(d, Ms, Pbs, j, ks)
+                    if _gval_ub_at(d, Pbs, j, ks, trM, f2M, lkM, lvM) <= vbest or (
+                            lkM[j] != ks and _gval_skip(d, Ms, Pbs, j, ks, trM, f2M, vbest)):
+                        continue  # cannot be the worst (trM, f2M, lkM, lvM: filled by _golden_gain)
+                    # the value _golden_gain computed at this gain (the same call), else computed here
+                    v = lvM[j] if lkM[j] == ks else gval(d, Ms, Pbs, j, ks)
                     if v > vbest:
                         vbest, jbest = v, j
                 for i in range(na):

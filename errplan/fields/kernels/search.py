@@ -159,7 +159,7 @@ def _pattern(d, which, k, x, th, best, step0, lo, hi, active, periodic, refine, 
                         ok = s_ == 1 or (s_ == 2 and reach_boundary(chain, rmap, ix, iy, iz, w0, w1, w2))
                     if not ok:
                         return best, False
-                    if which == 0 and d == 3 and not P1[0, 0] == P1[0, 0] and _gnorm_ub(M, 0, k) <= best:
+                    if which == 0 and d == 3 and not P1[0, 0] == P1[0, 0] and _gnorm_below(M, 0, k, best):
                         continue  # a loaded instance whose bound cannot raise the worst ||G||
                     if _PHI:
                         if which == 1 and d == 3 and phi_bound(M, 0) <= best:
@@ -310,6 +310,64 @@ def _gnorm_ub(Mb, j, k):
     return _fro_ub(3.0 - 2.0 * k * t + k * k * s, 3.0 + 2.0 * k * abs(t) + k * k * s)
 
 
+@njit(cache=True, error_model="numpy")
+def _gnorm_below(Mb, j, k, thr):
+    """True when ``||I - k M||_2`` (``M = Mb[j]``, 3 x 3) is certainly below ``thr``: an upper bound of the
+    largest eigenvalue ``lam`` of ``A = G^T G`` (``G = I - k M``), raised as :func:`_fro_ub` raises its own,
+    is not above ``thr``. Much tighter than the Frobenius norm, and no trigonometry: from ``min(tr A,
+    Gershgorin)`` (both above ``lam``: A is positive semi-definite), Laguerre steps on the characteristic
+    cubic ``p(x) = x^3 - c2 x^2 + c1 x - c0`` (all roots real: they go down toward ``lam``), each new point
+    kept only where ``p``, ``p'`` and ``p''`` are above 1e-10 of their scale there (then ``p'' > 0``, ``p' > 0``,
+    ``p > 0`` on all of ``[x, inf)`` for the computed coefficients and, the margins being far above the
+    rounding of the coefficients and of ``p``, for the exact ones: no eigenvalue at or above ``x``). Stops
+    as soon as the bound is at or below ``thr`` (True) or no step can be kept (False)."""
+    g00, g01, g02 = 1.0 - k * Mb[j, 0, 0], -k * Mb[j, 0, 1], -k * Mb[j, 0, 2]
+    g10, g11, g12 = -k * Mb[j, 1, 0], 1.0 - k * Mb[j, 1, 1], -k * Mb[j, 1, 2]
+    g20, g21, g22 = -k * Mb[j, 2, 0], -k * Mb[j, 2, 1], 1.0 - k * Mb[j, 2, 2]
+    a00 = g00 * g00 + g10 * g10 + g20 * g20
+    a11 = g01 * g01 + g11 * g11 + g21 * g21
+    a22 = g02 * g02 + g12 * g12 + g22 * g22
+    a01 = g00 * g01 + g10 * g11 + g20 * g21
+    a02 = g00 * g02 + g10 * g12 + g20 * g22
+    a12 = g01 * g02 + g11 * g12 + g21 * g22
+    c2 = a00 + a11 + a22
+    if not (c2 > 0.0 and c2 < math.inf):
+        return False  # (NaN or inf: the exact value decides; 0: G = 0, let it be computed)
+    x = min(c2, max(a00 + abs(a01) + abs(a02), max(abs(a01) + a11 + abs(a12), abs(a02) + abs(a12) + a22)))
+    ub = _fro_ub(x, c2)
+    if ub <= thr:
+        return True
+    c1 = (a00 * a11 - a01 * a01) + (a00 * a22 - a02 * a02) + (a11 * a22 - a12 * a12)
+    c0 = a00 * (a11 * a22 - a12 * a12) - a01 * (a01 * a22 - a12 * a02) + a02 * (a01 * a12 - a11 * a02)
+    tol = 1e-10
+    p = ((x - c2) * x + c1) * x - c0
+    dp = (3.0 * x - 2.0 * c2) * x + c1
+    d2p = 6.0 * x - 2.0 * c2
+    for it in range(LAGUERRE):
+        # x is above every eigenvalue (at first tr A or Gershgorin; later: checked below)
+        if not p > 0.0:
+            return False  # x is an eigenvalue (to rounding): no step below it can be trusted
+        gg = dp / p
+        hh = gg * gg - d2p / p
+        x1 = x - 3.0 / (gg + math.sqrt(max(2.0 * (3.0 * hh - gg * gg), 0.0)))
+        if not x1 < x:
+            return False
+        # keep x1 only where no eigenvalue can lie at or above it
+        sc = max(x1, c2 / 3.0)
+        p1 = ((x1 - c2) * x1 + c1) * x1 - c0
+        dp1 = (3.0 * x1 - 2.0 * c2) * x1 + c1
+        d2p1 = 6.0 * x1 - 2.0 * c2
+        if not (p1 > tol * sc * sc * sc and dp1 > tol * sc * sc and d2p1 > tol * sc):
+            return False
+        x, p, dp, d2p = x1, p1, dp1, d2p1
+        if _fro_ub(x, c2) <= thr:
+            return True
+    return False
+
+
+LAGUERRE = 3  # Laguerre steps of _gnorm_below at most
+
+
 @njit(cache=True, error_model="numpy", literal_args="d")
 def _gval_ub(d, Pb, j, k, tr, f2):
     """A cheap upper bound of :func:`gval` of instance ``j`` at gain ``k`` where its value costs a 3 x 3
@@ -325,6 +383,33 @@ def _gval_ub(d, Pb, j, k, tr, f2):
 
 
 @njit(cache=True, error_model="numpy", literal_args="d")
+def _gval_ub_at(d, Pb, j, k, tr, f2, lk, lv):
+    """:func:`_gval_ub`, or a tighter bound from the exact value ``lv[j]`` of the same instance at gain
+    ``lk[j]``: ``||I - k M|| <= ||I - lk M|| + |k - lk| ||M||_2`` and ``||M||_2 <= ||M||_F = sqrt(f2[j])``,
+    raised as :func:`_fro_ub` raises its bound (1e-6 relative + 1e-9) over the rounding of both values.
+    The smaller of the two; inf where :func:`_gval_ub` is (no bound needed)."""
+    ub = _gval_ub(d, Pb, j, k, tr, f2)
+    if ub == math.inf:
+        return ub
+    lip = (lv[j] + abs(k - lk[j]) * math.sqrt(f2[j])) * (1.0 + 1e-6) + 1e-9
+    if lip < ub:  # (False where lv[j] is NaN: the Frobenius bound stands)
+        return lip
+    return ub
+
+
+@njit(cache=True, error_model="numpy", literal_args="d")
+def _gval_skip(d, Ms, Pb, j, k, tr, f2, thr):
+    """True when :func:`gval` of instance ``j`` at gain ``k`` is certainly below ``thr`` (> 0): the cheap
+    Frobenius bound (:func:`_gval_ub`) first, then the tight one (:func:`_gnorm_below`) for a loaded 3-D
+    instance. A skipped instance cannot change a running maximum, nor which instance attains it."""
+    if not thr > 0.0:
+        return False
+    if _gval_ub(d, Pb, j, k, tr, f2) <= thr:
+        return True
+    return d == 3 and not Pb[j, 0] == Pb[j, 0] and _gnorm_below(Ms, j, k, thr)
+
+
+@njit(cache=True, error_model="numpy", literal_args="d")
 def _golden(d, Ms, Pb, idx, na_, kmax, iters, tr, f2):
     """``min over k in [0, kmax] of max_{i in idx[:na_]} ||I - k Ms[i]||`` by golden section (convex in k).
     ``tr``, ``f2``: the instances' trace and squared Frobenius norm (:func:`_gval_ub`: an instance whose
@@ -335,9 +420,9 @@ def _golden(d, Ms, Pb, idx, na_, kmax, iters, tr, f2):
     fc = 0.0
     fd = 0.0
     for q in range(na_):
-        if not _gval_ub(d, Pb, idx[q], c, tr, f2) <= fc:
+        if not _gval_skip(d, Ms, Pb, idx[q], c, tr, f2, fc):
             fc = max(fc, gval(d, Ms, Pb, idx[q], c))
-        if not _gval_ub(d, Pb, idx[q], e, tr, f2) <= fd:
+        if not _gval_skip(d, Ms, Pb, idx[q], e, tr, f2, fd):
             fd = max(fd, gval(d, Ms, Pb, idx[q], e))
     for _ in range(iters):
         if fc < fd:
@@ -345,20 +430,20 @@ def _golden(d, Ms, Pb, idx, na_, kmax, iters, tr, f2):
             c = b - gr * (b - a)
             fc = 0.0
             for q in range(na_):
-                if not _gval_ub(d, Pb, idx[q], c, tr, f2) <= fc:
+                if not _gval_skip(d, Ms, Pb, idx[q], c, tr, f2, fc):
                     fc = max(fc, gval(d, Ms, Pb, idx[q], c))
         else:
             a, c, fc = c, e, fd
             e = a + gr * (b - a)
             fd = 0.0
             for q in range(na_):
-                if not _gval_ub(d, Pb, idx[q], e, tr, f2) <= fd:
+                if not _gval_skip(d, Ms, Pb, idx[q], e, tr, f2, fd):
                     fd = max(fd, gval(d, Ms, Pb, idx[q], e))
     return 0.5 * (a + b)
 
 
 @njit(cache=True, error_model="numpy", literal_args="d")
-def _golden_gain(d, Ms, Pb, m, iters, k0, idx, tr, f2):
+def _golden_gain(d, Ms, Pb, m, iters, k0, idx, tr, f2, v0, kn, lk, lv):
     """``min over k > 0 of max_i ||I - k M_i||`` over the m sampled instances; ``(rho, k)``,
     ``(1, 0)`` where no gain contracts.
 
@@ -368,7 +453,10 @@ def _golden_gain(d, Ms, Pb, m, iters, k0, idx, tr, f2):
     instances at k equals the active minimum, so k minimises the full maximum (each function is
     convex in k, so is their maximum). ``idx`` is (m,) int scratch; ``tr``, ``f2`` (m,) float scratch,
     filled here with the instances' trace and squared Frobenius norm (:func:`_gval_ub`: instances
-    that cannot change a maximum are not evaluated)."""
+    that cannot change a maximum are not evaluated). ``v0``: the instances' ``||I - k0 M||`` (:func:`gval`'s,
+    the search's sampled values: not computed again) where ``kn`` (the others are below the largest); ``lk``, ``lv`` (m,) float scratch: per instance the
+    last gain at which its exact value was computed and that value (:func:`_gval_ub_at`'s tighter bound
+    skips more of the checks; the caller reads the values at the returned gain from there)."""
     amax = 0.0
     for i in range(m):
         s = 0.0
@@ -383,9 +471,12 @@ def _golden_gain(d, Ms, Pb, m, iters, k0, idx, tr, f2):
     kmax = 2.0 / amax if amax > 0 else 1.0
     jw, vw = 0, -1.0
     for i in range(m):
-        if _gval_ub(d, Pb, i, k0, tr, f2) <= vw:
+        if not kn[i]:
+            lk[i] = math.nan
             continue
-        v = gval(d, Ms, Pb, i, k0)
+        v = v0[i]
+        lk[i] = k0
+        lv[i] = v
         if v > vw:
             jw, vw = i, v
     idx[0] = jw
@@ -396,13 +487,22 @@ def _golden_gain(d, Ms, Pb, m, iters, k0, idx, tr, f2):
         kk = _golden(d, Ms, Pb, idx, n_act, kmax, iters, tr, f2)
         act = 0.0
         for q in range(n_act):
-            act = max(act, gval(d, Ms, Pb, idx[q], kk))
+            i = idx[q]
+            if not lk[i] == kk:
+                lk[i] = kk
+                lv[i] = gval(d, Ms, Pb, i, kk)
+            act = max(act, lv[i])
         jw, vw = -1, act
         for i in range(m):
             thr = vw * (1.0 + 1e-13) + 1e-15
-            if _gval_ub(d, Pb, i, kk, tr, f2) <= thr:
-                continue
-            v = gval(d, Ms, Pb, i, kk)
+            if lk[i] == kk:
+                v = lv[i]  # (an active instance: its value at kk above)
+            else:
+                if _gval_ub_at(d, Pb, i, kk, tr, f2, lk, lv) <= thr or _gval_skip(d, Ms, Pb, i, kk, tr, f2, thr):
+                    continue
+                v = gval(d, Ms, Pb, i, kk)
+                lk[i] = kk
+                lv[i] = v
             if v > thr:
                 jw, vw = i, v
         rho = vw
