@@ -106,7 +106,7 @@ def inverse_parts(mu, nu, rcond: float = 1e-12):
     singular = np.empty(mu.shape, bool)
     compiled._inverse_parts_kernel(MU, NU, bool(real_mu), float(rcond), IMU, INU.reshape(-1).view(float).reshape(n, 2),
                                    singular.reshape(-1))
-    imu = IMU[:, 0].reshape(mu.shape) if real_mu else IMU.reshape(-1).view(complex).reshape(mu.shape)
+    imu = np.ascontiguousarray(IMU[:, 0]).reshape(mu.shape) if real_mu else IMU.reshape(-1).view(complex).reshape(mu.shape)
     return imu, INU, singular
 
 
