@@ -4,7 +4,8 @@
 Each kernel performs the operations of the numpy function it replaces in the same order (IEEE arithmetic,
 no fast-math; sin, cos, atan, atan2 and acos are the C library's, as numpy's on this platform), so the
 values are the same to the last bit; the numpy functions stay as the references the tests compare against.
-Imported on first use by :mod:`.arm` and :mod:`.shaft`, so that importing them does not load numba.
+Imported on first use by :mod:`.arm` and :mod:`.shaft`, so that importing them does not load numba; the
+planar fields kernels take their arc test (:func:`_arc_class`) from here.
 """
 from __future__ import annotations
 
@@ -16,7 +17,7 @@ from numba import types as _types
 from numba.core.extending import intrinsic
 
 from ..jit import kernel_array, njit  # noqa: F401  (kernel_array: for .arm and .shaft)
-from .shaft import _NEWTON_ITERS
+from .newton import NEWTON_ITERS as _NEWTON_ITERS
 
 
 # ----------------------------------------------------------------------------- the arm

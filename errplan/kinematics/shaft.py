@@ -26,8 +26,7 @@ import math
 import numpy as np
 
 from .arm import angle_of, direction, direction_derivative
-
-_NEWTON_ITERS = 8
+from .newton import NEWTON_ITERS as _NEWTON_ITERS
 
 
 def _norm(v: np.ndarray) -> np.ndarray:

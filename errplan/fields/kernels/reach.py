@@ -8,25 +8,11 @@ import math
 import numpy as np
 
 from ...jit import njit
+from ...kinematics.compiled import _arc_class
 from ...kinematics.urdf.chain import map_geometry, map_state
 
 
 # ----------------------------------------------------------------------------- planar pieces
-@njit(cache=True, error_model="numpy")
-def _arc_class(x, y, n, cm, sm, chw):
-    """Where the angle of the vector ``(x, y)`` (length ``n``) lies against an arc of half-width hw
-    around m (``cm, sm = cos m, sin m``, ``chw = cos hw``), without an arctangent: 1 certainly inside,
-    0 certainly outside, -1 too close to an end to say. The margin (1e-9 in the cosine, at least
-    1e-9 rad in the angle) is far above the rounding of either test and the exact test's 1e-12 rad
-    tolerance, so a certain answer is the exact test's answer."""
-    cd = x * cm + y * sm
-    if cd > (chw + 1e-9) * n:
-        return 1
-    if cd < (chw - 1e-9) * n:
-        return 0
-    return -1
-
-
 @njit(cache=True, error_model="numpy")
 def _planar_reachable(arm, w0, w1):
     """Exact reachability of wrist ``[w0, w1]`` by P1's arm (both elbow branches inside the limits).
