@@ -73,6 +73,7 @@ def _solve(samples: list[dict], opts: GainOptions, fixed: list[bool],
     if active is None:
         active = [_first_active(A, B, C, smp["k0"], ku, fx) for (A, B, C, ku), smp, fx in zip(data, samples, fixed)]
     active = [np.asarray(a, int) for a in active]
+    S = len(samples)
     t0 = time.perf_counter()
     solves = iterations = 0
     while True:
@@ -85,7 +86,6 @@ def _solve(samples: list[dict], opts: GainOptions, fixed: list[bool],
                 break
             active = [np.arange(len(d[0])) for d in data]  # once more with every row, as the whole problem
             continue
-        S = len(samples)
         grew = False
         for s, (A, B, C, ku) in enumerate(data):
             if len(active[s]) == len(A):
@@ -101,7 +101,6 @@ def _solve(samples: list[dict], opts: GainOptions, fixed: list[bool],
                 grew = True
         if not grew:
             break
-    S = len(samples)
     ks = xs[:S]
     info = {"solver": "ipopt", "status": stats.get("return_status", "?"), "success": ok,
             "iterations": iterations, "objective": f, "time_s": time.perf_counter() - t0, "segments": S,

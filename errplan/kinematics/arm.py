@@ -13,7 +13,6 @@ from dataclasses import dataclass
 import numpy as np
 
 
-
 def direction(a: np.ndarray) -> np.ndarray:
     """Unit vector ``[sin a, cos a]`` of angle ``a`` (any shape) -> shape ``(..., 2)``."""
     a = np.asarray(a, dtype=float)

@@ -25,7 +25,7 @@ import math
 
 import numpy as np
 
-from .arm import angle_of, direction, direction_derivative
+from .arm import _compiled, angle_of, direction, direction_derivative
 from .newton import NEWTON_ITERS as _NEWTON_ITERS
 
 
@@ -539,10 +539,3 @@ def tilt(d: np.ndarray, delta: np.ndarray, e1: np.ndarray, e2: np.ndarray) -> np
     safe = np.where(ang > 0, ang, 1.0)
     k = (delta[..., 0:1] * e1 + delta[..., 1:2] * e2) / safe[..., None]
     return np.cos(ang)[..., None] * d + np.sin(ang)[..., None] * k
-
-
-def _compiled():
-    """The compiled planar kernels (:mod:`errplan.kinematics.compiled`), imported on first use: numba
-    loads only for commands that compute."""
-    from . import compiled
-    return compiled

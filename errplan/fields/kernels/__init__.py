@@ -39,7 +39,7 @@ from .instance import (NEWTON, RCOND, _compose2, _corners_out2, _est_inverse2, _
                        _gval_block, _instance2, _instance3, _lever3, _lever_block3, _lever_J, _lever_out, _levers2,
                        _levers3, _perp_basis, _solve_b, _straight2)
 from .metrics import _phimax, gnorm, gval, phi_bound, phimax
-from .search import (LANE_TIPS, _climbing, _far, _gnorm_ub, _golden, _gnorm_below, _golden_gain, _gval_skip, _gval_ub, _gval_ub_at, _local_max, _neighbour, _pattern, _pattern_g,
+from .search import (LANE_TIPS, _climbing, _far, _golden, _gnorm_below, _golden_gain, _gval_skip, _gval_ub, _gval_ub_at, _local_max, _neighbour, _pattern, _pattern_g,
                      _pattern_lanes, _peak_raise, _poll_coord, _poll_value, _rho_final, _sample_table)
 from .loops import (_LANE_TILES, _TILES, _WANT_PHI, _Lanes, _lanes_tile, _starts_lazy, _maps2, _maps3, _motion_maps, _per_dim,
                     _search, _tile2, _tile2g, _tile3, _tile3g, load_lanes, motion_maps, run_lanes, worst_case_tile)

@@ -293,7 +293,7 @@ def _gval_block(b00, b01, b10, b11, b4, k):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _instance3(x, theta, base_port, est, L, Mb, Pb, jm, S, V, full, cp0=math.nan, sp0=math.nan):
+def _instance3(x, theta, base_port, est, L, Mb, Pb, jm, S, V, full):
     """The spatial instance: the 3-D lever in closed form, or the flexed shaft under a load.
 
     The lever's ``M`` also goes into ``Pb[jm]`` in reduced form (:func:`gval`): ``n = u x v`` is a
@@ -303,8 +303,7 @@ def _instance3(x, theta, base_port, est, L, Mb, Pb, jm, S, V, full, cp0=math.nan
     so the block of M is ``[[1 + c sv^2, -c sv cu], [-(1 - s) c sv cu, (1 - s)(1 + c cu^2)]]``
     (``cu = u.v``, ``sv = |u x v|``). Under a load ``Pb[jm, 0]`` is NaN (the full 3 x 3 form). The
     lever's full ``M`` is written only with ``full`` (|phi_max| and the motion maps need it; ||G|| at
-    any gain needs only ``Pb``). ``cp0``, ``sp0``: ``cos``, ``sin`` of the load direction ``theta[4]`` where
-    the caller has them (a sampled instance: the same calls, once per tile), NaN (the default) for none."""
+    any gain needs only ``Pb``)."""
     p0, p1, p2 = base_port[0] + theta[0], base_port[1] + theta[1], base_port[2] + theta[2]
     e0, e1, e2 = x[0] - p0, x[1] - p1, x[2] - p2
     r = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
@@ -351,10 +350,7 @@ def _instance3(x, theta, base_port, est, L, Mb, Pb, jm, S, V, full, cp0=math.nan
         e1v[0], e1v[1], e1v[2] = e0 / r, e1 / r, e2 / r
         _perp_basis(e1v, f1, f2)
         ek[0], ek[1], ek[2] = e0, e1, e2
-    if cp0 == cp0:
-        cp, sp = cp0, sp0
-    else:
-        cp, sp = math.cos(theta[4]), math.sin(theta[4])
+    cp, sp = math.cos(theta[4]), math.sin(theta[4])
     bk = V[7]
     ak = V[8]
     if bk[0] == r and bk[1] == tau and ak[2] == L:

@@ -253,16 +253,6 @@ def _search(X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L,
     # the loaded 3-D samples' ||G|| only where the choice of the starts needs it (_starts_lazy): their full M
     # is there (_instance3 forms it under a load), so is a tight bound of the value (_gnorm_below)
     lazy = d == 3
-    # cos, sin of each loaded sample's load direction (_instance3's, once per tile; NaN: none). The
-    # previous row is reused where the direction repeats: a dependence between iterations, so the loop
-    # stays scalar (the calls are those _instance3 makes, to the bit)
-    CSj = np.full((m, 2), np.nan)
-    for j in range(m if d == 3 and na > 4 else 0):
-        if grid[j, 3] != 0.0:
-            if j > 0 and grid[j - 1, 3] != 0.0 and grid[j - 1, 4] == grid[j, 4]:
-                CSj[j, 0], CSj[j, 1] = CSj[j - 1, 0], CSj[j - 1, 1]
-            else:
-                CSj[j, 0], CSj[j, 1] = math.cos(grid[j, 4]), math.sin(grid[j, 4])
     XT = np.empty((d, nl))  # the tip, once per sampled straight instance (_levers2/_levers3 take one per lane)
     ns = 0
     for ii in range(n):
@@ -316,7 +306,7 @@ def _search(X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L,
             if d == 2:
                 okj, w0, w1, w2 = _instance2(x, grid[j], base_port, est, L, arm, Ms, j, S, V, known), 0.0, 0.0, 0.0
             else:
-                okj, w0, w1, w2 = _instance3(x, grid[j], base_port, est, L, Ms, Pbs, j, S, V, full, CSj[j, 0], CSj[j, 1])
+                okj, w0, w1, w2 = _instance3(x, grid[j], base_port, est, L, Ms, Pbs, j, S, V, full)
             if okj and d == 3 and not known:
                 s_, ix, iy, iz = map_state(geo, mst, w0, w1, w2)
                 okj = s_ == 1 or (s_ == 2 and reach_boundary(chain, rmap, ix, iy, iz, w0, w1, w2))

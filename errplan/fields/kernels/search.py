@@ -300,17 +300,6 @@ def _fro_ub(q, scale):
 
 
 @njit(cache=True, error_model="numpy")
-def _gnorm_ub(Mb, j, k):
-    """:func:`_gval_ub` from ``M = Mb[j]`` (3 x 3) itself: the Frobenius norm of ``I - k M``, raised as there."""
-    t = Mb[j, 0, 0] + Mb[j, 1, 1] + Mb[j, 2, 2]
-    s = 0.0
-    for a in range(3):
-        for b in range(3):
-            s += Mb[j, a, b] ** 2
-    return _fro_ub(3.0 - 2.0 * k * t + k * k * s, 3.0 + 2.0 * k * abs(t) + k * k * s)
-
-
-@njit(cache=True, error_model="numpy")
 def _gnorm_below(Mb, j, k, thr):
     """True when ``||I - k M||_2`` (``M = Mb[j]``, 3 x 3) is certainly below ``thr``: an upper bound of the
     largest eigenvalue ``lam`` of ``A = G^T G`` (``G = I - k M``), raised as :func:`_fro_ub` raises its own,
