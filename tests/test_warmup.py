@@ -115,3 +115,35 @@ def test_the_lanes_part_compiles_what_a_port_box_field_runs():
     f = compute_fields(load_scenario(SCENARIOS / "beasley2004_port.toml"), 0.01, metrics=("G_norm",), workers=1)
     assert f.valid.sum() > 100
     assert len(kernels._LANE_TILES[2].signatures) == 1
+
+
+def test_the_gains_parts_compile_what_the_gains_and_replays_call():
+    """The ``gains2`` and ``gains3`` parts run their kernels with the argument types the gains, the
+    certificates and the replays pass (C arrays; the bounded scan, the worst instances and the top
+    eigenvalue candidates on matrices, not an empty batch that returns before them): after a planar
+    evaluator's true wrists and a 3-D certificate's scans, each entry has one specialization (a demo's
+    workers load what the warm-up compiled instead of compiling it each)."""
+    import numpy as np
+
+    from conftest import SCENARIOS
+    from errplan.api import load_scenario
+    from errplan.fields import evaluator
+    from errplan.gains import physics
+    from errplan.kinematics import compiled
+    from errplan.models import arm_model
+
+    warmup._gains2()
+    warmup._gains3()
+    ev = evaluator.Evaluator.from_model(arm_model(load_scenario(SCENARIOS / "beasley2004_bounded.toml")))
+    rng = np.random.default_rng(3)
+    x = np.array([0.0, 0.4]) + 0.01 * rng.standard_normal((6, 2))  # about the scenario's query tips
+    theta = np.concatenate([0.002 * rng.standard_normal((6, 2)), np.full((6, 1), 0.01)], axis=1)
+    w, ok = ev.true_wrist(x, theta)
+    assert ok.any() and np.isfinite(w[ok]).all()
+    M = np.eye(3) + 0.05 * rng.standard_normal((12, 3, 3))
+    physics.grid_top(M, np.linspace(0.2, 1.2, 9), 3)
+    physics.worst_instances(M.reshape(2, 3, 2, 3, 3), np.ones((2, 3), bool), 0.8, False)
+    physics.sym_top_candidates(M + M.transpose(0, 2, 1))
+    for f in (evaluator._true_wrist2, compiled._wrist2_kernel, compiled._reachable_kernel, physics._grid_top,
+              physics._worst_instances, physics._sym_top):
+        assert len(f.signatures) == 1, (f, f.signatures)

@@ -89,6 +89,8 @@ def _fields(sc, spatial_demo: bool | str, progress, workers: int | None = None):
     if spatial_demo == "plan":  # an arm of the several-instrument setup: the fields `errplan plan` makes, here
         from ..planning.plan import fields_for_planning
 
+        warmup.wait(f"lanes{sc.dim}")  # their error set has no load: the lanes (the arms' tasks would each compile them)
+
         return fields_for_planning(sc, progress=progress, workers=1)
     if spatial_demo:  # True: the PHANToM at SPATIAL_RESOLUTION; "own": the abdomen at its own resolution
         res = SPATIAL_RESOLUTION if spatial_demo is True else None
@@ -395,12 +397,14 @@ def _run_side_by_side(jobs: list[DemoJob], quiet: bool, slots: int, triad: Triad
         kind, _, _, i = item
         if kind:
             return True
-        if i < 0:
-            return warmup.ready("anatomy")
+        if i < 0:  # the triad placement: the anatomy's clearances, each candidate's fields (no load: lanes)
+            return warmup.ready("anatomy") and warmup.ready("lanes3")
         job = jobs[i]
         if job.sc is None and job.load_part and not warmup.ready(job.load_part):
             return False
-        return warmup.ready(_fields_part(job.load(), job.spatial_demo))
+        sc = job.load()
+        return warmup.ready(_fields_part(sc, job.spatial_demo)) and (
+            job.spatial_demo != "plan" or warmup.ready(f"lanes{sc.dim}"))
 
     def on_fields(i: int, mf) -> None:
         job, s = jobs[i], state[i]
@@ -532,12 +536,12 @@ def run(args) -> int:
         # it; meanwhile a second process compiles what the later parts need, in the order they need it
         # (errplan.cli.warmup): the arm's kinematics first (a few seconds, so that this process finds
         # them), the spatial search (the longest, ready about when this process has built the map), the
-        # planner's and the gains' kernels in the order a scenario's steps call them, the anatomy's. The
+        # planner's and the gains' kernels in the order a scenario's steps call them, the anatomy's, the lanes the setup's arms take. The
         # bundled scenarios are loaded when their turn comes. Their weights, side by side: the planar
         # fields first (loaded already and short: they run while this process loads the abdomen, and the
         # planar plan and queries, the demo's longest, come early), then the abdomen's (the longest), the
         # PHANToM's, the setup's triad placement and its arms'; the queries the longest first.
-        warmup.start(("plan2", "gains2", "arm", "fields3g", "plan3", "gains3", "anatomy"))
+        warmup.start(("plan2", "gains2", "arm", "fields3g", "plan3", "gains3", "anatomy", "lanes3"))
         jobs = [DemoJob(path, weight=3.5, query_weight=3.0, sc=arm_model(load_scenario(path))),
                 DemoJob(BUNDLED_SPATIAL, True, "arm", weight=2.0, query_weight=1.5)]
         if BUNDLED_ANATOMY.exists():

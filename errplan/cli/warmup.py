@@ -10,13 +10,14 @@ it plans (a planner with a time budget) with the warm-up :func:`paused`, so that
 run are those of any later one. A warm cache starts nothing; a failed or killed warm-up only means the
 command compiles that part itself. ``ERRPLAN_WARMUP=0`` turns it off; it needs 2 cores.
 
-Parts (each compiles, or loads, the kernels of one step at the argument types the step passes):
+Parts (each compiles, or loads, the kernels of one step at the argument types the step passes; a kernel
+compiled here with other types, or not reached, is compiled again by every worker that calls it):
 ``fields2``/``fields3`` (the worst-case search with the exact |phi_max|, and the motion maps),
 ``fields2g``/``fields3g`` (the search without it: the planner's and the demo's spatial fields),
 ``lanes2``/``lanes3`` (the worst-||G|| refinement as lanes, for error sets without a load),
 ``plan2``/``plan3`` (the planner's cell walks), ``gains2`` (the planar kinematics the planar gains,
-simulation and replays call: arm, flexed shaft, lever, 2 x 2 inverses), ``gains3`` (the 3-D gains: ``||I - k M||`` grids, cuts,
-inverses, inverse kinematics), ``urdf`` (a URDF arm's kinematics and its reachability map's build: what
+simulation and replays call: arm, flexed shaft, lever, 2 x 2 inverses), ``gains3`` (the 3-D gains: ``||I - k M||`` grids and their
+bounded scan, worst instances, top-eigenvalue candidates, cuts, inverses, inverse kinematics), ``urdf`` (a URDF arm's kinematics and its reachability map's build: what
 loading a spatial scenario compiles), ``arm`` (of those, all but the map's build),
 ``anatomy`` (the robust clearance of ``[anatomy]``: its scenario checks,
 the planner's motion checks, the gains' and the replays' clearances).
@@ -106,6 +107,12 @@ def _gains3() -> None:
     physics.cut_rows(M, 0.5)
     metrics.inv(M)
     metrics.spectral_norm(M)
+    # the certificate's bounded gain scan and the verification's worst instances: their kernels run only
+    # on some matrices (an empty batch returns before them), so on a few, as the gains pass them
+    M4 = np.eye(3) + 0.1 * np.arange(36.0).reshape(4, 3, 3) / 36.0
+    physics.grid_top(M4, np.linspace(0.1, 1.0, 4), 3)
+    physics.worst_instances(M4.reshape(1, 4, 3, 3), np.ones((1, 4), bool), 0.5, False)
+    physics.sym_top_candidates(M4 + M4.transpose(0, 2, 1))
     from ..fields.compute import _no_chain
     from ..kinematics.urdf.chain import _ik_many
 
@@ -131,10 +138,10 @@ def _gains2() -> None:
     arm = Arm(base=(0.21, -0.21), l1=0.21, l2=0.21, home=(0.0, -math.pi / 2), q1_limits=(-1.9, 1.2),
               q2_limits=(-0.7, 3.0), sum_limits=(-0.3, 3.5))
     q = np.array([[0.1, -1.2], [0.2, -1.0], [0.3, -0.9]])
-    w = arm.forward(q)
+    w = np.ascontiguousarray(arm.forward(q))  # C arrays, as the gains and replays pass them
     arm.jacobian(q), arm.reachable(w), arm.inverse(w)
     p, t = np.array([0.0, 0.1]), np.array([0.0, 0.01, -0.01])
-    x = shaft.flexed_tip(w, p, 0.3, t)
+    x = np.ascontiguousarray(shaft.flexed_tip(w, p, 0.3, t))
     shaft.flexed_jacobian(w, p, 0.3, t), shaft.flexed_wrist(x, p, 0.3, t)
     mu, nu = shaft.lever_parts(w, p, 0.3)
     metrics.inverse_parts(mu, nu), metrics.inverse_parts(mu.real, nu)
