@@ -337,7 +337,7 @@ def compute_fields(scenario: Scenario | str | Path, resolution: float | None = N
 
 def plan(scenario: Scenario | str | Path, *, query: str | None = None, planner: str | None = None,
          time: float | None = None, seed: int | None = None, record: str | Path | None = None,
-         progress: Progress | None = None):
+         progress: Progress | None = None, workers: int = 1):
     """Plan every query, certify per-segment gains and simulate planned versus direct paths (``errplan plan``).
 
     Parameters
@@ -356,6 +356,9 @@ def plan(scenario: Scenario | str | Path, *, query: str | None = None, planner: 
         Write the rerun recording (``.rrd``) there.
     progress : callable, optional
         Called as ``progress(fraction, message)``.
+    workers : int, optional
+        Local processes for the fields' tiles and for the queries' gains and simulations (default 1);
+        the result does not depend on it.
 
     Returns
     -------
@@ -376,9 +379,10 @@ def plan(scenario: Scenario | str | Path, *, query: str | None = None, planner: 
     from .planning import plan_scenario
 
     sc = _scenario(scenario)
-    result = plan_scenario(sc, query=query, planner=planner, time=time, seed=seed, progress=_part(progress, 0.0, 0.5))
+    result = plan_scenario(sc, query=query, planner=planner, time=time, seed=seed, progress=_part(progress, 0.0, 0.5),
+                           workers=workers)
     res = run_pipeline(sc, result.queries, result.costmap.mf, record=None if record is None else str(record),
-                       progress=_part(progress, 0.5, 1.0))
+                       progress=_part(progress, 0.5, 1.0), workers=workers)
     result.runs = res["runs"]
     return result
 

@@ -245,7 +245,7 @@ def _as_query_json(q: Any) -> dict:
 
 
 def run_pipeline(sc, query_plans, fields=None, *, record: str | None = None, progress: Progress | None = None,
-                 options: GainOptions | None = None, corners: bool = True) -> dict:
+                 options: GainOptions | None = None, corners: bool = True, workers: int = 1) -> dict:
     """Add ``gains`` and ``simulation`` to every query's plan JSON; optionally write a recording.
 
     ``query_plans``: the planner's per-query results (objects with ``to_json()`` and an ``extra``
@@ -257,11 +257,16 @@ def run_pipeline(sc, query_plans, fields=None, *, record: str | None = None, pro
 
     The queries are independent: :func:`query_jobs` and :func:`finish_pipeline` are the two halves
     around them, for a caller that runs the :func:`run_query` calls elsewhere (``errplan demo`` runs
-    them in worker processes); the result is the same.
+    them in worker processes); the result is the same. ``workers`` > 1: the queries run that many at a
+    time in forked processes (:class:`errplan.cluster.ForkedTasks`; each has the models and the kernels
+    this process holds), the progress reported as each one ends; the same result.
     """
     opts = options or options_from_scenario(sc)
     plans = list(query_plans)
     model, qjs = query_jobs(sc, plans)
+    if workers > 1 and len(qjs) > 1:
+        return finish_pipeline(sc, plans, _forked_queries(sc, qjs, opts, corners, model, workers, progress), fields,
+                               record=record)
     runs = []
     for i, qj in enumerate(qjs):
 
@@ -271,6 +276,33 @@ def run_pipeline(sc, query_plans, fields=None, *, record: str | None = None, pro
 
         runs.append(run_query(sc, qj, options=opts, corners=corners, progress=sub, model=model))
     return finish_pipeline(sc, plans, runs, fields, record=record)
+
+
+def _forked_queries(sc, qjs: list[dict], opts: GainOptions, corners: bool, model, workers: int,
+                    progress: Progress | None) -> list[QueryRun]:
+    """:func:`run_query` of every query JSON in ``qjs``, at most ``workers`` at a time in forked processes,
+    started in order; their runs in the order of ``qjs``."""
+    from functools import partial
+
+    from .cluster import ForkedTasks
+
+    tasks = ForkedTasks(min(workers, len(qjs)))
+    runs: list = [None] * len(qjs)
+    nxt = done = 0
+    try:
+        while done < len(qjs):
+            while tasks.free > 0 and nxt < len(qjs):
+                tasks.start(nxt, partial(run_query, options=opts, corners=corners, model=model), sc, qjs[nxt],
+                            light=True)
+                nxt += 1
+            for i, run in tasks.collect():
+                runs[i] = run
+                done += 1
+                if progress:
+                    progress(done / len(qjs), f"{run.name} done")
+    finally:
+        tasks.close()
+    return runs
 
 
 def query_jobs(sc, query_plans) -> tuple[SpatialModel | None, list[dict]]:

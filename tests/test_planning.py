@@ -405,6 +405,53 @@ def test_plan_json_keys_and_cli(tmp_path, capsys):
     assert q["name"] == "N-to-L" and q["start"] == [0.0, 0.415]
 
 
+def _no_times(o):
+    """A JSON document without its timings (every key naming a time)."""
+    if isinstance(o, dict):
+        return {k: _no_times(v) for k, v in o.items() if "time" not in k}
+    return [_no_times(v) for v in o] if isinstance(o, list) else o
+
+
+def test_plan_workers_give_the_same_plan_json(tmp_path, capsys):
+    """``errplan plan --workers``: the fields' tiles and the queries' gains and simulations on 2 forked
+    processes give the plan JSON and the tables of one process (only the times differ)."""
+    from errplan.cli import main
+
+    docs, texts = [], []
+    for w in (1, 2):
+        out = tmp_path / f"plan{w}.json"
+        assert main(["-q", "plan", str(PORT), "--json", str(out), "--time", "0.5", "--workers", str(w)]) == 0
+        docs.append(json.loads(out.read_text()))
+        texts.append([ln for ln in capsys.readouterr().out.splitlines() if "search" not in ln and "computed in" not in ln])
+    assert len(docs[0]["queries"]) >= 2  # more than one query: they ran side by side
+    assert _no_times(docs[0]) == _no_times(docs[1])
+    assert texts[0] == texts[1]
+
+
+def test_run_pipeline_workers_give_the_same_runs(port):
+    """:func:`errplan.pipeline.run_pipeline` with ``workers=2`` (each query's gains, simulation and corner
+    replays in a forked process): the same query JSONs, in the queries' order, and progress per query."""
+    from errplan.pipeline import run_pipeline
+
+    plan = plan_scenario(port.sc, port.mf)
+    qs = [q.to_json() for q in plan.queries]
+    one = run_pipeline(port.sc, qs, port.mf)
+    seen = []
+    two = run_pipeline(port.sc, [q.to_json() for q in plan.queries], port.mf, workers=2,
+                       progress=lambda f, msg="": seen.append(f))
+    assert [r.name for r in two["runs"]] == [q.name for q in plan.queries]
+    assert _no_times(one["queries"]) == _no_times(two["queries"])
+    assert seen[-1] == 1.0 and len(seen) == len(plan.queries)
+
+
+def test_plan_refuses_bad_workers(capsys):
+    from errplan.cli import main
+
+    assert main(["plan", str(PORT), "--workers", "0"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--workers 0" in err
+
+
 def test_unknown_query_lists_the_names(capsys):
     from errplan.cli import main
 

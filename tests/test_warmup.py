@@ -147,3 +147,40 @@ def test_the_gains_parts_compile_what_the_gains_and_replays_call():
     for f in (evaluator._true_wrist2, compiled._wrist2_kernel, compiled._reachable_kernel, physics._grid_top,
               physics._worst_instances, physics._sym_top):
         assert len(f.signatures) == 1, (f, f.signatures)
+
+
+def test_errplan_plan_and_fields_start_the_warm_up_before_loading_the_arm(monkeypatch):
+    """A first `errplan plan` of a spatial scenario compiles the fields' search, the planner's and the
+    gains' kernels in the second process from the start, while it loads and checks the arm (the map's
+    build, the anatomy's clearances); a planar one the planner's and the gains' only (no map to build:
+    the command compiles its search itself). A first `errplan fields` of a spatial scenario: its search."""
+    from conftest import SCENARIOS
+    from errplan import api
+    from errplan.cli import main
+    from errplan.errors import ScenarioError
+
+    calls = []
+    monkeypatch.setattr(warmup, "start", lambda parts: calls.append(("start", tuple(parts))) or False)
+
+    def stop_here(path):
+        calls.append(("load", str(path)))
+        raise ScenarioError("stop here")
+
+    monkeypatch.setattr(api, "load_setup", stop_here)
+    assert main(["plan", str(SCENARIOS / "abdomen.toml")]) == 2
+    assert main(["plan", str(SCENARIOS / "beasley2004_bounded.toml")]) == 2
+    assert [c[0] for c in calls] == ["start", "load", "start", "load"]
+    assert calls[0][1] == ("fields3g", "plan3", "gains3")
+    assert calls[2][1] == ("plan2", "gains2")
+    # `errplan fields`: the spatial search (with the exact |phi_max| by default, without it when not asked
+    # for), none for the plane, a flexion controller (the numpy path) or a dask scheduler (remote workers)
+    calls.clear()
+    out = str(SCENARIOS / "unused.npz")
+    assert main(["fields", str(SCENARIOS / "abdomen.toml"), "--out", out]) == 2
+    assert main(["fields", str(SCENARIOS / "abdomen.toml"), "--out", out, "--metrics", "G_norm"]) == 2
+    assert main(["fields", str(SCENARIOS / "beasley2004_bounded.toml"), "--out", out]) == 2
+    assert main(["fields", str(SCENARIOS / "phantom15_flexion.toml"), "--out", out]) == 2
+    assert main(["fields", str(SCENARIOS / "abdomen.toml"), "--out", out, "--scheduler", "tcp://nowhere:1"]) == 2
+    assert calls == [("start", ("fields3",)), ("load", str(SCENARIOS / "abdomen.toml")),
+                     ("start", ("fields3g",)), ("load", str(SCENARIOS / "abdomen.toml"))] + [
+        ("load", str(SCENARIOS / f)) for f in ("beasley2004_bounded.toml", "phantom15_flexion.toml", "abdomen.toml")]

@@ -88,6 +88,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--planner", default=None, help="OMPL planner name (default: [planner] planner)")
     s.add_argument("--seed", type=int, default=None, help="OMPL seed, 0 to 2^32 - 1 (default: [planner] seed)")
     s.add_argument("--arm", default=None, help="the arm of a scenario with several instruments, by its [[arm]] name (default: every query, each with its own arm)")
+    s.add_argument("--workers", type=int, default=None,
+                   help="local worker processes for the fields' tiles and the queries' gains and simulations "
+                        "(default: all cores; the results do not depend on it)")
 
     s = sub.add_parser("tolerance", help="tolerance-design queries of a scenario (port error, tip load, noise, port placement)")
     s.add_argument("scenario", help="scenario TOML file with [[tolerance]] queries")

@@ -40,9 +40,18 @@ def run(args) -> int:
     from .. import api
     from ..fields import parse_metrics
 
+    from ..scenario import read_setup
+    from . import warmup
+
     metrics = parse_metrics(args.metrics, args.rho_star)
     if args.workers is not None and args.workers < 1:
         raise ErrplanError(f"--workers {args.workers}: expected a number of worker processes >= 1")
+    # A first run of a spatial scenario: its search compiles in a second process while this one loads and
+    # checks the arm (its kinematics, its reachability map's build, the anatomy's clearances).
+    first = read_setup(args.scenario).arms[0]
+    part = warmup.fields_part(first, "phi_max" in metrics) if first.dim == 3 else None
+    if part and args.scheduler is None:
+        warmup.start((part,))
     st = api.load_setup(args.scenario)
     out = Path(args.out)
     if not out.parent.exists():
@@ -63,6 +72,8 @@ def run(args) -> int:
         prog = Progress("fields", quiet=args.quiet)
         prog.quiet = prog.quiet or not prog.tty
         with prog.cleared_on_error():
+            if part:
+                warmup.wait(part)
             mf = api.compute_fields(sc, args.resolution, samples=args.samples, progress=prog, metrics=metrics,
                                     workers=args.workers, scheduler=args.scheduler)
             summary = mf.summary()

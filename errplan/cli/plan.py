@@ -1,10 +1,16 @@
-"""``errplan plan SCENARIO [--json F] [--record F.rrd] [--query NAME] [--time T] [--planner NAME] [--seed N]``.
+"""``errplan plan SCENARIO [--json F] [--record F.rrd] [--query NAME] [--time T] [--planner NAME] [--seed N]
+[--workers N]``.
 
 Plans every ``[[query]]`` of the scenario (planar or spatial) on its worst-case fields (errplan.planning), prints per
 query the planned and the direct (straight) path (cost, length, max ||G||, max phi_hat_max), then
 picks certified per-segment gains (errplan.gains), simulates both paths (errplan.pipeline) and
 optionally records everything to rerun. The JSON is the "plan JSON" of docs/interfaces.md
 (``queries[].{name, start, goal, planned, direct, gains, simulation}``).
+
+The fields' tiles and the queries' gains and simulations run on ``--workers`` processes (all cores); the
+planner runs alone. A first run compiles the planner's, the gains' and the anatomy's kernels in a second
+process meanwhile (:mod:`errplan.cli.warmup`), paused while the planner runs, so that it plans as a later
+run does. The results are those of :func:`errplan.api.plan`, whatever the workers.
 """
 from __future__ import annotations
 
@@ -49,6 +55,74 @@ def plan_table(plan) -> str:
     return "\n".join(lines)
 
 
+def _workers(args) -> int:
+    """``--workers`` (default: every core this process may use)."""
+    from ..cluster import default_workers
+    from ..errors import ErrplanError
+
+    n = getattr(args, "workers", None)
+    if n is None:
+        return default_workers()
+    if n < 1:
+        raise ErrplanError(f"--workers {n}: expected a number of worker processes >= 1")
+    return n
+
+
+def _fields_part(sc) -> str | None:
+    """The warm-up part of the search :func:`errplan.planning.plan.fields_for_planning` runs (with the exact
+    |phi_max| in the plane, or in 3-D where it is the cost; :func:`errplan.cli.warmup.fields_part`)."""
+    from . import warmup
+
+    return warmup.fields_part(sc, sc.dim == 2 or sc.planner.metric == "phi_max")
+
+
+def _warm_up(sc) -> None:
+    """A first run: kernels compiled in a second process (:func:`errplan.cli.warmup.start`; a warm cache
+    starts nothing), in the order the steps need them. In 3-D the fields' search first, while this process
+    loads and checks the arm (its kinematics, its reachability map's build, the anatomy's clearances),
+    then the planner's and the gains'; in the plane this process compiles the search itself (there is no
+    map to build meanwhile) while the other compiles the planner's and the gains' kernels."""
+    from . import warmup
+
+    part = _fields_part(sc) if sc.dim == 3 else None
+    warmup.start(((part,) if part else ()) + (f"plan{sc.dim}", f"gains{sc.dim}"))
+
+
+def plan_arm(sc, args, progress=None, workers: int = 1, record: str | None = None):
+    """:func:`errplan.api.plan` of one arm's model ``sc`` (``args``: ``query``, ``planner``, ``time``,
+    ``seed``), step by step: the fields on ``workers`` processes; the plan with a first run's warm-up
+    paused (the planner's budget is CPU time it must not share); the queries' gains and simulations on
+    ``workers`` processes, once the warm-up has compiled the gains' kernels and this process has loaded
+    them (each worker has them). The same :class:`~errplan.planning.ScenarioPlan`."""
+    import time as _time
+
+    from ..api import _part
+    from ..pipeline import run_pipeline
+    from ..planning import plan_scenario
+    from ..planning.plan import fields_for_planning
+    from . import warmup
+
+    part = _fields_part(sc)
+    if sc.dim == 3 and warmup.active():  # a first run: what the replays call, here while the search compiles
+        warmup.load_here(("arm",) + (("anatomy",) if sc.anatomy is not None else ()))
+    if part:
+        warmup.wait(part)
+    t0 = _time.perf_counter()
+    mf = fields_for_planning(sc, progress=_part(progress, 0.0, 0.4), workers=workers)
+    t_fields = _time.perf_counter() - t0
+    warmup.wait(f"plan{sc.dim}")
+    with warmup.paused():
+        plan = plan_scenario(sc, mf, query=args.query, planner=args.planner, time=args.time, seed=args.seed,
+                             progress=_part(progress, 0.4, 0.5))
+    plan.field_time = t_fields
+    warmup.wait(f"gains{sc.dim}")
+    if workers > 1 and len(plan.queries) > 1:
+        warmup.load_here((f"gains{sc.dim}",) + (("arm", "fields3g") if sc.dim == 3 else ()))
+    res = run_pipeline(sc, plan.queries, mf, record=record, progress=_part(progress, 0.5, 1.0), workers=workers)
+    plan.runs = res["runs"]
+    return plan
+
+
 def run(args) -> int:
     from ..errors import ErrplanError
     from .. import api
@@ -58,9 +132,13 @@ def run(args) -> int:
     from ..inputs import check_output
     from . import check_seed
 
+    from ..scenario import read_setup
+
+    workers = _workers(args)
+    _warm_up(read_setup(args.scenario).arms[0])  # before the checks: loading the arm compiles its kernels
     st = api.load_setup(args.scenario)
     if st.several:
-        return _run_setup(st, args)
+        return _run_setup(st, args, workers)
     sc = st.arm(args.arm)
     select_queries(sc, args.query)  # a bad --query fails before the fields are computed
     for opt, value in (("--json", args.json), ("--record", args.record)):
@@ -70,8 +148,10 @@ def run(args) -> int:
         raise ErrplanError(f"{sc.source}: [planner] seed = {sc.planner.seed}: expected an integer from 0 to 4294967295")
     prog = Progress("plan", quiet=args.quiet)
     prog.quiet = prog.quiet or not prog.tty  # progress only on a terminal: an error stays the one line on stderr
-    plan = api.plan(sc, query=args.query, planner=args.planner, time=args.time, seed=args.seed,
-                    record=args.record, progress=prog)
+    from ..models import arm_model
+
+    sc = arm_model(sc)  # built once (in 3-D the arm's reachability map): every step below takes it
+    plan = plan_arm(sc, args, prog, workers, record=args.record)
     prog.done()
     print(plan_table(plan))
     print()
@@ -83,12 +163,11 @@ def run(args) -> int:
     return 0
 
 
-def _run_setup(st, args) -> int:
+def _run_setup(st, args, workers: int = 1) -> int:
     """Several arms: every query (or ``--query``) with its arm (``--arm``: only that arm's), the other
     instruments held at rest and the endoscope's shaft as obstacles of the moving arm
     (:meth:`errplan.scenario.Setup.moving`); the plan JSON's queries add ``arm``, ``visible``, the shaft
     clearances and ``min_arm_clearance`` (:func:`setup_figures`)."""
-    from .. import api
     from ..errors import ErrplanError
     from ..inputs import check_output
     from ..pipeline import summary_table
@@ -118,8 +197,7 @@ def _run_setup(st, args) -> int:
     prog.quiet = prog.quiet or not prog.tty
     plans = []
     for n, sc in jobs:
-        plans.append((n, sc, api.plan(sc, query=args.query, planner=args.planner, time=args.time, seed=args.seed,
-                                      progress=prog)))
+        plans.append((n, sc, plan_arm(sc, args, prog, workers)))
     prog.done()
     out = {"scenario": st.name, "queries": []}
     for n, sc, plan in plans:

@@ -217,6 +217,17 @@ _PARTS = {"fields2": lambda: _fields(2), "fields3": lambda: _fields(3), "fields2
           "gains2": _gains2, "gains3": _gains3, "anatomy": _anatomy, "urdf": _urdf, "arm": _arm}
 
 
+def fields_part(sc, phi: bool) -> str | None:
+    """The part that compiles the search of a scenario's fields (``phi``: with the exact |phi_max|), or
+    None where its fields take the numpy path instead (a flexion controller, or effects on the true
+    Jacobian: :func:`errplan.fields.compute_fields`)."""
+    from ..fields.errorset import error_set
+
+    if sc.controller.jacobian != "rigid" or error_set(sc)[1]:
+        return None
+    return f"fields{sc.dim}{'' if phi else 'g'}"
+
+
 def _cold(parts: Sequence[str]) -> bool:
     """Whether some entry kernel of ``parts`` has no entry in the disk cache (a first run)."""
     from ..jit import cached
