@@ -1,4 +1,4 @@
-"""`errplan plan` and `errplan fields` on both cores, first run and later runs, against one core.
+"""`errplan plan`, `errplan fields` and `errplan tolerance` on both cores, first and later runs, against one core.
 
     python benchmarks/commands.py [--repeat 1] [--only plan-abdomen,...]
 
@@ -9,12 +9,14 @@ the process and its children), in two ways:
   (`--workers` default), and on a first run the second process that compiles ahead
   (:mod:`errplan.cli.warmup`);
 - **one core** (as before): ``--workers 1`` (``errplan plan``) and ``ERRPLAN_WARMUP=0``: every step and
-  every compile in the command's own process.
+  every compile in the command's own process (``errplan tolerance`` and ``errplan fields`` keep their
+  default workers: only the warm-up differs).
 
 "first run": empty kernel and reachability-map caches (``NUMBA_CACHE_DIR``, ``ERRPLAN_CACHE_DIR`` in a
 fresh temporary directory, what a fresh install has); "later run": the caches a first run filled. The
 two ways alternate per case, so a drift of the machine's speed lands on both. Every pair of outputs is
-compared: the plan JSONs without their timings, the fields' npz arrays bit for bit.
+compared: the JSONs without their timings (keys naming a time, and the seconds of a tolerance query), the
+fields' npz arrays bit for bit.
 """
 from __future__ import annotations
 
@@ -39,6 +41,8 @@ SC = ROOT / "scenarios"
 CASES = {
     "plan-abdomen-first": (["plan", str(SC / "abdomen.toml")], "--json", "plan.json", True),
     "fields-abdomen-first": (["fields", str(SC / "abdomen.toml")], "--out", "fields.npz", True),
+    "tolerance-placement-first": (["tolerance", str(SC / "phantom15_placement.toml")], "--json", "tolerance.json",
+                                  True),
     "plan-abdomen": (["plan", str(SC / "abdomen.toml")], "--json", "plan.json", False),
     "plan-phantom15": (["plan", str(SC / "phantom15_spatial.toml")], "--json", "plan.json", False),
 }
@@ -66,7 +70,7 @@ def run(args: list[str], cache: Path, work: Path, one_core: bool) -> dict:
 
 def _no_times(o):
     if isinstance(o, dict):
-        return {k: _no_times(v) for k, v in o.items() if "time" not in k}
+        return {k: _no_times(v) for k, v in o.items() if "time" not in k and "seconds" not in k}
     return [_no_times(v) for v in o] if isinstance(o, list) else o
 
 
@@ -112,7 +116,7 @@ def main() -> int:
                              "yes" if same(outs["both"], outs["one"]) else "NO"])
                 print(f"{name} {i + 1}: both cores {b['wall']:.1f} s, one core {o['wall']:.1f} s", file=sys.stderr,
                       flush=True)
-    print(f"`errplan plan` / `errplan fields`: {len(os.sched_getaffinity(0))} cores, load average (1 min) "
+    print(f"`errplan plan` / `errplan fields` / `errplan tolerance`: {len(os.sched_getaffinity(0))} cores, load average (1 min) "
           f"{load0:.2f} before, {os.getloadavg()[0]:.2f} after")
     print(format_table(["case", "run", "both cores wall, s", "both cores CPU, s", "one core wall, s",
                         "one core CPU, s", "both / one", "same output"], rows))

@@ -149,11 +149,12 @@ def test_the_gains_parts_compile_what_the_gains_and_replays_call():
         assert len(f.signatures) == 1, (f, f.signatures)
 
 
-def test_errplan_plan_and_fields_start_the_warm_up_before_loading_the_arm(monkeypatch):
+def test_plan_fields_and_tolerance_start_the_warm_up_before_loading_the_arm(monkeypatch):
     """A first `errplan plan` of a spatial scenario compiles the fields' search, the planner's and the
     gains' kernels in the second process from the start, while it loads and checks the arm (the map's
     build, the anatomy's clearances); a planar one the planner's and the gains' only (no map to build:
-    the command compiles its search itself). A first `errplan fields` of a spatial scenario: its search."""
+    the command compiles its search itself). A first `errplan fields` or `errplan tolerance` of a spatial
+    scenario: its search."""
     from conftest import SCENARIOS
     from errplan import api
     from errplan.cli import main
@@ -184,3 +185,11 @@ def test_errplan_plan_and_fields_start_the_warm_up_before_loading_the_arm(monkey
     assert calls == [("start", ("fields3",)), ("load", str(SCENARIOS / "abdomen.toml")),
                      ("start", ("fields3g",)), ("load", str(SCENARIOS / "abdomen.toml"))] + [
         ("load", str(SCENARIOS / f)) for f in ("beasley2004_bounded.toml", "phantom15_flexion.toml", "abdomen.toml")]
+    # `errplan tolerance`: the search without |phi_max| (and a setup's triad placement its lanes), none in
+    # the plane
+    calls.clear()
+    assert main(["tolerance", str(SCENARIOS / "phantom15_placement.toml")]) == 2
+    assert main(["tolerance", str(SCENARIOS / "abdomen_triad.toml")]) == 2
+    assert main(["tolerance", str(SCENARIOS / "beasley2004_port.toml")]) == 2
+    assert [c[1] for c in calls if c[0] == "start"] == [("fields3g",), ("fields3g", "lanes3")]
+    assert [c[0] for c in calls] == ["start", "load", "start", "load", "load"]

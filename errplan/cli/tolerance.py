@@ -14,6 +14,7 @@ import math
 
 from ..errors import ErrplanError
 from ..report import Progress, format_table, write_json
+from . import warmup
 
 
 def _mm(p) -> str:
@@ -78,7 +79,25 @@ def triad_table(r, top: int = 5) -> str:
     return "\n".join(lines)
 
 
-def _run_setup(st, args) -> int:
+def _warm_up(args) -> tuple[str, ...]:
+    """A first run of a spatial scenario: the fields' search without the exact |phi_max| (what the
+    queries' fields and worst cases run; a setup's triad placement its lanes too: its error sets have no
+    load) compiled in a second process while this one loads and checks the arms (their reachability
+    maps, the anatomy's clearances). The parts started (none with ``--scheduler``, in the plane or where
+    the fields take the numpy path)."""
+    from ..scenario import read_setup
+
+    st = read_setup(args.scenario)
+    first = st.arm(args.arm) if args.arm is not None and args.arm in st.arm_names else st.arms[0]
+    part = warmup.fields_part(first, False) if first.dim == 3 and args.scheduler is None else None
+    if not part:
+        return ()
+    parts = (part, "lanes3") if st.several and args.arm is None else (part,)
+    warmup.start(parts)
+    return parts
+
+
+def _run_setup(st, args, parts: tuple[str, ...] = ()) -> int:
     from ..inputs import check_output
     from ..tolerance.run import run_setup_query
 
@@ -91,6 +110,8 @@ def _run_setup(st, args) -> int:
     prog.quiet = prog.quiet or not prog.tty
     results = []
     with prog.cleared_on_error():
+        for p in parts:
+            warmup.wait(p)
         for tol in st.triads:
             results.append(run_setup_query(st, tol, prog, workers=args.workers, scheduler=args.scheduler))
     prog.done()
@@ -121,9 +142,10 @@ def run(args) -> int:
         raise ErrplanError(f"--workers {args.workers}: expected a number of worker processes >= 1")
     if args.top < 0:
         raise ErrplanError(f"--top {args.top}: expected a number of candidates >= 0")
+    parts = _warm_up(args)
     st = api.load_setup(args.scenario)
     if st.several and args.arm is None:  # the setup's own queries (triad placement)
-        return _run_setup(st, args)
+        return _run_setup(st, args, parts)
     sc = st.arm(args.arm)
     check_output("--json", args.json)
     record = None
@@ -136,6 +158,8 @@ def run(args) -> int:
     prog = Progress("tolerance", quiet=args.quiet)
     prog.quiet = prog.quiet or not prog.tty  # progress only on a terminal: an error stays the one line on stderr
     with prog.cleared_on_error():
+        for p in parts:
+            warmup.wait(p)
         results = api.tolerances(sc, progress=prog, workers=args.workers, scheduler=args.scheduler)
     prog.done()
     rows = [r.summary_row() + [r.seconds] for r in results]
