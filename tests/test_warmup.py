@@ -149,7 +149,7 @@ def test_the_gains_parts_compile_what_the_gains_and_replays_call():
         assert len(f.signatures) == 1, (f, f.signatures)
 
 
-def test_plan_fields_and_tolerance_start_the_warm_up_before_loading_the_arm(monkeypatch):
+def test_plan_fields_and_tolerance_start_the_warm_up_before_loading_the_arm(monkeypatch, tmp_path):
     """A first `errplan plan` of a spatial scenario compiles the fields' search, the planner's and the
     gains' kernels in the second process from the start, while it loads and checks the arm (the map's
     build, the anatomy's clearances); a planar one the planner's and the gains' only (no map to build:
@@ -176,7 +176,7 @@ def test_plan_fields_and_tolerance_start_the_warm_up_before_loading_the_arm(monk
     # `errplan fields`: the spatial search (with the exact |phi_max| by default, without it when not asked
     # for), none for the plane, a flexion controller (the numpy path) or a dask scheduler (remote workers)
     calls.clear()
-    out = str(SCENARIOS / "unused.npz")
+    out = str(tmp_path / "unused.npz")
     assert main(["fields", str(SCENARIOS / "abdomen.toml"), "--out", out]) == 2
     assert main(["fields", str(SCENARIOS / "abdomen.toml"), "--out", out, "--metrics", "G_norm"]) == 2
     assert main(["fields", str(SCENARIOS / "beasley2004_bounded.toml"), "--out", out]) == 2
