@@ -259,6 +259,7 @@ def _search(X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L,
         x = X[ii]
         ok = True
         known = False
+        nlz = 0  # this tip's loaded samples whose value is not computed yet (lazy)
         if d == 3:
             tr = _tip_reach(x, base_port, lo, hi, L, rmap)
             ok = tr != 0
@@ -315,6 +316,7 @@ def _search(X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L,
                 break
             if lazy and not Pbs[j, 0] == Pbs[j, 0]:
                 kn[j] = False  # (a loaded 3-D sample: its ||G|| when a choice below needs it, _lazy_g)
+                nlz += 1
                 continue
             vals_g[j] = gval(d, Ms, Pbs, j, k)
             kn[j] = True
@@ -338,11 +340,14 @@ def _search(X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L,
                     best_exact = max(best_exact, vals_p[j])
         for which in range((2 if _PHI else 1) if ok else 0):
             vals = vals_g if which == 0 else vals_p
-            if which == 0 and lazy and _starts_lazy(d, Ms, Pbs, k, vals_g, kn, m, na, second_start, pos, stride,
-                                                     counts, periodic, nbr, st):
+            # the lazy choice only where a loaded sample's value is still unknown: with every value known
+            # (no load in the error set, or none sampled at this tip) the plain choice below is the same
+            # and far cheaper (the lazy helpers' calls are not inlined: numba counts references per call)
+            if which == 0 and nlz > 0 and _starts_lazy(d, Ms, Pbs, k, vals_g, kn, m, na, second_start, pos,
+                                                       stride, counts, periodic, nbr, st):
                 jbest, j2 = st[0], st[1]
             else:
-                if which == 0 and lazy:  # a NaN value: every value, and the choice as below
+                if which == 0 and nlz > 0:  # a NaN value: every value, and the choice as below
                     for j in range(m):
                         if not kn[j]:
                             vals_g[j] = gval(d, Ms, Pbs, j, k)

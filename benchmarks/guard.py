@@ -1,0 +1,183 @@
+"""The fields' speed guard: fixed problems, each timed against its in-process numpy peer, compared with a
+committed baseline.
+
+    python benchmarks/guard.py                 # measure, compare with benchmarks/baseline.json
+    python benchmarks/guard.py --update        # measure, then write the ratios as the new baseline (on purpose,
+                                               # when a change made the fields faster)
+    python benchmarks/guard.py --only 3d-rigid # one problem (names: see the table)
+
+Each problem is a field errplan computes in this process on one worker (``compute_fields(..., workers=1)``,
+the kernels loaded from the disk cache by a warm-up run first) and a plain numpy peer computing the same
+kind of worst case on the same grid (benchmarks/fields.py's chunked elementwise peers; for the flexion
+controller errplan's own numpy path, :class:`errplan.fields.evaluator.NumpyFlexionEvaluator`, on a subset of
+the tips). Both are timed in CPU seconds of this process (``time.process_time``), alternately, ``--repeat``
+times; the row's ratio is the median of errplan's CPU time over the median of the peer's. A ratio, not a
+time: a slower or busier machine slows both sides alike, so the ratio stays meaningful from machine to
+machine where seconds do not.
+
+The guard fails (exit 1) when a ratio is more than ``--tolerance`` (15 %) above its baseline, and prints
+what it measured either way. It is a benchmark, not a test: CI times nothing. Run it before a change that
+touches a kernel lands, and put its table in the change's note.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+REPO = HERE.parent
+BASELINE = HERE / "baseline.json"
+sys.path.insert(0, str(HERE))
+
+import fields as fb  # noqa: E402  (benchmarks/fields.py: the scenarios and the numpy peers)
+
+
+def _flex_tips() -> np.ndarray:
+    """The flexion problem's tips: x, y in [-12, 12] mm at 4 mm, z in [390, 446] mm at 4 mm (735 tips)."""
+    ax = [np.arange(-3, 4) * 0.004, np.arange(-3, 4) * 0.004, 0.390 + np.arange(15) * 0.004]
+    return np.stack(np.meshgrid(*ax, indexing="ij"), axis=-1).reshape(-1, 3)
+
+
+def problems(tmp: Path) -> dict:
+    """name -> (description, errplan(), peer()): each a function returning what it computed.
+
+    The peers are plain numpy worst cases of a fixed size (about a second of CPU each): the planar and spatial
+    chunked elementwise peers of benchmarks/fields.py (straight shafts over the port box; the strongest plain
+    peers) for the rigid controller's fields, loaded or not, and errplan's numpy path of P2's controller for the
+    flexion field. Each is the same work in every run, so the ratio moves only when errplan's side does."""
+    from errplan.api import load_scenario
+    from errplan.fields import compute_fields
+    from errplan.fields.compute import numpy_worst_case
+    from errplan.fields.evaluator import NumpyFlexionEvaluator, SpatialFlexionEvaluator
+    from errplan.kinematics import arm_for
+    from errplan.models import build_arm
+
+    sp = load_scenario(fb.planar_scenario(tmp))  # P1's Phantom with a 5 x 5 port box of +-10 mm
+    so = load_scenario(fb.spatial_scenario(tmp, 0.004, 3))  # the PHANToM 1.5 task region, 3 x 3 x 3 ports, no load
+    sb = load_scenario(REPO / "scenarios" / "beasley2004_bounded.toml")  # port box x tip loads
+    sl = load_scenario(REPO / "scenarios" / "phantom15_spatial.toml")  # ports x loads in any direction
+    sf = load_scenario(REPO / "scenarios" / "phantom15_flexion.toml")  # P2's controller in 3-D
+    arm = arm_for(sp.robot)
+    yp, zp = _axes(sp, 0.0007)
+    ax3 = _axes(so, 0.004)
+    u = so.uncertainty
+
+    def planar_peer():
+        return fb.chunked_planar_peer(yp, zp, sp.port.estimate, sp.instrument.length, sp.controller.gain, arm)[0]
+
+    def spatial_peer():
+        return fb.chunked_spatial_peer(ax3, so.port.estimate, so.instrument.length, so.controller.gain,
+                                       [u.port_x, u.port_y, u.port_z], 3)[0]
+
+    def field(sc, res):
+        return lambda: compute_fields(sc, res, metrics=("G_norm",), workers=1)
+
+    ev = SpatialFlexionEvaluator.from_model(build_arm(sf))
+    ref = NumpyFlexionEvaluator.from_model(build_arm(sf))
+    X = _flex_tips()
+    kf = float(sf.controller.gain)
+    return {
+        "planar-rigid": ("planar, 5 x 5 port box, 0.7 mm, G_norm", field(sp, 0.0007), planar_peer),
+        "planar-loaded": ("planar, port box x tip loads 5 x 5 x 5, 2 mm, G_norm", field(sb, 0.002), planar_peer),
+        "3d-rigid": ("3-D PHANToM 1.5, 3 x 3 x 3 ports, 4 mm, G_norm", field(so, 0.004), spatial_peer),
+        "3d-loaded": ("3-D PHANToM 1.5, ports x loads, 12 mm, G_norm", field(sl, 0.012), spatial_peer),
+        "3d-flexion": ("3-D flexion controller, 735 tips (numpy path: 21 of them)",
+                       lambda: numpy_worst_case(ev, X, kf), lambda: numpy_worst_case(ref, X[::35], kf)),
+    }
+
+
+def _axes(sc, res):
+    from errplan.fields.compute import tip_grid
+    from errplan.fields.errorset import error_set
+
+    return tip_grid(sc, error_set(sc)[0], res)
+
+
+# the share of errplan's tips a peer computes where it is not all of them (the flexion row: every 35th tip, its
+# time per tip scaled to all of them)
+SHARE = {"3d-flexion": 35.0}
+
+
+def measure(probs: dict, repeat: int) -> dict:
+    rows = {}
+    for name, (what, mine, peer) in probs.items():
+        mine()  # warm: the kernels loaded, first-call costs out of the measurement
+        t_m, t_p = [], []
+        for _ in range(repeat):
+            c0 = time.process_time()
+            mine()
+            t_m.append(time.process_time() - c0)
+            c0 = time.process_time()
+            peer()
+            t_p.append(time.process_time() - c0)
+        m, p = statistics.median(t_m), statistics.median(t_p)
+        # the flexion peer computes a share of the tips: its time per tip, scaled to all of them
+        p_all = p * SHARE.get(name, 1.0)
+        rows[name] = {"what": what, "errplan_cpu_s": m, "peer_cpu_s": p, "ratio": m / p_all}
+        print(f"  {name}: errplan {m:.2f} s, peer {p:.2f} s CPU", file=sys.stderr, flush=True)
+    return rows
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--tolerance", type=float, default=0.15, help="allowed rise of a ratio over its baseline")
+    ap.add_argument("--update", action="store_true", help="write the measured ratios to benchmarks/baseline.json")
+    ap.add_argument("--only", action="append", default=None, help="one problem (repeatable)")
+    ap.add_argument("--baseline", type=Path, default=BASELINE)
+    a = ap.parse_args(argv)
+    load0 = os.getloadavg()[0]
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory() as d:
+        probs = problems(Path(d))
+        if a.only:
+            unknown = sorted(set(a.only) - set(probs))
+            if unknown:
+                print(f"error: --only {unknown[0]}: expected one of {', '.join(probs)}", file=sys.stderr)
+                return 2
+            probs = {k: v for k, v in probs.items() if k in a.only}
+        rows = measure(probs, a.repeat)
+    base = json.loads(a.baseline.read_text()) if a.baseline.exists() else {}
+    base_rows = base.get("ratios", {})
+    print(f"{os.cpu_count()} cores, load average (1 min) {load0:.2f} before, {os.getloadavg()[0]:.2f} after; "
+          f"medians of {a.repeat}, errplan and its peer alternately, CPU seconds of this process; "
+          f"{time.perf_counter() - t0:.0f} s in all")
+    print()
+    print("| problem | what | errplan CPU s | peer CPU s | ratio | baseline | change | verdict |")
+    print("|---|---|---|---|---|---|---|---|")
+    worse = []
+    for name, r in rows.items():
+        b = base_rows.get(name)
+        change = (r["ratio"] / b - 1) if b else None
+        bad = b is not None and r["ratio"] > b * (1 + a.tolerance)
+        if bad:
+            worse.append(name)
+        verdict = "no baseline" if b is None else ("SLOWER" if bad else "holds")
+        print(f"| {name} | {r['what']} | {r['errplan_cpu_s']:.2f} | {r['peer_cpu_s']:.2f} | {r['ratio']:.3f} | "
+              f"{'-' if b is None else f'{b:.3f}'} | {'-' if change is None else f'{change * 100:+.0f} %'} | {verdict} |")
+    print()
+    if a.update:
+        new = dict(base_rows)
+        new.update({k: round(v["ratio"], 4) for k, v in rows.items()})
+        a.baseline.write_text(json.dumps({"note": "errplan CPU / numpy peer CPU per problem (benchmarks/guard.py); "
+                                                  "updated on purpose when a change makes the fields faster",
+                                          "ratios": new}, indent=2) + "\n")
+        print(f"baseline written: {a.baseline}")
+        return 0
+    if worse:
+        print(f"SLOWER than the baseline by more than {a.tolerance * 100:.0f} %: {', '.join(worse)}")
+        return 1
+    print(f"every ratio within {a.tolerance * 100:.0f} % of its baseline" if base_rows else "no baseline to compare with")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
