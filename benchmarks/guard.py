@@ -96,7 +96,7 @@ def problems(tmp: Path) -> dict:
 
 def _axes(sc, res):
     from errplan.fields.compute import tip_grid
-    from errplan.fields.errorset import error_set
+    from errplan.errorset import error_set
 
     return tip_grid(sc, error_set(sc)[0], res)
 

@@ -107,7 +107,7 @@ def check_setup(st: Setup) -> None:
 
     from .errors import ScenarioError
     from .fields.compute import anatomy_model
-    from .fields.errorset import error_set
+    from .errorset import error_set
     from .kinematics import arm_for
     from .kinematics.shaft import lever_wrist
 
@@ -225,7 +225,7 @@ def check_anatomy(sc: Scenario) -> None:
     if an is None:
         return
     from .anatomy import check
-    from .fields.errorset import error_set
+    from .errorset import error_set
 
     check(sc, error_set(sc)[0].port_corners())
 

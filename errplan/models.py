@@ -27,8 +27,8 @@ steps that still take the scenario's tables (queries, ``[planner]``, ``[fields]`
 ``m.with_(...)``), so a model goes wherever a scenario went; :func:`arm_model` turns either into a model
 (a model passes through unchanged, so what the top built is what the steps use).
 
-Layer: imports the scenario, the kinematics, the anatomy and the error set (plain data at the bottom of
-:mod:`errplan.fields`); nothing above them.
+Layer: imports the scenario, the kinematics, the anatomy and the error set (:mod:`errplan.errorset`, plain
+data); nothing above them. The fields sit above: they build their evaluators from a model.
 """
 from __future__ import annotations
 
@@ -98,14 +98,14 @@ class ArmModel:
     @cached_property
     def errors(self):
         """The declared error set (:class:`errplan.fields.ErrorSet`): the box around the port estimate."""
-        from .fields.errorset import ErrorSet
+        from .errorset import ErrorSet
 
         sc = self.scenario
         return ErrorSet.from_tables(sc.port, sc.uncertainty, sc.dim)
 
     @cached_property
     def _folded(self):
-        from .fields.errorset import error_set
+        from .errorset import error_set
 
         return error_set(self.scenario, self.errors)
 

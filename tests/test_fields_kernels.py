@@ -21,7 +21,7 @@ from conftest import SCENARIOS
 import pytest
 
 from errplan.api import compute_fields, load_scenario
-from errplan.fields.errorset import error_set
+from errplan.errorset import error_set
 from errplan.fields.kernels import _instance3, _planar_reachable, _tip_reach2, gnorm, gval, planar_arm_params
 from errplan.kinematics import arm_for
 

@@ -16,7 +16,7 @@ import pytest
 
 from errplan.api import load_scenario
 from errplan.fields import ErrorSet, Evaluator, SpatialFlexionEvaluator, compute_fields, worst_case
-from errplan.fields.errorset import spatial_noise_corners
+from errplan.errorset import spatial_noise_corners
 from errplan.kinematics import shaft
 from errplan.metrics import g_norm
 from errplan.tolerance.insertion import InsertionModel, insertion_worst

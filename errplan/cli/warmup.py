@@ -221,7 +221,7 @@ def fields_part(sc, phi: bool) -> str | None:
     """The part that compiles the search of a scenario's fields (``phi``: with the exact |phi_max|), or
     None where its fields take the numpy path instead (a flexion controller, or effects on the true
     Jacobian: :func:`errplan.fields.compute_fields`)."""
-    from ..fields.errorset import error_set
+    from ..errorset import error_set
 
     if sc.controller.jacobian != "rigid" or error_set(sc)[1]:
         return None

@@ -21,7 +21,7 @@ only if it is reachable under every instance evaluated (robust validity).
 from __future__ import annotations
 
 from .compute import ALL_METRICS, DEFAULT_METRICS, KernelEvaluator, compute_fields, parse_metrics, tip_grid, workspace_bounds
-from .errorset import ErrorSet, error_set
+from ..errorset import ErrorSet, error_set
 from .evaluator import EFFECT_NEWTON_ITERS, JACOBIAN_EFFECTS, Evaluator, SpatialFlexionEvaluator
 from .grid import METRIC_NAMES, MetricField
 from .search import EXTRA_PASSES, REFINE_LEVELS, SECOND_START, Progress, minimize_gain, worst_case

@@ -20,7 +20,7 @@ import numpy as np
 
 from ..errors import ErrplanError
 from ..metrics import phi_hat_max
-from .errorset import ErrorSet, error_set
+from ..errorset import ErrorSet, error_set
 from .grid import MetricField
 from .search import EXTRA_PASSES, REFINE_LEVELS, SECOND_START, Progress, _refined_at_gain, minimize_gain, worst_case
 

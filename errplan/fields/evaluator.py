@@ -15,7 +15,7 @@ from ..kinematics.shaft import (estimate_from_ends, flexed_end_angles, flexed_ja
                                 flexed_wrist_plane, lever_jacobian, lever_parts, lever_wrist)
 from ..kinematics.truth import Plant
 from ..metrics import conformal_parts, compose_parts, inv2, inverse_parts
-from .errorset import JACOBIAN_EFFECTS, ErrorSet  # noqa: F401  (JACOBIAN_EFFECTS: re-exported by errplan.fields)
+from ..errorset import JACOBIAN_EFFECTS, ErrorSet  # noqa: F401  (JACOBIAN_EFFECTS: re-exported by errplan.fields)
 
 
 # ----------------------------------------------------------------------------- evaluator
@@ -374,7 +374,7 @@ def bending_frame(w: np.ndarray, port: np.ndarray, L: float, t: np.ndarray) -> n
 def noisy_end_poses(w: np.ndarray, tip: np.ndarray, dw: np.ndarray, dt: np.ndarray, m: np.ndarray,
                     noise: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The 3-D flexion controller's measurements (..., c, 3) under noise vectors ``noise`` (c, 7)
-    (:func:`errplan.fields.errorset.spatial_noise_corners`): the chord difference ``delta`` on the
+    (:func:`errplan.errorset.spatial_noise_corners`): the chord difference ``delta`` on the
     tip position, each end direction tilted in its frame ``(m x d, m)``, ``m`` the true bending
     plane's normal (..., 3)."""
     from ..kinematics.shaft import tilt

@@ -10,7 +10,7 @@ import numpy as np
 
 from ..metrics import (g_norm, g_norm_from_parts, min_over_gain, min_over_gain_parts, phi_max,
                        phi_max_from_parts)
-from .errorset import ErrorSet
+from ..errorset import ErrorSet
 from .evaluator import Evaluator
 
 REFINE_LEVELS = 6

@@ -9,7 +9,7 @@ import numpy as np
 
 from ..anatomy.setup import box_corners, hull_points, optical_axis, resample, shaft_distance, visible
 from ..fields.compute import anatomy_model
-from ..fields.errorset import error_set
+from ..errorset import error_set
 
 
 def path_figures(st, name: str, path) -> dict:

@@ -416,7 +416,7 @@ class SpatialInsertionModel:
     def candidates(self, position: float, angle: float) -> np.ndarray:
         """Starting parameters (c, 8): the noise set's corners (:func:`spatial_noise_corners`) at
         ``LOAD_DIRECTIONS`` load directions (``psi = 0`` only when ``in_plane``)."""
-        from ..fields.errorset import spatial_noise_corners
+        from ..errorset import spatial_noise_corners
 
         nz = spatial_noise_corners(position, angle, in_plane=self.in_plane)
         psis = [0.0] if self.in_plane else [2 * math.pi * i / LOAD_DIRECTIONS for i in range(LOAD_DIRECTIONS)]

@@ -5,7 +5,7 @@ The true shaft (wrist ``w``, world load ``t``, port ``p``) is the caller's (one 
 pair: the true flexed-shaft Jacobian ``J`` (:func:`errplan.kinematics.shaft.flexed_jacobian`), the end
 poses the controller measures (tip, end tangents, :func:`~errplan.kinematics.shaft.flexed_end_directions`),
 the true bending plane's normal (:func:`errplan.fields.evaluator.bending_frame`), and per noise vector
-(``[delta(3), tilt_w(2), tilt_t(2)]``, :func:`errplan.fields.errorset.spatial_noise_corners`): the noisy
+(``[delta(3), tilt_w(2), tilt_t(2)]``, :func:`errplan.errorset.spatial_noise_corners`): the noisy
 measurements (:func:`~errplan.fields.evaluator.noisy_end_poses`), the fitted bending plane and P2's planar
 estimator in it (:func:`~errplan.kinematics.shaft.estimate_from_end_poses`), ``Jhat`` the flexed shaft's
 Jacobian at the measured wrist through the estimated port under the estimated load (the lever through the

@@ -165,7 +165,7 @@ def error_set(sc, es: ErrorSet | None = None) -> tuple[ErrorSet, dict]:
     An :class:`errplan.models.ArmModel` answers with what it was built with."""
     from dataclasses import replace
 
-    from ..kinematics.truth import effect_kwargs
+    from .kinematics.truth import effect_kwargs
 
     if es is None and hasattr(type(sc), "true_errors"):  # an ArmModel: built once
         return sc.true_errors, dict(sc.jacobian_effects)
