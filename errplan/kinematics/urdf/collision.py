@@ -41,6 +41,7 @@ import numpy as np
 
 from ...errors import ErrplanError
 from .arm import UrdfArm
+from .broadphase import HeldShapes, LinkTree, tree_arrays
 from .description import rpy_matrix
 
 KINDS = ("collision", "visual")
@@ -207,6 +208,69 @@ class ArmCollision:
         dq = np.abs(np.asarray(dq, dtype=float))
         return float(np.max(self.reach @ dq)) if len(self.reach) else 0.0
 
+    # ------------------------------------------------------------------ the compiled broad phase
+    def link_tree(self) -> LinkTree:
+        """The arm's joints and objects as plain arrays for the compiled broad phase
+        (:class:`~.broadphase.LinkTree`): pinocchio's kinematic tree with every joint off the actuated set
+        at its held value, each actuated joint's axis read from pinocchio's own motion of it, the objects'
+        bounding spheres and capsules (:meth:`capsules`), :attr:`reach`. Built once."""
+        tree = getattr(self, "_tree", None)
+        if tree is not None:
+            return tree
+        import pinocchio as pin
+
+        arm, model = self.arm, self.arm.model
+        data = model.createData()
+        act = list(arm._act_ids)
+        pin.forwardKinematics(model, data, arm.pinocchio_configuration(np.zeros(arm.n)))
+        J = model.njoints - 1
+        jparent = np.array([model.parents[j] - 1 for j in range(1, model.njoints)], np.int64)
+        jconst = np.array([data.liMi[j].homogeneous for j in range(1, model.njoints)]).reshape(J, 4, 4)
+        jact = np.full(J, -1, np.int64)
+        jkind = np.zeros(J, np.int64)
+        jaxis = np.zeros((J, 3))
+        for k, j in enumerate(act):
+            C = model.jointPlacements[j].homogeneous
+            unit = np.zeros(arm.n)
+            unit[k] = 1.0
+            pin.forwardKinematics(model, data, arm.pinocchio_configuration(unit))
+            X = np.linalg.solve(C, data.liMi[j].homogeneous)  # the joint's own motion at q_k = 1
+            jact[j - 1] = k
+            jconst[j - 1] = C
+            if _is_prismatic(model.joints[j]):
+                jkind[j - 1] = 1
+                jaxis[j - 1] = X[:3, 3]
+            else:
+                jaxis[j - 1] = np.asarray(pin.log3(X[:3, :3]), float)  # angle 1 rad about the unit axis
+        objs = self.geometry_model.geometryObjects
+        gparent = np.array([o.parentJoint - 1 for o in objs], np.int64)
+        gplace = np.array([o.placement.homogeneous for o in objs]).reshape(len(objs), 4, 4)
+        caps = self.capsules()
+        start = np.searchsorted(caps[0], np.arange(len(objs) + 1), side="left").astype(np.int64)
+        self._tree = tree_arrays(LinkTree(jparent, jconst, jact, jkind, jaxis, gparent, gplace, self.base, self.reach,
+                                          self._center, self._radius, caps[1], caps[2], caps[3], start))
+        return self._tree
+
+    def capsules(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Bounding capsules of the objects, in each object's frame: ``(object (C,) int, a (C, 3), b (C, 3),
+        radius (C,))``, sorted by object. A mesh is split along its principal axis into up to
+        :data:`CAPSULE_PIECES` groups of triangles (by their centroids), each group bounded by one capsule
+        holding its triangles' vertices (so, being convex, its triangles); the split with the smallest
+        total volume wins (one more piece must save a fifth of the volume). A primitive gets one capsule
+        holding the corners of its bounding box. Built once."""
+        caps = getattr(self, "_capsules", None)
+        if caps is None:
+            obj, A, B, R = [], [], [], []
+            for g, geom in enumerate(self._geoms):
+                for a, b, r in _object_capsules(geom, self._hulls[g]):
+                    obj.append(g)
+                    A.append(a)
+                    B.append(b)
+                    R.append(r)
+            caps = self._capsules = (np.array(obj, np.int64), np.array(A, float).reshape(-1, 3),
+                                     np.array(B, float).reshape(-1, 3), np.array(R, float))
+        return caps
+
     # ------------------------------------------------------------------ triangle meshes (for drawing)
     def local_meshes(self) -> list[tuple[np.ndarray, np.ndarray]]:
         """Each object as a triangle mesh in its own frame: ``(vertices (k, 3), faces (m, 3))``. Meshes as
@@ -270,6 +334,58 @@ def _triangles(geom, name: str) -> tuple[np.ndarray, np.ndarray]:
 
     hull = ConvexHull(pts)
     return pts, np.asarray(hull.simplices, np.int64)
+
+
+#: the most capsules one object's triangles are split into (:meth:`ArmCollision.capsules`)
+CAPSULE_PIECES = 4
+
+
+def bounding_capsule(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """A capsule ``(a, b, r)`` holding every point (k, 3): its axis along the points' principal direction
+    through the middle of their extent across it, the radius their largest distance from that line, the
+    segment as short as that radius allows; then the radius is the largest exact distance of a point from
+    the segment (rounding included), so every point lies inside."""
+    X = np.asarray(points, float)
+    m = X.mean(axis=0)
+    _, _, Vt = np.linalg.svd(X - m, full_matrices=False) if len(X) > 1 else (None, None, np.eye(3))
+    u = Vt[0] / np.linalg.norm(Vt[0])
+    E = np.linalg.svd(np.eye(3) - np.outer(u, u))[0][:, :2]  # two unit vectors across u
+    Y = (X - m) @ E
+    m = m + E @ (0.5 * (Y.min(axis=0) + Y.max(axis=0)))
+    t = (X - m) @ u
+    rad = np.linalg.norm((X - m) - t[:, None] * u, axis=1)
+    R = float(rad.max())
+    h = np.sqrt(np.maximum(R * R - rad * rad, 0.0))
+    hi, lo = float(np.max(t - h)), float(np.min(t + h))
+    if lo > hi:
+        lo = hi = 0.5 * (lo + hi)
+    a, b = m + lo * u, m + hi * u
+    ab = b - a
+    L2 = float(ab @ ab)
+    s = np.clip(((X - a) @ ab) / L2, 0.0, 1.0) if L2 > 0.0 else np.zeros(len(X))
+    r = float(np.max(np.linalg.norm(X - (a + s[:, None] * ab), axis=1)))
+    return a, b, r * (1.0 + 1e-12) + 1e-12
+
+
+def _object_capsules(geom, hull: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, float]]:
+    """:meth:`ArmCollision.capsules` of one object (``hull``: :func:`_hull_points`)."""
+    verts = getattr(geom, "vertices", None)
+    if not (callable(verts) and hasattr(geom, "tri_indices") and getattr(geom, "num_tris", 0) > 0):
+        return [bounding_capsule(hull)]
+    V = np.asarray(verts(), float)
+    tri = geom.tri_indices
+    F = np.array([[t[0], t[1], t[2]] for t in (tri(i) for i in range(geom.num_tris))], np.int64).reshape(-1, 3)
+    u = np.linalg.svd(V - V.mean(axis=0), full_matrices=False)[2][0]
+    c = V[F].mean(axis=1) @ u
+    best, best_vol = None, math.inf
+    for k in range(1, CAPSULE_PIECES + 1):
+        edges = np.linspace(c.min(), c.max(), k + 1)
+        group = np.clip(np.searchsorted(edges, c, side="right") - 1, 0, k - 1)
+        caps = [bounding_capsule(V[np.unique(F[group == i])]) for i in range(k) if np.any(group == i)]
+        vol = sum(math.pi * r * r * float(np.linalg.norm(b - a)) + 4.0 / 3.0 * math.pi * r ** 3 for a, b, r in caps)
+        if vol < 0.8 * best_vol:
+            best, best_vol = caps, vol
+    return best
 
 
 def _is_prismatic(joint) -> bool:
@@ -470,6 +586,56 @@ class HeldArm:
         self.centers = np.einsum("gij,gj->gi", self.P[:, :3, :3], geo._center) + self.P[:, :3, 3]
 
 
+def held_shapes(held: Sequence[HeldArm]) -> HeldShapes:
+    """The held arms' objects (every held arm's in turn) for the compiled broad phase: their bounding
+    spheres and capsules (:meth:`ArmCollision.capsules`) placed in the world (:class:`~.broadphase.HeldShapes`)."""
+    centers, radius, A, B, R, start = [np.zeros((0, 3))], [np.zeros(0)], [np.zeros((0, 3))], [np.zeros((0, 3))], \
+        [np.zeros(0)], [0]
+    for h in held:
+        obj, a, b, r = h.geo.capsules()
+        centers.append(h.centers)
+        radius.append(h.geo._radius)
+        for g in range(len(h.geo._geoms)):
+            M = h.P[g]
+            sel = obj == g
+            A.append(a[sel] @ M[:3, :3].T + M[:3, 3])
+            B.append(b[sel] @ M[:3, :3].T + M[:3, 3])
+            R.append(r[sel])
+            start.append(start[-1] + int(np.count_nonzero(sel)))
+    arrays = [np.concatenate(x) for x in (centers, radius, A, B, R)]
+    return HeldShapes(*(np.ascontiguousarray(x, float) for x in arrays), np.array(start, np.int64))
+
+
+def held_objects(held: Sequence[HeldArm]) -> list:
+    """``(coal geometry, coal transform)`` of every held arm's objects, in :func:`held_shapes`' order."""
+    return [(h.geo._geoms[j], h.T[j]) for h in held for j in range(len(h.geo._geoms))]
+
+
+def first_within(geo: ArmCollision, P: np.ndarray, objects: Sequence, rows: np.ndarray, clearance: float) -> int:
+    """The first row ``(sample, object of geo, held object)`` of ``rows`` (m, 3) whose two objects lie closer
+    than ``clearance`` (coal's collision test with that security margin, as :func:`within_held`), the
+    moving object placed at ``P[sample, object]`` ((k, G, 4, 4), the compiled broad phase's placements) and
+    the held one as ``objects`` (:func:`held_objects`) holds it; -1 when none does."""
+    import coal
+
+    if not len(rows):
+        return -1
+    req = coal.CollisionRequest()
+    req.security_margin = float(clearance)
+    req.enable_contact = False
+    placed: dict = {}
+    geoms = geo._geoms
+    for r, (s, g, k) in enumerate(rows.tolist()):
+        T = placed.get((s, g))
+        if T is None:
+            M = P[s, g]
+            T = placed[(s, g)] = coal.Transform3s(np.ascontiguousarray(M[:3, :3]), np.ascontiguousarray(M[:3, 3]))
+        hg, hT = objects[k]
+        if coal.collide(geoms[g], T, hg, hT, req, coal.CollisionResult()):
+            return r
+    return -1
+
+
 def _lower_bound(geo: ArmCollision, P: np.ndarray, held: Sequence[HeldArm]) -> float:
     """The smallest bounding-sphere gap between arm ``geo`` at placements ``P`` and the held arms: a lower
     bound of their clearance (every point of an object lies in its sphere)."""
@@ -601,4 +767,5 @@ def arm_at_tip(arm: UrdfArm, tip, port, length: float, near=None) -> np.ndarray:
 
 __all__ = ["ArmCollision", "Closest", "arm_clearance", "clearances", "clear_of", "closest_pair", "min_clearance_along",
            "clear_along", "motion_samples", "arm_at_tip", "HeldArm", "clearance_to_held", "within_held", "clear_along_held",
-           "min_clearance_along_held"]
+           "min_clearance_along_held", "held_shapes", "held_objects", "first_within", "bounding_capsule",
+           "CAPSULE_PIECES"]
