@@ -47,7 +47,7 @@ import numpy as np
 from ..errors import ErrplanError
 from ..kinematics import arm_for
 from ..jit import kernel_array
-from ..kinematics.urdf.broadphase import CLEAR, UNREACHABLE, arm_motion
+from ..kinematics.urdf.broadphase import CLEAR, UNDECIDED, arm_motion
 from ..kinematics.urdf.collision import (ArmCollision, HeldArm, arm_at_tip, clear_along_held, clearance_to_held,
                                          first_within, held_objects, held_shapes, min_clearance_along_held,
                                          within_held)
@@ -173,9 +173,9 @@ class ArmChecks:
         model, (port, length, ref, step, c), objects = self._kernel_args()
         status, _, P, rows = arm_motion(*model, np.array((ax, ay, az)), np.array((bx, by, bz)), port, length, ref,
                                         step, c)
-        if status == UNREACHABLE:
-            return False
-        return status == CLEAR or first_within(self.geo, P, objects, rows, c) < 0
+        if status == UNDECIDED:
+            return first_within(self.geo, P, objects, rows, c) < 0
+        return status == CLEAR  # else out of reach, or two surface points closer than the clearance
 
     def point_ok(self, x: float, y: float, z: float) -> bool:
         """The arm at tip ``(x, y, z)`` exists and keeps the clearance (module docstring)."""

@@ -34,8 +34,9 @@ from .chain import ik_near, ik_point
 #: m: a bound must exceed the clearance by this much to decide a pair (module docstring)
 SLACK = 1e-9
 
-#: status of :func:`arm_motion`: a tip out of reach (or at the port), every pair decided clear, pairs left
-UNREACHABLE, CLEAR, UNDECIDED = 0, 1, 2
+#: status of :func:`arm_motion`: a tip out of reach (or at the port), every pair decided clear, pairs left,
+#: a pair certainly closer than the clearance (two of its surface points are)
+UNREACHABLE, CLEAR, UNDECIDED, WITHIN = 0, 1, 2, 3
 
 
 class LinkTree(NamedTuple):
@@ -51,7 +52,8 @@ class LinkTree(NamedTuple):
     ``radius`` (G,) bounding spheres in the object's frame. Capsules (C of them, several per object):
     ``cap_obj`` (C,) int64 their object, ``cap_a``, ``cap_b`` (C, 3) the ends of the axis segment in the
     object's frame, ``cap_r`` (C,) radii; ``cap_start`` (G + 1,) int64 the first capsule of each object
-    (capsules sorted by object)."""
+    (capsules sorted by object). Surface points (for the upper bound): ``points`` (k, 3) in their object's
+    frame, ``point_start`` (G + 1,) int64 the first of each object."""
 
     jparent: np.ndarray
     jconst: np.ndarray
@@ -68,12 +70,14 @@ class LinkTree(NamedTuple):
     cap_b: np.ndarray
     cap_r: np.ndarray
     cap_start: np.ndarray
+    points: np.ndarray
+    point_start: np.ndarray
 
 
 class HeldShapes(NamedTuple):
     """The held arms' objects (H of them, every held arm's in turn) in the world: ``center`` (H, 3),
     ``radius`` (H,) bounding spheres; capsules ``cap_a``, ``cap_b`` (C, 3), ``cap_r`` (C,), ``cap_start``
-    (H + 1,) int64 as in :class:`LinkTree`."""
+    (H + 1,) int64, surface points ``points`` (k, 3), ``point_start`` (H + 1,) as in :class:`LinkTree`."""
 
     center: np.ndarray
     radius: np.ndarray
@@ -81,6 +85,8 @@ class HeldShapes(NamedTuple):
     cap_b: np.ndarray
     cap_r: np.ndarray
     cap_start: np.ndarray
+    points: np.ndarray
+    point_start: np.ndarray
 
 
 # ---------------------------------------------------------------------------- placements
@@ -214,6 +220,26 @@ def pair_gaps(tree, held, P, cut, gap):
     return best
 
 
+@njit(cache=True)
+def points_within(tree, held, P, g, h, c):
+    """Whether a surface point of moving object ``g`` (placed by ``P`` (4, 4)) lies closer than ``c`` to one
+    of held object ``h``: then the two objects do (an upper bound of their distance)."""
+    k0, k1 = tree.point_start[g], tree.point_start[g + 1]
+    m0, m1 = held.point_start[h], held.point_start[h + 1]
+    if k0 == k1 or m0 == m1:
+        return False
+    c2 = c * c
+    for k in range(k0, k1):
+        x0, x1, x2 = _apply(P, tree.points[k])
+        for m in range(m0, m1):
+            y0 = x0 - held.points[m, 0]
+            y1 = x1 - held.points[m, 1]
+            y2 = x2 - held.points[m, 2]
+            if y0 * y0 + y1 * y1 + y2 * y2 < c2:
+                return True
+    return False
+
+
 # ---------------------------------------------------------------------------- the arm at its tips
 @njit(cache=True)
 def _wrist(t0, t1, t2, port, L):
@@ -319,7 +345,8 @@ def arm_motion(chain, rmap, tree, held, a, b, port, L, ref, tip_step, c):
     """The moving arm's motion ``a -> b`` (a tip when ``a == b``) against the held arms (module docstring).
 
     Returns ``(status, S, P, pairs)``: ``status`` :data:`UNREACHABLE`, :data:`CLEAR` (every pair of every
-    sample decided at least ``c`` apart) or :data:`UNDECIDED`; ``S`` (k, n) the joint-space samples; ``P``
+    sample decided at least ``c`` apart), :data:`WITHIN` (a pair of some sample certainly closer than ``c``:
+    two of its surface points are; the samples after it are not looked at) or :data:`UNDECIDED`; ``S`` (k, n) the joint-space samples; ``P``
     (k, G, 4, 4) the placements of the samples that were placed; ``pairs`` (m, 3) int64 rows (sample, moving
     object, held object) whose bounds are below ``c + SLACK``, sample by sample, nearest bound first within
     a sample: the motion keeps the clearance iff none of them is closer than ``c``."""
@@ -357,6 +384,8 @@ def arm_motion(chain, rmap, tree, held, a, b, port, L, ref, tip_step, c):
         nu = 0
         for u in range(G * H):
             if flat[u] < cut:
+                if points_within(tree, held, P[i, u // H], u // H, u % H, c - SLACK):
+                    return WITHIN, S, P, np.empty((0, 3), np.int64)
                 order[nu] = u
                 nu += 1
         sel = order[:nu]
@@ -379,4 +408,4 @@ def tree_arrays(tree: LinkTree) -> LinkTree:
 
 
 __all__ = ["LinkTree", "HeldShapes", "place_objects", "pair_gaps", "segment_distance", "tip_configs",
-           "joint_samples", "arm_motion", "SLACK", "UNREACHABLE", "CLEAR", "UNDECIDED"]
+           "joint_samples", "arm_motion", "SLACK", "UNREACHABLE", "CLEAR", "UNDECIDED", "WITHIN", "points_within"]
