@@ -53,7 +53,7 @@ class LinkTree(NamedTuple):
     ``cap_obj`` (C,) int64 their object, ``cap_a``, ``cap_b`` (C, 3) the ends of the axis segment in the
     object's frame, ``cap_r`` (C,) radii; ``cap_start`` (G + 1,) int64 the first capsule of each object
     (capsules sorted by object). Surface points (for the upper bound): ``points`` (k, 3) in their object's
-    frame, ``point_start`` (G + 1,) int64 the first of each object."""
+    frame, ``point_start`` (C + 1,) int64 the first of each capsule's piece."""
 
     jparent: np.ndarray
     jconst: np.ndarray
@@ -77,7 +77,8 @@ class LinkTree(NamedTuple):
 class HeldShapes(NamedTuple):
     """The held arms' objects (H of them, every held arm's in turn) in the world: ``center`` (H, 3),
     ``radius`` (H,) bounding spheres; capsules ``cap_a``, ``cap_b`` (C, 3), ``cap_r`` (C,), ``cap_start``
-    (H + 1,) int64, surface points ``points`` (k, 3), ``point_start`` (H + 1,) as in :class:`LinkTree`."""
+    (H + 1,) int64, surface points ``points`` (k, 3) in the world, ``point_start`` (C + 1,) as in
+    :class:`LinkTree`."""
 
     center: np.ndarray
     radius: np.ndarray
@@ -175,17 +176,20 @@ def segment_distance(p0, p1, p2, q0, q1, q2, r0, r1, r2, s0, s1, s2):
 
 
 @njit(cache=True)
-def pair_gaps(tree, held, P, cut, gap):
-    """Lower bounds ``gap`` (G, H) of the distance of every pair (moving object at world placements ``P``
-    (G, 4, 4), held object): the spheres' gap, and where it is below ``cut`` the larger of it and the
-    smallest gap between the two objects' capsules. Returns the smallest bound."""
+def sample_pairs(tree, held, P, c, cut, sample, rows, m):
+    """The broad phase at one sample (moving objects at world placements ``P`` (G, 4, 4)): per pair of
+    objects (moving, held) the spheres' gap, and where it is below ``cut`` the gaps of their capsules; the
+    capsule pairs below ``cut`` are appended to ``rows`` (grown as needed) from row ``m`` as ``(sample,
+    moving capsule, held capsule)``. Returns ``(d, within, rows, m)``: ``d`` the smallest lower bound over
+    the pairs of objects (each the larger of its spheres' and its capsules' gap), ``within`` whether two
+    surface points of an undecided pair lie closer than ``c`` (then the rows are incomplete)."""
     G = P.shape[0]
     H = held.radius.shape[0]
-    best = np.inf
+    d = np.inf
     for g in range(G):
         c0, c1, c2 = _apply(P[g], tree.center[g])
         rg = tree.radius[g]
-        first = True
+        k0, k1 = tree.cap_start[g], tree.cap_start[g + 1]
         wa = np.empty((0, 3))
         wb = np.empty((0, 3))
         for h in range(H):
@@ -194,38 +198,46 @@ def pair_gaps(tree, held, P, cut, gap):
             x2 = c2 - held.center[h, 2]
             sg = math.sqrt(x0 * x0 + x1 * x1 + x2 * x2) - rg - held.radius[h]
             if sg < cut:
-                if first:  # this object's capsules in the world, placed once
-                    first = False
-                    k0, k1 = tree.cap_start[g], tree.cap_start[g + 1]
+                if wa.shape[0] == 0:  # this object's capsules in the world, placed once
                     wa = np.empty((k1 - k0, 3))
                     wb = np.empty((k1 - k0, 3))
                     for k in range(k0, k1):
                         wa[k - k0, 0], wa[k - k0, 1], wa[k - k0, 2] = _apply(P[g], tree.cap_a[k])
                         wb[k - k0, 0], wb[k - k0, 1], wb[k - k0, 2] = _apply(P[g], tree.cap_b[k])
                 cg = np.inf
-                for k in range(tree.cap_start[g], tree.cap_start[g + 1]):
-                    i = k - tree.cap_start[g]
-                    for m in range(held.cap_start[h], held.cap_start[h + 1]):
-                        d = segment_distance(wa[i, 0], wa[i, 1], wa[i, 2], wb[i, 0], wb[i, 1], wb[i, 2],
-                                             held.cap_a[m, 0], held.cap_a[m, 1], held.cap_a[m, 2],
-                                             held.cap_b[m, 0], held.cap_b[m, 1], held.cap_b[m, 2])
-                        d -= tree.cap_r[k] + held.cap_r[m]
-                        if d < cg:
-                            cg = d
+                for k in range(k0, k1):
+                    i = k - k0
+                    for u in range(held.cap_start[h], held.cap_start[h + 1]):
+                        dk = segment_distance(wa[i, 0], wa[i, 1], wa[i, 2], wb[i, 0], wb[i, 1], wb[i, 2],
+                                              held.cap_a[u, 0], held.cap_a[u, 1], held.cap_a[u, 2],
+                                              held.cap_b[u, 0], held.cap_b[u, 1], held.cap_b[u, 2])
+                        dk -= tree.cap_r[k] + held.cap_r[u]
+                        if dk < cg:
+                            cg = dk
+                        if dk < cut:
+                            if points_within(tree, held, P[g], k, u, c - SLACK):
+                                return dk, True, rows, m
+                            if m == rows.shape[0]:
+                                grown = np.empty((2 * m + 16, 3), np.int64)
+                                grown[:m] = rows[:m]
+                                rows = grown
+                            rows[m, 0] = sample
+                            rows[m, 1] = k
+                            rows[m, 2] = u
+                            m += 1
                 if cg > sg:
                     sg = cg
-            gap[g, h] = sg
-            if sg < best:
-                best = sg
-    return best
+            if sg < d:
+                d = sg
+    return d, False, rows, m
 
 
 @njit(cache=True)
-def points_within(tree, held, P, g, h, c):
-    """Whether a surface point of moving object ``g`` (placed by ``P`` (4, 4)) lies closer than ``c`` to one
-    of held object ``h``: then the two objects do (an upper bound of their distance)."""
-    k0, k1 = tree.point_start[g], tree.point_start[g + 1]
-    m0, m1 = held.point_start[h], held.point_start[h + 1]
+def points_within(tree, held, P, k, u, c):
+    """Whether a surface point of moving capsule ``k``'s piece (its object placed by ``P`` (4, 4)) lies closer
+    than ``c`` to one of held capsule ``u``'s: then the two pieces do (an upper bound of their distance)."""
+    k0, k1 = tree.point_start[k], tree.point_start[k + 1]
+    m0, m1 = held.point_start[u], held.point_start[u + 1]
     if k0 == k1 or m0 == m1:
         return False
     c2 = c * c
@@ -348,8 +360,9 @@ def arm_motion(chain, rmap, tree, held, a, b, port, L, ref, tip_step, c):
     sample decided at least ``c`` apart), :data:`WITHIN` (a pair of some sample certainly closer than ``c``:
     two of its surface points are; the samples after it are not looked at) or :data:`UNDECIDED`; ``S`` (k, n) the joint-space samples; ``P``
     (k, G, 4, 4) the placements of the samples that were placed; ``pairs`` (m, 3) int64 rows (sample, moving
-    object, held object) whose bounds are below ``c + SLACK``, sample by sample, nearest bound first within
-    a sample: the motion keeps the clearance iff none of them is closer than ``c``."""
+    capsule, held capsule) whose capsules' gap is below ``c + SLACK``, sample by sample: the motion keeps
+    the clearance iff no two of those capsules' pieces (their triangles, or the primitive) are closer
+    than ``c``."""
     n = chain.axis.shape[0]
     G = tree.gparent.shape[0]
     H = held.radius.shape[0]
@@ -368,37 +381,16 @@ def arm_motion(chain, rmap, tree, held, a, b, port, L, ref, tip_step, c):
     cut = c + SLACK
     rows = np.empty((16, 3), np.int64)
     m = 0
-    gap = np.empty((G, H))
-    reach_to = -np.inf  # the largest d_i + cum_i - c: every sample j with cum_j below it is clear
-    order = np.empty(G * H, np.int64)
+    reach_to = -np.inf  # the largest d_i + cum_i - cut: every sample j with cum_j up to it is clear
     for i in range(k):
         if cum[i] <= reach_to:
             continue
         place_objects(tree, S[i], P[i])
-        d = pair_gaps(tree, held, P[i], cut, gap)
-        if d >= cut:
-            if d + cum[i] - cut > reach_to:
-                reach_to = d + cum[i] - cut
-            continue
-        flat = gap.ravel()
-        nu = 0
-        for u in range(G * H):
-            if flat[u] < cut:
-                if points_within(tree, held, P[i, u // H], u // H, u % H, c - SLACK):
-                    return WITHIN, S, P, np.empty((0, 3), np.int64)
-                order[nu] = u
-                nu += 1
-        sel = order[:nu]
-        srt = sel[np.argsort(flat[sel], kind="mergesort")]
-        if m + nu > rows.shape[0]:
-            grown = np.empty((2 * (m + nu), 3), np.int64)
-            grown[:m] = rows[:m]
-            rows = grown
-        for u in range(nu):
-            rows[m, 0] = i
-            rows[m, 1] = srt[u] // H
-            rows[m, 2] = srt[u] % H
-            m += 1
+        d, within, rows, m = sample_pairs(tree, held, P[i], c, cut, i, rows, m)
+        if within:
+            return WITHIN, S, P, np.empty((0, 3), np.int64)
+        if d >= cut and d + cum[i] - cut > reach_to:
+            reach_to = d + cum[i] - cut
     return (UNDECIDED if m else CLEAR), S, P, rows[:m]
 
 
@@ -407,5 +399,5 @@ def tree_arrays(tree: LinkTree) -> LinkTree:
     return LinkTree(*(np.ascontiguousarray(x, dtype=np.int64 if x.dtype.kind in "iu" else float) for x in tree))
 
 
-__all__ = ["LinkTree", "HeldShapes", "place_objects", "pair_gaps", "segment_distance", "tip_configs",
+__all__ = ["LinkTree", "HeldShapes", "place_objects", "sample_pairs", "segment_distance", "tip_configs",
            "joint_samples", "arm_motion", "SLACK", "UNREACHABLE", "CLEAR", "UNDECIDED", "WITHIN", "points_within"]

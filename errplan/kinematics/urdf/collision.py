@@ -247,8 +247,8 @@ class ArmCollision:
         gplace = np.array([o.placement.homogeneous for o in objs]).reshape(len(objs), 4, 4)
         caps = self.capsules()
         start = np.searchsorted(caps[0], np.arange(len(objs) + 1), side="left").astype(np.int64)
-        pobj, pts = self.surface_points()
-        pstart = np.searchsorted(pobj, np.arange(len(objs) + 1), side="left").astype(np.int64)
+        pcap, pts = self.surface_points()
+        pstart = np.searchsorted(pcap, np.arange(len(caps[0]) + 1), side="left").astype(np.int64)
         self._tree = tree_arrays(LinkTree(jparent, jconst, jact, jkind, jaxis, gparent, gplace, self.base, self.reach,
                                           self._center, self._radius, caps[1], caps[2], caps[3], start, pts, pstart))
         return self._tree
@@ -257,37 +257,47 @@ class ArmCollision:
         """Bounding capsules of the objects, in each object's frame: ``(object (C,) int, a (C, 3), b (C, 3),
         radius (C,))``, sorted by object. A mesh is split along its principal axis into up to
         :data:`CAPSULE_PIECES` groups of triangles (by their centroids), each group bounded by one capsule
-        holding its triangles' vertices (so, being convex, its triangles); the split with the smallest
-        total volume wins (one more piece must save a fifth of the volume). A primitive gets one capsule
-        holding the corners of its bounding box. Built once."""
+        holding its triangles' vertices (so, being convex, its triangles) (:func:`_object_capsules`). A
+        primitive gets one capsule holding the corners of its bounding box. Built once."""
         caps = getattr(self, "_capsules", None)
         if caps is None:
-            obj, A, B, R = [], [], [], []
+            obj, A, B, R, pieces = [], [], [], [], []
             for g, geom in enumerate(self._geoms):
-                for a, b, r in _object_capsules(geom, self._hulls[g]):
+                groups = _object_capsules(geom, self._hulls[g])
+                for a, b, r, tris in groups:
                     obj.append(g)
                     A.append(a)
                     B.append(b)
                     R.append(r)
+                    pieces.append(geom if len(groups) == 1 else _sub_mesh(geom, tris))
             caps = self._capsules = (np.array(obj, np.int64), np.array(A, float).reshape(-1, 3),
                                      np.array(B, float).reshape(-1, 3), np.array(R, float))
+            self._pieces = pieces
         return caps
 
+    def pieces(self) -> list:
+        """One coal geometry per capsule of :meth:`capsules`, in the object's frame: the object itself where
+        it has one capsule, else the mesh of that capsule's triangles (the pieces of an object partition its
+        triangles, so two objects come closer than ``c`` iff two of their pieces do)."""
+        self.capsules()
+        return self._pieces
+
     def surface_points(self) -> tuple[np.ndarray, np.ndarray]:
-        """Points on the objects, in each object's frame: ``(object (k,) int, points (k, 3))``, sorted by
-        object: up to :data:`SURFACE_POINTS` vertices of each mesh spread over it (a primitive has none).
-        Two objects lie no farther apart than any two of their points: the broad phase's upper bound."""
+        """Points on the objects, in each object's frame: ``(capsule (k,) int, points (k, 3))``, sorted by
+        capsule (:meth:`capsules`): the vertices of each mesh piece's triangles (a primitive has none). Two
+        pieces lie no farther apart than any two of their points: the broad phase's upper bound."""
         pts = getattr(self, "_surface", None)
         if pts is None:
-            obj, X = [], []
-            for g, geom in enumerate(self._geoms):
-                V, F = _mesh_of(geom)
+            self.capsules()
+            cap, X = [], []
+            for k, piece in enumerate(self._pieces):
+                V, F = _mesh_of(piece)
                 if F is None:
                     continue
-                P = _spread_points(V[np.unique(F)], SURFACE_POINTS)
-                obj += [g] * len(P)
+                P = V[np.unique(F)]
+                cap += [k] * len(P)
                 X.append(P)
-            pts = self._surface = (np.array(obj, np.int64), np.concatenate(X) if X else np.zeros((0, 3)))
+            pts = self._surface = (np.array(cap, np.int64), np.concatenate(X) if X else np.zeros((0, 3)))
         return pts
 
     # ------------------------------------------------------------------ triangle meshes (for drawing)
@@ -387,12 +397,13 @@ def bounding_capsule(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]
 
 
 def _object_capsules(geom, hull: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, float]]:
-    """:meth:`ArmCollision.capsules` of one object (``hull``: :func:`_hull_points`): a mesh's triangles split
-    in two along a group's principal axis (at the median of their centroids), the largest capsule first,
-    while that saves a fifth of the group's volume, up to :data:`CAPSULE_PIECES` groups."""
+    """:meth:`ArmCollision.capsules` of one object (``hull``: :func:`_hull_points`) as ``(a, b, r, triangles)``
+    (the triangle indices of the capsule's piece, None for a primitive): a mesh's triangles split in two
+    along a group's principal axis (at the median of their centroids), the largest capsule first, up to
+    :data:`CAPSULE_PIECES` groups (smaller pieces: tighter bounds, and cheaper exact queries)."""
     V, F = _mesh_of(geom)
     if F is None:
-        return [bounding_capsule(hull)]
+        return [bounding_capsule(hull) + (None,)]
 
     def vol(cap):
         a, b, r = cap
@@ -414,12 +425,26 @@ def _object_capsules(geom, hull: np.ndarray) -> list[tuple[np.ndarray, np.ndarra
             if not len(left) or not len(right):
                 continue
             cl, cr = bounding_capsule(V[np.unique(F[left])]), bounding_capsule(V[np.unique(F[right])])
-            if vol(cl) + vol(cr) < 0.8 * vol(cap):
-                groups[i:i + 1] = [(left, cl), (right, cr)]
-                break
+            groups[i:i + 1] = [(left, cl), (right, cr)]
+            break
         else:
             break
-    return [cap for _, cap in groups]
+    return [cap + (idx,) for idx, cap in groups]
+
+
+def _sub_mesh(geom, tris: np.ndarray):
+    """A coal mesh of the triangles ``tris`` (indices) of the mesh ``geom``, in the same frame."""
+    import coal
+
+    V, F = _mesh_of(geom)
+    F = F[tris]
+    used, inv = np.unique(F, return_inverse=True)
+    m = coal.BVHModelOBBRSS()
+    m.beginModel(len(F), len(used))
+    m.addVertices(np.ascontiguousarray(V[used]))
+    m.addTriangles(np.ascontiguousarray(inv.reshape(-1, 3), dtype=np.int64))
+    m.endModel()
+    return m
 
 
 def _mesh_of(geom) -> tuple[np.ndarray | None, np.ndarray | None]:
@@ -431,23 +456,6 @@ def _mesh_of(geom) -> tuple[np.ndarray | None, np.ndarray | None]:
     tri = geom.tri_indices
     F = np.array([[t[0], t[1], t[2]] for t in (tri(i) for i in range(geom.num_tris))], np.int64).reshape(-1, 3)
     return V, F
-
-
-#: the most surface points per object for the broad phase's upper bound (:meth:`ArmCollision.surface_points`)
-SURFACE_POINTS = 96
-
-
-def _spread_points(V: np.ndarray, k: int) -> np.ndarray:
-    """Up to ``k`` of the points ``V`` spread over them (farthest-point order from the first)."""
-    if len(V) <= k:
-        return V.copy()
-    pick = [0]
-    d = np.linalg.norm(V - V[0], axis=1)
-    for _ in range(k - 1):
-        i = int(np.argmax(d))
-        pick.append(i)
-        d = np.minimum(d, np.linalg.norm(V - V[i], axis=1))
-    return V[pick]
 
 
 def _is_prismatic(joint) -> bool:
@@ -656,7 +664,7 @@ def held_shapes(held: Sequence[HeldArm]) -> HeldShapes:
     X, pstart = [np.zeros((0, 3))], [0]
     for h in held:
         obj, a, b, r = h.geo.capsules()
-        pobj, pts = h.geo.surface_points()
+        pcap, pts = h.geo.surface_points()
         centers.append(h.centers)
         radius.append(h.geo._radius)
         for g in range(len(h.geo._geoms)):
@@ -666,23 +674,30 @@ def held_shapes(held: Sequence[HeldArm]) -> HeldShapes:
             B.append(b[sel] @ M[:3, :3].T + M[:3, 3])
             R.append(r[sel])
             start.append(start[-1] + int(np.count_nonzero(sel)))
-            X.append(pts[pobj == g] @ M[:3, :3].T + M[:3, 3])
-            pstart.append(pstart[-1] + int(np.count_nonzero(pobj == g)))
+            for k in np.flatnonzero(sel):
+                X.append(pts[pcap == k] @ M[:3, :3].T + M[:3, 3])
+                pstart.append(pstart[-1] + int(np.count_nonzero(pcap == k)))
     arrays = [np.ascontiguousarray(np.concatenate(x), float) for x in (centers, radius, A, B, R)]
     return HeldShapes(*arrays, np.array(start, np.int64), np.ascontiguousarray(np.concatenate(X), float),
                       np.array(pstart, np.int64))
 
 
 def held_objects(held: Sequence[HeldArm]) -> list:
-    """``(coal geometry, coal transform)`` of every held arm's objects, in :func:`held_shapes`' order."""
-    return [(h.geo._geoms[j], h.T[j]) for h in held for j in range(len(h.geo._geoms))]
+    """``(coal geometry, coal transform)`` of every held arm's pieces (:meth:`ArmCollision.pieces`), in
+    :func:`held_shapes`' order of capsules."""
+    out = []
+    for h in held:
+        obj = h.geo.capsules()[0]
+        out += [(piece, h.T[int(g)]) for piece, g in zip(h.geo.pieces(), obj)]
+    return out
 
 
 def first_within(geo: ArmCollision, P: np.ndarray, objects: Sequence, rows: np.ndarray, clearance: float) -> int:
-    """The first row ``(sample, object of geo, held object)`` of ``rows`` (m, 3) whose two objects lie closer
-    than ``clearance`` (coal's collision test with that security margin, as :func:`within_held`), the
-    moving object placed at ``P[sample, object]`` ((k, G, 4, 4), the compiled broad phase's placements) and
-    the held one as ``objects`` (:func:`held_objects`) holds it; -1 when none does."""
+    """The first row ``(sample, piece of geo, held piece)`` of ``rows`` (m, 3) whose two pieces
+    (:meth:`ArmCollision.pieces`) lie closer than ``clearance`` (coal's collision test with that security
+    margin, as :func:`within_held`), the moving piece's object placed at ``P[sample, object]`` ((k, G, 4,
+    4), the compiled broad phase's placements) and the held piece as ``objects`` (:func:`held_objects`)
+    holds it; -1 when none does."""
     import coal
 
     if not len(rows):
@@ -691,14 +706,16 @@ def first_within(geo: ArmCollision, P: np.ndarray, objects: Sequence, rows: np.n
     req.security_margin = float(clearance)
     req.enable_contact = False
     placed: dict = {}
-    geoms = geo._geoms
-    for r, (s, g, k) in enumerate(rows.tolist()):
+    pieces = geo.pieces()
+    owner = geo.capsules()[0]
+    for r, (s, p, k) in enumerate(rows.tolist()):
+        g = int(owner[p])
         T = placed.get((s, g))
         if T is None:
             M = P[s, g]
             T = placed[(s, g)] = coal.Transform3s(np.ascontiguousarray(M[:3, :3]), np.ascontiguousarray(M[:3, 3]))
         hg, hT = objects[k]
-        if coal.collide(geoms[g], T, hg, hT, req, coal.CollisionResult()):
+        if coal.collide(pieces[p], T, hg, hT, req, coal.CollisionResult()):
             return r
     return -1
 
