@@ -33,9 +33,18 @@ singularities), which this check does not bound. The ``arm_clearance`` itself is
 independent test samples the tips four times finer, solves the inverse kinematics from scratch and
 measures with a second distance method.
 
-The planner's hot path: the checks take the six plain floats of a motion; each is one vectorised
-inverse-kinematics call (every tip sample at once, started from the configuration at ``a``; the samples
-are redone one by one from the previous one only where that jumps branch), then the coal loop.
+The planner's hot path (:meth:`ArmChecks.point_ok`, :meth:`ArmChecks.motion_ok`; ``compiled`` True) takes
+the six plain floats of a motion to one compiled call
+(:func:`~errplan.kinematics.urdf.broadphase.arm_motion`): the wrists on the shaft, the inverse kinematics
+at every tip sample (the same branch rules as :meth:`ArmChecks.motion_configs`), the joint-space samples,
+the links' placements and a conservative broad phase against the held arms (per object a bounding sphere,
+then the capsules of its mesh pieces; a pair farther apart than the clearance is clear, two surface
+points closer than it decide a violation; samples skipped as above). Only the pairs of mesh pieces it
+cannot decide go to coal's collision test (:func:`~errplan.kinematics.urdf.collision.first_within`). The
+answers are the Python check's (:meth:`ArmChecks.point_ok_exact`, :meth:`ArmChecks.motion_ok_exact`, kept
+as the reference; tests/test_arm_broadphase.py compares them, and both with coal's distance); the
+reported clearances (:meth:`ArmChecks.path_clearance`, :meth:`ArmChecks.rest_clearance`) stay coal's exact
+distances computed as before.
 """
 from __future__ import annotations
 
@@ -235,6 +244,8 @@ def attach(cm, checks: ArmChecks | None):
         return cm
     if cm.dim != 3:
         raise ErrplanError("arm checks are spatial: the cost map is planar")
+    if checks.compiled:  # compile (a first run) or load the kernel now, not inside a search's time budget
+        checks.compiled_ok(*checks.port, *checks.port)
     return cm.and_clear(checks.motion_ok)
 
 

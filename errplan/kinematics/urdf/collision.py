@@ -18,7 +18,12 @@ overlap. This is the only module of errplan that imports coal or builds a ``Geom
   :func:`min_clearance_along_held`: the same against several arms held still, their placements computed
   once (the planner's arm checks, :mod:`errplan.planning.arm_checks`); :func:`within_held` answers "closer
   than c?" by coal's collision test with security margin c, about a hundred times cheaper than a distance;
-* :func:`arm_at_tip`: the configuration that puts the instrument tip at ``t`` through port ``p``.
+* :func:`arm_at_tip`: the configuration that puts the instrument tip at ``t`` through port ``p``;
+* for the compiled broad phase (:mod:`.broadphase`): :meth:`ArmCollision.link_tree` (the arm's joints and
+  objects as plain arrays), :meth:`ArmCollision.capsules` and :meth:`ArmCollision.pieces` (each mesh split
+  into up to :data:`CAPSULE_PIECES` pieces of its triangles, each piece a coal mesh with a bounding
+  capsule), :meth:`ArmCollision.surface_points`, :func:`held_shapes`, and :func:`first_within` (coal's
+  collision test on the pairs of pieces the broad phase leaves undecided).
 
 Configurations are the arm's actuated-joint vectors ``(n,)`` (``UrdfArm``'s order); joints off the
 actuated set stay where the arm holds them (``fixed_joints``, else 0).
