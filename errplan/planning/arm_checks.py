@@ -56,7 +56,7 @@ import numpy as np
 from ..errors import ErrplanError
 from ..kinematics import arm_for
 from ..jit import kernel_array
-from ..kinematics.urdf.broadphase import CLEAR, UNDECIDED, arm_motion
+from ..kinematics.urdf.broadphase import CLEAR, UNDECIDED, arm_motion, object_travel
 from ..kinematics.urdf.collision import (ArmCollision, HeldArm, arm_at_tip, clear_along_held, clearance_to_held,
                                          first_within, held_objects, held_shapes, min_clearance_along_held,
                                          within_held)
@@ -180,10 +180,11 @@ class ArmChecks:
         (module docstring): the same samples, coal's collision test only on the pairs of objects whose
         bounding volumes come closer than the clearance."""
         model, (port, length, ref, step, c), objects = self._kernel_args()
-        status, _, P, rows = arm_motion(*model, np.array((ax, ay, az)), np.array((bx, by, bz)), port, length, ref,
+        status, S, P, rows = arm_motion(*model, np.array((ax, ay, az)), np.array((bx, by, bz)), port, length, ref,
                                         step, c)
         if status == UNDECIDED:
-            return first_within(self.geo, P, objects, rows, c) < 0
+            travel = object_travel(model[2].reach, S) if len(S) > 1 else None  # a motion: exact distances, skipping
+            return first_within(self.geo, P, objects, rows, c, travel) < 0
         return status == CLEAR  # else out of reach, or two surface points closer than the clearance
 
     def point_ok(self, x: float, y: float, z: float) -> bool:

@@ -353,6 +353,22 @@ def joint_samples(reach, Q, c):
 
 
 @njit(cache=True)
+def object_travel(reach, S):
+    """``T[i, g]`` (k, G): the bound on how far a point of object ``g`` moves from the first sample of ``S``
+    (k, n) to sample ``i`` along the straight joint-space steps between them (``reach[g] . |dq|`` summed)."""
+    k, n = S.shape
+    G = reach.shape[0]
+    T = np.zeros((k, G))
+    for i in range(1, k):
+        for g in range(G):
+            s = 0.0
+            for j in range(n):
+                s += reach[g, j] * abs(S[i, j] - S[i - 1, j])
+            T[i, g] = T[i - 1, g] + s
+    return T
+
+
+@njit(cache=True)
 def arm_motion(chain, rmap, tree, held, a, b, port, L, ref, tip_step, c):
     """The moving arm's motion ``a -> b`` (a tip when ``a == b``) against the held arms (module docstring).
 
@@ -400,4 +416,4 @@ def tree_arrays(tree: LinkTree) -> LinkTree:
 
 
 __all__ = ["LinkTree", "HeldShapes", "place_objects", "sample_pairs", "segment_distance", "tip_configs",
-           "joint_samples", "arm_motion", "SLACK", "UNREACHABLE", "CLEAR", "UNDECIDED", "WITHIN", "points_within"]
+           "joint_samples", "object_travel", "arm_motion", "SLACK", "UNREACHABLE", "CLEAR", "UNDECIDED", "WITHIN", "points_within"]

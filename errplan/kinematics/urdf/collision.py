@@ -46,7 +46,7 @@ import numpy as np
 
 from ...errors import ErrplanError
 from .arm import UrdfArm
-from .broadphase import HeldShapes, LinkTree, tree_arrays
+from .broadphase import SLACK, HeldShapes, LinkTree, tree_arrays
 from .description import rpy_matrix
 
 KINDS = ("collision", "visual")
@@ -697,31 +697,51 @@ def held_objects(held: Sequence[HeldArm]) -> list:
     return out
 
 
-def first_within(geo: ArmCollision, P: np.ndarray, objects: Sequence, rows: np.ndarray, clearance: float) -> int:
+def first_within(geo: ArmCollision, P: np.ndarray, objects: Sequence, rows: np.ndarray, clearance: float,
+                 travel: np.ndarray | None = None) -> int:
     """The first row ``(sample, piece of geo, held piece)`` of ``rows`` (m, 3) whose two pieces
-    (:meth:`ArmCollision.pieces`) lie closer than ``clearance`` (coal's collision test with that security
-    margin, as :func:`within_held`), the moving piece's object placed at ``P[sample, object]`` ((k, G, 4,
-    4), the compiled broad phase's placements) and the held piece as ``objects`` (:func:`held_objects`)
-    holds it; -1 when none does."""
+    (:meth:`ArmCollision.pieces`) lie closer than ``clearance``, the moving piece's object placed at
+    ``P[sample, object]`` ((k, G, 4, 4), the compiled broad phase's placements) and the held piece as
+    ``objects`` (:func:`held_objects`) holds it; -1 when none does.
+
+    Without ``travel``, coal's collision test with security margin ``clearance`` (as :func:`within_held`).
+    With ``travel`` (k, G) (:func:`~.broadphase.object_travel`: how far a point of each object may have moved
+    from the first sample), coal's exact distance ``d``, and a later row of the same two pieces is skipped
+    while its object has moved at most ``d - clearance`` since (the distance is 1-Lipschitz in the moving
+    piece's points, :func:`clear_along`'s argument): a motion asks coal once per pair of pieces and stretch
+    of motion rather than once per sample."""
     import coal
 
     if not len(rows):
         return -1
+    c = float(clearance)
     req = coal.CollisionRequest()
-    req.security_margin = float(clearance)
+    req.security_margin = c
     req.enable_contact = False
+    dreq = coal.DistanceRequest()
     placed: dict = {}
+    known: dict = {}
     pieces = geo.pieces()
     owner = geo.capsules()[0]
     for r, (s, p, k) in enumerate(rows.tolist()):
         g = int(owner[p])
+        if travel is not None:
+            seen = known.get((p, k))
+            if seen is not None and seen[1] - (travel[s, g] - travel[seen[0], g]) >= c + SLACK:
+                continue
         T = placed.get((s, g))
         if T is None:
             M = P[s, g]
             T = placed[(s, g)] = coal.Transform3s(np.ascontiguousarray(M[:3, :3]), np.ascontiguousarray(M[:3, 3]))
         hg, hT = objects[k]
-        if coal.collide(pieces[p], T, hg, hT, req, coal.CollisionResult()):
+        if travel is None:
+            if coal.collide(pieces[p], T, hg, hT, req, coal.CollisionResult()):
+                return r
+            continue
+        d = float(coal.distance(pieces[p], T, hg, hT, dreq, coal.DistanceResult()))
+        if not d >= c:
             return r
+        known[(p, k)] = (s, d)
     return -1
 
 
