@@ -40,7 +40,9 @@ at every tip sample (the same branch rules as :meth:`ArmChecks.motion_configs`),
 the links' placements and a conservative broad phase against the held arms (per object a bounding sphere,
 then the capsules of its mesh pieces; a pair farther apart than the clearance is clear, two surface
 points closer than it decide a violation; samples skipped as above). Only the pairs of mesh pieces it
-cannot decide go to coal's collision test (:func:`~errplan.kinematics.urdf.collision.first_within`). The
+cannot decide go to coal (:func:`~errplan.kinematics.urdf.collision.first_within`): at a tip its collision
+test with the clearance as security margin; along a motion its exact distance, so that the later samples of
+the same two pieces are skipped while their link has moved less than that distance above the clearance. The
 answers are the Python check's (:meth:`ArmChecks.point_ok_exact`, :meth:`ArmChecks.motion_ok_exact`, kept
 as the reference; tests/test_arm_broadphase.py compares them, and both with coal's distance); the
 reported clearances (:meth:`ArmChecks.path_clearance`, :meth:`ArmChecks.rest_clearance`) stay coal's exact
