@@ -6,11 +6,9 @@ Python check it replaces (motions), on random states and motions of tests/test_p
 (arms whose links come within the clearance and out of it across the region)."""
 from __future__ import annotations
 
-import math
 import pickle
 
 import numpy as np
-import pinocchio as pin
 import pytest
 
 from arms import ARMS
