@@ -1,6 +1,6 @@
 """Planner benchmark: cost ratio to the grid optimum and time, per OMPL planner, planar and spatial.
 
-    python benchmarks/planning.py [--dims 2,3] [--time 1.0] [--random 8] [--random3 8]
+    python benchmarks/planning.py [--dims 2,3,arms] [--time 1.0] [--random 8] [--random3 8]
                                   [--planners RRTstar,BITstar,...] [--uncapped] [--no-grid-seed]
                                   [--resolution 0.002] [--seed 11] [--spatial-scenario] [--workers N]
 
@@ -18,6 +18,17 @@ with weight 4 (not certifiable); per objective the query across the port-axis ho
 ``--random3`` seeded random queries (half hard). With ``--spatial-scenario``, also the fields of
 scenarios/phantom15_spatial.toml (computed here, ``--workers``). Reference: grid_optimum with moves
 up to 3 cells (290 directions, at most 2.5 % above the continuous optimum in free space).
+
+Two arms (``--dims arms``): the two UR5s of scenarios/ur5_triad.toml (``--arm-scenario`` another setup) with
+``[setup] arm_clearance``. Per moving arm: the cost of one arm check, the Python check
+(``ArmChecks.point_ok_exact``/``motion_ok_exact``: pinocchio placements, coal on every pair whose bounding
+spheres come within the clearance) against the compiled one (``point_ok``/``motion_ok``: tips, inverse
+kinematics, placements and a capsule broad phase compiled, coal on the undecided mesh pieces only), on
+``--arm-states`` seeded random tips of the fields' region and as many straight motions of 3 cm from them,
+with how many answers differ (must be 0), in CPU time (the process's, so that other work on the machine
+does not count); then each query of that arm planned on the scenario's fields
+(``--resolution3``, default the scenario's) with either check: iterations, what stopped the search, search
+time, cost.
 
 For each planner: ``raw`` = cost of the OMPL solution / grid optimum, ``final`` = after errplan's
 candidates and refine_path (what `errplan plan` returns), ``from OMPL`` = queries whose returned
@@ -186,9 +197,76 @@ def spatial(args, planners) -> None:
                                       f"queries, {args.time:g} s budget, {mode}, {seed}"))
 
 
+def arm_checks_case(args) -> None:
+    from errplan.api import load_setup
+    from errplan.models import arm_model
+    from errplan.planning.arm_checks import ArmChecks
+
+    path = Path(args.arm_scenario) if args.arm_scenario else ROOT / "scenarios" / "ur5_triad.toml"
+    st = load_setup(path)
+    cost_rows, plan_rows = [], []
+    for name in st.arm_names:
+        sc = st.moving(name)
+        checks = ArmChecks.from_model(arm_model(sc))
+        if checks is None:
+            raise SystemExit(f"{path}: no [setup] arm_clearance, so no arm checks")
+        rng = np.random.default_rng(args.seed)
+        lo = np.array([sc.fields.region[k][0] for k in "xyz"])
+        hi = np.array([sc.fields.region[k][1] for k in "xyz"])
+        tips = lo + rng.random((args.arm_states, 3)) * (hi - lo)
+        d = rng.normal(size=tips.shape)
+        ends = tips + 0.03 * d / np.linalg.norm(d, axis=1)[:, None]
+        checks.point_ok(*tips[0])  # compiled (or loaded) before the clock
+        row = [name]
+        answers = {}
+        for label, fn, pairs in (("state", "point_ok", [(t,) for t in tips]),
+                                 ("motion", "motion_ok", list(zip(tips, ends)))):
+            for way in ("_exact", ""):
+                f = getattr(checks, fn + way)
+                t0 = time.process_time()  # CPU time: the machine may be shared
+                answers[label + way] = [f(*np.concatenate(p)) for p in pairs]
+                row.append((time.process_time() - t0) / len(pairs) * 1e3)
+            row.append(int(np.sum(np.array(answers[label + "_exact"]) != np.array(answers[label]))))
+        row.insert(4, float(np.mean(answers["state"])))
+        row.append(float(np.mean(answers["motion"])))
+        cost_rows.append(row)
+        if not args.arm_plan:
+            continue
+        t0 = time.perf_counter()
+        mf = fields_for_planning(sc, args.resolution3, workers=args.workers)
+        tf = time.perf_counter() - t0
+        cm = costmap_for(sc, mf)
+        for q in sc.queries:
+            for way, compiled in (("Python", False), ("compiled", True)):
+                cm.arm_checks.compiled = compiled
+                stt = PlannerSettings.from_model(sc, time=args.time if args.arm_time is None else args.arm_time)
+                t0 = time.perf_counter()
+                try:
+                    qp = plan_query(cm, q.start, q.goal, stt, name=q.name)
+                except ErrplanError as e:
+                    plan_rows.append([q.name, way, "-", "failed", time.perf_counter() - t0, "-", str(e)[:40]])
+                    continue
+                plan_rows.append([q.name, way, qp.iterations, qp.stopped_by, qp.time_solve, qp.planned.cost,
+                                  f"{tf:.0f} s fields"])
+    print(format_table(["arm", "state Python (ms)", "state compiled (ms)", "states differing", "states kept",
+                        "motion Python (ms)", "motion compiled (ms)", "motions differing", "motions kept"], cost_rows,
+                       f"arm checks on {path.name}: {args.arm_states} random tips of the fields' region and as "
+                       "many 3 cm motions from them, CPU time per check"))
+    if plan_rows:
+        print()
+        print(format_table(["query", "arm check", "iterations", "stopped by", "search (s)", "cost", "note"], plan_rows,
+                           f"plans on {path.name} with either arm check (seed of the scenario, "
+                           f"{args.time if args.arm_time is None else args.arm_time:g} s budget)"))
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--dims", default="2,3", help="which tables: 2 (planar), 3 (spatial) or both")
+    ap.add_argument("--dims", default="2,3", help="which tables: 2 (planar), 3 (spatial), arms (two-arm checks)")
+    ap.add_argument("--arm-scenario", default=None, help="the setup of --dims arms (default scenarios/ur5_triad.toml)")
+    ap.add_argument("--arm-states", type=int, default=300, help="random tips (and motions) per arm of --dims arms")
+    ap.add_argument("--arm-plan", action=argparse.BooleanOptionalAction, default=True,
+                    help="also plan the setup's queries with either check (--dims arms)")
+    ap.add_argument("--arm-time", type=float, default=None, help="time budget of those plans (default --time)")
     ap.add_argument("--time", type=float, default=1.0)
     ap.add_argument("--random", type=int, default=8, help="planar random queries per scenario (half of them hard)")
     ap.add_argument("--random3", type=int, default=8, help="spatial random queries per objective (half hard)")
@@ -208,12 +286,15 @@ def main(argv=None) -> int:
     for p in planners:
         if p not in PLANNERS:
             raise SystemExit(f"unknown planner {p}; choose from {', '.join(PLANNERS)}")
-    dims = {int(d) for d in args.dims.split(",")}
-    if 2 in dims:
+    dims = set(args.dims.split(","))
+    if "2" in dims:
         planar(args, planners)
         print()
-    if 3 in dims:
+    if "3" in dims:
         spatial(args, planners)
+        print()
+    if "arms" in dims:
+        arm_checks_case(args)
     return 0
 
 

@@ -33,9 +33,20 @@ singularities), which this check does not bound. The ``arm_clearance`` itself is
 independent test samples the tips four times finer, solves the inverse kinematics from scratch and
 measures with a second distance method.
 
-The planner's hot path: the checks take the six plain floats of a motion; each is one vectorised
-inverse-kinematics call (every tip sample at once, started from the configuration at ``a``; the samples
-are redone one by one from the previous one only where that jumps branch), then the coal loop.
+The planner's hot path (:meth:`ArmChecks.point_ok`, :meth:`ArmChecks.motion_ok`; ``compiled`` True) takes
+the six plain floats of a motion to one compiled call
+(:func:`~errplan.kinematics.urdf.broadphase.arm_motion`): the wrists on the shaft, the inverse kinematics
+at every tip sample (the same branch rules as :meth:`ArmChecks.motion_configs`), the joint-space samples,
+the links' placements and a conservative broad phase against the held arms (per object a bounding sphere,
+then the capsules of its mesh pieces; a pair farther apart than the clearance is clear, two surface
+points closer than it decide a violation; samples skipped as above). Only the pairs of mesh pieces it
+cannot decide go to coal (:func:`~errplan.kinematics.urdf.collision.first_within`): at a tip its collision
+test with the clearance as security margin; along a motion its exact distance, so that the later samples of
+the same two pieces are skipped while their link has moved less than that distance above the clearance. The
+answers are the Python check's (:meth:`ArmChecks.point_ok_exact`, :meth:`ArmChecks.motion_ok_exact`, kept
+as the reference; tests/test_arm_broadphase.py compares them, and both with coal's distance); the
+reported clearances (:meth:`ArmChecks.path_clearance`, :meth:`ArmChecks.rest_clearance`) stay coal's exact
+distances computed as before.
 """
 from __future__ import annotations
 
@@ -46,8 +57,11 @@ import numpy as np
 
 from ..errors import ErrplanError
 from ..kinematics import arm_for
+from ..jit import kernel_array
+from ..kinematics.urdf.broadphase import CLEAR, UNDECIDED, arm_motion, object_travel
 from ..kinematics.urdf.collision import (ArmCollision, HeldArm, arm_at_tip, clear_along_held, clearance_to_held,
-                                         min_clearance_along_held, within_held)
+                                         first_within, held_objects, held_shapes, min_clearance_along_held,
+                                         within_held)
 
 #: m: the spacing of the tip samples along a straight motion (each one inverse kinematics solve)
 TIP_STEP = 0.001
@@ -69,6 +83,12 @@ class ArmChecks:
     clearance: float
     reference: np.ndarray | None = None
     tip_step: float = TIP_STEP
+    compiled: bool = True
+
+    def __getstate__(self):
+        state = dict(self.__dict__)
+        state.pop("_kargs", None)  # coal's transforms: rebuilt on first use
+        return state
 
     @classmethod
     def from_model(cls, m) -> "ArmChecks | None":
@@ -143,14 +163,54 @@ class ArmChecks:
         return Q
 
     # ------------------------------------------------------------------ checks
+    def _kernel_args(self) -> tuple:
+        """What :func:`~errplan.kinematics.urdf.broadphase.arm_motion` takes besides the motion, and the
+        held objects for coal (built on first use)."""
+        args = self.__dict__.get("_kargs")
+        if args is None:
+            chain, rmap = self.arm.kernel()
+            ref = np.full(self.arm.n, np.nan) if self.reference is None else np.asarray(self.reference, float)
+            args = self.__dict__["_kargs"] = (
+                (chain, rmap, self.geo.link_tree(), held_shapes(self.held)),
+                (kernel_array(np.array(self.port, float)), float(self.length), kernel_array(ref.copy()),
+                 float(self.tip_step), float(self.clearance)),
+                held_objects(self.held))
+        return args
+
+    def compiled_ok(self, ax: float, ay: float, az: float, bx: float, by: float, bz: float) -> bool:
+        """:meth:`motion_ok_exact` (:meth:`point_ok_exact` when ``a == b``) by the compiled broad phase
+        (module docstring): the same samples, coal's collision test only on the pairs of objects whose
+        bounding volumes come closer than the clearance."""
+        model, (port, length, ref, step, c), objects = self._kernel_args()
+        status, S, P, rows = arm_motion(*model, np.array((ax, ay, az)), np.array((bx, by, bz)), port, length, ref,
+                                        step, c)
+        if status == UNDECIDED:
+            travel = object_travel(model[2].reach, S) if len(S) > 1 else None  # a motion: exact distances, skipping
+            return first_within(self.geo, P, objects, rows, c, travel) < 0
+        return status == CLEAR  # else out of reach, or two surface points closer than the clearance
+
     def point_ok(self, x: float, y: float, z: float) -> bool:
-        q = self.config((x, y, z))
-        return q is not None and not within_held(self.geo, q, self.held, self.clearance)
+        """The arm at tip ``(x, y, z)`` exists and keeps the clearance (module docstring)."""
+        if self.compiled:
+            return self.compiled_ok(x, y, z, x, y, z)
+        return self.point_ok_exact(x, y, z)
 
     def motion_ok(self, ax: float, ay: float, az: float, bx: float, by: float, bz: float) -> bool:
         """Every sample of the motion ``a -> b`` keeps the clearance (module docstring)."""
+        if self.compiled:
+            return self.compiled_ok(ax, ay, az, bx, by, bz)
+        return self.motion_ok_exact(ax, ay, az, bx, by, bz)
+
+    def point_ok_exact(self, x: float, y: float, z: float) -> bool:
+        """:meth:`point_ok` in Python: the placements by pinocchio, every pair whose bounding spheres come
+        closer than the clearance asked to coal (the reference of the compiled check)."""
+        q = self.config((x, y, z))
+        return q is not None and not within_held(self.geo, q, self.held, self.clearance)
+
+    def motion_ok_exact(self, ax: float, ay: float, az: float, bx: float, by: float, bz: float) -> bool:
+        """:meth:`motion_ok` in Python (:meth:`point_ok_exact`'s way), the reference of the compiled check."""
         if ax == bx and ay == by and az == bz:
-            return self.point_ok(ax, ay, az)
+            return self.point_ok_exact(ax, ay, az)
         Q = self.motion_configs((ax, ay, az), (bx, by, bz))
         return Q is not None and clear_along_held(self.geo, Q, self.held, self.clearance)
 
@@ -187,6 +247,8 @@ def attach(cm, checks: ArmChecks | None):
         return cm
     if cm.dim != 3:
         raise ErrplanError("arm checks are spatial: the cost map is planar")
+    if checks.compiled:  # compile (a first run) or load the kernel now, not inside a search's time budget
+        checks.compiled_ok(*checks.port, *checks.port)
     return cm.and_clear(checks.motion_ok)
 
 

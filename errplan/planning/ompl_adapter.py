@@ -10,8 +10,8 @@
   vertices; with an anatomy, every tip of the motion is also robustly clear (exact: the hull of the
   port box and the motion's two ends, :mod:`errplan.anatomy`); the cost map's further checks ride on the
   same call (``cm._clear``): the endoscope's view, and the arms outside the body
-  (:mod:`errplan.planning.arm_checks`, the dearest, last: about 1 ms per state and 20 ms per motion on two
-  UR5s, so with arm checks a search usually stops at its time limit rather than its iteration cap);
+  (:mod:`errplan.planning.arm_checks`, the dearest, last: compiled with a capsule broad phase, coal's
+  mesh queries only where the arms come near each other);
 - **objective** (:class:`FieldObjective`): ``integral (1 + weight * metric) ds``, exact on the
   multilinear field, computed in ``motionCost`` by the compiled walk; ``motionCostHeuristic`` is the
   admissible ``distance * min(1 + weight * metric)``. (In ompl 2.0.1 a Python

@@ -18,7 +18,12 @@ overlap. This is the only module of errplan that imports coal or builds a ``Geom
   :func:`min_clearance_along_held`: the same against several arms held still, their placements computed
   once (the planner's arm checks, :mod:`errplan.planning.arm_checks`); :func:`within_held` answers "closer
   than c?" by coal's collision test with security margin c, about a hundred times cheaper than a distance;
-* :func:`arm_at_tip`: the configuration that puts the instrument tip at ``t`` through port ``p``.
+* :func:`arm_at_tip`: the configuration that puts the instrument tip at ``t`` through port ``p``;
+* for the compiled broad phase (:mod:`.broadphase`): :meth:`ArmCollision.link_tree` (the arm's joints and
+  objects as plain arrays), :meth:`ArmCollision.capsules` and :meth:`ArmCollision.pieces` (each mesh split
+  into up to :data:`CAPSULE_PIECES` pieces of its triangles, each piece a coal mesh with a bounding
+  capsule), :meth:`ArmCollision.surface_points`, :func:`held_shapes`, and :func:`first_within` (coal's
+  collision test on the pairs of pieces the broad phase leaves undecided).
 
 Configurations are the arm's actuated-joint vectors ``(n,)`` (``UrdfArm``'s order); joints off the
 actuated set stay where the arm holds them (``fixed_joints``, else 0).
@@ -41,6 +46,7 @@ import numpy as np
 
 from ...errors import ErrplanError
 from .arm import UrdfArm
+from .broadphase import SLACK, HeldShapes, LinkTree, tree_arrays
 from .description import rpy_matrix
 
 KINDS = ("collision", "visual")
@@ -207,6 +213,98 @@ class ArmCollision:
         dq = np.abs(np.asarray(dq, dtype=float))
         return float(np.max(self.reach @ dq)) if len(self.reach) else 0.0
 
+    # ------------------------------------------------------------------ the compiled broad phase
+    def link_tree(self) -> LinkTree:
+        """The arm's joints and objects as plain arrays for the compiled broad phase
+        (:class:`~.broadphase.LinkTree`): pinocchio's kinematic tree with every joint off the actuated set
+        at its held value, each actuated joint's axis read from pinocchio's own motion of it, the objects'
+        bounding spheres and capsules (:meth:`capsules`), :attr:`reach`. Built once."""
+        tree = getattr(self, "_tree", None)
+        if tree is not None:
+            return tree
+        import pinocchio as pin
+
+        arm, model = self.arm, self.arm.model
+        data = model.createData()
+        act = list(arm._act_ids)
+        pin.forwardKinematics(model, data, arm.pinocchio_configuration(np.zeros(arm.n)))
+        J = model.njoints - 1
+        jparent = np.array([model.parents[j] - 1 for j in range(1, model.njoints)], np.int64)
+        jconst = np.array([data.liMi[j].homogeneous for j in range(1, model.njoints)]).reshape(J, 4, 4)
+        jact = np.full(J, -1, np.int64)
+        jkind = np.zeros(J, np.int64)
+        jaxis = np.zeros((J, 3))
+        for k, j in enumerate(act):
+            C = model.jointPlacements[j].homogeneous
+            unit = np.zeros(arm.n)
+            unit[k] = 1.0
+            pin.forwardKinematics(model, data, arm.pinocchio_configuration(unit))
+            X = np.linalg.solve(C, data.liMi[j].homogeneous)  # the joint's own motion at q_k = 1
+            jact[j - 1] = k
+            jconst[j - 1] = C
+            if _is_prismatic(model.joints[j]):
+                jkind[j - 1] = 1
+                jaxis[j - 1] = X[:3, 3]
+            else:
+                jaxis[j - 1] = np.asarray(pin.log3(X[:3, :3]), float)  # angle 1 rad about the unit axis
+        objs = self.geometry_model.geometryObjects
+        gparent = np.array([o.parentJoint - 1 for o in objs], np.int64)
+        gplace = np.array([o.placement.homogeneous for o in objs]).reshape(len(objs), 4, 4)
+        caps = self.capsules()
+        start = np.searchsorted(caps[0], np.arange(len(objs) + 1), side="left").astype(np.int64)
+        pcap, pts = self.surface_points()
+        pstart = np.searchsorted(pcap, np.arange(len(caps[0]) + 1), side="left").astype(np.int64)
+        self._tree = tree_arrays(LinkTree(jparent, jconst, jact, jkind, jaxis, gparent, gplace, self.base, self.reach,
+                                          self._center, self._radius, caps[1], caps[2], caps[3], start, pts, pstart))
+        return self._tree
+
+    def capsules(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Bounding capsules of the objects, in each object's frame: ``(object (C,) int, a (C, 3), b (C, 3),
+        radius (C,))``, sorted by object. A mesh is split along its principal axis into up to
+        :data:`CAPSULE_PIECES` groups of triangles (by their centroids), each group bounded by one capsule
+        holding its triangles' vertices (so, being convex, its triangles) (:func:`_object_capsules`). A
+        primitive gets one capsule holding the corners of its bounding box. Built once."""
+        caps = getattr(self, "_capsules", None)
+        if caps is None:
+            obj, A, B, R, pieces = [], [], [], [], []
+            for g, geom in enumerate(self._geoms):
+                groups = _object_capsules(geom, self._hulls[g])
+                for a, b, r, tris in groups:
+                    obj.append(g)
+                    A.append(a)
+                    B.append(b)
+                    R.append(r)
+                    pieces.append(geom if len(groups) == 1 else _sub_mesh(geom, tris))
+            caps = self._capsules = (np.array(obj, np.int64), np.array(A, float).reshape(-1, 3),
+                                     np.array(B, float).reshape(-1, 3), np.array(R, float))
+            self._pieces = pieces
+        return caps
+
+    def pieces(self) -> list:
+        """One coal geometry per capsule of :meth:`capsules`, in the object's frame: the object itself where
+        it has one capsule, else the mesh of that capsule's triangles (the pieces of an object partition its
+        triangles, so two objects come closer than ``c`` iff two of their pieces do)."""
+        self.capsules()
+        return self._pieces
+
+    def surface_points(self) -> tuple[np.ndarray, np.ndarray]:
+        """Points on the objects, in each object's frame: ``(capsule (k,) int, points (k, 3))``, sorted by
+        capsule (:meth:`capsules`): the vertices of each mesh piece's triangles (a primitive has none). Two
+        pieces lie no farther apart than any two of their points: the broad phase's upper bound."""
+        pts = getattr(self, "_surface", None)
+        if pts is None:
+            self.capsules()
+            cap, X = [], []
+            for k, piece in enumerate(self._pieces):
+                V, F = _mesh_of(piece)
+                if F is None:
+                    continue
+                P = V[np.unique(F)]
+                cap += [k] * len(P)
+                X.append(P)
+            pts = self._surface = (np.array(cap, np.int64), np.concatenate(X) if X else np.zeros((0, 3)))
+        return pts
+
     # ------------------------------------------------------------------ triangle meshes (for drawing)
     def local_meshes(self) -> list[tuple[np.ndarray, np.ndarray]]:
         """Each object as a triangle mesh in its own frame: ``(vertices (k, 3), faces (m, 3))``. Meshes as
@@ -270,6 +368,99 @@ def _triangles(geom, name: str) -> tuple[np.ndarray, np.ndarray]:
 
     hull = ConvexHull(pts)
     return pts, np.asarray(hull.simplices, np.int64)
+
+
+#: the most capsules one object's triangles are split into (:meth:`ArmCollision.capsules`)
+CAPSULE_PIECES = 8
+
+
+def bounding_capsule(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """A capsule ``(a, b, r)`` holding every point (k, 3): its axis along the points' principal direction
+    through the middle of their extent across it, the radius their largest distance from that line, the
+    segment as short as that radius allows; then the radius is the largest exact distance of a point from
+    the segment (rounding included), so every point lies inside."""
+    X = np.asarray(points, float)
+    m = X.mean(axis=0)
+    _, _, Vt = np.linalg.svd(X - m, full_matrices=False) if len(X) > 1 else (None, None, np.eye(3))
+    u = Vt[0] / np.linalg.norm(Vt[0])
+    E = np.linalg.svd(np.eye(3) - np.outer(u, u))[0][:, :2]  # two unit vectors across u
+    Y = (X - m) @ E
+    m = m + E @ (0.5 * (Y.min(axis=0) + Y.max(axis=0)))
+    t = (X - m) @ u
+    rad = np.linalg.norm((X - m) - t[:, None] * u, axis=1)
+    R = float(rad.max())
+    h = np.sqrt(np.maximum(R * R - rad * rad, 0.0))
+    hi, lo = float(np.max(t - h)), float(np.min(t + h))
+    if lo > hi:
+        lo = hi = 0.5 * (lo + hi)
+    a, b = m + lo * u, m + hi * u
+    ab = b - a
+    L2 = float(ab @ ab)
+    s = np.clip(((X - a) @ ab) / L2, 0.0, 1.0) if L2 > 0.0 else np.zeros(len(X))
+    r = float(np.max(np.linalg.norm(X - (a + s[:, None] * ab), axis=1)))
+    return a, b, r * (1.0 + 1e-12) + 1e-12
+
+
+def _object_capsules(geom, hull: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, float]]:
+    """:meth:`ArmCollision.capsules` of one object (``hull``: :func:`_hull_points`) as ``(a, b, r, triangles)``
+    (the triangle indices of the capsule's piece, None for a primitive): a mesh's triangles split in two
+    along a group's principal axis (at the median of their centroids), the largest capsule first, up to
+    :data:`CAPSULE_PIECES` groups (smaller pieces: tighter bounds, and cheaper exact queries)."""
+    V, F = _mesh_of(geom)
+    if F is None:
+        return [bounding_capsule(hull) + (None,)]
+
+    def vol(cap):
+        a, b, r = cap
+        return math.pi * r * r * float(np.linalg.norm(b - a)) + 4.0 / 3.0 * math.pi * r ** 3
+
+    groups = [(np.arange(len(F)), bounding_capsule(V[np.unique(F)]))]
+    cent = V[F].mean(axis=1)
+    while len(groups) < CAPSULE_PIECES:
+        order = sorted(range(len(groups)), key=lambda i: -vol(groups[i][1]))
+        for i in order:
+            idx, cap = groups[i]
+            if len(idx) < 4:
+                continue
+            C = cent[idx]
+            u = np.linalg.svd(C - C.mean(axis=0), full_matrices=False)[2][0]
+            t = C @ u
+            cut = np.median(t)
+            left, right = idx[t <= cut], idx[t > cut]
+            if not len(left) or not len(right):
+                continue
+            cl, cr = bounding_capsule(V[np.unique(F[left])]), bounding_capsule(V[np.unique(F[right])])
+            groups[i:i + 1] = [(left, cl), (right, cr)]
+            break
+        else:
+            break
+    return [cap + (idx,) for idx, cap in groups]
+
+
+def _sub_mesh(geom, tris: np.ndarray):
+    """A coal mesh of the triangles ``tris`` (indices) of the mesh ``geom``, in the same frame."""
+    import coal
+
+    V, F = _mesh_of(geom)
+    F = F[tris]
+    used, inv = np.unique(F, return_inverse=True)
+    m = coal.BVHModelOBBRSS()
+    m.beginModel(len(F), len(used))
+    m.addVertices(np.ascontiguousarray(V[used]))
+    m.addTriangles(np.ascontiguousarray(inv.reshape(-1, 3), dtype=np.int64))
+    m.endModel()
+    return m
+
+
+def _mesh_of(geom) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """A triangle mesh's vertices (k, 3) and faces (m, 3) in its own frame, ``(None, None)`` for a primitive."""
+    verts = getattr(geom, "vertices", None)
+    if not (callable(verts) and hasattr(geom, "tri_indices") and getattr(geom, "num_tris", 0) > 0):
+        return None, None
+    V = np.asarray(verts(), float)
+    tri = geom.tri_indices
+    F = np.array([[t[0], t[1], t[2]] for t in (tri(i) for i in range(geom.num_tris))], np.int64).reshape(-1, 3)
+    return V, F
 
 
 def _is_prismatic(joint) -> bool:
@@ -470,6 +661,90 @@ class HeldArm:
         self.centers = np.einsum("gij,gj->gi", self.P[:, :3, :3], geo._center) + self.P[:, :3, 3]
 
 
+def held_shapes(held: Sequence[HeldArm]) -> HeldShapes:
+    """The held arms' objects (every held arm's in turn) for the compiled broad phase: their bounding
+    spheres and capsules (:meth:`ArmCollision.capsules`) placed in the world (:class:`~.broadphase.HeldShapes`)."""
+    centers, radius, A, B, R, start = [np.zeros((0, 3))], [np.zeros(0)], [np.zeros((0, 3))], [np.zeros((0, 3))], \
+        [np.zeros(0)], [0]
+    X, pstart = [np.zeros((0, 3))], [0]
+    for h in held:
+        obj, a, b, r = h.geo.capsules()
+        pcap, pts = h.geo.surface_points()
+        centers.append(h.centers)
+        radius.append(h.geo._radius)
+        for g in range(len(h.geo._geoms)):
+            M = h.P[g]
+            sel = obj == g
+            A.append(a[sel] @ M[:3, :3].T + M[:3, 3])
+            B.append(b[sel] @ M[:3, :3].T + M[:3, 3])
+            R.append(r[sel])
+            start.append(start[-1] + int(np.count_nonzero(sel)))
+            for k in np.flatnonzero(sel):
+                X.append(pts[pcap == k] @ M[:3, :3].T + M[:3, 3])
+                pstart.append(pstart[-1] + int(np.count_nonzero(pcap == k)))
+    arrays = [np.ascontiguousarray(np.concatenate(x), float) for x in (centers, radius, A, B, R)]
+    return HeldShapes(*arrays, np.array(start, np.int64), np.ascontiguousarray(np.concatenate(X), float),
+                      np.array(pstart, np.int64))
+
+
+def held_objects(held: Sequence[HeldArm]) -> list:
+    """``(coal geometry, coal transform)`` of every held arm's pieces (:meth:`ArmCollision.pieces`), in
+    :func:`held_shapes`' order of capsules."""
+    out = []
+    for h in held:
+        obj = h.geo.capsules()[0]
+        out += [(piece, h.T[int(g)]) for piece, g in zip(h.geo.pieces(), obj)]
+    return out
+
+
+def first_within(geo: ArmCollision, P: np.ndarray, objects: Sequence, rows: np.ndarray, clearance: float,
+                 travel: np.ndarray | None = None) -> int:
+    """The first row ``(sample, piece of geo, held piece)`` of ``rows`` (m, 3) whose two pieces
+    (:meth:`ArmCollision.pieces`) lie closer than ``clearance``, the moving piece's object placed at
+    ``P[sample, object]`` ((k, G, 4, 4), the compiled broad phase's placements) and the held piece as
+    ``objects`` (:func:`held_objects`) holds it; -1 when none does.
+
+    Without ``travel``, coal's collision test with security margin ``clearance`` (as :func:`within_held`).
+    With ``travel`` (k, G) (:func:`~.broadphase.object_travel`: how far a point of each object may have moved
+    from the first sample), coal's exact distance ``d``, and a later row of the same two pieces is skipped
+    while its object has moved at most ``d - clearance`` since (the distance is 1-Lipschitz in the moving
+    piece's points, :func:`clear_along`'s argument): a motion asks coal once per pair of pieces and stretch
+    of motion rather than once per sample."""
+    import coal
+
+    if not len(rows):
+        return -1
+    c = float(clearance)
+    req = coal.CollisionRequest()
+    req.security_margin = c
+    req.enable_contact = False
+    dreq = coal.DistanceRequest()
+    placed: dict = {}
+    known: dict = {}
+    pieces = geo.pieces()
+    owner = geo.capsules()[0]
+    for r, (s, p, k) in enumerate(rows.tolist()):
+        g = int(owner[p])
+        if travel is not None:
+            seen = known.get((p, k))
+            if seen is not None and seen[1] - (travel[s, g] - travel[seen[0], g]) >= c + SLACK:
+                continue
+        T = placed.get((s, g))
+        if T is None:
+            M = P[s, g]
+            T = placed[(s, g)] = coal.Transform3s(np.ascontiguousarray(M[:3, :3]), np.ascontiguousarray(M[:3, 3]))
+        hg, hT = objects[k]
+        if travel is None:
+            if coal.collide(pieces[p], T, hg, hT, req, coal.CollisionResult()):
+                return r
+            continue
+        d = float(coal.distance(pieces[p], T, hg, hT, dreq, coal.DistanceResult()))
+        if not d >= c:
+            return r
+        known[(p, k)] = (s, d)
+    return -1
+
+
 def _lower_bound(geo: ArmCollision, P: np.ndarray, held: Sequence[HeldArm]) -> float:
     """The smallest bounding-sphere gap between arm ``geo`` at placements ``P`` and the held arms: a lower
     bound of their clearance (every point of an object lies in its sphere)."""
@@ -601,4 +876,5 @@ def arm_at_tip(arm: UrdfArm, tip, port, length: float, near=None) -> np.ndarray:
 
 __all__ = ["ArmCollision", "Closest", "arm_clearance", "clearances", "clear_of", "closest_pair", "min_clearance_along",
            "clear_along", "motion_samples", "arm_at_tip", "HeldArm", "clearance_to_held", "within_held", "clear_along_held",
-           "min_clearance_along_held"]
+           "min_clearance_along_held", "held_shapes", "held_objects", "first_within", "bounding_capsule",
+           "CAPSULE_PIECES"]
