@@ -127,13 +127,14 @@ def arm_rows(shared, item) -> np.ndarray:
 
 
 def patient_rows(shared, item) -> np.ndarray:
-    """One task: (k,) the smallest link-to-body distances of one arm at configurations ``Q``; ``shared =
-    (ArmCollisions per base, BodySolid)``, ``item = (base, Q (k, n))`` (NaN where the arm cannot stand)."""
-    from ..kinematics.urdf.patient import patient_clearances
+    """One task: (k,) whether one arm's links keep the patient clearance at configurations ``Q``; ``shared =
+    (ArmCollisions per base, BodySolid, patient_clearance)``, ``item = (base, Q (k, n))`` (False where the arm
+    cannot stand)."""
+    from ..kinematics.urdf.patient import patient_clear
 
-    geos, body = shared
+    geos, body, c = shared
     b, Q = item
-    return patient_clearances(geos[b], Q, body)
+    return patient_clear(geos[b], Q, body, c)
 
 
 def _endoscope_candidates(model, endo, spacing: float, region: dict) -> np.ndarray:
@@ -327,6 +328,21 @@ def _moved(sc, pose):
     return sc.with_(robot=replace(sc.robot, base_position=tuple(pose[0]), base_rpy=tuple(pose[1])))
 
 
+def _share_maps(scenarios, done: list) -> None:
+    """Each arm of ``scenarios`` (one per base) takes the reachability map of an arm in ``done`` that differs
+    from it only by the base's position, moved with the base (:func:`errplan.kinematics.urdf.reachmap.
+    share_translated`), instead of building its own; then joins ``done``."""
+    from ..kinematics import arm_for
+    from ..kinematics.urdf.reachmap import share_translated
+
+    for s_b in scenarios:
+        a = arm_for(s_b.robot)
+        for src in done:
+            if share_translated(a, src):
+                break
+        done.append(a)
+
+
 def _union(parts: list) -> np.ndarray:
     """The rows of the arrays ``parts`` once each, in order of first appearance."""
     seen, out = set(), []
@@ -369,6 +385,7 @@ def place(st, tol, bases: dict | None, *, workers: int | None = 1, scheduler: st
     bound = 1.0 - float(o["certify_margin"])
     spacing = float(o["spacing"])
     roles = {}
+    shared_arms: list = []  # the arms whose reachability maps the moved ones take (setup placement)
     jobs = {}  # per arm, per base
     models = {}
     scs = {}  # per arm, per base: the arm's scenario with its base there
@@ -383,6 +400,8 @@ def place(st, tol, bases: dict | None, *, workers: int | None = 1, scheduler: st
             raise ErrplanError(f'{where}: candidates = "body_wall" needs [anatomy.body_wall]')
         models[name] = model
         scs[name] = [sc] if not setup else [build_arm(_moved(sc, b), name).scenario for b in bases[name]]
+        if setup:
+            _share_maps(scs[name], shared_arms)
         roles[name] = (_union([_role_points(st, o, name, s_b, model, spacing, region) for s_b in scs[name]]) if setup
                        else _role_points(st, o, name, sc, model, spacing, region))
         k = float(o.get("gain", sc.controller.gain))
@@ -456,6 +475,7 @@ def place(st, tol, bases: dict | None, *, workers: int | None = 1, scheduler: st
     arm_c = st.arm_clearance
     arm_t = [0.0, 0, 0]  # seconds, pairs checked, coal queries (pair x target)
     ARM = arm_done = ARM_REST = None
+    PAT = PREST = None
     kin, geos, Qc, Qrest = {}, {}, {}, {}
     need_geo = arm_c is not None or patient is not None
     if need_geo:
@@ -510,35 +530,45 @@ def place(st, tol, bases: dict | None, *, workers: int | None = 1, scheduler: st
         d12 = np.linalg.norm(P1[:, None] - P2[None], axis=-1)
 
     def ensure_arms(pairs):
-        """Arm clearances of the instrument pairs ``pairs`` at the targets both cover (module docstring), and
-        at rest (setup placement)."""
+        """Arm clearances of the instrument pairs ``pairs`` at the targets both cover (module docstring); for a
+        setup first at rest, the targets only of the pairs clear there and whose arms clear the patient at
+        rest (every setup of the others is rejected already)."""
         t = time.perf_counter()
         todo = sorted({(i, j) for i, j in pairs if not arm_done[i, j]})
         check = [(i, j) for i, j in todo if d12[port_of[n1][i], port_of[n2][j]] >= float(o["port_spacing"])]
+        total = 0
+        if setup:
+            if PREST is not None:
+                check = [(i, j) for i, j in check if PREST[n1][i] and PREST[n2][j]]
+            if check:
+                per = max(1, math.ceil(len(check) / max(MIN_TASKS, 1)))
+                chunks = [check[k:k + per] for k in range(0, len(check), per)]
+                items = [[(int(base_of[n1][i]), int(base_of[n2][j]), Qrest[n1][i][None], Qrest[n2][j][None])
+                          for i, j in ch] for ch in chunks]
+                for ch, part in zip(chunks, map_tasks(arm_rows, (geos[n1], geos[n2], float(arm_c)), items,
+                                                      workers=workers, scheduler=scheduler)):
+                    for (i, j), ok in zip(ch, part):
+                        ARM_REST[i, j] = ok
+                total += len(check)
+                check = [(i, j) for i, j in check if ARM_REST[i, j]]
         configs(n1, sorted({i for i, _ in check}))
         configs(n2, sorted({j for _, j in check}))
         where_t = [(i, j, np.flatnonzero(covs[n1][i] & covs[n2][j])) for i, j in check]
-        where_t = [w for w in where_t if len(w[2]) or setup]
-        total = sum(len(w[2]) + setup for w in where_t)
-        if total:
-            per = max(1, math.ceil(total / max(MIN_TASKS, 1)))
+        where_t = [w for w in where_t if len(w[2])]
+        n_t = sum(len(w[2]) for w in where_t)
+        if n_t:
+            per = max(1, math.ceil(n_t / max(MIN_TASKS, 1)))
             chunks, cur, size = [], [], 0
             for w in where_t:
                 cur.append(w)
-                size += len(w[2]) + setup
+                size += len(w[2])
                 if size >= per:
                     chunks.append(cur)
                     cur, size = [], 0
             if cur:
                 chunks.append(cur)
-
-            def rows_of(i, j, tt):
-                Q1, Q2 = Qc[n1][i, tt], Qc[n2][j, tt]
-                if setup:  # the arms at rest: one more row
-                    Q1, Q2 = np.vstack([Q1, Qrest[n1][i][None]]), np.vstack([Q2, Qrest[n2][j][None]])
-                return (int(base_of[n1][i]), int(base_of[n2][j]), Q1, Q2)
-
-            items = [[rows_of(i, j, tt) for i, j, tt in ch] for ch in chunks]
+            items = [[(int(base_of[n1][i]), int(base_of[n2][j]), Qc[n1][i, tt], Qc[n2][j, tt]) for i, j, tt in ch]
+                     for ch in chunks]
             parts = map_tasks(arm_rows, (geos[n1], geos[n2], float(arm_c)), items, workers=workers,
                               scheduler=scheduler)
             for ch, part in zip(chunks, parts):
@@ -546,46 +576,43 @@ def place(st, tol, bases: dict | None, *, workers: int | None = 1, scheduler: st
                 for i, j, tt in ch:
                     ARM[i, j, tt] = part[k:k + len(tt)]
                     k += len(tt)
-                    if setup:
-                        ARM_REST[i, j] = part[k]
-                        k += 1
         for i, j in todo:
             arm_done[i, j] = True
         arm_t[0] += time.perf_counter() - t
         arm_t[1] += len(check)
-        arm_t[2] += total
+        arm_t[2] += total + n_t
 
     def ensure_all(rows1, rows2, pairs):
         ensure(sorted({int(port_of[n1][r]) for r in rows1}), sorted({int(port_of[n2][r]) for r in rows2}))
         if arm_c is not None:
             ensure_arms(pairs)
 
-    # the patient: every candidate's links from the body at the targets it covers and at rest (distances)
+    # the patient: every candidate's links from the body at the targets it covers and at rest (yes/no; the
+    # exact distances for the reported setups only)
     pat_t = [0.0, 0]
-    PD = PDrest = None
     if patient is not None:
         t = time.perf_counter()
         body, pc = patient
-        PD, PDrest = {}, {}
+        PAT, PREST = {}, {}
         for name in (n1, n2):
             configs(name, list(range(N[name])))
-            PD[name] = np.full((N[name], T), np.inf)
             items, where_q = [], []
             for b in range(nb[name]):
                 rows = np.flatnonzero(base_of[name] == b)
                 cov = covs[name][rows]
-                Q = np.concatenate([Qc[name][rows][cov], Qrest[name][rows]])
-                items.append((b, Q))
+                items.append((b, np.concatenate([Qc[name][rows][cov], Qrest[name][rows]])))
                 where_q.append((rows, cov))
-            parts = map_tasks(patient_rows, (geos[name], body), items, workers=workers, scheduler=scheduler)
-            PDrest[name] = np.full(N[name], np.nan)
-            for (rows, cov), d in zip(where_q, parts):
+            parts = map_tasks(patient_rows, (geos[name], body, float(pc)), items, workers=workers,
+                              scheduler=scheduler)
+            PAT[name] = np.ones((N[name], T), bool)
+            PREST[name] = np.zeros(N[name], bool)
+            for (rows, cov), ok in zip(where_q, parts):
                 k = int(cov.sum())
-                blk = np.full((len(rows), T), np.inf)
-                blk[cov] = d[:k]
-                PD[name][rows] = blk
-                PDrest[name][rows] = d[k:]
-                pat_t[1] += len(d)
+                blk = np.ones((len(rows), T), bool)
+                blk[cov] = ok[:k]
+                PAT[name][rows] = blk
+                PREST[name][rows] = ok[k:]
+                pat_t[1] += len(ok)
         pat_t[0] = time.perf_counter() - t
 
     mstar, mtol = float(o["manipulation_angle"]), float(o["manipulation_tolerance"])
@@ -593,8 +620,7 @@ def place(st, tol, bases: dict | None, *, workers: int | None = 1, scheduler: st
     M = geo.unit_angles(U1, U2)  # (N1, N2, T): m(t)
     A1 = geo.unit_angles(U1, UE)  # (N1, E, T): a_1(t)
     A2 = geo.unit_angles(U2, UE)
-    with np.errstate(invalid="ignore"):
-        pat = {} if PD is None else {name: (PD[name] >= patient[1], PDrest[name] >= patient[1]) for name in (n1, n2)}
+    pat = {} if PAT is None else {name: (PAT[name], PREST[name]) for name in (n1, n2)}
     data = TriadData(covs[n1], covs[n2], vis, ((M - mstar) / mtol) ** 2, A1, A2, D1, D2,
                      np.linalg.norm(P1[:, None] - P2[None], axis=-1), np.linalg.norm(P1[:, None] - PE[None], axis=-1),
                      np.linalg.norm(P2[:, None] - PE[None], axis=-1), float(o["coverage_weight"]),
@@ -622,6 +648,21 @@ def place(st, tol, bases: dict | None, *, workers: int | None = 1, scheduler: st
             if setup:
                 exact_rest[(i1, i2)] = float(clearances(g1, Qrest[n1][i1][None], g2, Qrest[n2][i2][None])[0])
         return exact[(i1, i2)]
+
+    exact_pat: dict = {}
+
+    def exact_patient(name, i) -> tuple[np.ndarray, float]:
+        """((T,) the exact link-to-body distances of a reported candidate at the targets it covers (inf
+        elsewhere), its distance at rest)."""
+        from ..kinematics.urdf.patient import patient_clearances
+
+        if (name, i) not in exact_pat:
+            tt = np.flatnonzero(covs[name][i])
+            g = geos[name][base_of[name][i]]
+            row = np.full(T, np.inf)
+            row[tt] = patient_clearances(g, Qc[name][i, tt], patient[0])
+            exact_pat[(name, i)] = (row, float(patient_clearances(g, Qrest[name][i][None], patient[0])[0]))
+        return exact_pat[(name, i)]
 
     def tie_key(i1, i2, ie) -> float:
         """The smallest arm clearance over the covered targets and at rest (larger wins a tie)."""
@@ -666,12 +707,13 @@ def place(st, tol, bases: dict | None, *, workers: int | None = 1, scheduler: st
                             n2: {"position": list(bases[n2][b2][0]), "rpy": list(bases[n2][b2][1])}}
             out["base_indices"] = [b1, b2]
             out["arm_clearance_rest"] = exact_rest.get((i1, i2)) if ARM is not None else None
-            if PD is not None:
-                pd = np.concatenate([PD[n1][i1][c], PD[n2][i2][c], [PDrest[n1][i1], PDrest[n2][i2]]])
+            if PAT is not None:
+                (r1, z1), (r2, z2) = exact_patient(n1, i1), exact_patient(n2, i2)
+                pd = np.concatenate([r1[c], r2[c], [z1, z2]])
                 out["patient_clearance_min"] = float(pd.min())
-                out["patient_clearance_targets"] = {n1: np.where(c, PD[n1][i1], np.nan).tolist(),
-                                                    n2: np.where(c, PD[n2][i2], np.nan).tolist()}
-                out["patient_clearance_rest"] = {n1: float(PDrest[n1][i1]), n2: float(PDrest[n2][i2])}
+                out["patient_clearance_targets"] = {n1: np.where(c, r1, np.nan).tolist(),
+                                                    n2: np.where(c, r2, np.nan).tolist()}
+                out["patient_clearance_rest"] = {n1: z1, n2: z2}
             else:
                 out["patient_clearance_min"] = None
         return out

@@ -92,4 +92,34 @@ def patient_clearances(geo: ArmCollision, qs, body: BodySolid) -> np.ndarray:
     return out
 
 
-__all__ = ["BodySolid", "link_distances", "patient_clearances"]
+def patient_clear(geo: ArmCollision, qs, body: BodySolid, clearance: float) -> np.ndarray:
+    """(k,) whether every link keeps ``clearance`` from ``body`` at each configuration ``qs[k]``; False where a
+    configuration holds a NaN. A yes/no needs no distance: coal's collision query with ``security_margin =
+    clearance`` per link (a link "collides" when it is closer than that), stopping at the first link that
+    does; about ten times cheaper than :func:`patient_clearances` on the UR5's meshes (the tests compare)."""
+    import coal
+
+    c = float(clearance)
+    if not (math.isfinite(c) and c >= 0.0):
+        raise ErrplanError(f"patient clearance must be a number >= 0 (m), got {clearance!r}")
+    qs = np.asarray(qs, float)
+    if qs.ndim != 2 or qs.shape[1] != geo.arm.n:
+        raise ErrplanError(f"configurations must be (k, {geo.arm.n}), got shape {qs.shape}")
+    req = coal.CollisionRequest()
+    req.security_margin = c
+    objs = geo.geometry_model.geometryObjects
+    out = np.zeros(len(qs), bool)
+    for k, q in enumerate(qs):
+        if not np.all(np.isfinite(q)):
+            continue
+        ok = True
+        for g, M in zip(objs, geo.placements(q)):
+            T = coal.Transform3s(np.ascontiguousarray(M[:3, :3]), np.ascontiguousarray(M[:3, 3]))
+            if coal.collide(g.geometry, T, body.shape, body.transform, req, coal.CollisionResult()):
+                ok = False
+                break
+        out[k] = ok
+    return out
+
+
+__all__ = ["BodySolid", "link_distances", "patient_clearances", "patient_clear"]

@@ -1,0 +1,190 @@
+"""Setup placement (``kind = "setup_placement"``; docs/physics.md "Where the arms stand"): the bases read as
+poses or a grid (the grid's rotation against scipy's), bad input one line and exit 2, the search over
+(base, port) candidates against an independent brute force (random instances; on a UR5 setup, the triad
+search run once per base pair on the scenario with its bases moved), the patient clearance against closed
+forms, and the exported scenario planned."""
+from __future__ import annotations
+
+import copy
+import dataclasses
+import itertools
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from conftest import SCENARIOS, assert_refused, to_toml
+from errplan import api
+from errplan.cli import main
+from errplan.scenario import setup_from_dict
+from errplan.tolerance import triad as tr
+
+try:
+    import tomllib
+except ModuleNotFoundError:  # pragma: no cover
+    import tomli as tomllib  # type: ignore
+
+UR5_SETUP = SCENARIOS / "ur5_setup.toml"
+
+
+def setup_doc() -> dict:
+    doc = tomllib.loads(UR5_SETUP.read_text())
+    doc["anatomy"]["body_wall"]["file"] = str((SCENARIOS / doc["anatomy"]["body_wall"]["file"]).resolve())
+    return doc
+
+
+def _matrix(rpy) -> np.ndarray:  # URDF: R = Rz(yaw) Ry(pitch) Rx(roll), i.e. extrinsic x, y, z
+    return Rotation.from_euler("xyz", rpy).as_matrix()
+
+
+# ----------------------------------------------------------------------------- reading the bases
+def test_bases_as_poses_and_as_a_grid():
+    st = setup_from_dict(setup_doc(), str(UR5_SETUP))
+    (tol,) = st.triads
+    assert tol.kind == "setup_placement" and st.patient_clearance == 0.02
+    left, right = tol.options["bases"]["left"], tol.options["bases"]["right"]
+    assert [p for p, _ in left] == [(-0.30, 0.0, -0.05), (-0.30, 0.0, 0.10), (-0.30, 0.0, 0.25)]
+    # the grid: x in {0.30}, z in {-0.05, 0.10, 0.25} (hi inclusive), two yaws: 6 bases, y = 0
+    assert len(right) == 6
+    assert sorted({p for p, _ in right}) == [(0.30, 0.0, z) for z in (-0.05, 0.10, 0.25)] or \
+        np.allclose(sorted({p for p, _ in right}), [(0.30, 0.0, z) for z in (-0.05, 0.10, 0.25)])
+    own = st.arm("right").robot.base_rpy
+    for yaw in (0.0, 0.3):
+        want = Rotation.from_euler("y", yaw).as_matrix() @ _matrix(own)  # R_y(yaw) R(own rpy)
+        got = [r for p, r in right if np.allclose(_matrix(r), want, atol=1e-12)]
+        assert len(got) == 3, yaw
+    # a grid whose spacing does not divide the range: lo, lo + h, ... up to hi
+    doc = setup_doc()
+    doc["tolerance"][0]["bases"]["right"] = {"y": 0.0, "x": [0.3, 0.5], "z": [0.0, 0.25], "spacing": 0.1,
+                                             "yaw": [-math.pi, 1.0]}
+    t = setup_from_dict(doc, str(UR5_SETUP)).triads[0]
+    pts = sorted({tuple(np.round(p, 9)) for p, _ in t.options["bases"]["right"]})
+    assert pts == sorted((round(x, 9), 0.0, round(z, 9)) for x in (0.3, 0.4, 0.5) for z in (0.0, 0.1, 0.2))
+    assert len(t.options["bases"]["right"]) == 18
+    # an arm without bases.<arm>: its own base only
+    del doc["tolerance"][0]["bases"]["left"]
+    t = setup_from_dict(doc, str(UR5_SETUP)).triads[0]
+    own_l = st.arm("left").robot
+    assert t.options["bases"]["left"] == ((tuple(own_l.base_position), tuple(own_l.base_rpy)),)
+
+
+def _set(path, value):
+    def f(doc):
+        d = doc
+        for k in path[:-1]:
+            d = d[k]
+        d[path[-1]] = value
+    return f
+
+
+BAD = {
+    "empty-list": (_set(("tolerance", 0, "bases", "left"), []), ["bases.left", "non-empty list"]),
+    "grid-no-point": (_set(("tolerance", 0, "bases", "right", "x"), [0.5, 0.3]), ["bases.right", "at least one point"]),
+    "grid-no-yaw": (_set(("tolerance", 0, "bases", "right", "yaw"), []), ["bases.right", "at least one point"]),
+    "yaw-outside": (_set(("tolerance", 0, "bases", "right", "yaw"), [0.0, 3.5]), ["bases.right.yaw = 3.5",
+                                                                                 "[-pi, pi]"]),
+    "spacing-zero": (_set(("tolerance", 0, "bases", "right", "spacing"), 0.0), ["bases.right.spacing", "> 0"]),
+    "grid-unknown-key": (_set(("tolerance", 0, "bases", "right", "pitch"), 0.1), ["bases.right.pitch",
+                                                                                   "unknown key"]),
+    "pose-without-position": (_set(("tolerance", 0, "bases", "left"), [{"rpy": [0.0, 0.0, 0.0]}]),
+                              ["bases.left[0].position", "missing"]),
+    "bases-of-no-instrument": (_set(("tolerance", 0, "bases", "camera"), []), ["bases.camera", "unknown key"]),
+    "bases-not-a-table": (_set(("tolerance", 0, "bases"), 3), ["bases", "base candidates per instrument arm"]),
+    "patient-negative": (_set(("setup", "patient_clearance"), -0.01), ["[setup] patient_clearance", ">= 0"]),
+    "base-inside-body": (_set(("tolerance", 0, "bases", "left"), [{"position": [0.0, 0.1, 0.78],
+                                                                   "rpy": [-1.5707963267948966, 0.0, 0.0]}]),
+                         ["bases.left[0].position", "inside the body wall"]),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD), ids=sorted(BAD))
+def test_bad_setup_placement_is_one_line_exit_2_nothing_written(case, tmp_path, capsys):
+    change, words = BAD[case]
+    doc = setup_doc()
+    change(doc)
+    assert_refused(tmp_path, capsys, doc, "tolerance", *words)
+
+
+def test_export_without_a_setup_query_is_one_line_exit_2(tmp_path, capsys):
+    doc = tomllib.loads((SCENARIOS / "ur5_triad.toml").read_text())
+    doc["anatomy"]["body_wall"]["file"] = str((SCENARIOS / doc["anatomy"]["body_wall"]["file"]).resolve())
+    p = tmp_path / "s.toml"
+    p.write_text(to_toml(doc), encoding="utf-8")
+    capsys.readouterr()
+    rc = main(["-q", "tolerance", str(p), "--export-scenario", str(tmp_path / "out.toml")])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.count("\n") == 1 and "--export-scenario" in err and "setup_placement" in err, err
+    assert sorted(x.name for x in tmp_path.iterdir()) == ["s.toml"]
+
+
+# ----------------------------------------------------------------------------- the search on random instances
+def _random_setup(rng, b1, b2, p1, p2, ne, T, keep, checks: bool) -> "tr.TriadData":
+    """A random search instance whose instrument candidates are (base, port) pairs, base-major: the
+    per-port arrays are the triad's, coverage and the arm/patient checks per candidate (coarse values: ties
+    across bases on purpose)."""
+    n1, n2 = b1 * p1, b2 * p2
+    q = lambda *s: np.round(rng.random(s), 1)  # noqa: E731
+    cov1, cov2 = rng.random((n1, T)) < 0.8, rng.random((n2, T)) < 0.8
+    cov1[p1:2 * p1] = cov1[:p1] if b1 > 1 else cov1[p1:2 * p1]  # a second base covering as the first: ties
+    vis = rng.random((ne, T)) < 0.85
+    kw = {}
+    if checks:
+        arm = rng.random((n1, n2, T)) < 0.97
+        kw = dict(arm=arm, arm_clearance=0.03, arm_done=np.ones((n1, n2), bool),
+                  patient1=rng.random((n1, T)) < 0.95, patient2=rng.random((n2, T)) < 0.95,
+                  patient_rest1=rng.random(n1) < 0.9, patient_rest2=rng.random(n2) < 0.9,
+                  arm_rest=rng.random((n1, n2)) < 0.9)
+    return tr.TriadData(cov1, cov2, vis, q(p1, p2, T) * 2, q(p1, ne, T), q(p2, ne, T), q(p1, ne, T) * 0.02,
+                        q(p2, ne, T) * 0.02, q(p1, p2), q(p1, ne), q(p2, ne), 10.0, 0.26, 0.15, 0.004, keep,
+                        port1=np.tile(np.arange(p1), b1), port2=np.tile(np.arange(p2), b2), **kw)
+
+
+def _brute_setups(data, b1, b2, p1, p2) -> tuple[list, dict]:
+    """Every (base, port) x (base, port) x endoscope port, scored and checked by the formulas of
+    docs/physics.md (no TriadData index maps: bases and ports looped explicitly)."""
+    out, rej = [], dict.fromkeys(tr.REJECTIONS, 0)
+    ne = data.vis.shape[0]
+    for (a1, j1), (a2, j2), e in itertools.product(itertools.product(range(b1), range(p1)),
+                                                   itertools.product(range(b2), range(p2)), range(ne)):
+        i1, i2 = a1 * p1 + j1, a2 * p2 + j2
+        c = data.cov1[i1] & data.cov2[i2] & data.vis[e]
+        S = np.mean(data.W * (1 - c) + data.mterm[j1, j2] + ((data.A1[j1, e] - data.A2[j2, e]) / data.a_tol) ** 2)
+        sp = min(data.d12[j1, j2], data.d1e[j1, e], data.d2e[j2, e]) >= data.port_spacing
+        sh = not np.any(c & ((data.D1[j1, e] < data.shaft_clearance) | (data.D2[j2, e] < data.shaft_clearance)))
+        am = pt = True
+        if data.arm is not None:
+            am = not np.any(c & ~data.arm[i1, i2]) and bool(data.arm_rest[i1, i2])
+            pt = (not np.any(c & ~(data.patient1[i1] & data.patient2[i2])) and bool(data.patient_rest1[i1])
+                  and bool(data.patient_rest2[i2]))
+        for k, ok in zip(tr.REJECTIONS, (sp, sh, am, pt)):
+            rej[k] += not ok
+        if sp and sh and am and pt:
+            out.append((float(S), i1, i2, e))
+    return sorted(out)[:data.keep], rej
+
+
+def test_setup_search_equals_brute_force_on_random_instances(monkeypatch):
+    monkeypatch.setattr(tr, "BLOCK_PAIRS", 3)  # many blocks and waves
+    monkeypatch.setattr(tr, "WAVE_BLOCKS", 2)
+    rng = np.random.default_rng(46)
+    pruned_any = rejected_any = False
+    for k in range(30):
+        b1, b2, p1, p2 = (int(rng.integers(1, 4)) for _ in range(4))
+        shape = (b1, b2, p1, p2)
+        data = _random_setup(rng, *shape, int(rng.integers(1, 5)), int(rng.integers(3, 8)), int(rng.integers(1, 5)),
+                             checks=k % 3 != 0)
+        ref, rej = _brute_setups(data, *shape)
+        got = tr.search(data, prune=True)
+        full = tr.search(data, prune=False)
+        assert [b[1:] for b in got["best"]] == [b[1:] for b in ref] == [b[1:] for b in full["best"]]
+        assert np.allclose([b[0] for b in got["best"]], [b[0] for b in ref], atol=1e-12)
+        assert full["rejected"] == rej
+        assert got["evaluated"] + got["pruned"] == got["triads"] == full["evaluated"]
+        pruned_any |= got["pruned"] > 0
+        rejected_any |= rej["patient_clearance"] > 0 and rej["arm_clearance"] > 0
+        for s, i1, i2, e in ref:  # the bound stays admissible with the bases
+            assert s >= tr.lower_bound(data, i1, i2) - 1e-12
+    assert pruned_any and rejected_any
