@@ -188,3 +188,133 @@ def test_setup_search_equals_brute_force_on_random_instances(monkeypatch):
         for s, i1, i2, e in ref:  # the bound stays admissible with the bases
             assert s >= tr.lower_bound(data, i1, i2) - 1e-12
     assert pruned_any and rejected_any
+
+
+# ----------------------------------------------------------------------------- the patient's clearance
+def test_reach_map_moved_with_the_base_answers_as_the_arm():
+    """A moved arm's map is its first base's translated: every wrist of a configuration within limits is
+    reachable, and the answers are the first arm's at the points moved back."""
+    from errplan.kinematics import arm_for
+    from errplan.kinematics.urdf.reachmap import base_offset, share_translated
+
+    st = api.load_setup(UR5_SETUP)
+    sc = st.arm("right")
+    a0 = arm_for(sc.robot)
+    moved = tr._moved(sc, ((0.41, -0.02, 0.33), sc.robot.base_rpy)).robot
+    a1 = type(a0).from_robot(moved)  # a fresh arm, no map yet
+    assert np.allclose(base_offset(a1, a0), np.array(moved.base_position) - np.array(sc.robot.base_position))
+    assert share_translated(a1, a0) and a1.map_info["translated_from"] == tuple(sc.robot.base_position)
+    turned = type(a0).from_robot(tr._moved(sc, ((0.3, 0.0, 0.1), (-math.pi / 2, 0.2, 0.0))).robot)
+    assert base_offset(turned, a0) is None and not share_translated(turned, a0)  # a rotation: its own map
+    rng = np.random.default_rng(3)
+    q = rng.uniform(a1.limits[:, 0], a1.limits[:, 1], (400, 3))
+    q = q[a1.within_limits(q)]
+    assert np.all(a1.reachable(a1.forward(q)))
+    W = rng.uniform(-1.0, 1.0, (2000, 3)) + np.array(moved.base_position)
+    delta = np.array(moved.base_position) - np.array(sc.robot.base_position)
+    r = a1.reachable(W)
+    assert np.array_equal(r, a0.reachable(W - delta)) and 0.1 < r.mean() < 0.9
+
+
+def _spherical_links(tmp_path: Path) -> Path:
+    """A two-joint arm whose links are a sphere and a box (primitives: closed-form distances)."""
+    p = tmp_path / "prims.urdf"
+    p.write_text("""<robot name="prims">
+  <link name="base"/>
+  <link name="l1"><collision><origin xyz="0.1 0 0.2"/><geometry><sphere radius="0.05"/></geometry></collision></link>
+  <link name="l2"><collision><origin xyz="0.15 0 0"/><geometry><box size="0.1 0.04 0.04"/></geometry></collision></link>
+  <link name="l3"/>
+  <link name="tip"/>
+  <joint name="j1" type="revolute"><parent link="base"/><child link="l1"/><axis xyz="0 0 1"/>
+    <limit lower="-3" upper="3" effort="1" velocity="1"/></joint>
+  <joint name="j2" type="revolute"><parent link="l1"/><child link="l2"/><origin xyz="0 0 0.3"/><axis xyz="0 1 0"/>
+    <limit lower="-3" upper="3" effort="1" velocity="1"/></joint>
+  <joint name="j3" type="revolute"><parent link="l2"/><child link="l3"/><origin xyz="0.3 0 0"/><axis xyz="0 1 0"/>
+    <limit lower="-3" upper="3" effort="1" velocity="1"/></joint>
+  <joint name="f" type="fixed"><parent link="l3"/><child link="tip"/><origin xyz="0.2 0 0"/></joint>
+</robot>""")
+    return p
+
+
+def _box_distance(p, lo, hi) -> float:
+    return float(np.linalg.norm(np.maximum(0.0, np.maximum(lo - p, p - hi))))
+
+
+def test_patient_distances_against_closed_forms(tmp_path):
+    """The sphere link's distance to a spherical body is |c - c_b| - r - r_b; to a box body (the convex
+    hull of its corners) the point-to-box distance less r. patient_clear answers as the distances do."""
+    from errplan.kinematics.urdf import UrdfArm
+    from errplan.kinematics.urdf.collision import ArmCollision
+    from errplan.kinematics.urdf.patient import BodySolid, link_distances, patient_clear, patient_clearances
+
+    arm = UrdfArm.load(_spherical_links(tmp_path), ["j1", "j2", "j3"], "tip", base_position=[0.1, -0.2, 0.05],
+                       base_rpy=[0.3, -0.2, 0.5])
+    geo = ArmCollision.from_arm(arm)
+    assert geo.names[0].startswith("l1")
+    sphere_c, sphere_r = np.array([0.6, 0.1, 0.3]), 0.12
+    lo, hi = np.array([-0.5, -0.4, -0.6]), np.array([-0.3, -0.1, -0.35])
+    corners = np.array(list(itertools.product(*zip(lo, hi))))
+    bodies = [BodySolid.ellipsoid(sphere_c, [sphere_r] * 3), BodySolid.hull(corners)]
+    rng = np.random.default_rng(7)
+    qs = rng.uniform(-2.5, 2.5, (25, 3))
+    for body, dist in zip(bodies, (lambda c: float(np.linalg.norm(c - sphere_c)) - sphere_r,
+                                   lambda c: _box_distance(c, lo, hi))):
+        got = []
+        for q in qs:
+            P = geo.placements(q)
+            c = P[0, :3, 3]  # the sphere link's centre, world
+            d = link_distances(geo, q, body)
+            assert d[0] == pytest.approx(dist(c) - 0.05, abs=1e-5)  # coal's GJK tolerance (about 1e-6 m)
+            got.append(d.min())
+        got = np.array(got)
+        assert np.allclose(patient_clearances(geo, qs, body), got, atol=1e-12)
+        g = np.sort(got)
+        k = int(np.argmax(np.diff(g)))  # the widest gap between two distances: a threshold far from both
+        assert g[k + 1] - g[k] > 1e-3
+        for c in (0.0, 0.05, float(0.5 * (g[k] + g[k + 1]))):
+            assert np.array_equal(patient_clear(geo, qs, body, c), got >= c), c
+        assert 0 < np.sum(got >= 0.5 * (g[k] + g[k + 1])) < len(got)
+    qn = qs.copy()
+    qn[0, 1] = np.nan  # an arm that cannot stand there: no distance, not clear
+    assert np.isnan(patient_clearances(geo, qn, bodies[0])[0]) and not patient_clear(geo, qn, bodies[0], 0.0)[0]
+    # pickled as data (a worker rebuilds the coal shape)
+    import pickle
+
+    b2 = pickle.loads(pickle.dumps(bodies[1]))
+    assert link_distances(geo, qs[3], b2) == pytest.approx(link_distances(geo, qs[3], bodies[1]), abs=1e-12)
+
+
+@pytest.mark.slow
+def test_patient_distances_of_the_ur5_against_surface_sampling():
+    """The UR5's links (meshes) against the torso's convex hull: coal's distance within the sampling's
+    bounds of the nearest sampled link point's distance to the hull (scipy's hull: the point's signed
+    distance is the largest of its facet planes' when outside, exact to the nearest facet region below)."""
+    from scipy.spatial import ConvexHull
+
+    from errplan.kinematics import arm_for
+    from errplan.kinematics.urdf.collision import ArmCollision
+    from errplan.kinematics.urdf.patient import patient_clearances
+    from errplan.tolerance.setup import body_solid
+    import trimesh
+
+    from test_arm_collision import sampled_distance, surfaces_of, world_points
+
+    st = api.load_setup(UR5_SETUP)
+    sc = st.arm("left")
+    body, model = body_solid(sc)
+    hull = ConvexHull(model.wall_surface[0])
+    arm = arm_for(sc.robot)
+    geo = ArmCollision.from_arm(arm)
+    H = 0.01
+    surf = surfaces_of(arm.urdf_path, arm.urdf_path.parent, h=H)
+    hv, _ = trimesh.remesh.subdivide_to_size(hull.points, hull.simplices, max_edge=H)  # the hull's surface
+    base = dict(base_position=list(arm.base_position), base_rpy=list(arm.base_rpy))
+    qs = np.array([[0.2, -1.4, 1.1], [-0.3, -1.8, 1.6]])
+    d = patient_clearances(geo, qs, body)
+    for q, dq in zip(qs, d):
+        pts = world_points(arm, base, q, surf)
+        plane = pts @ hull.equations[:, :3].T + hull.equations[:, 3]  # signed distances to the facet planes
+        lower = plane.max(axis=1)  # <= each point's distance to the hull
+        assert np.all(lower > 0) and dq > 0  # these configurations stand outside the body
+        # coal's distance: at least the planes' bound less the link sampling, at most the sampled surfaces'
+        assert lower.min() - 2 * H / math.sqrt(3) - 1e-9 <= dq <= sampled_distance(pts, np.asarray(hv)) + 1e-9
