@@ -19,6 +19,7 @@ from scipy.spatial.transform import Rotation
 from conftest import SCENARIOS, assert_refused, to_toml
 from errplan import api
 from errplan.cli import main
+from errplan.errors import ErrplanError
 from errplan.scenario import setup_from_dict
 from errplan.tolerance import triad as tr
 
@@ -318,3 +319,134 @@ def test_patient_distances_of_the_ur5_against_surface_sampling():
         assert np.all(lower > 0) and dq > 0  # these configurations stand outside the body
         # coal's distance: at least the planes' bound less the link sampling, at most the sampled surfaces'
         assert lower.min() - 2 * H / math.sqrt(3) - 1e-9 <= dq <= sampled_distance(pts, np.asarray(hv)) + 1e-9
+
+
+# ----------------------------------------------------------------------------- against the triad per base pair
+def _unseen(tmp_path: Path) -> Path:
+    """The UR5 setup made different: an obstacle under the task region, two listed bases per arm (the base
+    decides coverage and clearances), a coarser wall, no patient checks (the triad knows none)."""
+    doc = setup_doc()
+    del doc["setup"]["patient_clearance"]
+    doc["anatomy"]["obstacle"] = [{"name": "vessel", "shape": "sphere", "center": [0.02, 0.03, 0.70],
+                                   "radius": 0.015}]
+    rpy = [-math.pi / 2, 0.0, 0.0]
+    t = doc["tolerance"][0]
+    t.update(spacing=0.12, bases={"left": [{"position": [-0.30, 0.0, -0.05], "rpy": rpy},
+                                           {"position": [-0.36, 0.02, 0.25], "rpy": rpy}],
+                                  "right": [{"position": [0.30, 0.0, 0.10], "rpy": [-math.pi / 2, 0.3, 0.0]},
+                                            {"position": [0.34, 0.0, 0.25], "rpy": rpy}]})
+    p = tmp_path / "unseen.toml"
+    p.write_text(to_toml(doc), encoding="utf-8")
+    return p
+
+
+@pytest.mark.slow
+def test_setup_equals_the_triad_brute_force_per_base_pair(tmp_path):
+    """The setup search (pruned, and unpruned) against an independent brute force: for every base pair, the
+    triad placement (itself equal to its brute force) of the scenario with the two arms' bases moved there,
+    over the same port candidates, unpruned, every feasible triad kept; ties by the smallest arm clearance
+    over the covered targets and at rest, the rest clearance by the arms put at rest independently."""
+    from errplan.kinematics import arm_for
+    from errplan.kinematics.urdf.collision import ArmCollision, arm_at_tip, arm_clearance
+    from errplan.scenario import Tolerance
+    from errplan.tolerance.setup import setup_placement
+
+    st = api.load_setup(_unseen(tmp_path))
+    (tol,) = st.triads
+    a = setup_placement(st, tol)
+    b = setup_placement(st, tol, prune=False)
+    assert a["search"]["pruned"] > 0 and b["search"]["pruned"] == 0
+    assert a["best"]["indices"] == b["best"]["indices"] and a["best"]["score"] == b["best"]["score"]
+    n1, n2 = tol.options["instruments"]
+    bases = tol.options["bases"]
+    opts = {k: v for k, v in tol.options.items() if k != "bases"}
+    opts["candidates"] = {r: tuple(map(tuple, a["candidates"][r])) for r in (n1, n2, "endoscope")}
+    one = Tolerance("per base pair", "triad_placement", opts)
+    ref, counts, coverages = [], dict.fromkeys(("port_spacing", "shaft_clearance", "arm_clearance"), 0), set()
+    rejected_at_rest = 0
+    for (j1, p1), (j2, p2) in itertools.product(enumerate(bases[n1]), enumerate(bases[n2])):
+        arms = [tr._moved(sc, p1 if n == n1 else p2) for n, sc in zip(st.arm_names, st.arms)]
+        st2 = dataclasses.replace(st, arms=tuple(arms))
+        t = tr.triad_placement(st2, one, prune=False, keep=10 ** 6)
+        for k in counts:
+            counts[k] += t["rejected"][k]
+        geo = {n: ArmCollision.from_arm(arm_for(s.robot)) for n, s in zip(st.arm_names, arms)}
+        for e in [t["best"]] + t["ranked"]:
+            try:  # the arms at rest, each put there independently
+                qr = [arm_at_tip(geo[n].arm, st.rest(n), e["ports"][n], st.arm(n).instrument.length)
+                      for n in (n1, n2)]
+            except ErrplanError:  # an arm that cannot stand at rest: rejected
+                rejected_at_rest += 1
+                continue
+            rest = arm_clearance(geo[n1], qr[0], geo[n2], qr[1])
+            if rest < st.arm_clearance:  # the arms at rest too close: rejected (the triad does not know rest)
+                rejected_at_rest += 1
+                continue
+            key = min(rest, math.inf if e["arm_clearance_min"] is None else e["arm_clearance_min"])
+            ref.append((e["score"], key, (j1, j2), e))
+        coverages.add((t["best"]["coverage"][n1], t["best"]["coverage"][n2]))
+    assert len(coverages) > 1  # the bases decide coverage
+    s0 = min(r[0] for r in ref)
+    tied = [r for r in ref if r[0] <= s0 + 1e-9]
+    best = max(tied, key=lambda r: r[1])
+    got = a["best"]
+    assert got["score"] == pytest.approx(best[0], abs=1e-6)
+    assert got["base_indices"] == list(best[2]) and got["ports"] == best[3]["ports"]
+    assert got["bases"][n1]["position"] == list(bases[n1][best[2][0]][0])
+    for k in ("coverage", "visible"):
+        assert got[k] == pytest.approx(best[3][k], abs=1e-12)
+    assert got["arm_clearance_min"] == pytest.approx(best[3]["arm_clearance_min"], abs=1e-5)
+    assert got["shaft_clearance_min"] == pytest.approx(best[3]["shaft_clearance_min"], abs=1e-9)
+    assert a["search"]["ties"] == len(tied)
+    # the unpruned setup search rejects as the triads do, base pair by base pair (and more for the arms: at rest)
+    assert rejected_at_rest > 0
+    assert b["rejected"]["port_spacing"] == counts["port_spacing"]
+    assert b["rejected"]["shaft_clearance"] == counts["shaft_clearance"]
+    assert b["rejected"]["arm_clearance"] >= counts["arm_clearance"] + rejected_at_rest
+    assert b["rejected"]["patient_clearance"] is None
+    # the next best: the same scores as the brute force's next ones
+    want = sorted(r[0] for r in ref)[:len(a["ranked"]) + 1]
+    assert [x["score"] for x in [a["best"]] + a["ranked"]] == pytest.approx(want, abs=1e-9)
+    # two worker processes: the same answer and counts
+    c = setup_placement(st, tol, workers=2)
+    assert c["best"]["indices"] == a["best"]["indices"] and c["rejected"] == a["rejected"]
+
+
+# ----------------------------------------------------------------------------- the command, the export, the plan
+@pytest.mark.slow
+def test_tolerance_exports_the_best_setup_and_plan_certifies_it(tmp_path, capsys):
+    """``errplan tolerance --json --record --export-scenario`` on a small setup, then ``errplan plan`` on the
+    exported file: the chosen bases and ports are in it, and every query's planned path is certified."""
+    doc = setup_doc()
+    t = doc["tolerance"][0]
+    rpy = [-math.pi / 2, 0.0, 0.0]
+    t.update(spacing=0.12, bases={"left": [{"position": [-0.30, 0.0, -0.05], "rpy": rpy},
+                                           {"position": [-0.30, 0.0, 0.25], "rpy": rpy}],
+                                  "right": {"y": 0.0, "x": [0.30, 0.30], "z": [0.10, 0.25], "spacing": 0.15}})
+    src = tmp_path / "s.toml"
+    src.write_text(to_toml(doc), encoding="utf-8")
+    out, rrd, exp = tmp_path / "t.json", tmp_path / "t.rrd", tmp_path / "best.toml"
+    assert main(["-q", "tolerance", str(src), "--json", str(out), "--record", str(rrd), "--export-scenario",
+                 str(exp), "--workers", "1"]) == 0
+    text = capsys.readouterr().out
+    assert "setup_placement" in text and "left base (mm, rpy)" in text and "patient checks: on" in text
+    r = json.loads(out.read_text())["tolerances"][0]
+    b = r["best"]
+    assert r["kind"] == "setup_placement" and len(r["bases"]["left"]) == 2 and len(r["bases"]["right"]) == 2
+    assert b["patient_clearance_min"] >= 0.02 and b["arm_clearance_min"] >= 0.03
+    assert r["rejected"]["patient_clearance"] >= 0 and set(b["bases"]) == {"left", "right"}
+    assert all(e["score"] >= b["score"] for e in r["ranked"])
+    assert rrd.stat().st_size > 0
+    st = api.load_setup(exp)
+    for n in ("left", "right"):
+        sc = st.arm(n)
+        assert list(sc.robot.base_position) == pytest.approx(b["bases"][n]["position"], abs=1e-12)
+        assert list(sc.robot.base_rpy) == pytest.approx(b["bases"][n]["rpy"], abs=1e-12)
+        assert list(sc.port.estimate) == pytest.approx(b["ports"][n], abs=1e-12)
+    assert list(st.endoscope.port.estimate) == pytest.approx(b["ports"]["endoscope"], abs=1e-12)
+    plan = tmp_path / "p.json"
+    assert main(["-q", "plan", str(exp), "--json", str(plan), "--workers", "1"]) == 0
+    qs = json.loads(plan.read_text())["queries"]
+    assert {q["arm"] for q in qs} == {"left", "right"}
+    for q in qs:
+        assert q["planned"]["valid"] and q["gains"] and all(g["certified"] for g in q["gains"]), q["name"]
