@@ -437,7 +437,19 @@ def test_tolerance_exports_the_best_setup_and_plan_certifies_it(tmp_path, capsys
     assert b["patient_clearance_min"] >= 0.02 and b["arm_clearance_min"] >= 0.03
     assert r["rejected"]["patient_clearance"] >= 0 and set(b["bases"]) == {"left", "right"}
     assert all(e["score"] >= b["score"] for e in r["ranked"])
-    assert rrd.stat().st_size > 0
+    from test_recording_setup import _read
+
+    _, cols = _read(rrd)
+    base = "/world/triad/bases_and_triad_around_the_task_region"
+    for n in ("left", "right"):  # the candidate bases, the chosen one, the arm drawn at it
+        assert np.allclose(cols[f"{base}/bases/candidates/{n}"]["positions"][0],
+                           [c["position"] for c in r["bases"][n]], atol=1e-6)
+        assert np.allclose(cols[f"{base}/bases/chosen/{n}"]["positions"][0], [b["bases"][n]["position"]], atol=1e-6)
+        assert any(k.startswith(f"/world/arms/{n}_at_rest/") for k in cols), sorted(cols)[:20]
+    v = np.fmin(np.array(b["patient_clearance_targets"]["left"], float),
+                np.array(b["patient_clearance_targets"]["right"], float))
+    got = [x[0] if isinstance(x, list) else x for x in cols[f"{base}/patient_clearance"]["scalars"] if x is not None]
+    assert np.allclose(got, 1000 * v[np.isfinite(v)], atol=1e-6) and min(got) >= 20.0 - 1e-6
     st = api.load_setup(exp)
     for n in ("left", "right"):
         sc = st.arm(n)
