@@ -5,7 +5,6 @@ search run once per base pair on the scenario with its bases moved), the patient
 forms, and the exported scenario planned."""
 from __future__ import annotations
 
-import copy
 import dataclasses
 import itertools
 import json
@@ -50,8 +49,7 @@ def test_bases_as_poses_and_as_a_grid():
     assert [p for p, _ in left] == [(-0.30, 0.0, -0.05), (-0.30, 0.0, 0.10), (-0.30, 0.0, 0.25)]
     # the grid: x in {0.30}, z in {-0.05, 0.10, 0.25} (hi inclusive), two yaws: 6 bases, y = 0
     assert len(right) == 6
-    assert sorted({p for p, _ in right}) == [(0.30, 0.0, z) for z in (-0.05, 0.10, 0.25)] or \
-        np.allclose(sorted({p for p, _ in right}), [(0.30, 0.0, z) for z in (-0.05, 0.10, 0.25)])
+    assert np.allclose(sorted({p for p, _ in right}), [(0.30, 0.0, z) for z in (-0.05, 0.10, 0.25)], atol=1e-12)
     own = st.arm("right").robot.base_rpy
     for yaw in (0.0, 0.3):
         want = Rotation.from_euler("y", yaw).as_matrix() @ _matrix(own)  # R_y(yaw) R(own rpy)

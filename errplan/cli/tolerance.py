@@ -163,7 +163,7 @@ def _run_setup(st, args, parts: tuple[str, ...] = ()) -> int:
         from ..tolerance.setup import check_export, export_header, exported_document
 
         r = check_export(export, results)
-        write_atomic(export, to_toml(exported_document(read_document(st.source), st.source, st, r.data),
+        write_atomic(export, to_toml(exported_document(read_document(st.source), st.source, r.data),
                                      export_header(r.name, r.data)))
     if args.json:
         write_json(args.json, {"scenario": st.name, "source": st.source,

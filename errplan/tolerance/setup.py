@@ -80,7 +80,7 @@ def _absolute(value: str, base_dir: Path) -> str:
     return value if value.startswith("package://") or Path(value).is_absolute() else str((base_dir / value).resolve())
 
 
-def exported_document(doc: dict, source: str, st, data: dict) -> dict:
+def exported_document(doc: dict, source: str, data: dict) -> dict:
     """The scenario document ``doc`` (parsed from ``source``) with the best setup of a ``setup_placement``
     result ``data``: each instrument arm's ``base_position``/``base_rpy`` and port (the estimate at the chosen
     port, the true port moved with it), the endoscope's port likewise; relative file paths made absolute

@@ -53,6 +53,14 @@ blocks: the search stops. Ties (LB equal to the threshold) are evaluated, so the
 first, is exactly the brute force's (``prune=False`` evaluates every triad; the tests compare).
 Blocks run as tasks in waves of a fixed number of blocks; the threshold is updated between waves only,
 so the pruned share does not depend on the number of workers either.
+
+Setups (:func:`place` with bases; :mod:`errplan.tolerance.setup`). An instrument candidate is then a (base,
+port) pair, base-major; the per-port arrays (angles, shaft distances, port distances) stay per port and
+:class:`TriadData` maps each candidate to its port row; coverage, the arms' configurations and the arm and
+patient checks are per candidate. Two more hard constraints, both only removing setups (LB stays
+admissible): the arms at rest at least ``arm_clearance`` apart (asked first, per pair the search evaluates;
+the targets only for pairs clear at rest) and, with a patient clearance, every link of each arm that far
+from the body at the covered targets and at rest (per candidate, before the search).
 """
 from __future__ import annotations
 
@@ -323,8 +331,6 @@ def triad_placement(st, tol, *, workers: int | None = 1, scheduler: str | None =
 
 def _moved(sc, pose):
     """Scenario ``sc`` with its arm's base at ``pose = (position, rpy)``."""
-    from dataclasses import replace
-
     return sc.with_(robot=replace(sc.robot, base_position=tuple(pose[0]), base_rpy=tuple(pose[1])))
 
 
