@@ -1,5 +1,8 @@
-"""``errplan tolerance SCENARIO [--json F] [--workers N] [--scheduler ADDRESS] [--record F.rrd] [--top N]``:
-answer every ``[[tolerance]]`` query of a scenario (planar and spatial).
+"""``errplan tolerance SCENARIO [--json F] [--workers N] [--scheduler ADDRESS] [--record F.rrd] [--top N]
+[--arm NAME] [--export-scenario OUT.toml]``: answer every ``[[tolerance]]`` query of a scenario (planar and
+spatial; a setup's ``triad_placement`` and ``setup_placement`` queries without ``--arm``; with
+``--export-scenario``, the scenario with the best setup's bases and port estimates written for
+``errplan plan``).
 
 Prints one table row per query (the answer, where it binds or the best port) and, per
 ``port_placement`` query, its top candidates; writes ``{"scenario", "source", "tolerances":
