@@ -26,7 +26,7 @@ METRICS = ("phi_hat_max", "G_norm", "phi_max", "rho_star")
 JACOBIANS = ("rigid", "flexion")
 TOLERANCE_KINDS = ("port", "insertion_band", "tip_load", "tracker_noise", "port_placement")
 #: kinds of a several-arm scenario (``[[arm]]``): answered for the whole setup, not per arm
-SETUP_TOLERANCE_KINDS = ("triad_placement",)
+SETUP_TOLERANCE_KINDS = ("triad_placement", "setup_placement")
 EFFECT_PARAMS: dict[str, tuple[str, ...]] = {
     "port_offset": ("dy", "dz"),
     "joint_offset": ("dq1", "dq2"),
@@ -425,7 +425,7 @@ TABLE_KEYS: dict[str, tuple[str, ...]] = {
     "[endoscope]": ("port", "look_at", "insertion", "fov", "depth", "uncertainty", "keep_visible"),
     "[endoscope] port": ("estimate", "position"),
     "[endoscope] uncertainty": ("port_x", "port_y", "port_z"),
-    "[setup]": ("shaft_clearance", "arm_clearance"),
+    "[setup]": ("shaft_clearance", "arm_clearance", "patient_clearance"),
     "[[query]] several instruments": ("arm",),
 }
 #: ``[[anatomy.obstacle]]`` keys per ``shape`` (besides ``name`` and ``shape``).
@@ -664,6 +664,9 @@ TOLERANCE_KEYS: dict[str, tuple[str, ...]] = {
                        "refine_levels"),
     # a scenario with several instruments (SETUP_TOLERANCE_KINDS)
     "triad_placement": ("instruments", "candidates", "spacing", "region", "resolution", "port_spacing",
+                        "manipulation_angle", "manipulation_tolerance", "azimuth_tolerance", "coverage_weight",
+                        "certify_margin", "gain"),
+    "setup_placement": ("instruments", "bases", "candidates", "spacing", "region", "resolution", "port_spacing",
                         "manipulation_angle", "manipulation_tolerance", "azimuth_tolerance", "coverage_weight",
                         "certify_margin", "gain"),
 }
@@ -1000,6 +1003,8 @@ class Setup:
     arm_clearance: float | None = None
     triads: tuple[Tolerance, ...] = ()
     several: bool = False
+    #: ``[setup] patient_clearance`` (m): every arm link from the body solid (``setup_placement``); None: no check
+    patient_clearance: float | None = None
 
     @property
     def dim(self) -> int:
@@ -1080,6 +1085,7 @@ class HeldArms:
 #: the tables each ``[[arm]]`` holds (a one-instrument scenario has them at the top)
 ARM_TABLES = tuple(k for k in TABLE_KEYS["[[arm]]"] if k not in ("name", "rest"))
 _TRIAD_KEYS = TABLE_KEYS["[[tolerance]]"] + TOLERANCE_KEYS["triad_placement"]
+_SETUP_KEYS = TABLE_KEYS["[[tolerance]]"] + TOLERANCE_KEYS["setup_placement"]
 
 
 def _box_of(estimate, un: Uncertainty) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
@@ -1126,9 +1132,11 @@ def _endoscope(ctx: _Ctx, t: Any) -> Endoscope:
 
 
 def _triad(ctx: _Ctx, t: dict, i: int, arm_names: tuple[str, ...], margin: float) -> Tolerance:
-    """A ``triad_placement`` query (docs/interfaces.md): options with their defaults filled in."""
+    """A ``triad_placement`` or ``setup_placement`` query (docs/interfaces.md): options with their defaults
+    filled in (a setup's ``bases`` as given: :func:`_setup_bases` reads them once the arms are read)."""
     w = f"[[tolerance]][{i}] "
-    _check_keys(ctx, t, _TRIAD_KEYS, w)
+    kind = t.get("kind")
+    _check_keys(ctx, t, _SETUP_KEYS if kind == "setup_placement" else _TRIAD_KEYS, w)
     o: dict[str, Any] = {}
     ins = _get(ctx, t, "instruments", w, list(arm_names[:2]))
     if (not isinstance(ins, list) or len(ins) != 2 or len(set(map(str, ins))) != 2
@@ -1167,7 +1175,93 @@ def _triad(ctx: _Ctx, t: dict, i: int, arm_names: tuple[str, ...], margin: float
         raise ctx.fail(w + "certify_margin", t["certify_margin"], "a number in [0, 1)")
     if "gain" in t:
         o["gain"] = _num(ctx, t["gain"], w + "gain", positive=True)
-    return Tolerance(_get(ctx, t, "name", w, f"tolerance{i}"), "triad_placement", o)
+    if kind == "setup_placement":
+        b = t.get("bases", {})
+        if not isinstance(b, dict):
+            raise ctx.fail(w + "bases", _Short(_short(b)), "a table of base candidates per instrument arm "
+                           "(bases.<arm> = [{ position, rpy }, ...] or { y, x, z, spacing, yaw })")
+        _check_keys(ctx, b, tuple(ins), w + "bases.")
+        o["bases"] = dict(b)
+    return Tolerance(_get(ctx, t, "name", w, f"tolerance{i}"), kind, o)
+
+
+def _rpy_of(R) -> tuple[float, float, float]:
+    """URDF roll, pitch, yaw of a rotation matrix R = Rz(yaw) Ry(pitch) Rx(roll) (rows of 3)."""
+    pitch = math.asin(max(-1.0, min(1.0, -R[2][0])))
+    if abs(R[2][0]) < 1.0 - 1e-12:
+        return math.atan2(R[2][1], R[2][2]), pitch, math.atan2(R[1][0], R[0][0])
+    return 0.0, pitch, math.atan2(-R[0][1], R[1][1])  # gimbal lock: the roll folded into the yaw
+
+
+def _rpy_rows(rpy) -> list[list[float]]:
+    r, p, y = rpy
+    cr, sr, cp, sp, cy, sy = math.cos(r), math.sin(r), math.cos(p), math.sin(p), math.cos(y), math.sin(y)
+    return [[cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+            [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+            [-sp, cp * sr, cp * cr]]
+
+
+def grid_base_rpy(yaw: float, own_rpy) -> tuple[float, float, float]:
+    """The rpy of a grid base: rotation R_y(yaw) R(own_rpy) (the yaw about the world's vertical y after the
+    arm's own rpy; docs/interfaces.md "Setup placement")."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    Ry = [[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]]
+    R0 = _rpy_rows(own_rpy)
+    return _rpy_of([[sum(Ry[i][k] * R0[k][j] for k in range(3)) for j in range(3)] for i in range(3)])
+
+
+def _axis(lo: float, hi: float, h: float) -> list[float]:
+    """lo, lo + h, ... up to hi inclusive (within a millionth of h)."""
+    n = int(math.floor((hi - lo) / h + 1e-6)) if hi >= lo else -1
+    return [lo + k * h for k in range(n + 1)]
+
+
+def _setup_bases(ctx: _Ctx, t: Tolerance, arms: Mapping[str, Scenario]) -> Tolerance:
+    """A ``setup_placement`` query with its ``bases`` read: per instrument arm a tuple of ``(position,
+    rpy)`` (an arm without ``bases.<arm>``: its own base only). A list of poses, or a grid (docs/interfaces.md)."""
+    w = f"[[tolerance]] {t.name!r} bases."
+    out = {}
+    for name in t.options["instruments"]:
+        own = arms[name].robot
+        b = t.options["bases"].get(name)
+        if b is None:
+            out[name] = ((tuple(own.base_position), tuple(own.base_rpy)),)
+            continue
+        if isinstance(b, list):
+            if not b:
+                raise ctx.fail(w + name, b, "a non-empty list of base poses { position = [x, y, z], rpy = [r, p, y] }")
+            poses = []
+            for j, p in enumerate(b):
+                if not isinstance(p, dict):
+                    raise ctx.fail(f"{w}{name}[{j}]", _Short(_short(p)), "{ position = [x, y, z], rpy = [r, p, y] }")
+                _check_keys(ctx, p, ("position", "rpy"), f"{w}{name}[{j}].")
+                pos = _vec(ctx, _get(ctx, p, "position", f"{w}{name}[{j}]."), f"{w}{name}[{j}].position", 3)
+                rpy = _vec(ctx, p.get("rpy", list(own.base_rpy)), f"{w}{name}[{j}].rpy", 3)
+                poses.append((pos, rpy))
+            out[name] = tuple(poses)
+        elif isinstance(b, dict):
+            _check_keys(ctx, b, ("y", "x", "z", "spacing", "yaw"), f"{w}{name}.")
+            y = _num(ctx, _get(ctx, b, "y", f"{w}{name}."), f"{w}{name}.y")
+            xr = _pair(ctx, _get(ctx, b, "x", f"{w}{name}."), f"{w}{name}.x")
+            zr = _pair(ctx, _get(ctx, b, "z", f"{w}{name}."), f"{w}{name}.z")
+            h = _num(ctx, _get(ctx, b, "spacing", f"{w}{name}."), f"{w}{name}.spacing", positive=True)
+            yaws = b.get("yaw", [0.0])
+            if not isinstance(yaws, list):
+                yaws = [yaws]
+            yaws = [_num(ctx, v, f"{w}{name}.yaw") for v in yaws]
+            for v in yaws:
+                if not -math.pi <= v <= math.pi:
+                    raise ctx.fail(f"{w}{name}.yaw", v, "angles in [-pi, pi] rad (about the vertical)")
+            xs, zs = _axis(*xr, h), _axis(*zr, h)
+            if not (xs and zs and yaws):
+                raise ctx.fail(f"{w}{name}", _Short(_short(b)), "a grid with at least one point (x and z ranges "
+                               "[lo, hi] with lo <= hi, at least one yaw)")
+            rpys = [grid_base_rpy(v, own.base_rpy) for v in yaws]
+            out[name] = tuple(((x, y, z), r) for x in xs for z in zs for r in rpys)
+        else:
+            raise ctx.fail(w + name, _Short(_short(b)), "a list of base poses [{ position, rpy }, ...] or a grid "
+                           "{ y, x = [lo, hi], z = [lo, hi], spacing, yaw = [...] }")
+    return replace(t, options=dict(t.options, bases=out))
 
 
 def setup_from_dict(doc: Mapping[str, Any], source: str = "<memory>") -> Setup:
@@ -1260,13 +1354,18 @@ def setup_from_dict(doc: Mapping[str, Any], source: str = "<memory>") -> Setup:
     _check_keys(ctx, st, TABLE_KEYS["[setup]"], "[setup] ")
     shaft_c = _num(ctx, st.get("shaft_clearance", 0.0), "[setup] shaft_clearance", nonneg=True)
     arm_c = _num(ctx, st["arm_clearance"], "[setup] arm_clearance", positive=True) if "arm_clearance" in st else None
+    patient_c = (_num(ctx, st["patient_clearance"], "[setup] patient_clearance", nonneg=True)
+                 if "patient_clearance" in st else None)
+    by_name = dict(zip(arm_names_t, arms))
+    triads = [_setup_bases(ctx, t, by_name) if t.kind == "setup_placement" else t for t in triads]
     for i, t in enumerate(triads):
         if endo is None:
-            raise ctx.fail(f"[[tolerance]] {t.name!r} kind", "triad_placement", "an [endoscope] table (missing)")
+            raise ctx.fail(f"[[tolerance]] {t.name!r} kind", t.kind, "an [endoscope] table (missing)")
         if t.get("candidates") == "body_wall" and (arms[0].anatomy is None or arms[0].anatomy.body_wall is None):
             raise ctx.fail(f"[[tolerance]] {t.name!r} candidates", "body_wall", "an [anatomy.body_wall] table "
                            "(missing)")
-    return Setup(name, source, arm_names_t, tuple(arms), tuple(rests), endo, shaft_c, arm_c, tuple(triads), True)
+    return Setup(name, source, arm_names_t, tuple(arms), tuple(rests), endo, shaft_c, arm_c, tuple(triads), True,
+                 patient_clearance=patient_c)
 
 
 def read_document(path: str | Path) -> dict:

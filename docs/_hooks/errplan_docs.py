@@ -166,6 +166,20 @@ KEY_DOCS: dict[tuple[str, str], str] = {
     ("[[tolerance]] triad_placement", "azimuth_tolerance"): "a_tol, rad, > 0: the score's scale of the azimuth difference a₁ − a₂ (15° = 0.2618)",
     ("[[tolerance]] triad_placement", "coverage_weight"): "W, ≥ 0: the score's weight of an uncovered target (10)",
     ("[[tolerance]] triad_placement", "certify_margin"): "covered means ρ\\* ≤ 1 − margin for each instrument, in [0, 1) (`[planner] certify_margin`)",
+    ("[setup]", "patient_clearance"): "m, ≥ 0: every arm link (the URDFs' collision geometry, not the instrument shaft) from the patient's body, the solid inside the body wall, at every covered target and at rest, checked by `setup_placement` (omit: no patient checks)",
+    ("[[tolerance]] setup_placement", "instruments"): "the two arms whose bases and ports are chosen, by name (the first two arms)",
+    ("[[tolerance]] setup_placement", "bases"): "per instrument arm, `bases.ARM = [{ position = [x, y, z], rpy = [r, p, y] }, ...]` (listed poses; `rpy` defaults to the arm's own) or a grid `{ y, x = [lo, hi], z = [lo, hi], spacing, yaw = [..] }` (bases at height y, axes lo..hi inclusive, rotation R_y(yaw)·R(own `base_rpy`), yaws in [−π, π], default `[0.0]`); its keys are the instrument arms' names (for example `left`, `right`), a grid's `y`, `x`, `z`, `spacing` and `yaw`; an arm without one keeps its own base",
+    ("[[tolerance]] setup_placement", "candidates"): "the port candidates, as `triad_placement`'s (required)",
+    ("[[tolerance]] setup_placement", "spacing"): "m, > 0: port candidate spacing along the wall (0.03)",
+    ("[[tolerance]] setup_placement", "region"): "the task targets' box `{ x = [lo, hi], y = [lo, hi], z = [lo, hi] }` (required)",
+    ("[[tolerance]] setup_placement", "resolution"): "m: spacing of the task-target grid in `region` (`[fields] resolution`)",
+    ("[[tolerance]] setup_placement", "port_spacing"): "m, ≥ 0: smallest distance between any two ports of a setup, a hard constraint (0.06)",
+    ("[[tolerance]] setup_placement", "manipulation_angle"): "m\\*, rad, in (0, π), as `triad_placement` (60° = 1.0472)",
+    ("[[tolerance]] setup_placement", "manipulation_tolerance"): "m_tol, rad, > 0, as `triad_placement` (15° = 0.2618)",
+    ("[[tolerance]] setup_placement", "azimuth_tolerance"): "a_tol, rad, > 0, as `triad_placement` (15° = 0.2618)",
+    ("[[tolerance]] setup_placement", "coverage_weight"): "W, ≥ 0, as `triad_placement` (10)",
+    ("[[tolerance]] setup_placement", "certify_margin"): "covered means ρ\\* ≤ 1 − margin for each instrument, in [0, 1) (`[planner] certify_margin`)",
+    ("[[tolerance]] setup_placement", "gain"): "the controller gain of the coverage, > 0 (each arm's `[controller] gain`)",
 }
 
 EFFECT_DOCS = {

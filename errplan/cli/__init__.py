@@ -102,7 +102,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "(default: none, local)")
     s.add_argument("--record", default=None, help="rerun recording (.rrd) of the port-placement queries (default: none)")
     s.add_argument("--top", type=int, default=5, help="port-placement candidates listed per query (default: %(default)s)")
-    s.add_argument("--arm", default=None, help="the arm of a scenario with several instruments, by its [[arm]] name (default: the setup's triad_placement queries)")
+    s.add_argument("--arm", default=None, help="the arm of a scenario with several instruments, by its [[arm]] name (default: the setup's triad_placement and setup_placement queries)")
+    s.add_argument("--export-scenario", default=None, metavar="OUT.toml",
+                   help="write the scenario with the best setup's bases and port estimates (one setup_placement query; "
+                        "default: none)")
 
     s = sub.add_parser("experiment", help="a P1-style bench run on the scenario's truth -> measured-data CSV")
     s.add_argument("scenario", help="scenario TOML file; its [effects] and [sensors] are the bench's truth")

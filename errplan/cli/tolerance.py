@@ -1,5 +1,8 @@
-"""``errplan tolerance SCENARIO [--json F] [--workers N] [--scheduler ADDRESS] [--record F.rrd] [--top N]``:
-answer every ``[[tolerance]]`` query of a scenario (planar and spatial).
+"""``errplan tolerance SCENARIO [--json F] [--workers N] [--scheduler ADDRESS] [--record F.rrd] [--top N]
+[--arm NAME] [--export-scenario OUT.toml]``: answer every ``[[tolerance]]`` query of a scenario (planar and
+spatial; a setup's ``triad_placement`` and ``setup_placement`` queries without ``--arm``; with
+``--export-scenario``, the scenario with the best setup's bases and port estimates written for
+``errplan plan``).
 
 Prints one table row per query (the answer, where it binds or the best port) and, per
 ``port_placement`` query, its top candidates; writes ``{"scenario", "source", "tolerances":
@@ -79,6 +82,31 @@ def triad_table(r, top: int = 5) -> str:
     return "\n".join(lines)
 
 
+def setup_table(r, top: int = 5) -> str:
+    """A ``setup_placement`` result: the triad's table, then each ranked setup's bases and its smallest
+    link-to-body clearance."""
+    d = r.data
+    names = d["instruments"]
+    rows = []
+    for rank, t in enumerate([d["best"]] + d["ranked"][:max(top - 1, 0)], 1):
+        pc = t.get("patient_clearance_min")
+        rows.append([rank] + [f"{_mm(t['bases'][n]['position'])} {[round(v, 3) for v in t['bases'][n]['rpy']]}"
+                              for n in names]
+                    + [t["score"], math.nan if pc is None else 1000 * pc])
+    title = (f"{r.name}: {len(d['bases'][names[0]])} x {len(d['bases'][names[1]])} base candidates "
+             f"({names[0]} x {names[1]}); ties: {d['search']['tie_break']}")
+    rej = d["rejected"]
+    pc = d.get("patient_clearance")
+    note = ("patient checks: off" if pc is None else
+            f"patient checks: on (patient_clearance {pc:g} m, {rej['patient_clearance']:,} setups rejected)")
+    if d["search"]["ties"] > 1:
+        note += f"; {d['search']['ties']} setups tied with the best score"
+    lines = [triad_table(r, top),
+             format_table(["rank", f"{names[0]} base (mm, rpy)", f"{names[1]} base (mm, rpy)", "S",
+                           "patient clear (mm)"], rows, title), note]
+    return "\n".join(lines)
+
+
 def _warm_up(args) -> tuple[str, ...]:
     """A first run of a spatial scenario: the fields' search without the exact |phi_max| (what the
     queries' fields and worst cases run; a setup's triad placement its lanes too: its error sets have no
@@ -102,10 +130,16 @@ def _run_setup(st, args, parts: tuple[str, ...] = ()) -> int:
     from ..tolerance.run import run_setup_query
 
     if not st.triads:
-        raise ErrplanError(f"{st.source}: no triad_placement query: name an arm with --arm NAME for its "
-                           "[[tolerance]] queries")
+        raise ErrplanError(f"{st.source}: no triad_placement or setup_placement query: name an arm with --arm NAME "
+                           "for its [[tolerance]] queries")
     check_output("--json", args.json)
     check_output("--record", args.record)
+    export = getattr(args, "export_scenario", None)
+    if export:
+        from ..tolerance.setup import check_export
+
+        check_output("--export-scenario", export)
+        check_export(export, st.triads)
     prog = Progress("tolerance", quiet=args.quiet)
     prog.quiet = prog.quiet or not prog.tty
     results = []
@@ -120,16 +154,27 @@ def _run_setup(st, args, parts: tuple[str, ...] = ()) -> int:
                        f"setup queries of {st.name}"))
     for r in results:
         print()
-        print(triad_table(r, args.top))
+        print(setup_table(r, args.top) if r.kind == "setup_placement" else triad_table(r, args.top))
     if args.record:  # first: the recording is the output most likely to fail, written atomically
         from ..recording.setup import record_triad
 
         record_triad(args.record, st, results)
+    if export:
+        from ..calibration.export import to_toml
+        from ..report import write_atomic
+        from ..scenario import read_document
+        from ..tolerance.setup import check_export, export_header, exported_document
+
+        r = check_export(export, results)
+        write_atomic(export, to_toml(exported_document(read_document(st.source), st.source, r.data),
+                                     export_header(r.name, r.data)))
     if args.json:
         write_json(args.json, {"scenario": st.name, "source": st.source,
                                "tolerances": [r.to_dict() for r in results]})
     if args.record:
         print(f"recording: {args.record}  (open it with `errplan view {args.record}`)")
+    if export:
+        print(f"scenario: {export}  (the best setup's bases and ports; plan it with `errplan plan {export}`)")
     return 0
 
 
@@ -144,8 +189,11 @@ def run(args) -> int:
         raise ErrplanError(f"--top {args.top}: expected a number of candidates >= 0")
     parts = _warm_up(args)
     st = api.load_setup(args.scenario)
-    if st.several and args.arm is None:  # the setup's own queries (triad placement)
+    if st.several and args.arm is None:  # the setup's own queries (triad and setup placement)
         return _run_setup(st, args, parts)
+    if getattr(args, "export_scenario", None):
+        raise ErrplanError(f"--export-scenario {args.export_scenario}: expected a scenario with several arms and a "
+                           "setup_placement query (without --arm)")
     sc = st.arm(args.arm)
     check_output("--json", args.json)
     record = None

@@ -254,6 +254,63 @@ def triad_target_angles(result: dict) -> tuple[np.ndarray, np.ndarray]:
     return X, manipulation_angle(X, P[n1], P[n2])
 
 
+def _log_setup(rec, rr, st, d: dict, base: str, X: np.ndarray, cols: dict) -> None:
+    """A ``setup_placement`` result: the candidate bases per arm, the chosen ones, each arm drawn from its
+    URDF at its chosen base (at rest, and at the first target both instruments cover), and the patient
+    clearance per target (the smallest of the two arms' link-to-body distances, at the covered targets)."""
+    from dataclasses import replace
+
+    from ..errors import ErrplanError
+    from ..kinematics import arm_for
+    from ..kinematics.urdf.collision import ArmCollision
+
+    ui = rr.Radius.ui_points
+    b = d["best"]
+    arrays = d["_arrays"]
+    n1, n2 = d["instruments"]
+    covered = None
+    for name in (n1, n2):
+        rn = entity_name(name)
+        pos = np.array([c["position"] for c in d["bases"][name]], float)
+        rec.log(f"{base}/bases/candidates/{rn}", rr.Points3D(pos, colors=tuple(int(0.55 * c) for c in cols[name]),
+                                                            radii=ui(5.0)), static=True)
+        rec.log(f"{base}/bases/chosen/{rn}", rr.Points3D([b["bases"][name]["position"]], colors=cols[name],
+                                                        radii=ui(11.0), labels=[f"{name} base"]), static=True)
+        Q = (arrays.get("arm_q") or {}).get(name)
+        ok = np.zeros(len(X), bool) if Q is None else np.all(np.isfinite(Q), axis=1)
+        covered = ok if covered is None else covered & ok
+    for name in (n1, n2):
+        sc = st.arm(name)
+        robot = replace(sc.robot, base_position=tuple(b["bases"][name]["position"]),
+                        base_rpy=tuple(b["bases"][name]["rpy"]))
+        arm = arm_for(robot)
+        try:
+            geo = ArmCollision.from_arm(arm, kind="visual")
+        except ErrplanError:
+            geo = None
+        m = {"arm": arm, "geo": geo, "port": np.asarray(b["ports"][name], float),
+             "length": float(sc.instrument.length)}
+        rest_q = (arrays.get("arm_rest_q") or {}).get(name)
+        if rest_q is not None and np.all(np.isfinite(rest_q)):
+            _log_arm_state(rec, rr, f"{name} at rest", m, rest_q, np.asarray(st.rest(name), float), cols[name],
+                           static=True)
+        if covered is not None and covered.any():
+            k = int(np.flatnonzero(covered)[0])
+            _log_arm_state(rec, rr, f"{name} at a target", m, arrays["arm_q"][name][k], X[k], cols[name], static=True)
+    pt = b.get("patient_clearance_targets")
+    if pt:
+        v = np.fmin(np.array(pt[n1], float), np.array(pt[n2], float))  # NaN where not covered
+        rec.log(f"{base}/patient_clearance", rr.SeriesPoints(names="patient clearance (mm)"), static=True)
+        idx = np.flatnonzero(np.isfinite(v))
+        if len(idx):
+            rec.send_columns(f"{base}/patient_clearance", indexes=[rr.TimeColumn("target", sequence=idx)],
+                             columns=rr.Scalars.columns(scalars=1000.0 * v[idx]))
+            rec.log(f"{base}/patient_clearance_targets",
+                    rr.Points3D(X[idx], colors=turbo(np.clip(v[idx] / max(float(np.nanmax(v)), 1e-9), 0.0, 1.0)),
+                                radii=ui(4.0), labels=[f"patient {1000 * x:.1f} mm" for x in v[idx]],
+                                show_labels=False), static=True)
+
+
 def record_triad(path, st, results, *, app_id: str = "errplan") -> None:
     """Write one ``.rrd`` of the ``triad_placement`` results (:class:`errplan.tolerance.ToleranceResult`)
     of setup ``st`` (module docstring). Nothing half-written on error."""
@@ -292,6 +349,8 @@ def record_triad(path, st, results, *, app_id: str = "errplan") -> None:
             rec.log(f"{base}/manipulation_angle", rr.SeriesPoints(names="m(t) (deg)"), static=True)
             rec.send_columns(f"{base}/manipulation_angle", indexes=[rr.TimeColumn("target", sequence=np.arange(len(m)))],
                              columns=rr.Scalars.columns(scalars=np.degrees(m)))
+            if "bases" in d:
+                _log_setup(rec, rr, st, d, base, X, cols)
 
     rrb = sdk.blueprint()
     d0 = results[0].data
@@ -301,5 +360,7 @@ def record_triad(path, st, results, *, app_id: str = "errplan") -> None:
                              eye_controls=_eye(rrb, centre + [0.30, 0.22, -0.40], centre))
     plots = [rrb.TimeSeriesView(origin=f"/world/triad/{q}/manipulation_angle", name=f"{q}: m(t) per target")
              for q in names]
+    plots += [rrb.TimeSeriesView(origin=f"/world/triad/{q}/patient_clearance", name=f"{q}: patient clearance per target")
+              for q, r in zip(names, results) if r.data["best"].get("patient_clearance_targets")]
     bp = rrb.Blueprint(rrb.Horizontal(main, rrb.Vertical(*plots), column_shares=[3, 1]), collapse_panels=True)
     sdk.write(path, app_id, f"errplan-{st.name}-triad", bp, log)

@@ -44,10 +44,12 @@ class ToleranceResult:
                 note += f"; refined {_point(r['port'])}: {100 * r['coverage']:.1f}%"
             return [self.name, "port_placement", f"coverage {100 * d['coverage']:.1f}%", f"best {_point(d['best'])}",
                     note]
-        if self.kind == "triad_placement":
+        if self.kind in ("triad_placement", "setup_placement"):
             b = d["best"]
-            return [self.name, "triad_placement", f"score {b['score']:.4f}",
-                    "; ".join(f"{k} {_point(v)}" for k, v in b["ports"].items()),
+            bases = ("; bases " + "; ".join(f"{k} {_point(v['position'])}" for k, v in b["bases"].items())
+                     if "bases" in b else "")
+            return [self.name, self.kind, f"score {b['score']:.4f}",
+                    "; ".join(f"{k} {_point(v)}" for k, v in b["ports"].items()) + bases,
                     f"both covered {100 * b['coverage']['both']:.1f}%, pruned {100 * d['search']['pruned_share']:.1f}%"]
         if self.kind == "insertion_band":
             band = d["band"]

@@ -73,13 +73,16 @@ def run_query(sc, tol, progress: Progress | None = None, *, workers: int | None 
 
 def run_setup_query(st, tol, progress: Progress | None = None, *, workers: int | None = 1,
                     scheduler: str | None = None) -> ToleranceResult:
-    """Answer one setup-level query (``triad_placement``) of a :class:`errplan.scenario.Setup`."""
+    """Answer one setup-level query (``triad_placement``, ``setup_placement``) of a
+    :class:`errplan.scenario.Setup`."""
+    from .setup import setup_placement
     from .triad import triad_placement
 
     t0 = time.perf_counter()
     where = f"[[tolerance]] {tol.name!r}"
     try:
-        data = triad_placement(st, tol, workers=workers, scheduler=scheduler, progress=progress)
+        fn = setup_placement if tol.kind == "setup_placement" else triad_placement
+        data = fn(st, tol, workers=workers, scheduler=scheduler, progress=progress)
     except ErrplanError as e:
         msg = str(e)
         raise type(e)(msg if msg.startswith(where) else f"{where}: {msg}") from None

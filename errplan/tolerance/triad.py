@@ -53,12 +53,20 @@ blocks: the search stops. Ties (LB equal to the threshold) are evaluated, so the
 first, is exactly the brute force's (``prune=False`` evaluates every triad; the tests compare).
 Blocks run as tasks in waves of a fixed number of blocks; the threshold is updated between waves only,
 so the pruned share does not depend on the number of workers either.
+
+Setups (:func:`place` with bases; :mod:`errplan.tolerance.setup`). An instrument candidate is then a (base,
+port) pair, base-major; the per-port arrays (angles, shaft distances, port distances) stay per port and
+:class:`TriadData` maps each candidate to its port row; coverage, the arms' configurations and the arm and
+patient checks are per candidate. Two more hard constraints, both only removing setups (LB stays
+admissible): the arms at rest at least ``arm_clearance`` apart (asked first, per pair the search evaluates;
+the targets only for pairs clear at rest) and, with a patient clearance, every link of each arm that far
+from the body at the covered targets and at rest (per candidate, before the search).
 """
 from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -74,6 +82,8 @@ BLOCK_PAIRS = 64
 #: per-target values held for the search (angles, distances): about 8 bytes each
 MAX_TRIAD_CELLS = 60_000_000
 WAVE_BLOCKS = 4
+#: the hard constraints a triad (or setup) is rejected for, counted separately
+REJECTIONS = ("port_spacing", "shaft_clearance", "arm_clearance", "patient_clearance")
 
 
 # ============================================================================= per-candidate data
@@ -101,6 +111,12 @@ def cover_batch(job: CoverJob, cands: list) -> list:
     return [np.packbits(cover(job, c)) for c in cands]
 
 
+def cover_base_batch(jobs, item) -> list:
+    """One task: ``item = (base index, candidates)``, covered by that base's job of ``jobs``."""
+    b, cands = item
+    return cover_batch(jobs[b], cands)
+
+
 def distance_rows(shared, rows) -> np.ndarray:
     """One task: (len(rows), E, T) exact shaft distances of instrument candidates ``rows``."""
     boxes, X, hull_e = shared
@@ -108,12 +124,25 @@ def distance_rows(shared, rows) -> np.ndarray:
 
 
 def arm_rows(shared, item) -> np.ndarray:
-    """One task: (k,) whether the two instrument arms ``shared = (ArmCollision, ArmCollision,
-    arm_clearance)`` keep ``arm_clearance`` at configuration pairs ``item = (Q1 (k, n1), Q2 (k, n2))``
-    (False where an arm cannot stand)."""
+    """One task: (k,) whether the two instrument arms keep ``arm_clearance`` at configuration pairs; ``shared
+    = (ArmCollisions of arm 1 per base, ArmCollisions of arm 2 per base, arm_clearance)``, ``item`` a list of
+    ``(base 1, base 2, Q1 (k, n1), Q2 (k, n2))`` (False where an arm cannot stand), concatenated."""
     from ..kinematics.urdf.collision import clear_of
 
-    return clear_of(shared[0], item[0], shared[1], item[1], shared[2])
+    g1, g2, c = shared
+    parts = [clear_of(g1[b1], Q1, g2[b2], Q2, c) for b1, b2, Q1, Q2 in item]
+    return np.concatenate(parts) if parts else np.zeros(0, bool)
+
+
+def patient_rows(shared, item) -> np.ndarray:
+    """One task: (k,) whether one arm's links keep the patient clearance at configurations ``Q``; ``shared =
+    (ArmCollisions per base, BodySolid, patient_clearance)``, ``item = (base, Q (k, n))`` (False where the arm
+    cannot stand)."""
+    from ..kinematics.urdf.patient import patient_clear
+
+    geos, body, c = shared
+    b, Q = item
+    return patient_clear(geos[b], Q, body, c)
 
 
 def _endoscope_candidates(model, endo, spacing: float, region: dict) -> np.ndarray:
@@ -151,39 +180,68 @@ class TriadData:
     arm: np.ndarray | None = None
     arm_clearance: float | None = None
     arm_done: np.ndarray | None = None  # (N1, N2) bool: the pairs whose ``arm`` row is computed
+    #: setup placement: each instrument candidate's port row (N1,), (N2,) in the per-port arrays (mterm, A, D,
+    #: d); None: the candidates are the ports
+    port1: np.ndarray | None = None
+    port2: np.ndarray | None = None
+    #: setup placement with [setup] patient_clearance: (N, T) bool, the arm's links keep it from the body at t
+    #: (False where the arm cannot stand), and (N,) at rest; None: no patient checks
+    patient1: np.ndarray | None = None
+    patient2: np.ndarray | None = None
+    patient_rest1: np.ndarray | None = None
+    patient_rest2: np.ndarray | None = None
+    #: setup placement with arm checks: (N1, N2) bool, the two arms at rest keep arm_clearance (rows of
+    #: ``arm_done`` pairs); None: not checked
+    arm_rest: np.ndarray | None = None
+
+    def ports(self, i1: int, i2: int) -> tuple[int, int]:
+        """The port rows of instrument candidates (i1, i2)."""
+        return (int(self.port1[i1]) if self.port1 is not None else i1,
+                int(self.port2[i2]) if self.port2 is not None else i2)
 
 
 def lower_bound(data: TriadData, i1: int, i2: int) -> float:
     """LB(p1, p2): admissible for every endoscope port (module docstring)."""
     both = data.cov1[i1] & data.cov2[i2]
-    return float(np.mean(data.W * (1.0 - both) + data.mterm[i1, i2]))
+    return float(np.mean(data.W * (1.0 - both) + data.mterm[data.ports(i1, i2)]))
 
 
 def lower_bounds(data: TriadData) -> np.ndarray:
     """(N1, N2): :func:`lower_bound` of every pair at once."""
     T = data.cov1.shape[1]
     both = data.cov1.astype(np.float64) @ data.cov2.astype(np.float64).T / T
-    return data.W * (1.0 - both) + np.mean(data.mterm, axis=-1)
+    m = np.mean(data.mterm, axis=-1)
+    if data.port1 is not None:
+        m = m[np.ix_(data.port1, data.port2)]
+    return data.W * (1.0 - both) + m
 
 
-def pair_scores(data: TriadData, i1: int, i2: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def pair_scores(data: TriadData, i1: int, i2: int) -> tuple[np.ndarray, ...]:
     """For pair (i1, i2) and every endoscope candidate: ``(S (E,), spacing_ok (E,), shaft_ok (E,),
-    arm_ok (E,))`` (arm_ok all true when the arm checks are off)."""
+    arm_ok (E,), patient_ok (E,))`` (arm_ok, patient_ok all true when those checks are off)."""
+    j1, j2 = data.ports(i1, i2)
     c = data.cov1[i1][None, :] & data.cov2[i2][None, :] & data.vis  # (E, T)
-    az = ((data.A1[i1] - data.A2[i2]) / data.a_tol) ** 2
-    S = np.mean(data.W * (1.0 - c) + data.mterm[i1, i2][None, :] + az, axis=1)
-    sp = (data.d12[i1, i2] >= data.port_spacing) & (data.d1e[i1] >= data.port_spacing) & (
-        data.d2e[i2] >= data.port_spacing)
-    if np.isnan(data.D1[i1]).any() or np.isnan(data.D2[i2]).any():  # pragma: no cover - search's ensure
+    az = ((data.A1[j1] - data.A2[j2]) / data.a_tol) ** 2
+    S = np.mean(data.W * (1.0 - c) + data.mterm[j1, j2][None, :] + az, axis=1)
+    sp = (data.d12[j1, j2] >= data.port_spacing) & (data.d1e[j1] >= data.port_spacing) & (
+        data.d2e[j2] >= data.port_spacing)
+    if np.isnan(data.D1[j1]).any() or np.isnan(data.D2[j2]).any():  # pragma: no cover - search's ensure
         raise RuntimeError(f"triad search: shaft distances of pair {(i1, i2)} not computed")
-    bad = c & ((data.D1[i1] < data.shaft_clearance) | (data.D2[i2] < data.shaft_clearance))
+    bad = c & ((data.D1[j1] < data.shaft_clearance) | (data.D2[j2] < data.shaft_clearance))
     if data.arm is None:
         arm_ok = np.ones(len(S), bool)
     else:
         if not data.arm_done[i1, i2]:  # pragma: no cover - search's ensure
             raise RuntimeError(f"triad search: arm clearances of pair {(i1, i2)} not computed")
         arm_ok = ~np.any(c & ~data.arm[i1, i2][None, :], axis=1)
-    return S, sp, ~np.any(bad, axis=1), arm_ok
+        if data.arm_rest is not None:
+            arm_ok &= bool(data.arm_rest[i1, i2])
+    if data.patient1 is None:
+        pt_ok = np.ones(len(S), bool)
+    else:
+        both = data.patient1[i1] & data.patient2[i2]
+        pt_ok = ~np.any(c & ~both[None, :], axis=1) & bool(data.patient_rest1[i1] and data.patient_rest2[i2])
+    return S, sp, ~np.any(bad, axis=1), arm_ok, pt_ok
 
 
 def evaluate_block(data: TriadData, item) -> dict:
@@ -192,18 +250,19 @@ def evaluate_block(data: TriadData, item) -> dict:
     pairs, lbs, threshold = item
     E = data.vis.shape[0]
     best: list = []
-    rej = {"port_spacing": 0, "shaft_clearance": 0, "arm_clearance": 0}
+    rej = dict.fromkeys(REJECTIONS, 0)
     evaluated = pruned = 0
     for (i1, i2), lb in zip(pairs, lbs):
         if lb > threshold:
             pruned += E
             continue
-        S, sp, sh, am = pair_scores(data, i1, i2)
+        S, sp, sh, am, pt = pair_scores(data, i1, i2)
         evaluated += E
         rej["port_spacing"] += int(np.sum(~sp))
         rej["shaft_clearance"] += int(np.sum(~sh))
         rej["arm_clearance"] += int(np.sum(~am))
-        ok = np.flatnonzero(sp & sh & am)
+        rej["patient_clearance"] += int(np.sum(~pt))
+        ok = np.flatnonzero(sp & sh & am & pt)
         for e in ok[np.argsort(S[ok], kind="stable")][:data.keep]:
             best.append((float(S[e]), int(i1), int(i2), int(e)))
     best.sort()
@@ -223,7 +282,7 @@ def search(data: TriadData, *, prune: bool = True, workers: int | None = 1, sche
     order = sorted(((float(lbs[i, j]), i, j) for i in range(N1) for j in range(N2)))
     blocks = [order[k:k + BLOCK_PAIRS] for k in range(0, len(order), BLOCK_PAIRS)]
     best: list = []
-    rej = {"port_spacing": 0, "shaft_clearance": 0, "arm_clearance": 0}
+    rej = dict.fromkeys(REJECTIONS, 0)
     evaluated = pruned = 0
     waves = 0
     k = 0
@@ -267,13 +326,56 @@ def triad_placement(st, tol, *, workers: int | None = 1, scheduler: str | None =
                     progress: Progress | None = None, prune: bool = True, keep: int = 6) -> dict[str, Any]:
     """Answer a ``triad_placement`` query of setup ``st`` (:class:`errplan.scenario.Setup`): the best
     triad and the next ``keep - 1`` (module docstring), with the JSON keys of docs/interfaces.md."""
+    return place(st, tol, None, workers=workers, scheduler=scheduler, progress=progress, prune=prune, keep=keep)
+
+
+def _moved(sc, pose):
+    """Scenario ``sc`` with its arm's base at ``pose = (position, rpy)``."""
+    return sc.with_(robot=replace(sc.robot, base_position=tuple(pose[0]), base_rpy=tuple(pose[1])))
+
+
+def _share_maps(scenarios, done: list) -> None:
+    """Each arm of ``scenarios`` (one per base) takes the reachability map of an arm in ``done`` that differs
+    from it only by the base's position, moved with the base (:func:`errplan.kinematics.urdf.reachmap.
+    share_translated`), instead of building its own; then joins ``done``."""
+    from ..kinematics import arm_for
+    from ..kinematics.urdf.reachmap import share_translated
+
+    for s_b in scenarios:
+        a = arm_for(s_b.robot)
+        for src in done:
+            if share_translated(a, src):
+                break
+        done.append(a)
+
+
+def _union(parts: list) -> np.ndarray:
+    """The rows of the arrays ``parts`` once each, in order of first appearance."""
+    seen, out = set(), []
+    for P in parts:
+        for p in np.asarray(P, float).reshape(-1, 3):
+            key = tuple(p.tolist())
+            if key not in seen:
+                seen.add(key)
+                out.append(p)
+    return np.array(out, float).reshape(-1, 3)
+
+
+def place(st, tol, bases: dict | None, *, workers: int | None = 1, scheduler: str | None = None,
+          progress: Progress | None = None, prune: bool = True, keep: int = 6, patient=None) -> dict[str, Any]:
+    """The triad search over instrument candidates. ``bases`` None: each arm at its own base, the
+    candidates are the ports (``triad_placement``). Else ``{arm: ((position, rpy), ...)}``: an instrument
+    candidate is a (base, port) pair, base-major (:mod:`errplan.tolerance.setup`), the arms also checked at
+    rest (with ``arm_clearance``) and against ``patient`` (``(BodySolid, patient_clearance)``, or None)."""
     from ..cluster import map_tasks
     from ..fields import ErrorSet, KernelEvaluator, error_set
     from ..fields.compute import anatomy_model
+    from ..models import build_arm
 
     t0 = time.perf_counter()
     o = tol.options
-    where = "triad_placement"
+    setup = bases is not None
+    where = tol.kind if setup else "triad_placement"
     n1, n2 = o["instruments"]
     sc1, sc2 = st.arm(n1), st.arm(n2)
     endo = st.endoscope
@@ -289,8 +391,10 @@ def triad_placement(st, tol, *, workers: int | None = 1, scheduler: str | None =
     bound = 1.0 - float(o["certify_margin"])
     spacing = float(o["spacing"])
     roles = {}
-    jobs = {}
+    shared_arms: list = []  # the arms whose reachability maps the moved ones take (setup placement)
+    jobs = {}  # per arm, per base
     models = {}
+    scs = {}  # per arm, per base: the arm's scenario with its base there
     for name, sc in ((n1, sc1), (n2, sc2)):
         _, jac_effects = error_set(sc)
         if sc.controller.jacobian != "rigid" or jac_effects:
@@ -301,10 +405,15 @@ def triad_placement(st, tol, *, workers: int | None = 1, scheduler: str | None =
         if o["candidates"] == "body_wall" and (model is None or not model.wall[6] > 0):
             raise ErrplanError(f'{where}: candidates = "body_wall" needs [anatomy.body_wall]')
         models[name] = model
-        roles[name] = _role_points(st, o, name, sc, model, spacing, region)
+        scs[name] = [sc] if not setup else [build_arm(_moved(sc, b), name).scenario for b in bases[name]]
+        if setup:
+            _share_maps(scs[name], shared_arms)
+        roles[name] = (_union([_role_points(st, o, name, s_b, model, spacing, region) for s_b in scs[name]]) if setup
+                       else _role_points(st, o, name, sc, model, spacing, region))
         k = float(o.get("gain", sc.controller.gain))
-        jobs[name] = CoverJob(PlacementJob(X, k, bound, evaluator=KernelEvaluator(sc)), model,
-                              es.port_corners() - np.asarray(es.base_port, float))
+        off = es.port_corners() - np.asarray(es.base_port, float)
+        jobs[name] = [CoverJob(PlacementJob(X, k, bound, evaluator=KernelEvaluator(s_b)), model, off)
+                      for s_b in scs[name]]
     model_e = models[n1]
     roles["endoscope"] = _role_points(st, o, "endoscope", sc1, model_e, spacing, region)
     for r, pts in roles.items():
@@ -314,43 +423,48 @@ def triad_placement(st, tol, *, workers: int | None = 1, scheduler: str | None =
             raise ErrplanError(f"{where} spacing = {spacing:g}: {len(pts)} candidates for {r!r}, more than the "
                                f"budget of {MAX_CANDIDATES:,}: use a larger spacing")
     n_a, n_b, n_e = len(roles[n1]), len(roles[n2]), len(roles["endoscope"])
-    cells = (n_a * n_b + (n_a + n_b) * n_e * 2) * T
+    nb = {n1: len(scs[n1]), n2: len(scs[n2])}
+    N = {name: nb[name] * len(roles[name]) for name in (n1, n2)}
+    cells = (n_a * n_b + (n_a + n_b) * n_e * 2) * T + (N[n1] * N[n2] * T if setup else 0)
     if cells > MAX_TRIAD_CELLS:
-        raise ErrplanError(f"{where} spacing = {spacing:g}: {n_a} x {n_b} x {n_e} candidate ports over {T} targets "
+        raise ErrplanError(f"{where} spacing = {spacing:g}: {N[n1]} x {N[n2]} x {n_e} candidates over {T} targets "
                            f"would need {cells:.3g} per-target values (max {MAX_TRIAD_CELLS:,}): use a larger spacing "
-                           "or resolution")
+                           "or resolution" + (" or fewer bases" if setup else ""))
     t1 = time.perf_counter()
     covs = {}
     for name, sc in ((n1, sc1), (n2, sc2)):
         items = [_candidate_item(sc, c) for c in roles[name]]
-        per = max(1, math.ceil(len(items) / max(MIN_TASKS, 1)))
-        batches = [items[i:i + per] for i in range(0, len(items), per)]
+        per = max(1, math.ceil(len(items) * nb[name] / max(MIN_TASKS, 1)))
+        batches = [(b, items[i:i + per]) for b in range(nb[name]) for i in range(0, len(items), per)]
 
         def tick(done, total, name=name):
             if progress:
                 progress(0.5 * done / total, f"{name} candidates {done}/{total}")
 
         packed = []
-        for part in map_tasks(cover_batch, jobs[name], batches, workers=workers, scheduler=scheduler, progress=tick):
+        for part in map_tasks(cover_base_batch, jobs[name], batches, workers=workers, scheduler=scheduler,
+                              progress=tick):
             packed.extend(part)
-        covs[name] = np.array([np.unpackbits(p, count=T).astype(bool) for p in packed]).reshape(len(items), T)
+        covs[name] = np.array([np.unpackbits(p, count=T).astype(bool) for p in packed]).reshape(N[name], T)
     cover_s = time.perf_counter() - t1
     # endoscope: lens, axis, visibility; hull points conv(box_e ∪ {lens})
     P1, P2, PE = roles[n1], roles[n2], roles["endoscope"]
+    port_of = {n1: np.tile(np.arange(n_a), nb[n1]), n2: np.tile(np.arange(n_b), nb[n2])}
+    base_of = {n1: np.repeat(np.arange(nb[n1]), n_a), n2: np.repeat(np.arange(nb[n2]), n_b)}
     axes_e = geo.optical_axis(PE, np.asarray(endo.look_at, float)[None, :])
     lens = PE + endo.insertion * axes_e
     vis = np.array([geo.visible(X, lens[i], axes_e[i], endo.fov, endo.depth, model_e) for i in range(len(PE))])
     off_e = geo.endoscope_box(endo) - np.asarray(endo.port.estimate, float)
     hull_e = np.concatenate([PE[:, None, :] + off_e[None], lens[:, None, :]], axis=1)
-    boxes = {name: roles[name][:, None, :] + jobs[name].offsets[None] for name in (n1, n2)}
+    boxes = {name: roles[name][:, None, :] + jobs[name][0].offsets[None] for name in (n1, n2)}
     D1 = np.full((len(P1), len(PE), T), np.nan)
     D2 = np.full((len(P2), len(PE), T), np.nan)
     done = {n1: np.zeros(len(P1), bool), n2: np.zeros(len(P2), bool)}
     dist_t = [0.0, 0]
 
     def ensure(rows1, rows2):
-        """Exact shaft distances of these instrument candidates to every endoscope candidate, per target
-        (tasks of a few candidates each)."""
+        """Exact shaft distances of these instrument ports to every endoscope candidate, per target (tasks of
+        a few ports each)."""
         t = time.perf_counter()
         for name, D, rows in ((n1, D1, rows1), (n2, D2, rows2)):
             rows = [r for r in rows if not done[name][r]]
@@ -366,51 +480,90 @@ def triad_placement(st, tol, *, workers: int | None = 1, scheduler: str | None =
         dist_t[0] += time.perf_counter() - t
     arm_c = st.arm_clearance
     arm_t = [0.0, 0, 0]  # seconds, pairs checked, coal queries (pair x target)
-    ARM = arm_done = None
-    if arm_c is not None:
+    ARM = arm_done = ARM_REST = None
+    PAT = PREST = None
+    kin, geos, Qc, Qrest = {}, {}, {}, {}
+    need_geo = arm_c is not None or patient is not None
+    if need_geo:
         from ..kinematics import arm_for
         from ..kinematics.urdf.collision import ArmCollision
 
-        kin, geos = {}, {}
-        for name, sc in ((n1, sc1), (n2, sc2)):
-            kin[name] = arm_for(sc.robot)
+        for name in (n1, n2):
+            kin[name] = [arm_for(s_b.robot) for s_b in scs[name]]
             try:
-                geos[name] = ArmCollision.from_arm(kin[name])
+                geos[name] = tuple(ArmCollision.from_arm(a) for a in kin[name])
             except ErrplanError as err:
-                raise ErrplanError(f"{where}: [setup] arm_clearance = {arm_c:g}: arm {name!r}: {err}") from None
+                key = (f"[setup] arm_clearance = {arm_c:g}" if arm_c is not None
+                       else f"[setup] patient_clearance = {patient[1]:g}")
+                raise ErrplanError(f"{where}: {key}: arm {name!r}: {err}") from None
         Pc = {n1: P1, n2: P2}
-        Qc = {name: np.full((len(Pc[name]), T, kin[name].n), np.nan) for name in (n1, n2)}
-        qdone = {name: np.zeros(len(Pc[name]), bool) for name in (n1, n2)}
-        ARM = np.ones((len(P1), len(P2), T), bool)
-        arm_done = np.zeros((len(P1), len(P2)), bool)
-        d12 = np.linalg.norm(P1[:, None] - P2[None], axis=-1)
+        Qc = {name: np.full((N[name], T, kin[name][0].n), np.nan) for name in (n1, n2)}
+        qdone = {name: np.zeros(N[name], bool) for name in (n1, n2)}
+        if setup:  # each candidate's arm at rest: the wrist on the shaft from its rest tip through its port
+            for name in (n1, n2):
+                rest = np.asarray(st.rest(name), float)
+                L = float(st.arm(name).instrument.length)
+                Qrest[name] = np.full((N[name], kin[name][0].n), np.nan)
+                for b in range(nb[name]):
+                    rows = np.flatnonzero(base_of[name] == b)
+                    u = geo.unit(rest[None] - Pc[name][port_of[name][rows]])
+                    q, ok = kin[name][b].inverse(rest[None] - L * u)
+                    Qrest[name][rows] = np.where(np.asarray(ok, bool)[:, None], q, np.nan)
 
         def configs(name, rows):
             """Each arm at the targets its candidates ``rows`` cover: the wrist at t - L (t - p)/|t - p|."""
             rows = [r for r in rows if not qdone[name][r]]
             if not rows:
                 return
-            cov = covs[name][rows]  # (r, T)
-            u = geo.unit(X[None] - Pc[name][rows][:, None])
-            W = X[None] - float(st.arm(name).instrument.length) * u
-            q, ok = kin[name].inverse(W[cov])
-            Qr = np.full((len(rows), T, kin[name].n), np.nan)
-            Qr[cov] = np.where(np.asarray(ok, bool)[:, None], q, np.nan)
-            Qc[name][rows] = Qr
+            L = float(st.arm(name).instrument.length)
+            for b in range(nb[name]):
+                rb = [r for r in rows if base_of[name][r] == b]
+                if not rb:
+                    continue
+                cov = covs[name][rb]  # (r, T)
+                u = geo.unit(X[None] - Pc[name][port_of[name][rb]][:, None])
+                W = X[None] - L * u
+                q, ok = kin[name][b].inverse(W[cov])
+                Qr = np.full((len(rb), T, kin[name][b].n), np.nan)
+                Qr[cov] = np.where(np.asarray(ok, bool)[:, None], q, np.nan)
+                Qc[name][rb] = Qr
             qdone[name][rows] = True
 
+    if arm_c is not None:
+        ARM = np.ones((N[n1], N[n2], T), bool)
+        arm_done = np.zeros((N[n1], N[n2]), bool)
+        ARM_REST = np.ones((N[n1], N[n2]), bool) if setup else None
+        d12 = np.linalg.norm(P1[:, None] - P2[None], axis=-1)
+
     def ensure_arms(pairs):
-        """Arm clearances of the instrument pairs ``pairs`` at the targets both cover (module docstring)."""
+        """Arm clearances of the instrument pairs ``pairs`` at the targets both cover (module docstring); for a
+        setup first at rest, the targets only of the pairs clear there and whose arms clear the patient at
+        rest (every setup of the others is rejected already)."""
         t = time.perf_counter()
         todo = sorted({(i, j) for i, j in pairs if not arm_done[i, j]})
-        check = [(i, j) for i, j in todo if d12[i, j] >= float(o["port_spacing"])]
+        check = [(i, j) for i, j in todo if d12[port_of[n1][i], port_of[n2][j]] >= float(o["port_spacing"])]
+        total = 0
+        if setup:
+            if PREST is not None:
+                check = [(i, j) for i, j in check if PREST[n1][i] and PREST[n2][j]]
+            if check:
+                per = max(1, math.ceil(len(check) / max(MIN_TASKS, 1)))
+                chunks = [check[k:k + per] for k in range(0, len(check), per)]
+                items = [[(int(base_of[n1][i]), int(base_of[n2][j]), Qrest[n1][i][None], Qrest[n2][j][None])
+                          for i, j in ch] for ch in chunks]
+                for ch, part in zip(chunks, map_tasks(arm_rows, (geos[n1], geos[n2], float(arm_c)), items,
+                                                      workers=workers, scheduler=scheduler)):
+                    for (i, j), ok in zip(ch, part):
+                        ARM_REST[i, j] = ok
+                total += len(check)
+                check = [(i, j) for i, j in check if ARM_REST[i, j]]
         configs(n1, sorted({i for i, _ in check}))
         configs(n2, sorted({j for _, j in check}))
         where_t = [(i, j, np.flatnonzero(covs[n1][i] & covs[n2][j])) for i, j in check]
         where_t = [w for w in where_t if len(w[2])]
-        total = sum(len(w[2]) for w in where_t)
-        if total:
-            per = max(1, math.ceil(total / max(MIN_TASKS, 1)))
+        n_t = sum(len(w[2]) for w in where_t)
+        if n_t:
+            per = max(1, math.ceil(n_t / max(MIN_TASKS, 1)))
             chunks, cur, size = [], [], 0
             for w in where_t:
                 cur.append(w)
@@ -420,8 +573,8 @@ def triad_placement(st, tol, *, workers: int | None = 1, scheduler: str | None =
                     cur, size = [], 0
             if cur:
                 chunks.append(cur)
-            items = [(np.concatenate([Qc[n1][i, tt] for i, _, tt in ch]),
-                      np.concatenate([Qc[n2][j, tt] for _, j, tt in ch])) for ch in chunks]
+            items = [[(int(base_of[n1][i]), int(base_of[n2][j]), Qc[n1][i, tt], Qc[n2][j, tt]) for i, j, tt in ch]
+                     for ch in chunks]
             parts = map_tasks(arm_rows, (geos[n1], geos[n2], float(arm_c)), items, workers=workers,
                               scheduler=scheduler)
             for ch, part in zip(chunks, parts):
@@ -433,30 +586,59 @@ def triad_placement(st, tol, *, workers: int | None = 1, scheduler: str | None =
             arm_done[i, j] = True
         arm_t[0] += time.perf_counter() - t
         arm_t[1] += len(check)
-        arm_t[2] += total
+        arm_t[2] += total + n_t
 
     def ensure_all(rows1, rows2, pairs):
-        ensure(rows1, rows2)
+        ensure(sorted({int(port_of[n1][r]) for r in rows1}), sorted({int(port_of[n2][r]) for r in rows2}))
         if arm_c is not None:
             ensure_arms(pairs)
+
+    # the patient: every candidate's links from the body at the targets it covers and at rest (yes/no; the
+    # exact distances for the reported setups only)
+    pat_t = [0.0, 0]
+    if patient is not None:
+        t = time.perf_counter()
+        body, pc = patient
+        PAT, PREST = {}, {}
+        for name in (n1, n2):
+            configs(name, list(range(N[name])))
+            items, where_q = [], []
+            for b in range(nb[name]):
+                rows = np.flatnonzero(base_of[name] == b)
+                cov = covs[name][rows]
+                items.append((b, np.concatenate([Qc[name][rows][cov], Qrest[name][rows]])))
+                where_q.append((rows, cov))
+            parts = map_tasks(patient_rows, (geos[name], body, float(pc)), items, workers=workers,
+                              scheduler=scheduler)
+            PAT[name] = np.ones((N[name], T), bool)
+            PREST[name] = np.zeros(N[name], bool)
+            for (rows, cov), ok in zip(where_q, parts):
+                k = int(cov.sum())
+                blk = np.ones((len(rows), T), bool)
+                blk[cov] = ok[:k]
+                PAT[name][rows] = blk
+                PREST[name][rows] = ok[k:]
+                pat_t[1] += len(ok)
+        pat_t[0] = time.perf_counter() - t
 
     mstar, mtol = float(o["manipulation_angle"]), float(o["manipulation_tolerance"])
     U1, U2, UE = (geo.unit(X[None] - P[:, None]) for P in (P1, P2, lens))  # (N, T, 3) unit vectors p -> t
     M = geo.unit_angles(U1, U2)  # (N1, N2, T): m(t)
     A1 = geo.unit_angles(U1, UE)  # (N1, E, T): a_1(t)
     A2 = geo.unit_angles(U2, UE)
+    pat = {} if PAT is None else {name: (PAT[name], PREST[name]) for name in (n1, n2)}
     data = TriadData(covs[n1], covs[n2], vis, ((M - mstar) / mtol) ** 2, A1, A2, D1, D2,
                      np.linalg.norm(P1[:, None] - P2[None], axis=-1), np.linalg.norm(P1[:, None] - PE[None], axis=-1),
                      np.linalg.norm(P2[:, None] - PE[None], axis=-1), float(o["coverage_weight"]),
                      float(o["azimuth_tolerance"]), float(o["port_spacing"]), float(st.shaft_clearance), int(keep),
-                     ARM, None if arm_c is None else float(arm_c), arm_done)
+                     ARM, None if arm_c is None else float(arm_c), arm_done,
+                     port_of[n1] if setup else None, port_of[n2] if setup else None,
+                     pat[n1][0] if pat else None, pat[n2][0] if pat else None,
+                     pat[n1][1] if pat else None, pat[n2][1] if pat else None, ARM_REST)
     t3 = time.perf_counter()
-    found = search(data, prune=prune, workers=workers, scheduler=scheduler,
-                   progress=(lambda f, m: progress(0.5 + 0.5 * f, m)) if progress else None, ensure=ensure_all)
-    search_s = time.perf_counter() - t3 - dist_t[0] - arm_t[0]
-    dist_s = dist_t[0]
-
-    exact = {}
+    sub = (lambda f, m: progress(0.5 + 0.5 * f, m)) if progress else None
+    found = search(data, prune=prune, workers=workers, scheduler=scheduler, progress=sub, ensure=ensure_all)
+    exact, exact_rest = {}, {}
 
     def exact_arm(i1, i2) -> np.ndarray:
         """(T,) the exact arm clearances of a reported pair at the targets both instruments cover (the
@@ -466,48 +648,113 @@ def triad_placement(st, tol, *, workers: int | None = 1, scheduler: str | None =
         if (i1, i2) not in exact:
             tt = np.flatnonzero(covs[n1][i1] & covs[n2][i2])
             row = np.full(T, np.inf)
-            row[tt] = clearances(geos[n1], Qc[n1][i1, tt], geos[n2], Qc[n2][i2, tt])
+            g1, g2 = geos[n1][base_of[n1][i1]], geos[n2][base_of[n2][i2]]
+            row[tt] = clearances(g1, Qc[n1][i1, tt], g2, Qc[n2][i2, tt])
             exact[(i1, i2)] = row
+            if setup:
+                exact_rest[(i1, i2)] = float(clearances(g1, Qrest[n1][i1][None], g2, Qrest[n2][i2][None])[0])
         return exact[(i1, i2)]
 
-    def figures(s, i1, i2, ie) -> dict:
+    exact_pat: dict = {}
+
+    def exact_patient(name, i) -> tuple[np.ndarray, float]:
+        """((T,) the exact link-to-body distances of a reported candidate at the targets it covers (inf
+        elsewhere), its distance at rest)."""
+        from ..kinematics.urdf.patient import patient_clearances
+
+        if (name, i) not in exact_pat:
+            tt = np.flatnonzero(covs[name][i])
+            g = geos[name][base_of[name][i]]
+            row = np.full(T, np.inf)
+            row[tt] = patient_clearances(g, Qc[name][i, tt], patient[0])
+            exact_pat[(name, i)] = (row, float(patient_clearances(g, Qrest[name][i][None], patient[0])[0]))
+        return exact_pat[(name, i)]
+
+    def tie_key(i1, i2, ie) -> float:
+        """The smallest arm clearance over the covered targets and at rest (larger wins a tie)."""
         c = data.cov1[i1] & data.cov2[i2] & data.vis[ie]
-        m = M[i1, i2]
-        cl = np.minimum(D1[i1, ie], D2[i2, ie])[c]
+        row = exact_arm(i1, i2)[c]
+        return min(float(row.min()) if len(row) else math.inf, exact_rest[(i1, i2)])
+
+    ties = 0
+    if setup and arm_c is not None and found["best"]:
+        # ties go to the larger smallest arm clearance: every triad tied with the best must be in the list
+        k_all = int(keep)
+        while len(found["best"]) == k_all and _tied(found["best"][-1][0], found["best"][0][0]):
+            k_all *= 2
+            found = search(replace(data, keep=k_all), prune=prune, workers=workers, scheduler=scheduler,
+                           progress=sub, ensure=ensure_all)
+        group = [b for b in found["best"] if _tied(b[0], found["best"][0][0])]
+        ties = len(group)
+        group.sort(key=lambda b: (-tie_key(*b[1:]), b[1:]))
+        rest_list = [b for b in found["best"] if not _tied(b[0], found["best"][0][0])]
+        found["best"] = (group + rest_list)[:keep]
+    search_s = time.perf_counter() - t3 - dist_t[0] - arm_t[0]
+    dist_s = dist_t[0]
+
+    def figures(s, i1, i2, ie) -> dict:
+        j1, j2 = data.ports(i1, i2)
+        c = data.cov1[i1] & data.cov2[i2] & data.vis[ie]
+        m = M[j1, j2]
+        cl = np.minimum(D1[j1, ie], D2[j2, ie])[c]
         ac = exact_arm(i1, i2)[c] if ARM is not None else np.zeros(0)
-        return {"ports": {n1: P1[i1].tolist(), n2: P2[i2].tolist(), "endoscope": PE[ie].tolist()}, "score": s,
-                "coverage": {n1: float(np.mean(data.cov1[i1])), n2: float(np.mean(data.cov2[i2])),
-                             "both": float(np.mean(c))},
-                "visible": float(np.mean(data.vis[ie])),
-                "manipulation_angle": {"mean": float(np.mean(m)), "min": float(np.min(m)), "max": float(np.max(m))},
-                "azimuth_difference_mean": float(np.mean(np.abs(A1[i1, ie] - A2[i2, ie]))),
-                "port_spacing_min": float(min(data.d12[i1, i2], data.d1e[i1, ie], data.d2e[i2, ie])),
-                "shaft_clearance_min": float(cl.min()) if len(cl) else None,
-                "arm_clearance_min": float(ac.min()) if len(ac) else None, "indices": [int(i1), int(i2), int(ie)]}
+        out = {"ports": {n1: P1[j1].tolist(), n2: P2[j2].tolist(), "endoscope": PE[ie].tolist()}, "score": s,
+               "coverage": {n1: float(np.mean(data.cov1[i1])), n2: float(np.mean(data.cov2[i2])),
+                            "both": float(np.mean(c))},
+               "visible": float(np.mean(data.vis[ie])),
+               "manipulation_angle": {"mean": float(np.mean(m)), "min": float(np.min(m)), "max": float(np.max(m))},
+               "azimuth_difference_mean": float(np.mean(np.abs(A1[j1, ie] - A2[j2, ie]))),
+               "port_spacing_min": float(min(data.d12[j1, j2], data.d1e[j1, ie], data.d2e[j2, ie])),
+               "shaft_clearance_min": float(cl.min()) if len(cl) else None,
+               "arm_clearance_min": float(ac.min()) if len(ac) else None, "indices": [int(i1), int(i2), int(ie)]}
+        if setup:
+            b1, b2 = int(base_of[n1][i1]), int(base_of[n2][i2])
+            out["bases"] = {n1: {"position": list(bases[n1][b1][0]), "rpy": list(bases[n1][b1][1])},
+                            n2: {"position": list(bases[n2][b2][0]), "rpy": list(bases[n2][b2][1])}}
+            out["base_indices"] = [b1, b2]
+            out["arm_clearance_rest"] = exact_rest.get((i1, i2)) if ARM is not None else None
+            if PAT is not None:
+                (r1, z1), (r2, z2) = exact_patient(n1, i1), exact_patient(n2, i2)
+                pd = np.concatenate([r1[c], r2[c], [z1, z2]])
+                out["patient_clearance_min"] = float(pd.min())
+                out["patient_clearance_targets"] = {n1: np.where(c, r1, np.nan).tolist(),
+                                                    n2: np.where(c, r2, np.nan).tolist()}
+                out["patient_clearance_rest"] = {n1: z1, n2: z2}
+            else:
+                out["patient_clearance_min"] = None
+        return out
 
     if not found["best"]:
         arms = "" if arm_c is None else f", arm clearance {arm_c:g} m"
-        raise ErrplanError(f"{where}: no triad of the {found['triads']} meets the hard constraints (port spacing "
-                           f"{o['port_spacing']:g} m, shaft clearance {st.shaft_clearance:g} m{arms} at covered "
-                           "targets)")
+        pat_s = "" if patient is None else f", patient clearance {patient[1]:g} m"
+        what = "setup" if setup else "triad"
+        raise ErrplanError(f"{where}: no {what} of the {found['triads']} meets the hard constraints (port spacing "
+                           f"{o['port_spacing']:g} m, shaft clearance {st.shaft_clearance:g} m{arms}{pat_s} at "
+                           "covered targets" + (" and at rest)" if setup else ")"))
     ranked = [figures(*b) for b in found["best"]]
-    return {
+    rejected = dict(found["rejected"], arm_clearance=found["rejected"]["arm_clearance"] if arm_c is not None
+                    else None)
+    if setup:
+        rejected["patient_clearance"] = found["rejected"]["patient_clearance"] if patient is not None else None
+    else:
+        rejected.pop("patient_clearance")
+    unit = "setups" if setup else "triads"
+    out = {
         "best": ranked[0], "ranked": ranked[1:],
         "candidates": {n1: P1.tolist(), n2: P2.tolist(), "endoscope": PE.tolist()},
         "targets": T,
-        "rejected": dict(found["rejected"], arm_clearance=found["rejected"]["arm_clearance"] if arm_c is not None
-                         else None),
+        "rejected": rejected,
         "search": {"triads": found["triads"], "pairs": found["pairs"], "evaluated": found["evaluated"],
                    "pruned": found["pruned"], "pruned_share": found["pruned"] / max(found["triads"], 1),
                    "waves": found["waves"], "method": "branch and bound" if prune else "brute force",
-                   "rejected_over": "the evaluated triads" if arm_c is None else
-                   "the evaluated triads (arm_clearance: those whose instrument ports meet port_spacing)"},
+                   "rejected_over": f"the evaluated {unit}" if arm_c is None else
+                   f"the evaluated {unit} (arm_clearance: those whose instrument ports meet port_spacing)"},
         "instruments": [n1, n2], "region": {a: list(region[a]) for a in "xyz"}, "resolution": res,
         "weights": {"coverage_weight": data.W, "manipulation_angle": mstar, "manipulation_tolerance": mtol,
                     "azimuth_tolerance": data.a_tol},
         "port_spacing": data.port_spacing, "shaft_clearance": data.shaft_clearance,
         "arm_checks": "off" if arm_c is None else (f"on (arm_clearance {arm_c:g} m, "
-                                                   f"{found['rejected']['arm_clearance']:,} triads rejected)"),
+                                                   f"{found['rejected']['arm_clearance']:,} {unit} rejected)"),
         "arm_clearance": None if arm_c is None else float(arm_c),
         "workers": workers, "scheduler": scheduler,
         "timing": {"coverage_s": cover_s, "distances_s": dist_s, "search_s": search_s,
@@ -515,7 +762,26 @@ def triad_placement(st, tol, *, workers: int | None = 1, scheduler: str | None =
                    "arm_s": arm_t[0], "arm_pairs": arm_t[1], "arm_queries": arm_t[2]},
         "_arrays": {"targets": X, "lens": lens, "data": data,
                     # the best triad's arms per target (T, n) (NaN where not computed; arm checks on)
-                    "arm_q": None if arm_c is None else {n1: Qc[n1][found["best"][0][1]],
-                                                         n2: Qc[n2][found["best"][0][2]]}},
+                    "arm_q": None if not Qc else {n1: Qc[n1][found["best"][0][1]],
+                                                  n2: Qc[n2][found["best"][0][2]]}},
         "seconds": time.perf_counter() - t0,
     }
+    if setup:
+        out["bases"] = {name: [{"position": list(p), "rpy": list(r)} for p, r in bases[name]] for name in (n1, n2)}
+        out["patient_clearance"] = None if patient is None else float(patient[1])
+        out["search"]["setups"] = out["search"]["triads"]
+        out["search"]["ties"] = ties
+        out["search"]["tie_break"] = ("the larger smallest arm clearance (covered targets and rest), then the "
+                                      "candidate indices" if arm_c is not None else "the candidate indices")
+        out["timing"].update(patient_s=pat_t[0], patient_queries=pat_t[1])
+        out["_arrays"]["arm_rest_q"] = None if not Qrest else {n1: Qrest[n1][found["best"][0][1]],
+                                                                n2: Qrest[n2][found["best"][0][2]]}
+        out["_arrays"]["base_of"] = base_of
+        out["_arrays"]["port_of"] = port_of
+    return out
+
+
+def _tied(s: float, best: float) -> bool:
+    """Whether score ``s`` ties ``best`` (equal up to rounding: the bases enter S only through coverage, so
+    equal coverage gives the same sums)."""
+    return s <= best + 1e-9 * max(1.0, abs(best))

@@ -677,3 +677,42 @@ def state_depth(state: np.ndarray) -> np.ndarray:
             d = distance_transform_cdt(same, metric="chessboard")
             depth[same] = np.minimum(d[same], 255)
     return depth
+
+
+def base_offset(arm, source) -> np.ndarray | None:
+    """The translation (3,) taking ``source``'s chain to ``arm``'s when the two differ only by the base's
+    position (the same joints, limits, map parameters and base rotation, bit for bit); else None."""
+    a, b = arm.chain, source.chain
+    if arm.n != source.n or arm.map_params != source.map_params or a.T.shape != b.T.shape:
+        return None
+    same = (np.array_equal(a.T[0, :3, :3], b.T[0, :3, :3]) and np.array_equal(a.T[1:], b.T[1:])
+            and all(np.array_equal(getattr(a, f), getattr(b, f)) for f in ("axis", "jtype", "A", "lo", "hi"))
+            and np.array_equal(a.screw[:-1, :3], b.screw[:-1, :3]))
+    if not same:
+        return None
+    delta = a.T[0, :3, 3] - b.T[0, :3, 3]
+    pts_a = np.concatenate([a.screw[:-1, 3:], a.screw[-1:, :3]])
+    pts_b = np.concatenate([b.screw[:-1, 3:], b.screw[-1:, :3]])
+    scale = 1e-12 * max(1.0, float(np.abs(pts_a).max()), float(np.abs(pts_b).max()))
+    return delta if np.allclose(pts_a - pts_b, delta, rtol=0.0, atol=scale) else None
+
+
+def share_translated(arm, source) -> bool:
+    """Give ``arm`` the reachability map of ``source`` moved with the base when the two arms differ only by
+    the base's position (:func:`base_offset`): the reachable wrists translate with the base, the seeds (joint
+    values) and every voxel's state stay, so the moved map holds every guarantee of a built one. Kept in
+    memory and written to the disk cache under ``arm``'s own key (a worker process finds it there).
+    False (nothing done) when the arms differ otherwise or ``arm`` has its map already."""
+    if arm._rmap is not None:
+        return False
+    delta = base_offset(arm, source)
+    if delta is None:
+        return False
+    src = source.reach_map()
+    rmap = src._replace(origin=np.asarray(src.origin, float) + delta)
+    arm._rmap = rmap
+    key = _cache_key(arm)
+    _write_cache(arm, cache_dir() / f"reachmap-{key[:40]}.npz", key, rmap)
+    arm.map_info.update(from_cache=False, translated_from=tuple(float(v) for v in source.base_position), seconds=0.0,
+                        h=rmap.h, shape=tuple(int(v) for v in rmap.shape))
+    return True
