@@ -33,9 +33,6 @@ LAYERS = {
 }
 # third-party libraries that must each be imported by one module only (the brief's "behind one module")
 BEHIND_ONE = ("rerun", "ompl", "casadi", "dask", "distributed", "trimesh", "fcl", "coal")
-#: the named exceptions: coal's geometry also builds the patient's body solid beside the arms' links (one
-#: sub-package, its two modules; the link geometry stays collision's)
-ALSO_BEHIND = {"coal": ("errplan.kinematics.urdf.collision", "errplan.kinematics.urdf.patient")}
 
 
 def _modules() -> dict[str, Path]:
@@ -160,8 +157,4 @@ def test_the_pair_test_catches_a_pair():
 def test_each_heavy_library_lives_behind_one_module(graph, lib):
     _, edges = graph
     users = sorted(m for m, (_, ext) in edges.items() if lib in ext)
-    allowed = ALSO_BEHIND.get(lib)
-    if allowed is not None:
-        assert set(users) <= set(allowed), f"{lib} is imported by {users}"
-    else:
-        assert len(users) <= 1, f"{lib} is imported by {users}"
+    assert len(users) <= 1, f"{lib} is imported by {users}"

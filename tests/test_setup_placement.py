@@ -244,7 +244,7 @@ def test_patient_distances_against_closed_forms(tmp_path):
     hull of its corners) the point-to-box distance less r. patient_clear answers as the distances do."""
     from errplan.kinematics.urdf import UrdfArm
     from errplan.kinematics.urdf.collision import ArmCollision
-    from errplan.kinematics.urdf.patient import BodySolid, link_distances, patient_clear, patient_clearances
+    from errplan.kinematics.urdf.collision import BodySolid, link_distances, patient_clear, patient_clearances
 
     arm = UrdfArm.load(_spherical_links(tmp_path), ["j1", "j2", "j3"], "tip", base_position=[0.1, -0.2, 0.05],
                        base_rpy=[0.3, -0.2, 0.5])
@@ -292,7 +292,7 @@ def test_patient_distances_of_the_ur5_against_surface_sampling():
 
     from errplan.kinematics import arm_for
     from errplan.kinematics.urdf.collision import ArmCollision
-    from errplan.kinematics.urdf.patient import patient_clearances
+    from errplan.kinematics.urdf.collision import patient_clearances
     from errplan.tolerance.setup import body_solid
     import trimesh
 

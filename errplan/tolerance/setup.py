@@ -13,7 +13,7 @@ Besides the triad's hard constraints:
 - the arms at rest (each at the inverse kinematics putting its wrist on the shaft from its ``rest`` tip
   through its candidate port) at least ``[setup] arm_clearance`` apart (arm checks on);
 - with ``[setup] patient_clearance``: every link of each arm (the URDF's collision objects, not the
-  instrument shaft) at least that far from the body solid (:mod:`errplan.kinematics.urdf.patient`) at every
+  instrument shaft) at least that far from the body solid (:mod:`errplan.kinematics.urdf.collision`) at every
   covered target and at rest, by coal's distance.
 
 Ties of S (frequent: two bases with the same coverage give the same score) go to the larger smallest arm
@@ -31,10 +31,10 @@ from .result import Progress
 
 
 def body_solid(sc):
-    """The patient's body of scenario ``sc`` (:class:`errplan.kinematics.urdf.patient.BodySolid`): its
+    """The patient's body of scenario ``sc`` (:class:`errplan.kinematics.urdf.collision.BodySolid`): its
     ellipsoid wall, or its mesh wall's convex hull; None without ``[anatomy.body_wall]``."""
     from ..fields.compute import anatomy_model
-    from ..kinematics.urdf.patient import BodySolid
+    from ..kinematics.urdf.collision import BodySolid
 
     m = anatomy_model(sc)
     if m is None or not m.wall[6] > 0:

@@ -138,7 +138,7 @@ def patient_rows(shared, item) -> np.ndarray:
     """One task: (k,) whether one arm's links keep the patient clearance at configurations ``Q``; ``shared =
     (ArmCollisions per base, BodySolid, patient_clearance)``, ``item = (base, Q (k, n))`` (False where the arm
     cannot stand)."""
-    from ..kinematics.urdf.patient import patient_clear
+    from ..kinematics.urdf.collision import patient_clear
 
     geos, body, c = shared
     b, Q = item
@@ -660,7 +660,7 @@ def place(st, tol, bases: dict | None, *, workers: int | None = 1, scheduler: st
     def exact_patient(name, i) -> tuple[np.ndarray, float]:
         """((T,) the exact link-to-body distances of a reported candidate at the targets it covers (inf
         elsewhere), its distance at rest)."""
-        from ..kinematics.urdf.patient import patient_clearances
+        from ..kinematics.urdf.collision import patient_clearances
 
         if (name, i) not in exact_pat:
             tt = np.flatnonzero(covs[name][i])
