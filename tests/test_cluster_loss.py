@@ -130,7 +130,7 @@ def _with_killer(address: str, plugin, run):
     """``run()`` with ``plugin`` on every worker (and every worker that starts meanwhile). The client that
     installs it is closed before the run: errplan's own is the only one while it runs, as in use."""
     with distributed.Client(address) as client:
-        client.wait_for_workers(2, timeout=60)
+        client.wait_for_workers(2, timeout=120)  # a nanny restarts a worker killed by the test before
         client.register_plugin(plugin, name="errplan-kill")
     try:
         return run()
