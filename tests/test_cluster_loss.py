@@ -5,7 +5,8 @@ killed one) and a bare scheduler with ``dask worker --no-nanny`` processes (a ki
 dead). A worker plugin SIGKILLs its own process at a chosen transition: the shared data arriving from
 the scatter, its copy fetched by the other worker, a tile starting, a tile finished. The n-th such event
 over the whole cluster is chosen through files created exclusively in ``tmp_path``, so exactly one
-worker dies, at the same point of every run.
+worker dies, at the same point of every run. ``map_tasks`` directly, ``errplan fields --scheduler`` and
+a port_placement query (the tolerance queries share ``map_tasks``) end with the local run's answer.
 """
 from __future__ import annotations
 
@@ -218,3 +219,33 @@ def test_fields_cli_with_workers_killed_gives_the_local_npz(tmp_path):
         x, y = getattr(ref, name), getattr(got, name)
         assert x is not None and y is not None, name
         np.testing.assert_array_equal(x, y)  # bit for bit
+
+
+PLACEMENT_DOC = {
+    "name": "placement-under-loss",
+    "robot": {"base": [0.190, -0.210], "link_lengths": [0.210, 0.200], "home_angles": [0.0, -1.5],
+              "joint_limits": [[-1.8, 1.3], [-0.8, 1.1]], "joint_sum_limits": [-0.4, 2.9]},
+    "instrument": {"length": 0.300},
+    "port": {"position": [0.0, 0.150], "estimate": [0.0, 0.150]},
+    "controller": {"gain": 0.9, "jacobian": "rigid"},
+    "uncertainty": {"port_y": [-0.004, 0.004], "port_z": [-0.003, 0.003], "tip_force_over_ei": [0.0, 0.6],
+                    "samples": 3},
+    "tolerance": [{"name": "place", "kind": "port_placement", "candidates": {"y": [0.0, 0.06], "z": [0.15, 0.21]},
+                   "spacing": 0.03, "region": {"y": [-0.07, 0.07], "z": [0.36, 0.44]}, "resolution": 0.01}],
+}
+
+
+def test_port_placement_with_workers_killed_gives_the_local_answer(nanny_cluster, tmp_path):
+    """``errplan tolerance --scheduler`` (a port_placement query): one worker killed while the job's data
+    arrives, another as a batch of candidates starts; the same candidates and best port as a local run."""
+    from errplan.api import parse_scenario
+    from errplan.tolerance import run_query
+
+    sc = parse_scenario(PLACEMENT_DOC, "<test>")
+    ref = run_query(sc, sc.tolerances[0], workers=1)
+    addr = nanny_cluster.scheduler_address
+    got = _with_killer(addr, _Kill(tmp_path, [("PlacementJob-", "memory", 0), ("_run_remote-", "executing", 0)]),
+                       lambda: run_query(sc, sc.tolerances[0], scheduler=addr))
+    assert [k.split("-")[1] for k in _kills(tmp_path)] == ["t0", "t1"]
+    assert got.data["candidates"] == ref.data["candidates"]
+    assert got.data["best"] == ref.data["best"]
