@@ -106,9 +106,9 @@ def _lost_kinds() -> tuple:
 def _map_dask(fn, shared, items, scheduler: str, progress) -> list:
     """The tasks on a dask cluster. A worker may die at any moment: ``shared`` is scattered (the workers
     copy it from each other as their tasks need it) and scattered again from this process when no copy is
-    left (scattered data cannot be recomputed by the scheduler); the tasks a lost worker ran are run again by the scheduler
-    and, when it gives up (``KilledWorker``) or their data is gone (``FutureCancelledError``), resubmitted
-    from here, at most ``MAX_LOSSES`` times each. The results are the tasks' results whoever ran them.
+    left (scattered data cannot be recomputed by the scheduler); the tasks a lost worker ran are run again
+    by the scheduler and, when it gives up (``KilledWorker``) or their data is gone
+    (``FutureCancelledError``), resubmitted from here, at most ``MAX_LOSSES`` times each. The results are the tasks' results whoever ran them.
     No worker for ``WORKER_WAIT`` seconds is one :class:`ErrplanError` naming the scheduler."""
     try:
         from distributed import Client
