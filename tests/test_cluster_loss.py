@@ -179,6 +179,21 @@ def test_no_worker_is_one_clear_error(monkeypatch):
             map_tasks(_divide, 1.0, [1, 2, 3], scheduler=addr)
 
 
+def test_fields_on_a_scheduler_without_workers_is_one_line_exit_2_and_no_file(monkeypatch, tmp_path, capsys):
+    from errplan.cli import main
+
+    monkeypatch.setattr(cluster, "WORKER_WAIT", 1.0)
+    out = tmp_path / "f.npz"
+    with distributed.LocalCluster(n_workers=0, processes=True, dashboard_address=None, host="127.0.0.1") as c:
+        addr = c.scheduler_address
+        code = main(["-q", "fields", str(ROOT / "scenarios" / "beasley2004_bounded.toml"), "--out", str(out),
+                     "--resolution", "0.01", "--scheduler", addr])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2
+    assert err[-1].startswith(f"errplan fields: error: --scheduler {addr}: no worker to send the data to"), err
+    assert not out.exists()
+
+
 def test_every_worker_lost_is_one_clear_error(bare_cluster, tmp_path, monkeypatch):
     """Both workers die (a task kills every worker it starts on) and none comes back."""
     monkeypatch.setattr(cluster, "WORKER_WAIT", 2.0)
