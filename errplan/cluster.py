@@ -7,7 +7,8 @@ item in items]`` in order, whatever runs them:
 - ``workers = N``: N local worker processes (forked, so compiled kernels and the ``shared`` data
   are inherited, nothing is pickled but the items and the results);
 - ``scheduler = "tcp://host:port"``: an existing dask.distributed cluster; ``shared`` is
-  scattered to every worker once, items are tasks.
+  scattered once (the workers copy it from each other), items are tasks. A worker lost at any moment changes nothing but
+  time: the data is scattered again when no worker holds it, lost tasks run again (``_map_dask``).
 
 ``fn`` must be a module-level function and deterministic: the results are identical either way
 (a test runs a real ``distributed.LocalCluster`` against a local run). ``progress(done, total)``
@@ -78,9 +79,40 @@ def _indexed(args):
     return i, _run_local(key, item)
 
 
+#: Seconds a ``--scheduler`` run waits for a worker when the cluster has none (at the start, or after every
+#: worker it had was lost) before it stops with an error naming the scheduler.
+WORKER_WAIT = 60.0
+#: Times one task may be lost with its worker (each time after the scheduler's own retries) before the run
+#: stops: a task that ends every worker it runs on is an error, not bad luck.
+MAX_LOSSES = 3
+#: Attempts at scattering the shared data (a worker that dies while it receives it fails the attempt).
+SCATTER_TRIES = 5
+_POLL = 0.5  # seconds between looks at the cluster while tasks run
+
+
+def _lost_kinds() -> tuple:
+    """The exceptions by which dask reports a lost worker or lost data (never raised by a task itself); the
+    second is the scheduler giving up on a task whose workers kept dying."""
+    from asyncio import CancelledError as AsyncCancelled
+    from concurrent.futures import CancelledError
+
+    from distributed import KilledWorker
+    from distributed.comm.core import CommClosedError
+
+    # distributed's FutureCancelledError and FuturesCancelledError (a cancelled wait) are CancelledErrors
+    return (CancelledError, KilledWorker, AsyncCancelled, CommClosedError, OSError, TimeoutError)
+
+
 def _map_dask(fn, shared, items, scheduler: str, progress) -> list:
+    """The tasks on a dask cluster. A worker may die at any moment: ``shared`` is scattered (the workers
+    copy it from each other as their tasks need it) and scattered again from this process when no copy is
+    left (scattered data cannot be recomputed by the scheduler); the tasks a lost worker ran are run again
+    by the scheduler and, when it gives up (``KilledWorker``) or their data is gone
+    (``FutureCancelledError``), resubmitted from here, at most ``MAX_LOSSES`` times each. The results are the tasks' results whoever ran them.
+    No worker for ``WORKER_WAIT`` seconds is one :class:`ErrplanError` naming the scheduler."""
     try:
-        from distributed import Client, as_completed
+        from distributed import Client
+        from distributed import wait as dwait
     except ImportError as e:  # pragma: no cover - a dependency
         raise ErrplanError(f"--scheduler {scheduler}: dask.distributed is not installed ({e})") from None
     try:
@@ -88,17 +120,100 @@ def _map_dask(fn, shared, items, scheduler: str, progress) -> list:
     except (OSError, TimeoutError, ValueError) as e:
         raise ErrplanError(f"--scheduler {scheduler}: cannot reach a dask scheduler there ({e})") from None
     try:
-        shared_f = client.scatter(shared, broadcast=True, hash=False)
-        futs = [client.submit(_run_remote, fn, shared_f, it, pure=False) for it in items]
-        index = {f.key: i for i, f in enumerate(futs)}
-        out: list = [None] * len(items)
-        for done, (fut, res) in enumerate(as_completed(futs, with_results=True), 1):
-            out[index[fut.key]] = res
-            if progress:
-                progress(done, len(items))
-        return out
+        return _run_on(client, dwait, fn, shared, items, scheduler, progress)
     finally:
         client.close()
+
+
+def _run_on(client, dwait, fn, shared, items, scheduler: str, progress) -> list:
+    import time
+
+    lost_kinds = _lost_kinds()
+    killed = lost_kinds[1]  # the scheduler gave up on a task whose workers kept dying
+    n = len(items)
+    out: list = [None] * n
+    losses = [0] * n
+    done = 0
+
+    def no_workers(what: str) -> ErrplanError:
+        return ErrplanError(f"--scheduler {scheduler}: {what} (no worker for {WORKER_WAIT:g} s; {done} of {n} "
+                            f"tasks done); start workers there (dask worker {scheduler}) and run again")
+
+    def workers() -> int:
+        try:
+            return len(client.nthreads())
+        except lost_kinds as e:
+            raise ErrplanError(f"--scheduler {scheduler}: lost the scheduler ({e})") from None
+
+    def await_workers(what: str) -> None:
+        if workers():
+            return
+        try:
+            client.wait_for_workers(1, timeout=WORKER_WAIT)
+        except lost_kinds:
+            raise no_workers(what) from None
+
+    def scatter(first: bool):
+        last = None
+        for _ in range(SCATTER_TRIES):
+            await_workers("no worker to send the data to" if first and last is None else "every worker was lost")
+            try:
+                # One object, one key (a dict or a list given as such would be scattered item by item), to
+                # one worker: the others fetch it from their peers as their tasks need it. No broadcast: the
+                # scheduler's replication retries a worker that died meanwhile without end.
+                return client.scatter([shared], hash=False)[0]
+            except lost_kinds as e:  # a worker died while it received the data: again, to the workers left
+                last = e
+                time.sleep(_POLL)
+        raise ErrplanError(f"--scheduler {scheduler}: the data could not be sent to the workers in "
+                           f"{SCATTER_TRIES} tries (workers lost while they received it: {last})")
+
+    shared_f, sent = None, False
+    todo = list(range(n))
+    pending: dict = {}  # future -> item index
+    alone_since = None
+    while todo or pending:
+        if todo:
+            if shared_f is None or shared_f.status != "finished":  # no copy left (or never sent)
+                shared_f, sent = scatter(not sent), True
+            for i in todo:
+                pending[client.submit(_run_remote, fn, shared_f, items[i], pure=False)] = i
+            todo = []
+        try:
+            dwait(list(pending), timeout=_POLL, return_when="FIRST_COMPLETED")
+        except lost_kinds:  # nothing finished within the poll (or a wait cut by a loss): look again below
+            pass
+        for fut in [f for f in pending if f.done()]:
+            i = pending.pop(fut)
+            if fut.status == "error":
+                exc = fut.exception()
+                if not isinstance(exc, killed):  # the task's own error: as a local run raises it
+                    raise exc
+            elif fut.status == "finished":
+                try:
+                    out[i] = fut.result()
+                except lost_kinds:  # its worker died before the result came back
+                    pass
+                else:
+                    done += 1
+                    if progress:
+                        progress(done, n)
+                    continue
+            losses[i] += 1
+            if losses[i] > MAX_LOSSES:
+                raise ErrplanError(f"--scheduler {scheduler}: task {i + 1} of {n} was lost with its worker "
+                                   f"{losses[i]} times (each after the scheduler's own retries): a task that ends "
+                                   f"its worker, or workers that keep dying")
+            todo.append(i)
+        if todo and shared_f is not None and shared_f.status != "finished":
+            shared_f = None
+        if (todo or pending) and not workers():
+            alone_since = time.monotonic() if alone_since is None else alone_since
+            if time.monotonic() - alone_since > WORKER_WAIT:
+                raise no_workers("every worker was lost")
+        else:
+            alone_since = None
+    return out
 
 
 def _forked_task(conn, fn: Callable, args: tuple) -> None:
