@@ -286,7 +286,7 @@ def plan_query(cm: CostMap, start, goal, settings: PlannerSettings | None = None
     used += n
     if raw is None:
         raw = first
-    if raw is None and coarse is None:
+    if raw is None and coarse is None and not direct_ok:
         raise _no_path(name, st, start, goal, t_begin, used, status, why)
     cands = []  # (source, path, exact cost)
     if raw is not None:
