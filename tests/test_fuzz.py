@@ -164,6 +164,7 @@ SEMANTIC = {
     ("fields", "resolution"): {"negative": _neg, "zero": _zero, "huge": lambda v: 1e9},
     ("planner", "weight"): {"negative": _neg},
     ("planner", "time"): {"negative": _neg, "zero": _zero},
+    ("planner", "iterations"): {"negative": _neg, "zero": _zero, "huge": lambda v: 10**12},
     ("planner", "seed"): {"negative": _neg, "huge": lambda v: 2**40},
     ("planner", "certify_margin"): {"negative": _neg, "huge": lambda v: 1e12},
     ("tolerance", "*", "region", "y"): {"reversed": _rev},
