@@ -183,3 +183,26 @@ def test_refinement_ignores_the_clock_without_a_cap(P, monkeypatch):
     cut = refine_path(P.cm, path, deadline=time.perf_counter() + 50.0)  # a cap the slow machine passes
     assert cut.stopped_by == "time" and cut.evaluations < quiet.evaluations and P.cm.path_ok(cut.path)
     assert refine_mod.REFINE_EVALUATIONS == REFINE_EVALUATIONS
+
+
+def test_arm_checks_have_their_own_share_of_the_refinement():
+    """With arm checks (tens of ms per motion against a microsecond per cell walk) the refinement's
+    clearance checks are counted in its budget and capped by their own share; without them, only the budget."""
+    from types import SimpleNamespace
+
+    seen = []
+    stub = SimpleNamespace(_clear=lambda *xyz: seen.append(xyz) or True, arm_checks=object())
+    count = refine_mod._Counter(10, None, 3)
+    clear = refine_mod._clear_fn(stub, count)
+    for k in range(3):
+        assert clear([0.0, 0.0, k], [1.0, 0.0, k])
+    with pytest.raises(refine_mod._Budget):
+        clear([0.0, 0.0, 9.0], [1.0, 0.0, 9.0])
+    assert count.why == "arm checks" and count.checks == count.n == len(seen) == 3
+    plain = refine_mod._Counter(5, None, 3)  # the anatomy's checks alone: only the budget counts them
+    clear = refine_mod._clear_fn(SimpleNamespace(_clear=lambda *xyz: True), plain)
+    for _ in range(5):
+        clear([0.0, 0.0, 0.0], [1.0, 0.0, 0.0])
+    with pytest.raises(refine_mod._Budget):
+        clear([0.0, 0.0, 0.0], [1.0, 0.0, 0.0])
+    assert plain.why == "evaluations" and plain.n == 5 and plain.checks == 0

@@ -447,6 +447,8 @@ def option_cases() -> list[Case]:
         "plan:no-such-planner": ["-q", "plan", "{d}/s.toml", "--planner", "Nope", "--json", "{d}/out.json"],
         "plan:time-zero": ["-q", "plan", "{d}/s.toml", "--time", "0", "--json", "{d}/out.json"],
         "plan:time-nan": ["-q", "plan", "{d}/s.toml", "--time", "nan", "--json", "{d}/out.json"],
+        "plan:iterations-zero": ["-q", "plan", "{d}/s.toml", "--iterations", "0", "--json", "{d}/out.json"],
+        "plan:iterations-float": ["-q", "plan", "{d}/s.toml", "--iterations", "2.5", "--json", "{d}/out.json"],
         "plan:json-is-a-directory": ["-q", "plan", "{d}/s.toml", "--json", "{d}"],
         "tolerance:json-in-missing-directory": ["-q", "tolerance", "{d}/s.toml", "--json", "{d}/no/out.json"],
         "tolerance:json-is-a-directory": ["-q", "tolerance", "{d}/s.toml", "--json", "{d}"],

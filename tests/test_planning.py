@@ -389,7 +389,7 @@ def test_plan_json_keys_and_cli(tmp_path, capsys):
     from errplan.cli import main
 
     out = tmp_path / "plan.json"
-    assert main(["-q", "plan", str(PORT), "--json", str(out), "--query", "N-to-L", "--time", "0.5"]) == 0
+    assert main(["-q", "plan", str(PORT), "--json", str(out), "--query", "N-to-L", "--iterations", "3750"]) == 0
     text = capsys.readouterr().out
     assert "N-to-L" in text and "planned" in text and "direct" in text and "max ||G||" in text
     doc = json.loads(out.read_text())

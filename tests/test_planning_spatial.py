@@ -87,7 +87,7 @@ class Problem:
         self.cm = CostMap(mf, metric, weight, certifiable, 0.02)
         self.graph = GridGraph(self.cm, radius)
         self.radius = radius
-        self.settings = PlannerSettings("BITstar", 1.0, 1)
+        self.settings = PlannerSettings("BITstar", seed=1)
 
     def ref(self, s, g):
         return grid_optimum(self.cm, s, g, self.radius, graph=self.graph)

@@ -45,7 +45,9 @@ class PlannerSettings:
     The budgets are counted, so a plan is a function of the scenario and the seed on every machine:
     ``iterations`` (default :func:`~errplan.planning.ompl_adapter.default_iterations` of the planner and
     dimension) for the search, ``refine_evaluations`` (default
-    :data:`~errplan.planning.refine.REFINE_EVALUATIONS`) for the refinement. ``time`` (s per query, default
+    :data:`~errplan.planning.refine.REFINE_EVALUATIONS`) for the refinement, of them at most
+    ``refine_arm_checks`` (default :data:`~errplan.planning.refine.REFINE_ARM_CHECKS`) clearance checks with
+    arm checks. ``time`` (s per query, default
     None: no cap) is a safety cap only: a search or refinement it cuts ends by the clock, and the plan says
     so (``stopped_by`` "time"): such a plan depends on the machine.
     """
@@ -56,6 +58,7 @@ class PlannerSettings:
     iterations: int | None = None
     refine: bool = True
     refine_evaluations: int | None = None
+    refine_arm_checks: int | None = None
     grid_seed: bool | None = None  # add the coarse cell-graph candidate (None: GRID_SEED[dim])
 
     @classmethod
@@ -88,9 +91,10 @@ class PlannerSettings:
             raise ErrplanError(f"time = {self.time!r}: expected a time cap > 0 s (or none)")
         if self.iterations is not None and not (_is_count(self.iterations) and self.iterations >= 1):
             raise ErrplanError(f"iterations = {self.iterations!r}: expected an integer >= 1 (the search's budget per query)")
-        if self.refine_evaluations is not None and not (_is_count(self.refine_evaluations)
-                                                        and self.refine_evaluations >= 0):
-            raise ErrplanError(f"refine_evaluations = {self.refine_evaluations!r}: expected an integer >= 0")
+        for key in ("refine_evaluations", "refine_arm_checks"):
+            v = getattr(self, key)
+            if v is not None and not (_is_count(v) and v >= 0):
+                raise ErrplanError(f"{key} = {v!r}: expected an integer >= 0")
         if isinstance(self.seed, bool) or self.seed < 0:
             raise ErrplanError(f"seed = {self.seed!r}: expected an integer >= 0")
 
@@ -121,7 +125,8 @@ class QueryPlan:
     source: str = "planner"  # the candidate the returned path was refined from: "planner", "first
     #                          solution", "direct" or "grid seed"
     refine_evaluations: int = 0  # segment evaluations the refinement spent (its counted budget)
-    refine_stopped_by: str = "converged"  # "converged", "evaluations" (its budget) or "time" (the cap)
+    refine_stopped_by: str = "converged"  # "converged", "evaluations" (its budget), "arm checks" (their share
+    #                                       of it) or "time" (the cap)
     time_cap: float | None = None  # the settings' time cap (s), None without one
 
     @property
@@ -307,7 +312,7 @@ def plan_query(cm: CostMap, start, goal, settings: PlannerSettings | None = None
     spent, refine_why = 0, "converged"
     for src, path, cost in ([best] if best else []) + ([("grid seed", *coarse)] if coarse is not None else []):
         if st.refine:
-            rr = refine_path(cm, path, evaluations=st.refine_budget(), deadline=t_end)
+            rr = refine_path(cm, path, evaluations=st.refine_budget(), arm_checks=st.refine_arm_checks, deadline=t_end)
             path, cost = rr.path, rr.cost
             spent += rr.evaluations
             if rr.stopped_by != "converged" and refine_why != "time":

@@ -20,14 +20,19 @@ from . import cellwalk
 #: and its clearance check when the cost map has one). The bundled scenarios' refinements take 2,000 to
 #: 40,000 (benchmarks/planning.py), so this bounds a pathological path, not a usual one.
 REFINE_EVALUATIONS = 200_000
+#: With arm checks (:mod:`errplan.planning.arm_checks`, a cost map's ``arm_checks``), their share of that
+#: budget: at most this many of the refinement's clearance checks per path (each checks a motion of the
+#: moving arm against the held ones: tens of ms, where a cell walk takes about 1 us).
+REFINE_ARM_CHECKS = 200
 
 
 @dataclass
 class RefineResult:
     """Outcome of :func:`refine_path`: the path (n, d) and its cost before and after.
 
-    ``evaluations``: segment evaluations spent; ``stopped_by``: "converged" (every level relaxed to its
-    finest step), "evaluations" (the budget) or "time" (the optional time cap: machine-dependent)."""
+    ``evaluations``: segment evaluations spent (``checks`` of them clearance checks of a cost map with arm
+    checks); ``stopped_by``: "converged" (every level relaxed to its finest step), "evaluations" (the
+    budget), "arm checks" (their share of it) or "time" (the optional time cap: machine-dependent)."""
 
     path: np.ndarray
     cost: float
@@ -36,6 +41,7 @@ class RefineResult:
     time: float
     evaluations: int = 0
     stopped_by: str = "converged"
+    checks: int = 0
 
 
 class _Budget(Exception):
@@ -45,8 +51,17 @@ class _Budget(Exception):
 class _Counter:
     """Counts segment evaluations against a budget, and reads the clock only when a time cap is set."""
 
-    def __init__(self, budget: int, deadline: float | None):
+    def __init__(self, budget: int, deadline: float | None, checks: float = math.inf):
         self.n, self.budget, self.deadline, self.why = 0, budget, deadline, ""
+        self.checks, self.max_checks = 0, checks
+
+    def tick_check(self) -> None:
+        """A clearance check with arm checks: counted in the budget and in its own share."""
+        if self.checks >= self.max_checks:
+            self.why = "arm checks"
+            raise _Budget
+        self.tick()
+        self.checks += 1
 
     def tick(self) -> None:
         if self.n >= self.budget:
@@ -86,7 +101,8 @@ def _clear_fn(cm, count=None):
     c = getattr(cm, "_clear", None)
     if c is None:
         return None
-    tick = count.tick if count is not None else (lambda: None)
+    tick = (lambda: None) if count is None else (
+        count.tick_check if getattr(cm, "arm_checks", None) is not None else count.tick)
 
     def clear(a, b):
         tick()
@@ -193,7 +209,7 @@ def _subdivide(pts: list[list[float]], spacing: float) -> list[list[float]]:
 
 
 def refine_path(cm, path, *, spacing: float | None = None, min_step: float | None = None,
-                max_sweeps: int = 60, evaluations: int | None = None,
+                max_sweeps: int = 60, evaluations: int | None = None, arm_checks: int | None = None,
                 deadline: float | None = None) -> RefineResult:
     """Lower the cost of a valid polyline (n, d) (m) by shortcuts and a coarse-to-fine relaxation.
 
@@ -210,19 +226,22 @@ def refine_path(cm, path, *, spacing: float | None = None, min_step: float | Non
     valid and lowers its cost, so the result is never worse than the input.
 
     The budget is counted: at most ``evaluations`` segment evaluations (default
-    :data:`REFINE_EVALUATIONS`; a cell walk or a clearance check each count one), at most
-    ``max_sweeps`` sweeps per level; the refinement stops where the budget runs out, keeping every
+    :data:`REFINE_EVALUATIONS`; a cell walk or a clearance check each count one), of them at most
+    ``arm_checks`` clearance checks when the cost map has arm checks (default :data:`REFINE_ARM_CHECKS`),
+    at most ``max_sweeps`` sweeps per level; the refinement stops where the budget runs out, keeping every
     change made so far, so the result is the same on every machine. ``deadline`` (a
     ``time.perf_counter()`` value: a time cap) stops it too, only when given; then the result depends on
     the machine, and ``stopped_by`` says "time" when it cut.
     """
     t0 = _time.perf_counter()
     budget = REFINE_EVALUATIONS if evaluations is None else int(evaluations)
-    if budget < 0:
-        raise ErrplanError(f"refine_path: evaluations = {evaluations!r}: expected an integer >= 0")
+    checks = REFINE_ARM_CHECKS if arm_checks is None else int(arm_checks)
+    if budget < 0 or checks < 0:
+        raise ErrplanError(f"refine_path: evaluations = {evaluations!r}, arm_checks = {arm_checks!r}: "
+                           "expected integers >= 0")
     orig = [[float(x) for x in p] for p in np.asarray(path, float).reshape(-1, cm.dim)]
     pts = [p[:] for p in orig]
-    count = _Counter(budget, deadline)
+    count = _Counter(budget, deadline, checks)
     seg = _segment_fn(cm, count)
     clear = _clear_fn(cm, count)
     ok0, cost0 = cm.path_cost(pts)
@@ -259,4 +278,4 @@ def refine_path(cm, path, *, spacing: float | None = None, min_step: float | Non
     ok1, cost1 = cm.path_cost(pts)
     if not ok1 or cost1 >= cost0:
         pts, cost1 = orig, cost0
-    return RefineResult(np.array(pts), cost1, cost0, sweeps[0], _time.perf_counter() - t0, count.n, why)
+    return RefineResult(np.array(pts), cost1, cost0, sweeps[0], _time.perf_counter() - t0, count.n, why, count.checks)
