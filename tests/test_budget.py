@@ -29,7 +29,7 @@ class _P:
         self.sc = api.load_scenario(PORT)
         self.mf = fields_for_planning(self.sc, 0.004, workers=1)
         self.cm = costmap_for(self.sc, self.mf)
-        self.q = {q.name: q for q in self.sc.queries}["across-deep"]  # the straight line is not usable
+        self.q = {q.name: q for q in self.sc.queries}["across-deep"]  # a detour pays off: the search matters
         self.settings = replace(PlannerSettings.from_model(self.sc), iterations=3000)
 
 
