@@ -123,6 +123,9 @@ def test_the_time_cap_cuts_and_says_so(P, monkeypatch):
     assert j["stopped_by"] == "time" and j["reproducible"] is False and j["time_cap"] == 30.0
     text = plan_table(plan)
     assert "across-deep: stopped by the time cap (30 s)" in text and "not reproducible on another machine" in text
+    q.stopped_by, q.refine_stopped_by, q.refine_evaluations = "iterations", "time", 12  # a cut refinement alone
+    assert not q.reproducible and plan.to_json()["queries"][0]["search"]["reproducible"] is False
+    assert "across-deep: refinement stopped by the time cap (30 s) after 12 evaluations" in plan_table(plan)
     # without the cap the same slow machine plans to the end of the budget, and the table has no such line
     plan = plan_scenario(P.sc, P.mf, query="across-deep", settings=replace(st, time=None))
     assert plan.queries[0].stopped_by == "iterations" and "not reproducible" not in plan_table(plan)

@@ -26,7 +26,7 @@ def _num(x, scale: float = 1.0):
 def plan_table(plan) -> str:
     """The per-query table of a :class:`~errplan.planning.ScenarioPlan`, with a line for every query a time cap
     cut (such a plan depends on the machine)."""
-    from ..planning.plan import NOT_REPRODUCIBLE
+    from ..planning.plan import NOT_REPRODUCIBLE, NOT_REPRODUCIBLE_REFINE
 
     rows = []
     for q in plan.queries:
@@ -53,8 +53,10 @@ def plan_table(plan) -> str:
             change = "the direct path is not usable (" + ("not certifiable" if d.in_workspace else "leaves the workspace") + ")"
         lines.append(f"{q.name}: {change}; search {q.time_solve:.2f} s ({q.iterations} iterations, stopped by "
                      f"{q.stopped_by}) + refine {q.time_refine:.2f} s")
-        if not q.reproducible:
+        if q.stopped_by == "time":
             lines.append(f"{q.name}: " + NOT_REPRODUCIBLE.format(cap=st.time, iterations=q.iterations))
+        elif q.refine_stopped_by == "time":
+            lines.append(f"{q.name}: " + NOT_REPRODUCIBLE_REFINE.format(cap=st.time, evaluations=q.refine_evaluations))
     lines.append("max ||G||, max phi_hat_max: worst case along the path at the scenario gain; ||G||>=1: length of "
                  "the path where the worst-case ||G|| >= 1 (monotonic convergence not guaranteed at that gain)")
     shape = " x ".join(str(len(a)) for a in cm.mf.axes)

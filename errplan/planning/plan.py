@@ -29,9 +29,12 @@ from .seed import cell_graph, seed_path
 # dimension: in the plane the sampling planners find the right side of every hole within the budget
 # (benchmarks/planning.py, planar tables), in space they miss narrow passages.
 GRID_SEED = {2: False, 3: True}
-#: The line the plan table prints for a query the time cap cut (``stopped_by`` "time").
+#: The line the plan table prints for a query whose search the time cap cut (``stopped_by`` "time"), and
+#: for one whose refinement it cut (``refine_stopped_by`` "time").
 NOT_REPRODUCIBLE = ("stopped by the time cap ({cap:g} s) after {iterations} iterations: this plan is not "
                     "reproducible on another machine (set [planner] iterations and drop the cap)")
+NOT_REPRODUCIBLE_REFINE = ("refinement stopped by the time cap ({cap:g} s) after {evaluations} evaluations: this "
+                           "plan is not reproducible on another machine (drop the cap)")
 
 
 def _is_count(v) -> bool:
@@ -116,7 +119,7 @@ class QueryPlan:
     iterations: int
     stopped_by: str  # how the last search phase ended (see plan_query): "iterations" (the budget),
     #                  "sampling" (stalled informed sampling), "planner" (by itself), "time" (the time cap,
-    #                  when set, cut the search or the refinement: the plan depends on the machine)
+    #                  when set, cut the search: the plan depends on the machine)
     time_solve: float
     time_refine: float
     raw_cost: float  # cost of the planner's own path, before refine_path
