@@ -209,3 +209,11 @@ def test_arm_checks_have_their_own_share_of_the_refinement():
     with pytest.raises(refine_mod._Budget):
         clear([0.0, 0.0, 0.0], [1.0, 0.0, 0.0])
     assert plain.why == "evaluations" and plain.n == 5 and plain.checks == 0
+
+
+@pytest.mark.parametrize("bad", [0, -1.0, "long", True])
+def test_bad_time_cap_is_one_clear_error(tmp_path, capsys, bad):
+    src = write_scenario(tmp_path, planner={"time": bad})
+    assert main(["-q", "plan", str(src)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "[planner] time" in err, err
