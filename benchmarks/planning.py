@@ -1,6 +1,6 @@
 """Planner benchmark: cost ratio to the grid optimum and time, per OMPL planner, planar and spatial.
 
-    python benchmarks/planning.py [--dims 2,3,arms] [--time 1.0] [--random 8] [--random3 8]
+    python benchmarks/planning.py [--dims 2,3,arms] [--iterations N] [--time T] [--random 8] [--random3 8]
                                   [--planners RRTstar,BITstar,...] [--uncapped] [--no-grid-seed]
                                   [--resolution 0.002] [--seed 11] [--spatial-scenario] [--workers N]
 
@@ -34,9 +34,10 @@ For each planner: ``raw`` = cost of the OMPL solution / grid optimum, ``final`` 
 candidates and refine_path (what `errplan plan` returns), ``from OMPL`` = queries whose returned
 path was refined from the OMPL search's result (rather than the straight line or, in space, the
 coarse cell-graph path), time = search + refine per query (s), ``iters/s`` = planner iterations per
-second of search. By default each planner runs with errplan's settings (iteration cap
-``ITERATION_RATE * 0.75 * time``, time cap); ``--uncapped`` lets every planner use its whole search
-time; ``--no-grid-seed`` plans without the coarse cell-graph candidate (OMPL and refinement alone).
+second of search. By default each planner runs with errplan's settings (its default iteration budget,
+``DEFAULT_ITERATIONS`` / ``DEFAULT_ITERATIONS_SPATIAL``, or ``--iterations``; no time cap unless ``--time``
+gives one); ``--uncapped`` lets every planner run until the time cap (``--time``, default 1 s there) instead
+of a budget; ``--no-grid-seed`` plans without the coarse cell-graph candidate (OMPL and refinement alone).
 """
 from __future__ import annotations
 
@@ -91,7 +92,7 @@ def run_planners(planners, problems, args, verbose) -> list[list]:
         raw, fin, times, rates, fails, from_ompl = [], [], [], [], 0, 0
         for label, cm, base, qs in problems:
             for qname, s, g, ref in qs:
-                st = replace(base, planner=pname, iterations=10**9 if args.uncapped else None,
+                st = replace(base, planner=pname, iterations=10**9 if args.uncapped else args.iterations,
                              grid_seed=False if args.no_grid_seed else None)
                 try:
                     qp = plan_query(cm, s, g, st, name=qname)
@@ -149,9 +150,8 @@ def planar(args, planners) -> None:
                         "queries"], setup_rows, "planar setup (fields with rho_star, reference graph and search)"))
     print()
     rows = run_planners(planners, problems, args, args.verbose)
-    mode = "uncapped (full time)" if args.uncapped else "errplan settings (iteration cap + time cap)"
     print(format_table(COLUMNS, rows, f"planar: cost / grid optimum over {sum(len(p[3]) for p in problems)} queries, "
-                                      f"{args.time:g} s budget, {mode}"))
+                                      f"{_mode(args)}"))
 
 
 def spatial(args, planners) -> None:
@@ -191,10 +191,17 @@ def spatial(args, planners) -> None:
                         "queries"], setup_rows, "spatial setup (reference graph and search)"))
     print()
     rows = run_planners(planners, problems, args, args.verbose)
-    mode = "uncapped (full time)" if args.uncapped else "errplan settings (iteration cap + time cap)"
+    mode = _mode(args)
     seed = "without the coarse cell-graph candidate" if args.no_grid_seed else "with the coarse cell-graph candidate"
     print(format_table(COLUMNS, rows, f"spatial: cost / grid optimum over {sum(len(p[3]) for p in problems)} "
-                                      f"queries, {args.time:g} s budget, {mode}, {seed}"))
+                                      f"queries, {mode}, {seed}"))
+
+
+def _mode(args) -> str:
+    if args.uncapped:
+        return f"no iteration budget, {args.time:g} s time cap"
+    budget = "each planner's default iteration budget" if args.iterations is None else f"{args.iterations} iterations"
+    return "errplan settings (" + budget + ("" if args.time is None else f", {args.time:g} s time cap") + ")"
 
 
 def arm_checks_case(args) -> None:
@@ -256,7 +263,8 @@ def arm_checks_case(args) -> None:
         print()
         print(format_table(["query", "arm check", "iterations", "stopped by", "search (s)", "cost", "note"], plan_rows,
                            f"plans on {path.name} with either arm check (seed of the scenario, "
-                           f"{args.time if args.arm_time is None else args.arm_time:g} s budget)"))
+                           + ("the scenario's iteration budget)" if (args.time if args.arm_time is None else args.arm_time) is None
+                              else f"{args.time if args.arm_time is None else args.arm_time:g} s time cap)")))
 
 
 def main(argv=None) -> int:
@@ -266,12 +274,13 @@ def main(argv=None) -> int:
     ap.add_argument("--arm-states", type=int, default=300, help="random tips (and motions) per arm of --dims arms")
     ap.add_argument("--arm-plan", action=argparse.BooleanOptionalAction, default=True,
                     help="also plan the setup's queries with either check (--dims arms)")
-    ap.add_argument("--arm-time", type=float, default=None, help="time budget of those plans (default --time)")
-    ap.add_argument("--time", type=float, default=1.0)
+    ap.add_argument("--arm-time", type=float, default=None, help="time cap of those plans (default --time)")
+    ap.add_argument("--iterations", type=int, default=None, help="search budget per query (default: each planner's)")
+    ap.add_argument("--time", type=float, default=None, help="time cap per query, s (default: none; 1 with --uncapped)")
     ap.add_argument("--random", type=int, default=8, help="planar random queries per scenario (half of them hard)")
     ap.add_argument("--random3", type=int, default=8, help="spatial random queries per objective (half hard)")
     ap.add_argument("--planners", default="BITstar,RRTstar,InformedRRTstar,SORRTstar,FMT,BFMT,RRTConnect")
-    ap.add_argument("--uncapped", action="store_true", help="no iteration cap: every planner runs its full time")
+    ap.add_argument("--uncapped", action="store_true", help="no iteration budget: every planner runs until the time cap")
     ap.add_argument("--no-grid-seed", action="store_true", help="no coarse cell-graph candidate (spatial default: on)")
     ap.add_argument("--resolution", type=float, default=None, help="planar fields resolution (m)")
     ap.add_argument("--resolution3", type=float, default=None, help="phantom15_spatial fields resolution (m)")
@@ -282,6 +291,8 @@ def main(argv=None) -> int:
     ap.add_argument("--radius3", type=int, default=3, help="move radius of the spatial grid reference")
     ap.add_argument("--verbose", action="store_true")
     args = ap.parse_args(argv)
+    if args.uncapped and args.time is None:
+        args.time = 1.0
     planners = args.planners.split(",")
     for p in planners:
         if p not in PLANNERS:

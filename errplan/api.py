@@ -337,7 +337,7 @@ def compute_fields(scenario: Scenario | str | Path, resolution: float | None = N
 
 def plan(scenario: Scenario | str | Path, *, query: str | None = None, planner: str | None = None,
          time: float | None = None, seed: int | None = None, record: str | Path | None = None,
-         progress: Progress | None = None, workers: int = 1):
+         progress: Progress | None = None, workers: int = 1, iterations: int | None = None):
     """Plan every query, certify per-segment gains and simulate planned versus direct paths (``errplan plan``).
 
     Parameters
@@ -349,7 +349,8 @@ def plan(scenario: Scenario | str | Path, *, query: str | None = None, planner: 
     planner : str, optional
         OMPL planner by name (default: ``[planner] planner``).
     time : float, optional
-        Planner budget per query, s (default: ``[planner] time``).
+        A time cap per query, s (default: ``[planner] time``, none). A search it cuts depends on the
+        machine: its ``stopped_by`` says "time".
     seed : int, optional
         OMPL's seed (default: ``[planner] seed``).
     record : str or pathlib.Path, optional
@@ -359,6 +360,9 @@ def plan(scenario: Scenario | str | Path, *, query: str | None = None, planner: 
     workers : int, optional
         Local processes for the fields' tiles and for the queries' gains and simulations (default 1);
         the result does not depend on it.
+    iterations : int, optional
+        The search's budget per query (default: ``[planner] iterations``, else the planner's default):
+        the search ends there on any machine.
 
     Returns
     -------
@@ -379,8 +383,8 @@ def plan(scenario: Scenario | str | Path, *, query: str | None = None, planner: 
     from .planning import plan_scenario
 
     sc = _scenario(scenario)
-    result = plan_scenario(sc, query=query, planner=planner, time=time, seed=seed, progress=_part(progress, 0.0, 0.5),
-                           workers=workers)
+    result = plan_scenario(sc, query=query, planner=planner, time=time, seed=seed, iterations=iterations,
+                           progress=_part(progress, 0.0, 0.5), workers=workers)
     res = run_pipeline(sc, result.queries, result.costmap.mf, record=None if record is None else str(record),
                        progress=_part(progress, 0.5, 1.0), workers=workers)
     result.runs = res["runs"]

@@ -149,10 +149,15 @@ class Planner:
     metric: str = "phi_hat_max"
     weight: float = 1.0
     planner: str = "BITstar"
-    time: float = 1.0
+    time: float | None = None  # s per query: a safety cap only (a plan it cuts depends on the machine)
     seed: int = 1
     certifiable: bool = True
     certify_margin: float = 0.02
+    iterations: int | None = None  # the search's budget per query (None: the planner's default)
+
+
+#: the largest ``[planner] iterations`` (a search budget beyond any planning run)
+MAX_ITERATIONS = 10**9
 
 
 @dataclass(frozen=True)
@@ -411,7 +416,7 @@ TABLE_KEYS: dict[str, tuple[str, ...]] = {
     "sensor_noise": ("position", "angle"),
     "[sensors]": ("tracker_sigma", "encoder_sigma"),
     "[fields]": ("resolution", "region"),
-    "[planner]": ("metric", "weight", "planner", "time", "seed", "certifiable", "certify_margin"),
+    "[planner]": ("metric", "weight", "planner", "iterations", "time", "seed", "certifiable", "certify_margin"),
     "[[query]]": ("name", "start", "goal"),
     "[[tolerance]]": ("name", "kind"),
     "[anatomy]": ("clearance", "obstacle", "body_wall"),
@@ -620,14 +625,20 @@ def _planner(ctx: _Ctx, t: Mapping[str, Any]) -> Planner:
     margin = _num(ctx, t.get("certify_margin", d.certify_margin), w + "certify_margin", nonneg=True)
     if margin >= 1:
         raise ctx.fail(w + "certify_margin", margin, "a number in [0, 1)")
+    iterations = t.get("iterations", d.iterations)
+    if iterations is not None and (isinstance(iterations, bool) or not isinstance(iterations, int)
+                                   or not 1 <= iterations <= MAX_ITERATIONS):
+        raise ctx.fail(w + "iterations", iterations,
+                       f"an integer from 1 to {MAX_ITERATIONS}: the search's budget per query")
     return Planner(
         metric=metric,
         weight=_num(ctx, t.get("weight", d.weight), w + "weight", nonneg=True),
         planner=planner,
-        time=_num(ctx, t.get("time", d.time), w + "time", positive=True),
+        time=_num(ctx, t["time"], w + "time", positive=True) if "time" in t else None,
         seed=seed,
         certifiable=cert,
         certify_margin=margin,
+        iterations=iterations,
     )
 
 

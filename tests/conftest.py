@@ -60,7 +60,7 @@ BASE_DOC = {
     "controller": {"gain": 1.0, "jacobian": "rigid"},
     "sensors": {"tracker_sigma": 0.0002},
     "fields": {"resolution": 0.01},
-    "planner": {"metric": "phi_hat_max", "weight": 1.0, "planner": "RRTstar", "time": 1.0, "seed": 1},
+    "planner": {"metric": "phi_hat_max", "weight": 1.0, "planner": "RRTstar", "iterations": 187, "seed": 1},
     "query": [{"name": "N-to-L", "start": [0.0, 0.415], "goal": [0.0, 0.320]}],
 }
 

@@ -176,13 +176,11 @@ def test_side_by_side_prints_what_one_after_another_prints(tmp_path, capsys, mon
     """The demo's scenarios run side by side in worker processes (fields, then every query's gains and
     replays as tasks) print the same blocks, in the same order, and return the same documents as one
     after the other in this process (a small UR5 scenario with two queries, another with one)."""
-    import errplan.planning.plan as plan_mod
     from arms import ur5_scenario
 
     from errplan.cli import demo as d
 
-    # the planner stops at its iteration cap, however loaded the machine: its plans are a function of the seed
-    monkeypatch.setattr(plan_mod, "HARD_STOP", 1e4)
+    # the planner stops at its iteration budget, however loaded the machine: its plans are a function of the seed
     p = ur5_scenario(tmp_path, """
 [[query]]
 name = "hop"

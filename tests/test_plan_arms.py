@@ -187,7 +187,7 @@ def test_plan_keeps_the_arms_clear(tmp_path):
     src = tmp_path / "s.toml"
     src.write_text(to_toml(setup_doc()), encoding="utf-8")
     out = tmp_path / "p.json"
-    assert main(["-q", "plan", str(src), "--json", str(out), "--time", "4"]) == 0
+    assert main(["-q", "plan", str(src), "--json", str(out), "--iterations", "300"]) == 0
     q = json.loads(out.read_text())["queries"][0]
     st = api.load_setup(src)
     # arms: every 0.25 mm of the planned path (the planner checks every 1 mm), none of the straight line's

@@ -80,7 +80,7 @@ def _setup_file(tmp_path, **tol):
 def test_plan_record_of_a_setup(tmp_path, capsys):
     src, doc = _setup_file(tmp_path)
     rrd, js = tmp_path / "p.rrd", tmp_path / "p.json"
-    assert main(["-q", "plan", str(src), "--record", str(rrd), "--json", str(js), "--time", "0.2"]) == 0
+    assert main(["-q", "plan", str(src), "--record", str(rrd), "--json", str(js), "--iterations", "750"]) == 0
     assert "recording:" in capsys.readouterr().out
     rows, cols = _read(rrd)
     plan = json.loads(js.read_text())
@@ -152,7 +152,7 @@ def test_plan_record_of_one_arm_of_a_setup(tmp_path, capsys):
     """--arm: that arm moves along its plan; the other is drawn once, at its rest (tip at `rest`)."""
     src, doc = _setup_file(tmp_path)
     rrd = tmp_path / "p.rrd"
-    assert main(["-q", "plan", str(src), "--arm", "right", "--record", str(rrd), "--time", "0.2"]) == 0
+    assert main(["-q", "plan", str(src), "--arm", "right", "--record", str(rrd), "--iterations", "750"]) == 0
     capsys.readouterr()
     rows, cols = _read(rrd)
     assert rows["/world/arms/left/chain"] == 1 and rows["/world/arms/right/chain"] > 1

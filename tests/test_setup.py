@@ -459,7 +459,7 @@ def test_plan_keeps_the_held_shafts_clear_and_the_tip_visible(tmp_path, capsys):
     src = tmp_path / "s.toml"
     src.write_text(to_toml(doc), encoding="utf-8")
     out = tmp_path / "p.json"
-    assert main(["-q", "plan", str(src), "--json", str(out), "--time", "1.5"]) == 0
+    assert main(["-q", "plan", str(src), "--json", str(out), "--iterations", "5625"]) == 0
     q = json.loads(out.read_text())["queries"][0]
     assert q["arm"] == "left" and not q["direct"]["valid"] and q["planned"]["valid"]
     st = api.load_setup(src)

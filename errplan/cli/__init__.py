@@ -33,6 +33,16 @@ def _positive_float(s: str) -> float:
     return v
 
 
+def _positive_int(s: str) -> int:
+    try:
+        v = int(s)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{s!r} is not an integer") from None
+    if not 1 <= v <= 10**9:
+        raise argparse.ArgumentTypeError(f"{s!r}: expected an integer from 1 to 1000000000")
+    return v
+
+
 def check_seed(option: str, value) -> None:
     """A seed given on the command line: an integer from 0 to 2^32 - 1 (numpy and OMPL take it)."""
     if value is not None and not 0 <= value <= 2**32 - 1:
@@ -84,7 +94,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--json", default=None, help="plan JSON to write (default: none)")
     s.add_argument("--record", default=None, help="rerun recording (.rrd) to write (default: none)")
     s.add_argument("--query", default=None, help="plan only this query, by name (default: every query)")
-    s.add_argument("--time", type=_positive_float, default=None, help="planner time per query, s (default: [planner] time)")
+    s.add_argument("--iterations", type=_positive_int, default=None,
+                   help="the search's budget per query, iterations: it ends there on any machine (default: [planner] iterations)")
+    s.add_argument("--time", type=_positive_float, default=None,
+                   help="a time cap per query, s: a plan it cuts is flagged and depends on the machine (default: [planner] time, none)")
     s.add_argument("--planner", default=None, help="OMPL planner name (default: [planner] planner)")
     s.add_argument("--seed", type=int, default=None, help="OMPL seed, 0 to 2^32 - 1 (default: [planner] seed)")
     s.add_argument("--arm", default=None, help="the arm of a scenario with several instruments, by its [[arm]] name (default: every query, each with its own arm)")

@@ -40,9 +40,8 @@ SPATIAL_METRICS = ("G_norm", "phi_hat_max", "rho_star")
 #: processes the demo runs its steps in (1: one after another); default: every core
 WORKERS_ENV = "ERRPLAN_DEMO_WORKERS"
 #: one-process tasks that go on while the demo plans (the rest is paused): one, on the other core. A plan
-#: ends at its iteration cap (a function of the seed), reached well before its hard stop
-#: (errplan.planning.plan.HARD_STOP) with a core of its own; only a machine loaded beyond its cores can make
-#: it end by time instead (its ``stopped_by`` then says "time"), as it can one step after another
+#: ends at its counted iteration budget (a function of the scenario and the seed), however loaded the
+#: machine: the bundled scenarios set no time cap
 PLAN_BESIDE = 1
 #: a JSON file to write the demo's steps to (scenario, step, start and end s, CPU s): benchmarks/first_run.py
 PROFILE_ENV = "ERRPLAN_DEMO_PROFILE"
@@ -103,8 +102,8 @@ def _fields_part(sc, spatial_demo) -> str:
 
 
 def _plans(sc, mf) -> list:
-    """Every query planned on ``mf`` (the planner has a time budget: it runs with the warm-up paused, as
-    in a later run)."""
+    """Every query planned on ``mf`` (with the warm-up paused, as in a later run: the plan is the same either
+    way, its budget is counted, but the planner has a core to itself)."""
     from ..planning import plan_scenario
 
     warmup.wait(f"plan{sc.dim}")
@@ -358,8 +357,8 @@ def _run_side_by_side(jobs: list[DemoJob], quiet: bool, slots: int, triad: Triad
     printed blocks, in the same order, as :func:`run_scenario` one after the other.
 
     Each scenario's fields are one task (the spatial fields with tile workers of their own); its plan
-    runs here with every task paused (``PLAN_BESIDE``: the planner has a time budget, and runs as it does
-    one step after another); then each query's gains, simulation and corner
+    runs here with every task paused (``PLAN_BESIDE``: the planner gets a core of its own; its counted budget
+    makes the plan the same as one step after another); then each query's gains, simulation and corner
     replays (:func:`errplan.pipeline.run_query`) is a task; its recording and its block are made here
     once all its queries are back. Fields first (the heaviest scenario's first, or with a first run's
     warm-up the jobs' order, the order the warm-up compiles in), then the queries, the heaviest

@@ -1,5 +1,5 @@
-"""``errplan plan SCENARIO [--json F] [--record F.rrd] [--query NAME] [--time T] [--planner NAME] [--seed N]
-[--workers N]``.
+"""``errplan plan SCENARIO [--json F] [--record F.rrd] [--query NAME] [--iterations N] [--time T] [--planner NAME]
+[--seed N] [--workers N]``.
 
 Plans every ``[[query]]`` of the scenario (planar or spatial) on its worst-case fields (errplan.planning), prints per
 query the planned and the direct (straight) path (cost, length, max ||G||, max phi_hat_max), then
@@ -24,7 +24,10 @@ def _num(x, scale: float = 1.0):
 
 
 def plan_table(plan) -> str:
-    """The per-query table of a :class:`~errplan.planning.ScenarioPlan`."""
+    """The per-query table of a :class:`~errplan.planning.ScenarioPlan`, with a line for every query a time cap
+    cut (such a plan depends on the machine)."""
+    from ..planning.plan import NOT_REPRODUCIBLE, NOT_REPRODUCIBLE_REFINE
+
     rows = []
     for q in plan.queries:
         for label, p in (("planned", q.planned), ("direct", q.direct)):
@@ -35,8 +38,10 @@ def plan_table(plan) -> str:
     st = plan.settings
     cm = plan.costmap
     cert = f"certifiable (rho* <= {cm.rho_bound:g})" if cm.certifiable else "not restricted to certifiable tips"
+    budget = f"{st.iteration_cap(cm.dim)} iterations per query" + (
+        "" if st.time is None else f" (time cap {st.time:g} s)")
     title = (f"plan of {plan.scenario}: cost = integral (1 + {plan.weight:g} * {plan.metric}) ds, {cert}; "
-             f"{st.planner}, {st.time:g} s per query, seed {st.seed}")
+             f"{st.planner}, {budget}, seed {st.seed}")
     table = format_table(["query", "path", "cost (m)", "length (mm)", "max ||G||", "max phi_hat_max (deg)",
                           "||G||>=1 (mm)", "vertices", "valid"], rows, title)
     lines = [table]
@@ -48,6 +53,10 @@ def plan_table(plan) -> str:
             change = "the direct path is not usable (" + ("not certifiable" if d.in_workspace else "leaves the workspace") + ")"
         lines.append(f"{q.name}: {change}; search {q.time_solve:.2f} s ({q.iterations} iterations, stopped by "
                      f"{q.stopped_by}) + refine {q.time_refine:.2f} s")
+        if q.stopped_by == "time":
+            lines.append(f"{q.name}: " + NOT_REPRODUCIBLE.format(cap=st.time, iterations=q.iterations))
+        elif q.refine_stopped_by == "time":
+            lines.append(f"{q.name}: " + NOT_REPRODUCIBLE_REFINE.format(cap=st.time, evaluations=q.refine_evaluations))
     lines.append("max ||G||, max phi_hat_max: worst case along the path at the scenario gain; ||G||>=1: length of "
                  "the path where the worst-case ||G|| >= 1 (monotonic convergence not guaranteed at that gain)")
     shape = " x ".join(str(len(a)) for a in cm.mf.axes)
@@ -89,8 +98,8 @@ def _warm_up(sc) -> None:
 
 
 def plan_arm(sc, args, progress=None, workers: int = 1, record: str | None = None):
-    """:func:`errplan.api.plan` of one arm's model ``sc`` (``args``: ``query``, ``planner``, ``time``,
-    ``seed``), step by step: the fields on ``workers`` processes; the plan with a first run's warm-up
+    """:func:`errplan.api.plan` of one arm's model ``sc`` (``args``: ``query``, ``planner``, ``iterations``,
+    ``time``, ``seed``), step by step: the fields on ``workers`` processes; the plan with a first run's warm-up
     paused (the planner's budget is CPU time it must not share); the queries' gains and simulations on
     ``workers`` processes, once the warm-up has compiled the gains' kernels and this process has loaded
     them (each worker has them). The same :class:`~errplan.planning.ScenarioPlan`."""
@@ -113,7 +122,7 @@ def plan_arm(sc, args, progress=None, workers: int = 1, record: str | None = Non
     warmup.wait(f"plan{sc.dim}")
     with warmup.paused():
         plan = plan_scenario(sc, mf, query=args.query, planner=args.planner, time=args.time, seed=args.seed,
-                             progress=_part(progress, 0.4, 0.5))
+                             iterations=getattr(args, "iterations", None), progress=_part(progress, 0.4, 0.5))
     plan.field_time = t_fields
     warmup.wait(f"gains{sc.dim}")
     if workers > 1 and len(plan.queries) > 1:

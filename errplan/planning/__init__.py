@@ -12,7 +12,7 @@ in the plane (``[y, z]``) or in space (``[x, y, z]``) with the same code. One mo
 - :mod:`~errplan.planning.cellwalk` -- the compiled cell walk (Amanatides & Woo) behind it;
 - :mod:`~errplan.planning.ompl_adapter` -- the only module importing ompl: the state space chosen by
   d, validity checker, exact motion validator, objective with an admissible heuristic, planner by
-  name, the seeded and capped search;
+  name, the seeded search ending at its counted budget;
 - :mod:`~errplan.planning.refine` -- :func:`refine_path`, shortcuts and coarse-to-fine vertex
   relaxation on the exact objective;
 - :mod:`~errplan.planning.report` -- :class:`PathReport`, what a path is worth on the fields;
@@ -27,15 +27,16 @@ Numbers: coordinates and lengths in m; ``phi_*`` in rad; costs in m (a weighted 
 from __future__ import annotations
 
 from .costmap import METRIC_NAMES, CostMap
-from .ompl_adapter import (DEFAULT_PLANNER, HEURISTIC_CALLS_PER_ITERATION, ITERATION_RATE, ITERATION_RATE_SPATIAL,
-                           PLANNERS, iteration_rate, make_objective, make_space_information)
+from .ompl_adapter import (DEFAULT_ITERATIONS, DEFAULT_ITERATIONS_SPATIAL, DEFAULT_PLANNER,
+                           HEURISTIC_CALLS_PER_ITERATION, PLANNERS, default_iterations, make_objective,
+                           make_space_information)
 from .plan import (PlannerSettings, QueryPlan, ScenarioPlan, check_endpoints, costmap_for, fields_for_planning,
                    plan_query, plan_scenario, search_box, select_queries)
-from .refine import RefineResult, refine_path
+from .refine import REFINE_EVALUATIONS, RefineResult, refine_path
 from .report import PathReport, path_report
 
-__all__ = ["METRIC_NAMES", "PLANNERS", "DEFAULT_PLANNER", "ITERATION_RATE", "ITERATION_RATE_SPATIAL",
-           "HEURISTIC_CALLS_PER_ITERATION", "iteration_rate", "CostMap", "PlannerSettings", "QueryPlan",
+__all__ = ["METRIC_NAMES", "PLANNERS", "DEFAULT_PLANNER", "DEFAULT_ITERATIONS", "DEFAULT_ITERATIONS_SPATIAL",
+           "HEURISTIC_CALLS_PER_ITERATION", "REFINE_EVALUATIONS", "default_iterations", "CostMap", "PlannerSettings", "QueryPlan",
            "ScenarioPlan", "PathReport", "RefineResult", "check_endpoints", "costmap_for", "fields_for_planning",
            "make_objective", "make_space_information", "path_report", "plan_query", "plan_scenario",
            "refine_path", "search_box", "select_queries"]

@@ -16,8 +16,9 @@
   multilinear field, computed in ``motionCost`` by the compiled walk; ``motionCostHeuristic`` is the
   admissible ``distance * min(1 + weight * metric)``. (In ompl 2.0.1 a Python
   ``StateCostIntegralObjective`` subclass is never called from C++, hence ``motionCost``.)
-- **planner by name** (:data:`PLANNERS`), stopped by an iteration cap, a deadline, a guard against
-  stalled informed sampling, or (optionally) the first exact solution (:func:`search`).
+- **planner by name** (:data:`PLANNERS`), stopped by its iteration budget, a guard against stalled
+  informed sampling (counted too), (optionally) the first exact solution, or only when the user set one,
+  a time cap (:func:`search`).
 
 The Python overrides are as thin as OMPL allows: each reads the d coordinates of its states and
 makes one call into a compiled kernel with one packed array (about 1 us per call, against 5-50 us
@@ -38,28 +39,35 @@ from . import cellwalk
 # Python objective; AORRTC fails when the straight line is valid).
 PLANNERS = ("RRTstar", "InformedRRTstar", "SORRTstar", "BITstar", "FMT", "BFMT", "RRTConnect")
 DEFAULT_PLANNER = "BITstar"
-# Iterations (planner termination checks) per second of budget, per dimension: the planner stops
-# after ``time * (1 - refine_share) * rate`` iterations or at its deadline, whichever comes first.
-# The iteration cap makes a run a function of the seed (on the reference machine, 2 shared cores,
-# it is reached in 35-125 % of the search's share of the budget, as the machine's speed varies); the deadline
-# (errplan.planning.plan.HARD_STOP times that share) bounds it on slower or loaded machines, and
-# QueryPlan.stopped_by says which one ended the search.
-ITERATION_RATE = {"BITstar": 10000, "RRTstar": 250, "InformedRRTstar": 250, "SORRTstar": 250,
-                  "FMT": 2000, "BFMT": 2000, "RRTConnect": 2000}
-ITERATION_RATE_SPATIAL = {"BITstar": 5000, "RRTstar": 800, "InformedRRTstar": 800, "SORRTstar": 800,
-                          "FMT": 2000, "BFMT": 2000, "RRTConnect": 2000}
+# The search's budget per query when ``[planner] iterations`` does not set one: iterations (planner
+# termination checks), per planner and dimension. A search ends at its budget on any machine, so a plan
+# is a function of the scenario and the seed. These are the caps the searches had when the budget was a
+# time (1 s per query, 75 % of it for the search, at a rate measured per planner on 2 shared cores), so
+# the bundled scenarios keep their plans.
+DEFAULT_ITERATIONS = {"BITstar": 7500, "RRTstar": 187, "InformedRRTstar": 187, "SORRTstar": 187,
+                      "FMT": 1500, "BFMT": 1500, "RRTConnect": 1500}
+DEFAULT_ITERATIONS_SPATIAL = {"BITstar": 3750, "RRTstar": 600, "InformedRRTstar": 600, "SORRTstar": 600,
+                              "FMT": 1500, "BFMT": 1500, "RRTConnect": 1500}
+# FMT* and BFMT* plan on a fixed sample set drawn up front: this many samples per iteration of the budget
+# (300 samples for the default 1500 iterations, at least 100).
+FMT_SAMPLES_PER_ITERATION = 0.2
 # OMPL's informed samplers for a general objective draw uniform samples and reject those whose
 # heuristic cost is outside a cost shell; when the shell is thin (short queries near the edge of the
 # region) they stall inside one iteration. A search normally makes 20-50 heuristic calls per
 # iteration (benchmarks/planning.py); past this many per allowed iteration the heuristic drops to 0
-# (still admissible) and the search stops ("sampling"): deterministic, unlike a time limit.
+# (still admissible) and the search stops ("sampling"): counted, so the same on every machine.
 HEURISTIC_CALLS_PER_ITERATION = 100
 _ROADMAP = ("PRM", "PRMstar", "LazyPRM", "LazyPRMstar", "SPARS", "SPARStwo")
 
 
-def iteration_rate(planner: str, dim: int = 2) -> int:
-    """Iterations per second of search budget of ``planner`` in dimension ``dim``."""
-    return (ITERATION_RATE if dim == 2 else ITERATION_RATE_SPATIAL).get(planner, 1000)
+def default_iterations(planner: str, dim: int = 2) -> int:
+    """The search budget (iterations per query) of ``planner`` in dimension ``dim`` when the scenario sets none."""
+    return (DEFAULT_ITERATIONS if dim == 2 else DEFAULT_ITERATIONS_SPATIAL).get(planner, 750)
+
+
+def fmt_samples(iterations: int) -> int:
+    """FMT*'s sample set for a search budget of ``iterations`` (a count: the same samples on every machine)."""
+    return max(100, int(FMT_SAMPLES_PER_ITERATION * iterations))
 
 
 def _ompl():
@@ -124,7 +132,7 @@ def _classes() -> dict[str, Any]:
             self._Cost = ob.Cost
             self._zero = ob.Cost(0.0)
             self._clock = _time.perf_counter
-            self.deadline = math.inf
+            self.deadline = math.inf  # the time cap, when the user set one
             self.heuristic_calls = 0
             self.max_heuristic_calls = math.inf
 
@@ -132,7 +140,7 @@ def _classes() -> dict[str, Any]:
             return self._Cost(walk2(self._D, s1[0], s1[1], s2[0], s2[1], False, True)[1])
 
         def motionCostHeuristic(self, s1, s2):  # noqa: N802
-            # After the deadline the heuristic drops to 0 (still admissible): OMPL's rejection
+            # Past the sampling guard or the time cap the heuristic drops to 0 (still admissible): OMPL's rejection
             # sampler for informed sets loops without checking the termination condition, and a
             # zero heuristic accepts the next sample so that the planner gets to check it.
             self.heuristic_calls += 1
@@ -197,15 +205,16 @@ def make_objective(si, cm):
     return _classes()["obj"][cm.dim](si, cm)
 
 
-def make_planner(name: str, si, time_budget: float):
-    """The OMPL planner called ``name`` on ``si`` (clear errors for unknown or deadlocking names)."""
+def make_planner(name: str, si, iterations: int):
+    """The OMPL planner called ``name`` on ``si`` for a search budget of ``iterations`` (clear errors for
+    unknown or deadlocking names)."""
     _, og, _ = _ompl()
     check_planner(name)
     pl = getattr(og, name)(si)
     if name in ("FMT", "BFMT"):
         # FMT* evaluates the neighbour pairs of a fixed sample set: size it to the budget
         # (about 0.3-0.5 s for 300 samples here), and let it use the cost-to-go heuristic.
-        pl.setNumSamples(max(100, int(400 * time_budget)))
+        pl.setNumSamples(fmt_samples(iterations))
         pl.setHeuristics(True)
     return pl
 
@@ -218,16 +227,17 @@ def check_planner(name: str) -> None:
         raise ErrplanError(f"planner = {name!r}: expected one of {', '.join(PLANNERS)}")
 
 
-def search(cm, start, goal, planner_name: str, box, cap: int, t_end: float,
-           first_only: bool, budget: float) -> tuple[np.ndarray | None, int, str, str]:
+def search(cm, start, goal, planner_name: str, box, cap: int, t_end: float | None,
+           first_only: bool, budget: int) -> tuple[np.ndarray | None, int, str, str]:
     """One OMPL search in ``box`` (flat ``(lo, hi)`` per axis, None: the grid):
     ``(path (n, d) or None, iterations, stopped_by, status)``.
 
-    Stops after ``cap`` iterations, at ``t_end`` (a ``time.perf_counter()`` value), when the
-    informed sampler stalls (``HEURISTIC_CALLS_PER_ITERATION``) or, with ``first_only``, at the
-    first exact solution. ``budget`` (s): the search's nominal time, which sizes FMT*'s sample set (a
-    function of the settings, not of the clock: the same samples on a loaded machine; ``t_end`` is the
-    hard stop, later than the budget).
+    Stops after ``cap`` iterations ("iterations"), when the informed sampler stalls
+    (``HEURISTIC_CALLS_PER_ITERATION``, "sampling"), with ``first_only`` at the first exact solution,
+    or by itself ("planner"): all counted, so the same on every machine. Only when ``t_end`` (a
+    ``time.perf_counter()`` value: the user's time cap) is given does the clock stop it too ("time";
+    such a search depends on the machine). ``budget``: the query's whole search budget (iterations),
+    which sizes FMT*'s sample set, the same in both phases of a query.
     """
     ob, og, _ = _ompl()
     d = cm.dim
@@ -244,6 +254,7 @@ def search(cm, start, goal, planner_name: str, box, cap: int, t_end: float,
     planner = make_planner(planner_name, si, budget)
     ss.setPlanner(planner)
     pdef = ss.getProblemDefinition()
+    t_end = math.inf if t_end is None else t_end
     obj.deadline = t_end
     obj.max_heuristic_calls = HEURISTIC_CALLS_PER_ITERATION * cap
     count = [0]

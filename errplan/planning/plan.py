@@ -20,8 +20,8 @@ import numpy as np
 from ..errors import ErrplanError, InfeasibleError
 from . import ompl_adapter
 from .costmap import CostMap
-from .ompl_adapter import DEFAULT_PLANNER, check_planner, iteration_rate
-from .refine import refine_path
+from .ompl_adapter import DEFAULT_PLANNER, check_planner, default_iterations
+from .refine import REFINE_EVALUATIONS, refine_path
 from .report import PathReport, jsonable, path_report
 from .seed import cell_graph, seed_path
 
@@ -29,52 +29,75 @@ from .seed import cell_graph, seed_path
 # dimension: in the plane the sampling planners find the right side of every hole within the budget
 # (benchmarks/planning.py, planar tables), in space they miss narrow passages.
 GRID_SEED = {2: False, 3: True}
-# The hard stop of a query, in budgets: the iteration cap (sized from the budget) ends the search and
-# makes the plan a function of the seed; the search stops at this many times its share of the budget,
-# and the refinement at this many budgets, only when the machine is too slow or too loaded to reach the
-# cap (then ``stopped_by`` is "time" and the plan depends on the machine). At 1 (the budget itself) a
-# busy second core was enough to change a planar plan: over one day on the reference machine BIT*
-# reached its cap in 35-125 % of its share of the budget on the bundled planar queries.
-HARD_STOP = 2.0
+#: The line the plan table prints for a query whose search the time cap cut (``stopped_by`` "time"), and
+#: for one whose refinement it cut (``refine_stopped_by`` "time").
+NOT_REPRODUCIBLE = ("stopped by the time cap ({cap:g} s) after {iterations} iterations: this plan is not "
+                    "reproducible on another machine (set [planner] iterations and drop the cap)")
+NOT_REPRODUCIBLE_REFINE = ("refinement stopped by the time cap ({cap:g} s) after {evaluations} evaluations: this "
+                           "plan is not reproducible on another machine (drop the cap)")
+
+
+def _is_count(v) -> bool:
+    return isinstance(v, (int, np.integer)) and not isinstance(v, (bool, np.bool_))
 
 
 @dataclass(frozen=True)
 class PlannerSettings:
-    """How to search: OMPL planner name, time budget per query (s), seed, iteration cap, refinement.
+    """How to search: OMPL planner name, budgets per query, seed, refinement.
 
-    ``iterations`` (default ``time * (1 - refine_share) * iteration_rate(planner, dim)``) caps the
-    planner's iterations so a run depends only on the seed while the cap is reached before the hard stop
-    (:data:`HARD_STOP` times the search's share of ``time``).
+    The budgets are counted, so a plan is a function of the scenario and the seed on every machine:
+    ``iterations`` (default :func:`~errplan.planning.ompl_adapter.default_iterations` of the planner and
+    dimension) for the search, ``refine_evaluations`` (default
+    :data:`~errplan.planning.refine.REFINE_EVALUATIONS`) for the refinement, of them at most
+    ``refine_arm_checks`` (default :data:`~errplan.planning.refine.REFINE_ARM_CHECKS`) clearance checks with
+    arm checks. ``time`` (s per query, default
+    None: no cap) is a safety cap only: a search or refinement it cuts ends by the clock, and the plan says
+    so (``stopped_by`` "time"): such a plan depends on the machine.
     """
 
     planner: str = DEFAULT_PLANNER
-    time: float = 1.0
+    time: float | None = None
     seed: int = 1
     iterations: int | None = None
     refine: bool = True
-    refine_share: float = 0.25  # share of the time budget kept for refine_path
+    refine_evaluations: int | None = None
+    refine_arm_checks: int | None = None
     grid_seed: bool | None = None  # add the coarse cell-graph candidate (None: GRID_SEED[dim])
 
     @classmethod
     def from_model(cls, m, planner: str | None = None, time: float | None = None,
-                   seed: int | None = None, **kw) -> "PlannerSettings":
-        """The ``[planner]`` table of an arm's model (or scenario), ``planner``/``time``/``seed`` overriding it."""
+                   seed: int | None = None, iterations: int | None = None, **kw) -> "PlannerSettings":
+        """The ``[planner]`` table of an arm's model (or scenario), ``planner``/``time``/``seed``/``iterations``
+        overriding it."""
         p = m.planner
-        return cls(planner=planner or p.planner, time=float(time if time is not None else p.time),
-                   seed=int(seed if seed is not None else p.seed), **kw)
+        t = time if time is not None else getattr(p, "time", None)
+        it = iterations if iterations is not None else getattr(p, "iterations", None)
+        return cls(planner=planner or p.planner, time=None if t is None else float(t),
+                   seed=int(seed if seed is not None else p.seed), iterations=it, **kw)
 
     def iteration_cap(self, dim: int = 2) -> int:
+        """The search's budget per query (iterations) in dimension ``dim``."""
         if self.iterations is not None:
             return int(self.iterations)
-        return max(50, int(self.time * (1 - self.refine_share) * iteration_rate(self.planner, dim)))
+        return default_iterations(self.planner, dim)
+
+    def refine_budget(self) -> int:
+        """The refinement's budget per path (segment evaluations)."""
+        return REFINE_EVALUATIONS if self.refine_evaluations is None else int(self.refine_evaluations)
 
     def use_grid_seed(self, dim: int = 2) -> bool:
         return GRID_SEED.get(dim, True) if self.grid_seed is None else bool(self.grid_seed)
 
     def check(self) -> None:
         check_planner(self.planner)
-        if not (self.time > 0 and math.isfinite(self.time)):
-            raise ErrplanError(f"time = {self.time!r}: expected a planning time > 0 s")
+        if self.time is not None and (isinstance(self.time, bool) or not (self.time > 0 and math.isfinite(self.time))):
+            raise ErrplanError(f"time = {self.time!r}: expected a time cap > 0 s (or none)")
+        if self.iterations is not None and not (_is_count(self.iterations) and self.iterations >= 1):
+            raise ErrplanError(f"iterations = {self.iterations!r}: expected an integer >= 1 (the search's budget per query)")
+        for key in ("refine_evaluations", "refine_arm_checks"):
+            v = getattr(self, key)
+            if v is not None and not (_is_count(v) and v >= 0):
+                raise ErrplanError(f"{key} = {v!r}: expected an integer >= 0")
         if isinstance(self.seed, bool) or self.seed < 0:
             raise ErrplanError(f"seed = {self.seed!r}: expected an integer >= 0")
 
@@ -94,8 +117,9 @@ class QueryPlan:
     planner: str
     seed: int
     iterations: int
-    stopped_by: str  # how the last search phase ended (see plan_query): "iterations" (the cap),
-    #                  "time" (the budget), "sampling" (stalled informed sampling), "planner" (by itself)
+    stopped_by: str  # how the last search phase ended (see plan_query): "iterations" (the budget),
+    #                  "sampling" (stalled informed sampling), "planner" (by itself), "time" (the time cap,
+    #                  when set, cut the search: the plan depends on the machine)
     time_solve: float
     time_refine: float
     raw_cost: float  # cost of the planner's own path, before refine_path
@@ -103,6 +127,15 @@ class QueryPlan:
     seed_cost: float | None = None  # cost of the coarse cell-graph path (errplan.planning.seed), if used
     source: str = "planner"  # the candidate the returned path was refined from: "planner", "first
     #                          solution", "direct" or "grid seed"
+    refine_evaluations: int = 0  # segment evaluations the refinement spent (its counted budget)
+    refine_stopped_by: str = "converged"  # "converged", "evaluations" (its budget), "arm checks" (their share
+    #                                       of it) or "time" (the cap)
+    time_cap: float | None = None  # the settings' time cap (s), None without one
+
+    @property
+    def reproducible(self) -> bool:
+        """Whether the plan is a function of the scenario and the seed: no time cap cut it."""
+        return self.stopped_by != "time" and self.refine_stopped_by != "time"
 
     @property
     def time_total(self) -> float:
@@ -117,7 +150,10 @@ class QueryPlan:
                "search": {"planner": self.planner, "seed": self.seed, "iterations": self.iterations,
                           "stopped_by": self.stopped_by, "time_solve": self.time_solve,
                           "time_refine": self.time_refine, "raw_cost": jsonable(self.raw_cost),
-                          "grid_seed_cost": jsonable(self.seed_cost), "source": self.source}}
+                          "grid_seed_cost": jsonable(self.seed_cost), "source": self.source,
+                          "refine_evaluations": self.refine_evaluations,
+                          "refine_stopped_by": self.refine_stopped_by, "time_cap": self.time_cap,
+                          "reproducible": self.reproducible}}
         if not timing:
             del out["search"]["time_solve"], out["search"]["time_refine"]
         out.update(self.extra)
@@ -189,10 +225,12 @@ def search_box(cm: CostMap, start, goal, bound_cost: float) -> tuple[float, ...]
     return tuple(out)
 
 
-def _no_path(name, st, start, goal, t_begin, used, status) -> InfeasibleError:
+def _no_path(name, st, start, goal, t_begin, used, status, why) -> InfeasibleError:
+    more = ("a longer --time cap (or none)" if why == "time"
+            else "more iterations ([planner] iterations or --iterations)")
     return InfeasibleError(
         f"{name}: {st.planner} found no path from {list(start)} to {list(goal)} within the budget "
-        f"({_time.perf_counter() - t_begin:.2f} s, {used} iterations; status: {status}); try a longer --time")
+        f"({_time.perf_counter() - t_begin:.2f} s, {used} iterations; status: {status}); try {more}")
 
 
 def plan_query(cm: CostMap, start, goal, settings: PlannerSettings | None = None, name: str = "query",
@@ -205,7 +243,8 @@ def plan_query(cm: CostMap, start, goal, settings: PlannerSettings | None = None
     when ``settings.use_grid_seed(d)``); without either, a first search over the whole grid stops
     at its first solution, whose cost bounds the box of the second. This keeps informed samplers
     (BIT*, Informed RRT*) from stalling on a small informed set in a large space. Every iteration
-    counts against one cap, and both phases share the time budget. The best of the planner's path,
+    counts against one budget (``settings.iteration_cap``), so the search ends at the same point on every
+    machine; the optional time cap (``settings.time``) bounds the whole query. The best of the planner's path,
     the first solution and the straight line is refined (:func:`refine_path`), and so is the
     coarse path; the cheaper result is returned, so the plan is never costlier than a usable
     straight line.
@@ -225,9 +264,9 @@ def plan_query(cm: CostMap, start, goal, settings: PlannerSettings | None = None
     t_begin = _time.perf_counter()
     direct = path_report(cm, np.array([start, goal]), workspace_map)
     if math.dist(start, goal) < 1e-12:  # nothing to plan
-        return QueryPlan(name, start, goal, direct, direct, st.planner, st.seed, 0, "planner", 0.0, 0.0, 0.0)
-    t_search = st.time * (1 - st.refine_share) if st.refine else st.time
-    t_end = t_begin + HARD_STOP * t_search
+        return QueryPlan(name, start, goal, direct, direct, st.planner, st.seed, 0, "planner", 0.0, 0.0, 0.0,
+                         time_cap=st.time)
+    t_end = None if st.time is None else t_begin + st.time  # a safety cap only, when the user set one
     cap = st.iteration_cap(cm.dim)
     # Reseed before anything draws from the RNG so that each query is a function of the seed,
     # whatever was planned before in this process.
@@ -245,18 +284,18 @@ def plan_query(cm: CostMap, start, goal, settings: PlannerSettings | None = None
     status = ""
     if not math.isfinite(bound):
         first, used, why, status = ompl_adapter.search(cm, start, goal, st.planner, None, cap, t_end, first_only=True,
-                                                         budget=t_search)
+                                                         budget=cap)
         if first is None:
-            raise _no_path(name, st, start, goal, t_begin, used, status)
+            raise _no_path(name, st, start, goal, t_begin, used, status, why)
         bound = cm.path_cost(first)[1]
     box = search_box(cm, start, goal, bound)
     raw, n, why, status = ompl_adapter.search(cm, start, goal, st.planner, box, max(cap - used, 1), t_end,
-                                              first_only=False, budget=t_search)
+                                              first_only=False, budget=cap)
     used += n
     if raw is None:
         raw = first
-    if raw is None and coarse is None:
-        raise _no_path(name, st, start, goal, t_begin, used, status)
+    if raw is None and coarse is None and not direct_ok:
+        raise _no_path(name, st, start, goal, t_begin, used, status, why)
     cands = []  # (source, path, exact cost)
     if raw is not None:
         ok, raw_cost = cm.path_cost(raw)
@@ -273,17 +312,21 @@ def plan_query(cm: CostMap, start, goal, settings: PlannerSettings | None = None
     time_solve = _time.perf_counter() - t_begin
     t1 = _time.perf_counter()
     results = []
+    spent, refine_why = 0, "converged"
     for src, path, cost in ([best] if best else []) + ([("grid seed", *coarse)] if coarse is not None else []):
         if st.refine:
-            rr = refine_path(cm, path, deadline=t_begin + HARD_STOP * st.time)
+            rr = refine_path(cm, path, evaluations=st.refine_budget(), arm_checks=st.refine_arm_checks, deadline=t_end)
             path, cost = rr.path, rr.cost
+            spent += rr.evaluations
+            if rr.stopped_by != "converged" and refine_why != "time":
+                refine_why = rr.stopped_by
         results.append((cost, len(results), src, path))
     cost, _, source, path = min(results)
     time_refine = _time.perf_counter() - t1
     planned = path_report(cm, path, workspace_map)
     return QueryPlan(name, start, goal, planned, direct, st.planner, st.seed, used, why, time_solve,
                      time_refine, float(raw_cost), seed_cost=None if coarse is None else float(coarse[1]),
-                     source=source)
+                     source=source, refine_evaluations=spent, refine_stopped_by=refine_why, time_cap=st.time)
 
 
 def fields_for_planning(sc, resolution: float | None = None, progress=None, **kw):
@@ -349,19 +392,21 @@ def select_queries(sc, name: str | None = None) -> list:
 
 
 def plan_scenario(sc, mf=None, *, query: str | None = None, planner: str | None = None,
-                  time: float | None = None, seed: int | None = None, settings: PlannerSettings | None = None,
+                  time: float | None = None, seed: int | None = None, iterations: int | None = None,
+                  settings: PlannerSettings | None = None,
                   progress: Callable[[float, str], None] | None = None,
                   workers: int | None = None) -> ScenarioPlan:
     """Plan every ``[[query]]`` of a scenario (or only ``query``) on its worst-case fields.
 
     ``mf`` (a :class:`~errplan.fields.MetricField`, planar or spatial) is computed when not given
     (:func:`fields_for_planning`; ``workers`` goes to :func:`errplan.fields.compute_fields`).
-    ``planner``, ``time`` and ``seed`` override ``[planner]``. Every endpoint is checked before
+    ``planner``, ``time`` (the time cap), ``seed`` and ``iterations`` (the search's budget) override
+    ``[planner]``. Every endpoint is checked before
     any search, so a bad query fails fast with :class:`InfeasibleError`. Returns a
     :class:`ScenarioPlan`.
     """
     qs = select_queries(sc, query)
-    st = settings or PlannerSettings.from_model(sc, planner=planner, time=time, seed=seed)
+    st = settings or PlannerSettings.from_model(sc, planner=planner, time=time, seed=seed, iterations=iterations)
     st.check()
     t0 = _time.perf_counter()
     if mf is None:
