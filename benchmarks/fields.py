@@ -2,6 +2,7 @@
 
     python benchmarks/fields.py [--repeat 3] [--quick]
     python benchmarks/fields.py --scale [--repeat 3]     # issue 21's problems at scale only
+    python benchmarks/fields.py --where [--repeat 3]     # where their CPU time goes (start-up, search, lanes)
 
 With ``--scale`` (issue 21): planar 0.25 mm over P1's workspace with the 5 x 5 port box against the
 chunked elementwise planar peer with reachability, and the PHANToM 1.5 task region at 2 mm with
@@ -538,6 +539,77 @@ def at_scale(tmp: Path, repeat: int, rho_res: float = RHO_RES) -> list[str]:
     return head + lines, res
 
 
+def _cli_cpu(args: list[str]) -> float:
+    """CPU seconds (user + system, the command and its worker processes) of one ``errplan fields`` run."""
+    c0 = os.times()
+    run_cli(args)
+    c1 = os.times()
+    return c1.children_user + c1.children_system - c0.children_user - c0.children_system
+
+
+def where_time(tmp: Path, repeat: int) -> list[str]:
+    """Where the CPU time of the two problems at scale goes (planar 0.25 mm, 5 x 5 port box; spatial 2 mm,
+    3 x 3 x 3 ports; ``G_norm``): the whole ``errplan fields`` process (both cores, its workers included);
+    its start-up, the same command on a coarse grid (interpreter, imports, kernel cache load, scenario,
+    arm and reachability map, npz written); and in this process on one worker the entry search (per tip:
+    reachability certificate, the sampled instances, the choice of the starts), the straight-shaft
+    refinements run as lanes (:func:`errplan.fields.kernels.run_lanes`) and the Python around them (grid,
+    prefilter, tiles, scatter). Medians of ``repeat``; CPU ns per (grid tip x sampled instance)."""
+    from errplan.api import load_scenario
+    from errplan.fields import compute_fields
+    from errplan.fields.kernels import loops
+
+    sp, so = planar_scenario(tmp), spatial_scenario(tmp, 0.002, 3)
+    acc = {"search": 0.0, "lanes": 0.0, "tips": 0, "lanes_n": 0}
+    tiles, lanes0 = dict(loops._TILES), loops.run_lanes
+
+    def timed(f):
+        def g(X, *a):
+            c0 = time.process_time()
+            f(X, *a)
+            acc["search"] += time.process_time() - c0
+            acc["tips"] += len(X)
+        return g
+
+    def run_lanes(lanes, *a):
+        c0 = time.process_time()
+        lanes0(lanes, *a)
+        acc["lanes"] += time.process_time() - c0
+        acc["lanes_n"] += int(lanes.count[0])
+
+    lines = ["| problem | grid tips (candidates, valid) | whole process CPU s | start-up CPU s | in process, 1 worker: "
+             "CPU s | search (sampled pass, starts) s | refinement lanes s (lanes) | Python s | ns per tip x instance: "
+             "whole / in process / search / lanes |", "|---|---|---|---|---|---|---|---|---|"]
+    for name, path, res, coarse, m in (("planar 0.25 mm, 5 x 5", sp, 0.00025, 0.004, 25),
+                                       ("spatial 2 mm, 3 x 3 x 3", so, None, 0.02, 27)):
+        sc = load_scenario(path)
+        base = [str(path), "--metrics", "G_norm", "--out", str(tmp / "where.npz")]
+        fine = base + (["--resolution", str(res)] if res else [])
+        _cli_cpu(base + ["--resolution", str(coarse)])  # the kernel cache warm
+        whole = statistics.median(_cli_cpu(fine) for _ in range(repeat))
+        start = statistics.median(_cli_cpu(base + ["--resolution", str(coarse)]) for _ in range(repeat))
+        compute_fields(sc, coarse, metrics=("G_norm",), workers=1)
+        rows = []
+        try:
+            loops._TILES.update({k: timed(f) for k, f in tiles.items()})
+            loops.run_lanes = run_lanes
+            for _ in range(repeat):
+                acc.update(search=0.0, lanes=0.0, tips=0, lanes_n=0)
+                c0 = time.process_time()
+                mf = compute_fields(sc, res, metrics=("G_norm",), workers=1)
+                rows.append((time.process_time() - c0, acc["search"], acc["lanes"]))
+        finally:
+            loops._TILES.update(tiles)
+            loops.run_lanes = lanes0
+        tot, srch, lan = (statistics.median(r[i] for r in rows) for i in range(3))
+        n = mf.valid.size
+        per = lambda t: t / (n * m) * 1e9  # noqa: E731
+        lines.append(f"| {name} | {n:,} ({acc['tips']:,}, {int(mf.valid.sum()):,}) | {whole:.2f} | {start:.2f} | "
+                     f"{tot:.2f} | {srch:.2f} | {lan:.2f} ({acc['lanes_n']:,}) | {tot - srch - lan:.2f} | "
+                     f"{per(whole):.0f} / {per(tot):.0f} / {per(srch):.0f} / {per(lan):.0f} |")
+    return lines
+
+
 def peer_rows(kind, what, times, stacked, t_stacked, target, elementwise, t_elem) -> list[tuple[str, float]]:
     """Rows of errplan's median time against the two numpy peers' and the ratios."""
     t, ts, te = statistics.median(times), statistics.median(t_stacked), statistics.median(t_elem)
@@ -552,7 +624,18 @@ def main() -> int:
     ap.add_argument("--rho-res", type=float, default=RHO_RES, help="--scale: the rho* row's planar grid spacing, m")
     ap.add_argument("--scale", action="store_true",
                     help="only issue 21's problems at scale (planar 0.25 mm, spatial 2 mm) and their targets")
+    ap.add_argument("--where", action="store_true",
+                    help="only where the CPU time of the problems at scale goes (start-up, search, lanes, Python)")
     a = ap.parse_args()
+    if a.where:
+        load0 = os.getloadavg()[0]
+        with tempfile.TemporaryDirectory() as d:
+            lines = where_time(Path(d), a.repeat)
+        print(f"{os.cpu_count()} cores, load average (1 min) {load0:.2f} before, {os.getloadavg()[0]:.2f} after the run; "
+              f"medians of {a.repeat}; CPU seconds")
+        print()
+        print("\n".join(lines))
+        return 0
     if a.scale:
         load0 = os.getloadavg()[0]
         with tempfile.TemporaryDirectory() as d:

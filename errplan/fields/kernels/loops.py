@@ -12,7 +12,7 @@ from ...kinematics.urdf.chain import map_geometry, map_state, reach_boundary
 from .instance import _corners_out2, _instance2, _instance3, _lever_out, _levers2, _levers3
 from .metrics import _phimax, gval, phi_bound
 from .reach import _planar_reachable, _tip_reach, _tip_reach2
-from .search import (LANE_TIPS, _far, _gnorm_below, _golden_gain, _gval_skip, _gval_ub_at, _local_max, _neighbour, _pattern, _pattern_g, _pattern_lanes, _peak_raise,
+from .search import (LANE_TIPS, _far, _gnorm_below, _golden_gain, _gval_skip, _gval_ub_at, _neighbour, _pattern, _pattern_g, _pattern_lanes, _peak_raise,
                      _rho_final, _sample_table)
 
 
@@ -210,6 +210,12 @@ def _search(X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L,
     stride = np.empty(na, np.int64)
     nbr = np.empty((m, 2 * na), np.int64)
     _sample_table(counts, periodic, na, m, pos, stride, nbr)
+    nnb = nbr.shape[1]
+    tabfar = m <= 256  # farT[i, j]: sample j more than one step from sample i (_far), once per tile
+    farT = np.zeros((m, m) if tabfar else (1, 1), np.bool_)
+    for i in range(m if tabfar else 0):
+        for j in range(m):
+            farT[i, j] = _far(j, i, pos, counts, periodic, na)
     geo = map_geometry(rmap)  # the map's fields read once (chain.py: a namedtuple's arrays cost per read)
     mst = rmap.state
     # 3-D with a load: samples at tau = 0 repeat along the direction axis psi (the last one)
@@ -356,17 +362,64 @@ def _search(X, grid, counts, active, periodic, lo, hi, step0, base_port, est, L,
                 for j in range(1, m):
                     if vals[j] > vals[jbest]:
                         jbest = j
-                # a second start: the best sampled local maximum more than one step from the worst
+                # a second start: the best sampled local maximum more than one step from the worst.
+                # :func:`_far`, :func:`_local_max` and :func:`_peak_raise` written out here, on the tile's
+                # tables (farT, nbr): per tip, their calls (each with its arrays' reference counts) and
+                # branches cost more than the comparisons themselves (about a fifth of a planar search)
                 j2 = -1
                 if second_start > 0 and m > 1:
-                    for j in range(m):  # the cheap comparison first
-                        if (j2 < 0 or vals[j] > vals[j2]) and _far(j, jbest, pos, counts, periodic, na) \
-                                and _local_max(vals, j, nbr):
+                    for j in range(m):
+                        if j2 >= 0 and not vals[j] > vals[j2]:  # the cheap comparison first
+                            continue
+                        if tabfar:
+                            if not farT[jbest, j]:
+                                continue
+                        elif not _far(j, jbest, pos, counts, periodic, na):
+                            continue
+                        vj = vals[j]
+                        lm = True
+                        for c in range(nnb):
+                            q = nbr[j, c]
+                            if q >= 0:
+                                lm = lm & (not vals[q] > vj)
+                        if lm:
                             j2 = j
                     if j2 >= 0:
+                        # _peak_raise(vals, j2, ...): nbr holds its one-step neighbours (-1 outside the box;
+                        # an axis of fewer than 2 samples is skipped before they are read)
+                        f0 = vals[j2]
+                        pr = 0.0
+                        for ax in range(na):
+                            s_ax = counts[ax]
+                            if s_ax < 2:
+                                continue
+                            jm = nbr[j2, 2 * ax]
+                            jp = nbr[j2, 2 * ax + 1]
+                            if s_ax == 2:
+                                r = abs(f0 - vals[jp if jp >= 0 else jm])
+                            elif jm >= 0 and jp >= 0:
+                                fm, fp = vals[jm], vals[jp]
+                                curv = 2 * f0 - fm - fp
+                                r = (fp - fm) ** 2 / (8 * curv) if curv > 0 else 0.0
+                            else:
+                                # on a face of a non-periodic axis of 3 or more samples: the two inward
+                                inward = 1 if jm < 0 else -1
+                                j1_ = jp if inward == 1 else jm
+                                j2_ = j2 + 2 * inward * stride[ax]
+                                f1, f2 = vals[j1_], vals[j2_]
+                                c2 = 0.5 * (f0 - 2 * f1 + f2)
+                                bb = f0 - f1 + c2
+                                r = 0.0
+                                if c2 < 0:
+                                    xv = -bb / (2 * c2)
+                                    if -1 < xv < 0:
+                                        r = -bb * bb / (4 * c2)
+                            if not math.isfinite(r):
+                                pr = math.inf
+                                break
+                            pr += max(r, 0.0)
                         v = vals[jbest]
-                        if not (vals[j2] + 2.0 * _peak_raise(vals, j2, pos, stride, counts, periodic, na)
-                                >= v - second_start * max(1.0, abs(v))):
+                        if not (vals[j2] + 2.0 * pr >= v - second_start * max(1.0, abs(v))):
                             j2 = -1
             best_all = -math.inf
             for start in (jbest, j2):

@@ -198,7 +198,9 @@ def _pattern_lanes(d, k, s0, s1, XS, TH, best, known, live, owner, step0, lo, hi
     idx = np.arange(s0, s1)
     Xw = np.empty((d, ns))
     Tw = np.empty((d, ns))
-    Cw = np.empty((d, ns))
+    Xp = np.empty((d, ns))  # one poll's tips and instances, packed (its lanes: pq)
+    Cp = np.empty((d, ns))
+    pq = np.empty(ns, np.int64)
     bw = np.empty(ns)
     bef = np.empty(ns)
     kw = np.empty(ns, np.bool_)
@@ -207,7 +209,6 @@ def _pattern_lanes(d, k, s0, s1, XS, TH, best, known, live, owner, step0, lo, hi
         for a in range(d):
             Xw[a, s] = XS[a, s0 + s]
             Tw[a, s] = TH[a, s0 + s]
-            Cw[a, s] = TH[a, s0 + s]
         bw[s] = best[s0 + s]
         kw[s] = known[s0 + s]
         lw[s] = live[s0 + s]
@@ -223,32 +224,48 @@ def _pattern_lanes(d, k, s0, s1, XS, TH, best, known, live, owner, step0, lo, hi
                     continue
                 h = step0[ax] / 2.0 ** level
                 for sgn in (-1.0, 1.0):
+                    # the polls to make, packed into the front of Xp, Cp (pq: their lane): not those of a
+                    # failed search, nor one clipped back onto its centre (a worst case on the box face),
+                    # whose value _pattern would not compute either
+                    npk = 0
+                    per = periodic[ax]
                     for q in range(nw):
-                        Cw[ax, q] = _poll_coord(Tw[ax, q], sgn * h, lo[ax], hi[ax], periodic[ax])
+                        t = Tw[ax, q]
+                        # (the branch on the axis outside the poll's arithmetic: both ways the same numbers
+                        # as _poll_coord's, without the float modulo computed for every lane)
+                        if per:
+                            v = _poll_coord(t, sgn * h, lo[ax], hi[ax], True)
+                        else:
+                            v = min(max(t + sgn * h, lo[ax]), hi[ax])
+                        if not lw[q] or (not per and v == t):
+                            continue
+                        for a in range(d):
+                            Xp[a, npk] = Xw[a, q]
+                            Cp[a, npk] = Tw[a, q]
+                        Cp[ax, npk] = v
+                        pq[npk] = q
+                        npk += 1
                     if d == 2:
-                        _levers2(Xw, Cw, nw, base_port, est, L, k, O, okl)
+                        _levers2(Xp, Cp, npk, base_port, est, L, k, O, okl)
                     else:
-                        _levers3(Xw, Cw, nw, base_port, est, L, k, O, okl)
-                    for q in range(nw):
-                        v = Cw[ax, q]
-                        Cw[ax, q] = Tw[ax, q]
-                        if not lw[q] or (not periodic[ax] and v == Tw[ax, q]):
-                            continue  # failed, or clipped back onto the centre (a worst case on the box face)
-                        okj = okl[q]
+                        _levers3(Xp, Cp, npk, base_port, est, L, k, O, okl)
+                    for c in range(npk):
+                        q = pq[c]
+                        v = Cp[ax, c]
+                        okj = okl[c]
                         if okj and not kw[q]:
                             if d == 2:
-                                okj = _planar_reachable(arm, O[1, q], O[2, q])
+                                okj = _planar_reachable(arm, O[1, c], O[2, c])
                             else:
-                                w0, w1, w2 = O[1, q], O[2, q], O[3, q]
+                                w0, w1, w2 = O[1, c], O[2, c], O[3, c]
                                 s_, ix, iy, iz = map_state(geo, mst, w0, w1, w2)
                                 okj = s_ == 1 or (s_ == 2 and reach_boundary(chain, rmap, ix, iy, iz, w0, w1, w2))
                         if not okj:
                             lw[q] = False
                             continue
-                        if O[0, q] > bw[q]:
-                            bw[q] = O[0, q]
+                        if O[0, c] > bw[q]:
+                            bw[q] = O[0, c]
                             Tw[ax, q] = v
-                            Cw[ax, q] = v
         # the pass's results; the searches still climbing go on, packed
         m_ = 0
         for q in range(nw):
@@ -260,7 +277,6 @@ def _pattern_lanes(d, k, s0, s1, XS, TH, best, known, live, owner, step0, lo, hi
                 for a in range(d):
                     Xw[a, m_] = Xw[a, q]
                     Tw[a, m_] = Tw[a, q]
-                    Cw[a, m_] = Tw[a, q]
                 bw[m_] = bw[q]
                 kw[m_] = kw[q]
                 lw[m_] = True
