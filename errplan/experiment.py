@@ -553,7 +553,6 @@ def simulate_bench(plant, ctrl, q0: np.ndarray, targets: np.ndarray, gain: float
     q = np.array(q0, float)
     targets = np.asarray(targets, float)
     R, d = targets.shape
-    off = np.asarray(plant.tracker_offset, float)
     u = np.zeros((R, d))
     q_true = q.copy()
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -562,7 +561,7 @@ def simulate_bench(plant, ctrl, q0: np.ndarray, targets: np.ndarray, gain: float
     stop_at = np.full(R, max_steps)          # last step index recorded
     rows_q, rows_x, rows_r, rows_s = [], [], [], []
     for t in range(max_steps + 1):
-        tracked = tip + off
+        tracked = plant.tracked(tip)
         if rng is not None and plant.tracker_sigma > 0:
             tracked = tracked + rng.normal(0.0, plant.tracker_sigma, tracked.shape)
         idx = np.flatnonzero(alive)

@@ -241,7 +241,7 @@ def simulate(plant: Plant, controller: ControllerModel, q0: np.ndarray, waypoint
     seg = 0
     status = "max_steps"
     for _ in range(max_steps + 1):
-        tracked = tip + np.asarray(plant.tracker_offset)
+        tracked = plant.tracked(tip)
         if rng is not None and plant.tracker_sigma > 0:
             tracked = tracked + rng.normal(0.0, plant.tracker_sigma, d)
         # switch targets on convergence

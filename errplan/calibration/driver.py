@@ -6,7 +6,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from ..effects import EFFECTS, catalogue, predict_tracked
+from ..effects import EFFECTS, catalogue, geometry_names, predict_tracked
 from ..errors import DataError, ErrplanError
 from ..experiment import MeasuredData
 from .blas import single_threaded_blas
@@ -56,7 +56,12 @@ def _calibrate(sc, data: MeasuredData, *, validate, seed, folds, progress, effec
         bad = [e for e in effects if e not in EFFECTS]
         if bad or not effects:
             raise ErrplanError(f"--effects {','.join(effects)}: expected effects of docs/physics.md: {', '.join(EFFECTS)}")
-    cat = catalogue(sc, effects, skip_without_gravity=effects is None)
+    from ..effects import CATALOGUE
+
+    wanted = effects if effects is not None else [c.name for c in CATALOGUE] + geometry_names(dim)
+    cat = catalogue(sc, wanted, skip_without_gravity=effects is None)
+    geo = [e for e in cat if e.qr_identify]   # geometric groups: candidates alone (QR picks their parameters)
+    cat = [e for e in cat if not e.qr_identify]
     skipped = [] if effects is not None or any(e.name == "gravity_sag" for e in cat) else [
         "gravity_sag (the URDF has no inertial data, so no generalized gravity)"]
     base = declared_plant(sc)
@@ -78,10 +83,11 @@ def _calibrate(sc, data: MeasuredData, *, validate, seed, folds, progress, effec
     ident, ident_text = _identifiability(sc, data, cat)
     k = min(folds, data.runs)
     fold_of_run = _folds(data.runs, k, seed) if k >= 2 else None
-    by_name = {e.name: e for e in cat}
-    names = list(by_name)
-    combos: list[tuple[str, ...]] = [()] + [(a,) for a in names] + list(itertools.combinations(names, 2))
-    n_params = {e.name: sum(not f for f in e.fixed) for e in cat}
+    by_name = {e.name: e for e in cat + geo}
+    names = [e.name for e in cat]
+    combos: list[tuple[str, ...]] = ([()] + [(a,) for a in names] + list(itertools.combinations(names, 2))
+                                     + [(g.name,) for g in geo])
+    n_params = {e.name: sum(not f for f in e.fixed) for e in cat + geo}
     fits = lambda key: sum(n_params[e] for e in key) <= dim * data.rows - 2  # noqa: E731 (some residual dof left)
     combos = [c for c in combos if fits(c)]
     cands: dict[tuple[str, ...], Candidate] = {}
@@ -130,7 +136,10 @@ def _calibrate(sc, data: MeasuredData, *, validate, seed, folds, progress, effec
     pred0, _ = replay(data, base, ctrl, xmodel)
     pred1, _ = replay(data, after, ctrl, xmodel)
     fixed = {f"{e.name}.{p_}": e.why_fixed or "identically zero sensitivity on this robot"
-             for e in cat for p_, fx in zip(e.params, e.fixed) if fx}
+             for e in cat + geo for p_, fx in zip(e.params, e.fixed) if fx}
+    for lab in model.held_labels:
+        fixed[lab] = ("not identifiable from these rows: QR with column pivoting of the regressor puts it below "
+                      "1e-6 of the first pivot (a combination of the other parameters shows the same)")
     prog(1.0, "done")
     cand_list = sorted(cands.values(), key=lambda c: (len(c.effects), c.bic))
     return CalibrationReport(

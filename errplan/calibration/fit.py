@@ -91,7 +91,7 @@ def fit_candidate(effects, data: MeasuredData, u: np.ndarray, base, fold_of_run:
                 sse = float("nan")  # too few training rows for this candidate: no held-out error
                 break
             if p:
-                mk = EffectModel(m.effects).fit(data.q[tr], u[tr], data.tip[tr], base, x0=m.values_)
+                mk = EffectModel(m.effects, hold=m.hold).fit(data.q[tr], u[tr], data.tip[tr], base, x0=m.values_)
                 vals = mk.values_
             else:
                 vals = np.zeros(m.n_params)

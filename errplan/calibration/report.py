@@ -93,19 +93,31 @@ class CalibrationReport:
         """The selected effects as the bench has them: a declared value of the same effect plus
         the fitted correction (just the fitted value when the scenario declares none)."""
         out = {}
+        held = set(self.model.held_labels)
         for e, ps in self.fitted.items():
             dec = self.declared_effects.get(e, {})
-            out[e] = {p: (None if f"{e}.{p}" in self.fixed else dec.get(p, 0.0) + v) for p, v in ps.items()}
+            out[e] = {p: (None if f"{e}.{p}" in self.fixed else dec.get(p, 0.0) + v) for p, v in ps.items()
+                      if f"{e}.{p}" not in held}  # a geometric group reports only its identifiable parameters
         return out
 
     @property
     def uncertainty(self) -> dict[str, dict[str, float]]:
-        return _finite_or_none(self.model.uncertainties())
+        held = set(self.model.held_labels)
+        return {e: {p: v for p, v in ps.items() if f"{e}.{p}" not in held}
+                for e, ps in _finite_or_none(self.model.uncertainties()).items()}
 
     @property
     def not_identifiable(self) -> dict[str, str]:
         """The selected effects' parameters reported as not identifiable (label -> why)."""
         return {k: v for k, v in self.fixed.items() if k.split(".")[0] in self.model.names}
+
+    def not_identifiable_params(self) -> dict[str, list[str]]:
+        """``{effect: [param, ...]}``: the selected effects' parameters held at zero and not reported."""
+        out: dict[str, list[str]] = {}
+        for lab in self.not_identifiable:
+            e, p = lab.split(".", 1)
+            out.setdefault(e, []).append(p)
+        return out
 
     def effects_table(self) -> dict[str, dict[str, float]]:
         """Effects for the corrected scenario: every declared effect, with the selected ones
@@ -140,7 +152,8 @@ class CalibrationReport:
                                            f"(F test p < {STRUCTURE_P:g}) and its RMS >= {STRUCTURE_RATIO:g} x noise floor"},
             "declared_effects": self.declared_effects,
             "effects": self.effects_table(),
-            "not_identifiable": self.not_identifiable,
+            "not_identifiable": self.not_identifiable_params(),
+            "not_identifiable_why": self.not_identifiable,
             "identifiability": self.bench,
             "catalogue_fixed": self.fixed,
             "not_tried": list(self.skipped),
@@ -190,6 +203,9 @@ class CalibrationReport:
             units_of = {ef.name: dict(zip(ef.params, ef.units)) for ef in self.model.effects}
             for e, ps in self.parameters.items():
                 units = units_of[e]
+                held = [lab.split(".", 1)[1] for lab in self.model.held_labels if lab.split(".", 1)[0] == e]
+                if held:
+                    prow.append([e, ", ".join(held), "not identifiable", "", "held at 0 (QR)"])
                 for p, v in ps.items():
                     f, unit = display_unit(units[p])
                     if v is None:
