@@ -226,7 +226,7 @@ class JointGeometry(_Geometric):
     plant_field = "joint_geometry"
     description = "each actuated joint's origin moved by [dx, dy, dz] and turned by [rx, ry, rz] in its parent frame"
 
-    def __init__(self, scales=None, *, dim: int = 3, n_joints: int = 3, fixed=None):
+    def __init__(self, scales=None, *, dim: int = 2, n_joints: int = 2, fixed=None):
         if int(dim) != 3:
             raise ErrplanError("joint_geometry is an effect of URDF arms; the planar arm has link_length")
         super().__init__(scales, dim=dim, n_joints=n_joints, fixed=fixed)
@@ -315,6 +315,8 @@ class _GravityCache:
         self._size = size
 
     def __getattr__(self, name):
+        if name.startswith("__") or name == "_arm":
+            raise AttributeError(name)
         return getattr(self._arm, name)
 
     def gravity_torque(self, q):

@@ -20,6 +20,7 @@ import math
 import re
 import xml.etree.ElementTree as ET
 from dataclasses import replace
+from functools import lru_cache
 
 import numpy as np
 
@@ -101,6 +102,13 @@ def joint_origins(urdf_text: str, joint_names, where: str = "URDF") -> np.ndarra
     return out
 
 
+@lru_cache(maxsize=8)
+def _origins(urdf_text: str, joint_names: tuple, where: str) -> np.ndarray:
+    out = joint_origins(urdf_text, joint_names, where)
+    out.setflags(write=False)
+    return out
+
+
 def perturbed_origin(O: np.ndarray, g) -> np.ndarray:
     """``O`` (4, 4) moved by ``g[:3]`` and turned by the rotation vector ``g[3:]``, both in the parent frame."""
     g = np.asarray(g, float)
@@ -147,18 +155,23 @@ class GeometryArm:
         self._arm = arm
         self.declared_arm = arm
         self.joint_geometry = g
-        O = joint_origins(arm.urdf_text, arm.joint_names, str(arm.urdf_path))
+        core = arm
+        while not hasattr(type(core), "forward") or hasattr(core, "_arm") and type(core).__name__ != "UrdfArm":
+            core = core._arm  # a wrapper (the calibration's gravity cache): the URDF arm under it
+        O = _origins(arm.urdf_text, tuple(arm.joint_names), str(arm.urdf_path))
         ch = arm.chain
         T = np.array(ch.T, float)
         for i in range(arm.n):
             T[i] = T[i] @ np.linalg.solve(O[i], perturbed_origin(O[i], g[i]))
         T = np.ascontiguousarray(T)
         self.chain = ChainData(T, ch.axis, ch.jtype, ch.A, ch.lo, ch.hi, chain_screws(T, ch.axis))
-        self._shadow = copy.copy(arm)
+        self._shadow = copy.copy(core)
         self._shadow.chain = self.chain
         self._shadow.reach_map = arm.reach_map  # seeds of the declared arm's map (Newton refines below)
 
     def __getattr__(self, name):
+        if name.startswith("__") or name == "_arm":
+            raise AttributeError(name)
         return getattr(self._arm, name)
 
     def forward(self, q) -> np.ndarray:
