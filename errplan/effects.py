@@ -21,6 +21,7 @@ and does the fitting: ``tracked tip = plant(values).tip(q_enc, u) + tracker offs
 """
 from __future__ import annotations
 
+import math
 from typing import Sequence
 
 import numpy as np
@@ -233,6 +234,33 @@ class JointGeometry(_Geometric):
 
     def spatial_units_scales(self):
         return _units_scales(("m", "m", "m", "rad", "rad", "rad") * self.n_joints)
+
+
+#: plausible sizes of a bench's effects, by unit (SI): a fitted value beyond these is flagged in the
+#: report (not rejected): 20 mm of offset or length error, 50 mrad of angle, a tip load over EI of
+#: 5 /m^2 (P2's 1 N on the ZEUS shaft is 1.7 /m^2), and for the spatial gravity sag 20 mrad of sag at
+#: the joint's RMS generalized gravity (a joint far softer than an arm's servos)
+PLAUSIBLE = {"m": 0.02, "rad": 0.05, "1/m^2": 5.0}
+PLAUSIBLE_SAG = 0.02
+
+
+def implausible(model: "EffectModel", values=None) -> list[dict]:
+    """The parameters of a fitted combination whose size is physically implausible (:data:`PLAUSIBLE`):
+    ``[{"effect", "param", "value", "limit", "unit", "why"}]``."""
+    values = model.values_ if values is None else np.asarray(values, float)
+    out, i = [], 0
+    for e in model.effects:
+        for p, unit, scale, v in zip(e.params, e.units, e.scales, values[i:i + e.n_params]):
+            if unit == "rad/(N m)":
+                lim, size, what = PLAUSIBLE_SAG, abs(v) * 1e-3 / scale, "rad of sag at the joint's RMS gravity torque"
+            else:
+                lim, size, what = PLAUSIBLE.get(unit, math.inf), abs(v), unit
+            if size > lim:
+                out.append({"effect": e.name, "param": p, "value": float(v), "limit": lim, "unit": unit,
+                            "why": f"{e.name}.{p} = {v:.4g} {unit}: {size:.3g} {what} is beyond a plausible "
+                                   f"{lim:g} (a parameter absorbing an effect the combination lacks?)"})
+        i += e.n_params
+    return out
 
 
 #: the geometric groups (tried after the physical effects; which apply depends on the arm)

@@ -78,7 +78,7 @@ def _calibrate(sc, data: MeasuredData, *, validate, seed, folds, progress, effec
         raise DataError(f"{data.source}: row {i + 1}: the declared model has no tip at encoder angles {data.q[i].tolist()}")
     x0 = predict_tracked(base, data.q, u)
     nf = noise_floor(r0, x0, u)
-    st0 = structure_test(r0, u, nf)
+    st0 = structure_test(r0, u, nf, data.run, seed)
     prog(0.05, "noise floor")
     ident, ident_text = _identifiability(sc, data, cat)
     k = min(folds, data.runs)
@@ -115,7 +115,7 @@ def _calibrate(sc, data: MeasuredData, *, validate, seed, folds, progress, effec
     model = chosen.model
     after = model.plant(base)
     r1 = data.tip - predict_tracked(after, data.q, u)
-    st1 = structure_test(r1, u, nf)
+    st1 = structure_test(r1, u, nf, data.run, seed)
     explained = not st1.structured
 
     # before / after errors

@@ -10,8 +10,9 @@ import numpy as np
 
 from .residual import rms
 
-STRUCTURE_P = 1e-3          # F-test level for "the residual has structure"
-STRUCTURE_RATIO = 1.0       # structured RMS >= this x noise floor -> not explained
+STRUCTURE_P = 1e-3          # level of the held-out-runs test for "the residual has structure"
+STRUCTURE_RATIO = 0.25      # structured RMS >= this x noise floor (and significant) -> not explained
+STRUCTURE_FOLDS = 5         # folds of whole runs for the held-out structure test
 
 
 # ----------------------------------------------------------------------------- noise floor
@@ -97,6 +98,20 @@ class LocalBasis:
         P = _legendre_total(2 * (xx - lo) / (hi - lo) - 1, d)
         return idx, np.concatenate([P] + [P * u[idx, i:i + 1] for i in range(u.shape[1])], axis=1)
 
+    def predict_held_out(self, r: np.ndarray, x: np.ndarray, u: np.ndarray, train: np.ndarray) -> np.ndarray:
+        """The smooth model fitted on the rows ``train`` (mask) and evaluated on every row (n, d):
+        the same clusters and per-cluster bases as :meth:`fit` (a row of a cluster without enough
+        training rows is predicted 0)."""
+        pred = np.zeros_like(r)
+        for k in range(int(self.labels.max()) + 1):
+            idx, F = self._cluster(k, x, u)
+            tr = train[idx]
+            if len(idx) == 0 or tr.sum() < F.shape[1] + 2:
+                continue
+            coef, _ = _lstsq(F[tr], r[idx][tr])
+            pred[idx] = F @ coef
+        return pred
+
     def fit(self, r: np.ndarray, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, float, int]:
         """Fit residuals (n, d): fitted values (n, d), RSS (m^2), total rank per coordinate."""
         fit = np.zeros_like(r)
@@ -171,24 +186,42 @@ def noise_floor(r: np.ndarray, x: np.ndarray, u: np.ndarray, configs=None) -> No
 
 @dataclass
 class Structure:
-    """Is a residual structured? F test of the flexible smooth model against "noise only"."""
+    """Is a residual structured? The flexible smooth model fitted on some runs must predict the
+    residual of the others (held-out whole runs); see :func:`structure_test`."""
 
     rms: float            # per-coordinate RMS of the residual
-    structured_rms: float  # RMS of its smooth part beyond what a fit to pure noise absorbs
-    f_stat: float
-    p_value: float
+    structured_rms: float  # RMS of the part the smooth model predicts on held-out runs
+    f_stat: float          # the in-sample F statistic (information only: it fires on closed-loop noise)
+    p_value: float         # the held-out-runs test's one-sided p-value
     ratio: float           # rms / noise floor
     structured: bool
+    f_p_value: float = float("nan")   # the in-sample F test's p-value (information only)
+    runs: int = 0
+    test: str = "held-out runs"
 
     def to_json(self) -> dict:
         return {"rms": self.rms, "structured_rms": self.structured_rms, "f_statistic": self.f_stat,
-                "p_value": self.p_value, "rms_over_noise_floor": self.ratio, "structured": self.structured}
+                "p_value": self.p_value, "rms_over_noise_floor": self.ratio, "structured": self.structured,
+                "in_sample_f_p_value": self.f_p_value, "runs": self.runs, "test": self.test}
 
 
-def structure_test(r: np.ndarray, u: np.ndarray, nf: NoiseFloor) -> Structure:
-    """F test of the noise floor's flexible model on residual ``r`` (same rows) and the RMS of the
-    smooth part beyond what fitting pure noise would absorb."""
+def structure_test(r: np.ndarray, u: np.ndarray, nf: NoiseFloor, run: np.ndarray | None = None,
+                   seed: int = 0) -> Structure:
+    """Is residual ``r`` (n, d) structured? Tested by whole runs (``run`` (n,) the run of each row).
+
+    In closed loop each row's encoder angles depend on earlier rows' tracker noise, so rows are not
+    exchangeable and an in-sample F test of a flexible model fires on pure noise. The test here
+    holds whole runs out: the noise floor's flexible model is fitted on the other folds' runs and
+    predicts the held-out runs' residual (:data:`STRUCTURE_FOLDS` folds of runs, seeded). Each run's
+    gain ``g = sum(r^2) - sum((r - prediction)^2)`` over its rows is negative on average for noise
+    (the prediction adds variance) and positive where the residual has a shape other runs share.
+    ``p_value``: one-sided t test over runs that the mean gain is positive. ``structured_rms``:
+    ``sqrt(max(sum g, 0) / (d n))``, the part of the residual the held-out prediction removes.
+    Structured (not explained) when ``p < STRUCTURE_P`` and ``structured_rms >= STRUCTURE_RATIO``
+    noise floors. Without ``run`` (or with fewer than 4 runs) every row is its own run. The in-sample
+    F statistic and its p-value are kept for information."""
     from scipy.stats import f as fdist
+    from scipy.stats import t as tdist
 
     n, dim = r.shape
     rss0 = float(np.sum(r * r))
@@ -198,6 +231,25 @@ def structure_test(r: np.ndarray, u: np.ndarray, nf: NoiseFloor) -> Structure:
     if df1 <= 0 or df2 <= 0:
         return Structure(rms(r), 0.0, 0.0, 1.0, ratio, False)
     fstat = ((rss0 - rss1) / df1) / max(rss1 / df2, 1e-300)
-    p = float(fdist.sf(fstat, df1, df2))
-    s = math.sqrt(max(0.0, (rss0 - rss1) - df1 * nf.sigma ** 2) / (dim * n))
-    return Structure(rms(r), s, float(fstat), p, ratio, bool(p < STRUCTURE_P and s >= STRUCTURE_RATIO * nf.sigma))
+    p_f = float(fdist.sf(fstat, df1, df2))
+    run = np.arange(n) if run is None or len(np.unique(run)) < 4 else np.unique(np.asarray(run), return_inverse=True)[1]
+    runs = int(run.max()) + 1
+    k = min(STRUCTURE_FOLDS, runs)
+    rng = np.random.default_rng(seed)
+    fold_of_run = np.empty(runs, int)
+    fold_of_run[rng.permutation(runs)] = np.arange(runs) % k
+    fold = fold_of_run[run]
+    pred = np.zeros_like(r)
+    for f_ in range(k):
+        te = fold == f_
+        pred[te] = nf.basis.predict_held_out(r, nf.x, u, ~te)[te]
+    row_gain = np.sum(r * r, axis=1) - np.sum((r - pred) ** 2, axis=1)
+    g = np.bincount(run, weights=row_gain, minlength=runs)
+    sd = float(np.std(g, ddof=1)) if runs > 1 else 0.0
+    if sd > 0:
+        p = float(tdist.sf(float(np.mean(g)) / (sd / math.sqrt(runs)), runs - 1))
+    else:
+        p = 0.0 if np.mean(g) > 0 else 1.0
+    s = math.sqrt(max(0.0, float(np.sum(g))) / (dim * n))
+    return Structure(rms(r), s, float(fstat), p, ratio, bool(p < STRUCTURE_P and s >= STRUCTURE_RATIO * nf.sigma),
+                     p_f, runs)

@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..effects import EffectModel
+from ..effects import EffectModel, implausible
 from ..experiment import MeasuredData
 from .fit import Candidate, _finite_or_none, _num
 from .noise import STRUCTURE_P, STRUCTURE_RATIO, NoiseFloor, Structure
@@ -148,10 +148,13 @@ class CalibrationReport:
             "validation": self.validation_errors.to_json() if self.validation_errors else None,
             "noise": self.noise.to_json(),
             "residual_structure": {"before": self.structure_before.to_json(), "after": self.structure.to_json(),
-                                   "rule": f"not explained when the smooth part of the residual is significant "
-                                           f"(F test p < {STRUCTURE_P:g}) and its RMS >= {STRUCTURE_RATIO:g} x noise floor"},
+                                   "rule": f"not explained when the smooth part of the residual, predicted on held-out whole runs, "
+                                           f"is significant (one-sided t test over runs, p < {STRUCTURE_P:g}) and its "
+                                           f"RMS >= {STRUCTURE_RATIO:g} x noise floor"},
             "declared_effects": self.declared_effects,
             "effects": self.effects_table(),
+            "exported": [],
+            "implausible": implausible(self.model) if self.model.effects else [],
             "not_identifiable": self.not_identifiable_params(),
             "not_identifiable_why": self.not_identifiable,
             "identifiability": self.bench,
@@ -217,6 +220,8 @@ class CalibrationReport:
                     note = f"declared {dec.get(p, 0.0) * f:+.4f} + fitted {self.fitted[e][p] * f:+.4f}" if dec else ""
                     prow.append([e, p, f"{v * f:+.4f} ± {sig}", unit, note])
             lines.append(format_table(["effect", "param", "value ± 1 sigma", "unit", ""], prow, "selected effects"))
+            for flag in implausible(self.model):
+                lines.append("implausible: " + flag["why"])
             chosen = next((c for c in self.candidates if c.selected), None)
             if chosen is not None and not chosen.selectable:
                 lines.append(f"warning: {chosen.model.why_}: the selected effects fit and predict best, but these rows "
@@ -237,7 +242,8 @@ class CalibrationReport:
         s = self.structure
         verdict = "yes" if self.explained else "NO"
         lines.append(f"explained: {verdict} — residual after {s.rms * mm:.4f} mm = {s.ratio:.2f} x noise floor; "
-                     f"structured part {s.structured_rms * mm:.4f} mm (F test p = {s.p_value:.2g})")
+                     f"structured part {s.structured_rms * mm:.4f} mm (held-out-runs test p = {s.p_value:.2g}; in-sample F test "
+                     f"p = {s.f_p_value:.2g}, not used: closed-loop rows are not independent)")
         if not self.explained:
             lines.append("  a structured residual remains well above the noise floor: an effect outside the catalogue "
                          "(see the residual map in --record);\n  the selected combination is only the catalogue's best "
