@@ -213,10 +213,11 @@ def structure_test(r: np.ndarray, u: np.ndarray, nf: NoiseFloor, run: np.ndarray
     exchangeable and an in-sample F test of a flexible model fires on pure noise. The test here
     holds whole runs out: the noise floor's flexible model is fitted on the other folds' runs and
     predicts the held-out runs' residual (:data:`STRUCTURE_FOLDS` folds of runs, seeded). Each run's
-    gain ``g = sum(r^2) - sum((r - prediction)^2)`` over its rows is negative on average for noise
-    (the prediction adds variance) and positive where the residual has a shape other runs share.
-    ``p_value``: one-sided t test over runs that the mean gain is positive. ``structured_rms``:
-    ``sqrt(max(sum g, 0) / (d n))``, the part of the residual the held-out prediction removes.
+    score ``g = sum over its rows of r . prediction``: a run's noise is independent of the other runs'
+    (every run starts afresh from its start), so for noise the score has mean 0 whatever the closed
+    loop did inside the runs; where the residual has a shape the runs share it is positive.
+    ``p_value``: one-sided t test over runs that the mean score is positive. ``structured_rms``:
+    ``sqrt(max(sum g, 0) / (d n))``, the RMS of the residual's shape the held-out prediction finds.
     Structured (not explained) when ``p < STRUCTURE_P`` and ``structured_rms >= STRUCTURE_RATIO``
     noise floors. Without ``run`` (or with fewer than 4 runs) every row is its own run. The in-sample
     F statistic and its p-value are kept for information."""
@@ -243,8 +244,9 @@ def structure_test(r: np.ndarray, u: np.ndarray, nf: NoiseFloor, run: np.ndarray
     for f_ in range(k):
         te = fold == f_
         pred[te] = nf.basis.predict_held_out(r, nf.x, u, ~te)[te]
-    row_gain = np.sum(r * r, axis=1) - np.sum((r - pred) ** 2, axis=1)
-    g = np.bincount(run, weights=row_gain, minlength=runs)
+    # per run: the held-out residual's inner product with the prediction from the other runs. A run's
+    # noise is independent of the other runs' (each run starts afresh), so for noise its mean is 0
+    g = np.bincount(run, weights=np.sum(r * pred, axis=1), minlength=runs)
     sd = float(np.std(g, ddof=1)) if runs > 1 else 0.0
     if sd > 0:
         p = float(tdist.sf(float(np.mean(g)) / (sd / math.sqrt(runs)), runs - 1))
