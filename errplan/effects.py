@@ -263,9 +263,20 @@ def implausible(model: "EffectModel", values=None) -> list[dict]:
     return out
 
 
+class Backlash(Effect):
+    """``backlash``: play of half-width b_i between encoder and link, history-dependent
+    (:func:`backlash_angles`; a run's first row mid-band)."""
+
+    name, params, units, default_scales = "backlash", ("b1", "b2"), ("rad", "rad"), (1e-3, 1e-3)
+    plant_field = "backlash"
+    description = "play of half-width b_i between encoder and link: theta = clip(theta before, q - b, q + b)"
+    #: a candidate alone, beside the geometric groups (its rows need their runs)
+    history = True
+
+
 #: the geometric groups (tried after the physical effects; which apply depends on the arm)
 GEOMETRY: tuple[type[Effect], ...] = (LinkLength, JointGeometry, InstrumentLength, TrackerRegistration)
-EFFECTS: dict[str, type[Effect]] = {c.name: c for c in CATALOGUE + GEOMETRY}
+EFFECTS: dict[str, type[Effect]] = {c.name: c for c in CATALOGUE + GEOMETRY + (Backlash,)}
 
 
 def geometry_names(dim: int) -> list[str]:
@@ -365,10 +376,35 @@ def with_gravity_cache(plant):
     return plant.with_(arm=_GravityCache(plant.arm))
 
 
-def predict_tracked(plant, q: np.ndarray, u: np.ndarray | None) -> np.ndarray:
+def backlash_angles(q: np.ndarray, run: np.ndarray | None, b) -> np.ndarray:
+    """Link angles (n, N) behind a play of half-width ``b`` (N,) for encoder rows ``q`` (n, N) in run
+    order (``run`` (n,), each run's rows contiguous, step by step): ``theta = clip(theta of the row
+    before, q - b, q + b)``; at a run's first row theta = q (mid-band: the move to the start was not
+    recorded). Docs/physics.md ``backlash``."""
+    q = np.asarray(q, float)
+    b = np.abs(np.asarray(b, float))  # a half-width: its sign means nothing
+    if not np.any(b):
+        return q
+    if run is None:
+        raise ErrplanError("backlash depends on the motion's history: the rows' runs are needed")
+    run = np.asarray(run)
+    first = np.ones(len(q), bool)
+    first[1:] = run[1:] != run[:-1]
+    start = np.maximum.accumulate(np.where(first, np.arange(len(q)), 0))
+    pos = np.arange(len(q)) - start
+    theta = q.copy()
+    for k in range(1, int(pos.max()) + 1 if len(pos) else 0):
+        idx = np.flatnonzero(pos == k)
+        theta[idx] = np.clip(theta[idx - 1], q[idx] - b, q[idx] + b)
+    return theta
+
+
+def predict_tracked(plant, q: np.ndarray, u: np.ndarray | None, run: np.ndarray | None = None) -> np.ndarray:
     """What the tracker reads (n, 2) for encoder angles ``q`` (n, 2) and friction's directions ``u``
     (n, 2): the unit motion the last command produced under the declared model
     (:meth:`errplan.experiment.MeasuredData.commanded_directions`)."""
+    if any(getattr(plant, "backlash", ())):
+        q = backlash_angles(q, run, plant.backlash)
     return plant.tracked(plant.tip(q, u))
 
 
@@ -442,7 +478,7 @@ class EffectModel:
             return []
         return [lab for lab, h in zip(self.param_labels, self.hold) if h]
 
-    def identify(self, q, u, tracked, base, step: float = 1e-4) -> np.ndarray:
+    def identify(self, q, u, tracked, base, step: float = 1e-4, run=None) -> np.ndarray:
         """QR with column pivoting on the regressor of the tracked tip over the free parameters at zero
         (scaled columns: metres by 1e-3, radians by 1e-3 / GEOMETRY_LEVER, the others by their scales;
         central differences of ``step`` scaled units). Sets and returns :attr:`hold`: the columns
@@ -451,7 +487,7 @@ class EffectModel:
 
         self.hold = np.zeros(self.n_params, bool)
         free = self.free
-        f = self._residual_fn(q, u, tracked, base)
+        f = self._residual_fn(q, u, tracked, base, run)
         z0 = np.zeros(int(free.sum()))
         cols = []
         for j in range(len(z0)):
@@ -521,11 +557,12 @@ class EffectModel:
     def uncertainties(self) -> dict[str, dict[str, float]]:
         return {e.name: e.as_dict(v) for e, v in zip(self.effects, self._split(self.sigma_))}
 
-    def predict(self, base, q: np.ndarray, u: np.ndarray | None, values: Sequence[float] | None = None) -> np.ndarray:
-        return predict_tracked(self.plant(base, values), q, u)
+    def predict(self, base, q: np.ndarray, u: np.ndarray | None, values: Sequence[float] | None = None,
+                run: np.ndarray | None = None) -> np.ndarray:
+        return predict_tracked(self.plant(base, values), q, u, run)
 
     # ------------------------------------------------------------------ fitting
-    def _residual_fn(self, q, u, tracked, base):
+    def _residual_fn(self, q, u, tracked, base, run=None):
         """Residual (rows x d,) as a function of the free parameters in scaled units."""
         scales = self.scales
         tracked = np.asarray(tracked, float)
@@ -533,7 +570,7 @@ class EffectModel:
 
         def f(z: np.ndarray) -> np.ndarray:
             with np.errstate(invalid="ignore", divide="ignore"):
-                r = (tracked - predict_tracked(self.plant(base, self._full(z) * scales), q, u)).ravel()
+                r = (tracked - predict_tracked(self.plant(base, self._full(z) * scales), q, u, run)).ravel()
             # a parameter value that breaks the geometry (shaft out of the port) is a huge misfit,
             # never a NaN inside the optimiser
             return np.where(np.isfinite(r), r, 1.0)
@@ -550,7 +587,7 @@ class EffectModel:
         return np.stack(cols, axis=-1)
 
     def fit(self, q: np.ndarray, u: np.ndarray | None, tracked: np.ndarray, base,
-            x0: Sequence[float] | None = None) -> "EffectModel":
+            x0: Sequence[float] | None = None, run: np.ndarray | None = None) -> "EffectModel":
         """Fit the combination to measured rows: encoder angles ``q`` (n, N) rad, friction's
         directions ``u`` (n, d) (the motion each row's command produced under the declared model,
         :meth:`errplan.experiment.MeasuredData.commanded_directions`), tracked tips ``tracked``
@@ -563,11 +600,11 @@ class EffectModel:
         d = np.shape(tracked)[-1]
         P = self.n_params
         if self.qr_identify and self.hold is None:
-            self.identify(q, u, tracked, base)
+            self.identify(q, u, tracked, base, run=run)
         free = self.free
         p = int(free.sum())
         self.n_obs_ = d * n
-        f = self._residual_fn(q, u, tracked, base)
+        f = self._residual_fn(q, u, tracked, base, run)
         all_scales = self.scales
         scales = all_scales[free]
         if p == 0:
@@ -587,12 +624,19 @@ class EffectModel:
         if d * n <= p:
             raise ErrplanError(f"{self.label}: {n} rows cannot fit {p} parameters")
         z0 = np.zeros(p) if x0 is None else np.asarray(x0, float)[free] / scales
+        hist = np.array([getattr(e, "history", False) for e in self.effects for _ in e.params], bool)[free]
+        if x0 is None and hist.any():
+            # a play is not smooth at zero (the clip): start from the best of a few sizes, 0.5-8 scales
+            starts = [np.where(hist, c, 0.0) for c in (0.0, 0.5, 1.0, 2.0, 4.0, 8.0)]
+            z0 = min(starts, key=lambda z: float(np.sum(f(z) ** 2)))
         sol = least_squares(f, z0, jac=lambda z: self._jac(f, z), method="lm", max_nfev=self.max_nfev,
                             xtol=1e-10, ftol=1e-12, gtol=1e-12)
         z = sol.x
         r = f(z)
         J = self._jac(f, z)
         self.values_ = self._full(z) * all_scales
+        hist_all = np.array([getattr(e, "history", False) for e in self.effects for _ in e.params], bool)
+        self.values_ = np.where(hist_all, np.abs(self.values_), self.values_)  # a play's half-width is >= 0
         self.rss_ = float(r @ r)
         self.nfev_ = int(sol.nfev)
         self.success_ = bool(sol.success) and bool(np.all(np.isfinite(z)))

@@ -198,4 +198,4 @@ def test_model_structure(base):
     assert EffectModel().label == "none"
     with pytest.raises(ErrplanError, match="twice"):
         EffectModel([GravitySag(), GravitySag()])
-    assert set(EFFECTS) == set(EFFECT_PARAMS) - {"backlash"}
+    assert set(EFFECTS) == set(EFFECT_PARAMS)

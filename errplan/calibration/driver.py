@@ -58,10 +58,11 @@ def _calibrate(sc, data: MeasuredData, *, validate, seed, folds, progress, effec
             raise ErrplanError(f"--effects {','.join(effects)}: expected effects of docs/physics.md: {', '.join(EFFECTS)}")
     from ..effects import CATALOGUE
 
-    wanted = effects if effects is not None else [c.name for c in CATALOGUE] + geometry_names(dim)
+    wanted = effects if effects is not None else [c.name for c in CATALOGUE] + geometry_names(dim) + ["backlash"]
     cat = catalogue(sc, wanted, skip_without_gravity=effects is None)
-    geo = [e for e in cat if e.qr_identify]   # geometric groups: candidates alone (QR picks their parameters)
-    cat = [e for e in cat if not e.qr_identify]
+    # geometric groups (QR picks their parameters) and backlash: candidates alone
+    geo = [e for e in cat if e.qr_identify or getattr(e, "history", False)]
+    cat = [e for e in cat if e not in geo]
     skipped = [] if effects is not None or any(e.name == "gravity_sag" for e in cat) else [
         "gravity_sag (the URDF has no inertial data, so no generalized gravity)"]
     base = declared_plant(sc)
@@ -114,7 +115,7 @@ def _calibrate(sc, data: MeasuredData, *, validate, seed, folds, progress, effec
             c.note = "not identifiable"
     model = chosen.model
     after = model.plant(base)
-    r1 = data.tip - predict_tracked(after, data.q, u)
+    r1 = data.tip - predict_tracked(after, data.q, u, data.run)
     st1 = structure_test(r1, u, nf, data.run, seed)
     explained = not st1.structured
 

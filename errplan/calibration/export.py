@@ -177,7 +177,7 @@ def predictions_csv(sc, report: CalibrationReport, data) -> str:
 
     base = declared_plant(sc)
     u = data.commanded_directions(motion_model(sc))
-    x = predict_tracked(report.model.plant(base), data.q, u)
+    x = predict_tracked(report.model.plant(base), data.q, u, data.run)
     axes = ("x", "y", "z")[3 - data.dim:]
     lines = ["run,step," + ",".join(f"tip_{a}" for a in axes)]
     for i in range(data.rows):
