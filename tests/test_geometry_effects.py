@@ -252,3 +252,50 @@ def test_instrument_length_and_tracker_registration_found(spatial):
         rep_scenario[0] = spatial
         rep = calibrate(spatial, data, validate=val, seed=0, effects=None)
         _check_geometric(rep, group, plant, val)
+
+
+# ----------------------------------------------------------------------------- backlash
+def test_backlash_angles_match_a_row_by_row_loop():
+    from errplan.effects import backlash_angles
+
+    rng = np.random.default_rng(5)
+    run = np.repeat(np.arange(4), [7, 1, 12, 5])
+    q = np.cumsum(rng.normal(0, 2e-3, (len(run), 2)), axis=0)
+    b = np.array([1.5e-3, 0.7e-3])
+    want = q.copy()
+    for i in range(1, len(q)):
+        if run[i] == run[i - 1]:
+            want[i] = np.minimum(np.maximum(want[i - 1], q[i] - b), q[i] + b)
+    assert np.array_equal(backlash_angles(q, run, b), want)
+    assert np.array_equal(backlash_angles(q, run, -b), want)  # a half-width: its sign means nothing
+    assert backlash_angles(q, None, [0.0, 0.0]) is not None
+    with pytest.raises(ErrplanError, match="runs"):
+        backlash_angles(q, None, b)
+
+
+def test_backlash_in_the_bench_is_the_fit_model():
+    """The bench's links lag the encoders by the play: the fit's history model reproduces its tips."""
+    from errplan.calibration import declared_plant, motion_model
+    from errplan.effects import predict_tracked
+
+    sc = load_scenario(PORT)
+    eff = {"backlash": {"b1": 0.0015, "b2": 0.001}}
+    d = run_experiment(sc.with_(effects=eff, sensors=sc.sensors.__class__(**{**sc.sensors.__dict__, "tracker_sigma": 0.0})),
+                       seed=1, n_starts=2).data
+    plant = declared_plant(sc).with_(backlash=(0.0015, 0.001))
+    u = d.commanded_directions(motion_model(sc))
+    assert np.max(np.abs(predict_tracked(plant, d.q, u, d.run) - d.tip)) < 1e-12
+    assert np.max(np.abs(predict_tracked(declared_plant(sc), d.q, u, d.run) - d.tip)) > 1e-4
+
+
+@pytest.mark.slow
+def test_backlash_found_within_a_quarter():
+    sc = load_scenario(PORT)
+    eff = {"backlash": {"b1": 0.0015, "b2": 0.0015}}
+    data = run_experiment(sc.with_(effects=eff), seed=11, n_starts=5).data
+    val = run_experiment(sc.with_(effects=eff), seed=12, n_starts=3).data
+    rep = calibrate(sc, data, validate=val, seed=0)
+    assert rep.selected == ["backlash"] and rep.explained
+    for p in ("b1", "b2"):
+        assert abs(rep.parameters["backlash"][p] - 0.0015) < 0.25 * 0.0015
+    assert rep.errors.pose_after < 1.1 * rep.noise.sigma
