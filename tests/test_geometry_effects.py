@@ -299,3 +299,40 @@ def test_backlash_found_within_a_quarter():
     for p in ("b1", "b2"):
         assert abs(rep.parameters["backlash"][p] - 0.0015) < 0.25 * 0.0015
     assert rep.errors.pose_after < 1.1 * rep.noise.sigma
+
+
+# ----------------------------------------------------------------------------- the empirical term
+@pytest.mark.slow
+def test_a_smooth_tracker_distortion_is_not_explained_and_the_empirical_term_halves_the_error():
+    """A cubic distortion of the tracker's space is in no catalogue: not explained; the empirical term
+    (model + term, noise-free, on held-out runs from the same starts) at least halves the declared
+    model's error against the noise-free tracked tip."""
+    from dataclasses import dataclass
+
+    from errplan.calibration import declared_plant, motion_model
+    from errplan.effects import predict_tracked
+
+    sc = load_scenario(PORT)
+
+    @dataclass(frozen=True)
+    class Warp(Plant):
+        def tracked(self, tip):
+            t = super().tracked(tip)
+            z = (t - np.array([0.0, 0.36])) / 0.08
+            return t + 0.0006 * np.stack([z[..., 0] ** 3 - z[..., 1] ** 2 * z[..., 0], z[..., 1] ** 3 + 0.5 * z[..., 0] ** 2], -1)
+
+    base = Plant.from_model(build_arm(sc), noise=True)
+    plant = Warp(**{f: getattr(base, f) for f in base.__dataclass_fields__})
+    data = run_experiment(sc, seed=51, n_starts=5, plant=plant).data
+    val = run_experiment(sc, seed=52, n_starts=5, plant=plant).data
+    rep = calibrate(sc, data, validate=val, seed=0)
+    assert not rep.explained and rep.empirical is not None and not rep.empirical["history_dependent"]
+    assert rep.to_json()["explained"] is False and rep.to_json()["empirical"]["terms"]
+    u = val.commanded_directions(motion_model(sc))
+    true = plant.tracked(plant.tip(val.q, u))
+    dec = declared_plant(sc)
+    x_dec = predict_tracked(dec, val.q, u, val.run)
+    x_sel = predict_tracked(rep.model.plant(dec), val.q, u, val.run)
+    x_emp = x_sel + rep.empirical_predict(x_sel, val.q)
+    err = lambda x: float(np.sqrt(np.mean((x - true) ** 2)))  # noqa: E731
+    assert err(x_emp) <= 0.5 * err(x_dec), (err(x_dec), err(x_sel), err(x_emp))

@@ -118,6 +118,12 @@ def _calibrate(sc, data: MeasuredData, *, validate, seed, folds, progress, effec
     r1 = data.tip - predict_tracked(after, data.q, u, data.run)
     st1 = structure_test(r1, u, nf, data.run, seed)
     explained = not st1.structured
+    empirical = emp_predict = None
+    if not explained:  # the last resort: a sparse correction over a documented basis (never "explained")
+        from .empirical import fit_empirical
+
+        empirical, emp_predict = fit_empirical(predict_tracked(after, data.q, u, data.run), data.q, r1, data.run,
+                                               folds=max(2, folds), seed=seed)
 
     # before / after errors
     tol = arrival_tolerance(nf.sigma)
@@ -133,7 +139,13 @@ def _calibrate(sc, data: MeasuredData, *, validate, seed, folds, progress, effec
     val_err = None
     if validate is not None:
         uv = validate.commanded_directions(xmodel)
-        val_err = errors(validate, pose_residual(validate, base, uv), pose_residual(validate, after, uv))
+        rv0, rv1 = pose_residual(validate, base, uv), pose_residual(validate, after, uv)
+        val_err = errors(validate, rv0, rv1)
+        if empirical is not None:
+            xv = predict_tracked(after, validate.q, uv, validate.run)
+            empirical["validation_rms_declared"] = rms(rv0)
+            empirical["validation_rms_selected"] = rms(rv1)
+            empirical["validation_rms_with_term"] = rms(rv1 - emp_predict(xv, validate.q))
     pred0, _ = replay(data, base, ctrl, xmodel)
     pred1, _ = replay(data, after, ctrl, xmodel)
     fixed = {f"{e.name}.{p_}": e.why_fixed or "identically zero sensitivity on this robot"
@@ -149,7 +161,7 @@ def _calibrate(sc, data: MeasuredData, *, validate, seed, folds, progress, effec
         validation_errors=val_err, declared_effects={k2: dict(v) for k2, v in sc.effects.items()}, seed=seed, folds=k,
         points=x0, residual_before=r0, residual_after=r1, tracked=data.tip,
         replay_before=pred0, replay_after=pred1, data=data, fixed=fixed, skipped=skipped, left_out=left_out,
-        identifiability=ident_text, bench=ident)
+        identifiability=ident_text, bench=ident, empirical=empirical, empirical_predict=emp_predict)
 
 
 def _identifiability(sc, data: MeasuredData, cat) -> tuple[dict, str]:

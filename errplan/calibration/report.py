@@ -77,6 +77,9 @@ class CalibrationReport:
     #: a sentence on what these rows cannot tell apart (effect pairs confused by the bench), and the numbers
     identifiability: str = ""
     bench: dict = field(default_factory=dict)
+    #: the empirical term (calibrate JSON ``empirical``) when the residual stays structured, and its predictor
+    empirical: dict | None = None
+    empirical_predict: object = field(repr=False, default=None)
 
     @property
     def errors(self) -> Errors:
@@ -154,6 +157,7 @@ class CalibrationReport:
             "declared_effects": self.declared_effects,
             "effects": self.effects_table(),
             "exported": [],
+            "empirical": self.empirical,
             "implausible": implausible(self.model) if self.model.effects else [],
             "not_identifiable": self.not_identifiable_params(),
             "not_identifiable_why": self.not_identifiable,
@@ -244,6 +248,15 @@ class CalibrationReport:
         lines.append(f"explained: {verdict} — residual after {s.rms * mm:.4f} mm = {s.ratio:.2f} x noise floor; "
                      f"structured part {s.structured_rms * mm:.4f} mm (held-out-runs test p = {s.p_value:.2g}; in-sample F test "
                      f"p = {s.f_p_value:.2g}, not used: closed-loop rows are not independent)")
+        if self.empirical is not None:
+            em = self.empirical
+            lines.append(f"empirical term (not a physical effect): {len(em['terms'])} term(s) of degree <= {em['degree']}, "
+                         f"held-out RMS over runs {em['held_out_rms_before'] * mm:.4f} -> {em['held_out_rms_after'] * mm:.4f} mm"
+                         + (f"; validation {em['validation_rms_declared'] * mm:.4f} (declared) -> "
+                            f"{em['validation_rms_with_term'] * mm:.4f} mm" if "validation_rms_with_term" in em else ""))
+            if em["history_dependent"]:
+                lines.append("  the term does not predict held-out runs: the residual depends on the motion's history or "
+                             "on time, not on the pose")
         if not self.explained:
             lines.append("  a structured residual remains well above the noise floor: an effect outside the catalogue "
                          "(see the residual map in --record);\n  the selected combination is only the catalogue's best "
