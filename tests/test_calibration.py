@@ -146,7 +146,7 @@ def test_link_length_error_is_found_not_absorbed(port):
     assert rep.noise.sigma == pytest.approx(port.sensors.tracker_sigma, rel=0.1)
     # without the geometric groups (the physical catalogue only) it is not explained
     phys = calibrate(port, data, seed=0, effects=list(TRUTHS))
-    assert not phys.explained and phys.structure.p_value < 1e-6 and phys.structure.structured_rms > rep.noise.sigma
+    assert not phys.explained and phys.structure.p_value < 1e-3 and phys.structure.structured_rms > rep.noise.sigma
 
 
 def test_tracker_scale_error_is_not_explained(port):
@@ -579,7 +579,7 @@ def test_spatial_shaft_length_error_is_not_explained_by_the_physical_catalogue(s
 
     plant = truth_plant(spatial).with_(length=spatial.instrument.length + 0.004)
     rep = calibrate(spatial, spatial_bench(spatial, {}, 41, plant=plant), seed=0, effects=list(SPATIAL_TRUTHS))
-    assert not rep.explained and rep.structure.p_value < 1e-6 and rep.structure.structured_rms > rep.noise.sigma
+    assert not rep.explained and rep.structure.p_value < 1e-3 and rep.structure.structured_rms > rep.noise.sigma
     assert rep.to_json()["explained"] is False
 
 
