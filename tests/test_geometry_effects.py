@@ -227,7 +227,7 @@ def test_joint_geometry_found_on_a_pinocchio_bench(spatial, hand_arm):
     only its identifiable parameters, the others named as not identifiable; nothing physical."""
     plant = Plant(hand_arm, spatial.instrument.length, tuple(spatial.port.position),
                   tracker_sigma=spatial.sensors.tracker_sigma)
-    data = run_experiment(spatial, seed=43, n_starts=3, plant=plant).data
+    data = run_experiment(spatial, seed=43, n_starts=6, plant=plant).data
     val = run_experiment(spatial, seed=44, n_starts=2, plant=plant).data
     rep_scenario[0] = spatial
     rep = calibrate(spatial, data, validate=val, seed=0)
