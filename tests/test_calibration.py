@@ -82,7 +82,7 @@ def test_each_catalogue_effect_is_found(port, effect):
     # the candidates table: every effect alone, every pair, each geometric group alone, each with a
     # held-out error and a score
     singles = {c.label for c in rep.candidates if len(c.effects) == 1}
-    assert singles == set(TRUTHS) | {"link_length", "instrument_length", "tracker_registration"}
+    assert singles == set(TRUTHS) | {"link_length", "instrument_length", "tracker_registration", "backlash"}
     assert sum(len(c.effects) == 2 for c in rep.candidates) == 15
     assert all(c.heldout_rms is not None and math.isfinite(c.bic) for c in rep.candidates)
 

@@ -222,7 +222,7 @@ def test_link_length_found_on_a_bench_with_longer_links():
 
 
 @pytest.mark.slow
-def test_joint_geometry_found_on_a_pinocchio_bench(spatial, hand_arm):
+def test_joint_geometry_found_on_a_pinocchio_bench(spatial, hand_arm, tmp_path):
     """The bench's arm is pinocchio's reading of the hand-edited URDF: joint_geometry is named with
     only its identifiable parameters, the others named as not identifiable; nothing physical."""
     plant = Plant(hand_arm, spatial.instrument.length, tuple(spatial.port.position),
@@ -237,6 +237,21 @@ def test_joint_geometry_found_on_a_pinocchio_bench(spatial, hand_arm):
     assert held and not set(held) & set(js["parameters"]["joint_geometry"])
     assert set(js["uncertainty"]["joint_geometry"]) == set(js["parameters"]["joint_geometry"])
     assert all(v is not None for v in js["parameters"]["joint_geometry"].values())
+    # the corrected model: a URDF beside the exported scenario (joint origins only), whose arm is the
+    # fitted one, so fields and plans on it run with the compiled kernels
+    from errplan.calibration.export import corrected_files
+
+    out = tmp_path / "fixed.toml"
+    text, extra = corrected_files(spatial, rep, out)
+    assert list(extra) == [str(out.with_suffix(".urdf"))]
+    for path, t in extra.items():
+        Path(path).write_text(t)
+    out.write_text(text)
+    fixed = load_scenario(out)
+    assert "joint_geometry" not in fixed.effects and Path(fixed.robot.urdf).name == "fixed.urdf"
+    fitted = rep.model.plant(truth_plant(spatial, effects=False, noise=False))
+    q = val.q[::25]
+    assert np.max(np.abs(truth_plant(fixed, noise=False).wrist(q) - fitted.wrist(q))) < 1e-9
 
 
 @pytest.mark.slow
