@@ -4,6 +4,7 @@
     python benchmarks/calibration.py --quick    # timing only
     python benchmarks/calibration.py --design   # experiment design only (planar and spatial)
     python benchmarks/calibration.py --spatial  # spatial timing and quality only
+    python benchmarks/calibration.py --quality  # the per-effect quality tables only
     python benchmarks/calibration.py --ceiling  # how far any design can lower the sigmas (planar, 3-D)
 
 Timing: bench data on P1's scenario (beasley2004_port.toml, gain 1) with gravity sag undeclared,
@@ -48,7 +49,12 @@ CASES = [
     ("port_friction", {"port_friction": {"fa": 0.0015, "fn": 0.001}}),
     ("gravity+friction", {**GRAVITY, "port_friction": {"fa": 0.001, "fn": 0.0008}}),
     ("noise only", {}),
-    ("link 2 +4 mm (outside)", None),
+    ("link 2 +4 mm (changed robot)", None),
+    # geometry (physics.md "Closing the loop when the catalogue lacks the effect")
+    ("link_length", {"link_length": {"dl1": 0.003, "dl2": -0.002}}),
+    ("instrument_length", {"instrument_length": {"dL": 0.004}}),
+    ("tracker_registration", {"tracker_registration": {"rx": 0.014, "by": 0.001, "bz": -0.001}}),
+    ("tracker scale 1.5 % (outside)", "scaled_tracker"),
 ]
 
 
@@ -80,13 +86,28 @@ def _long_shaft(sc):
     return truth_plant(sc).with_(length=sc.instrument.length + 0.004)
 
 
+def _scaled_tracker(sc, scale=0.015, centre=(0.0, 0.30)):
+    """A tracker whose scale is off by 1.5 % about a point: an effect in no catalogue (planar)."""
+    import numpy as np
+    from dataclasses import dataclass
+
+    @dataclass(frozen=True)
+    class Scaled(Plant):
+        def tip(self, q_enc, u=None):
+            t = super().tip(q_enc, u)
+            return t + scale * (t - np.asarray(centre))
+
+    base = Plant.from_model(build_arm(sc), noise=True)
+    return Scaled(**{f: getattr(base, f) for f in base.__dataclass_fields__})
+
+
 def quality(sc, cases, unmodelled, label: str, units: str) -> None:
     """Per effect of ``cases`` (None: ``unmodelled(sc)``'s plant, an effect in no catalogue): what
     calibrate selects, the errors before and after on a held-out run, and every parameter's z-score."""
     rows, prow = [], []
     for name, eff in cases:
-        if eff is None:
-            plant = unmodelled(sc)
+        if eff is None or eff == "scaled_tracker":
+            plant = unmodelled(sc) if eff is None else _scaled_tracker(sc)
             data = run_experiment(sc, seed=11, plant=plant).data
             val = run_experiment(sc, seed=12, plant=plant).data
             eff = {}
@@ -105,6 +126,9 @@ def quality(sc, cases, unmodelled, label: str, units: str) -> None:
                     prow.append([name, f"{ef}.{p}", true, "not identifiable", "", ""])
                     continue
                 s = rep.uncertainty[ef][p]
+                if ef == "joint_geometry":
+                    prow.append([name, f"{ef}.{p}", true * 1e3, v * 1e3, s * 1e3, "(base parameter)"])
+                    continue
                 f = 1.0 if ef == "shaft_flexion" else 1e3
                 prow.append([name, f"{ef}.{p}", true * f, v * f, s * f, (v - true) / s])
     print(format_table(["truth", "selected", "explained", "noise mm", "pose before", "pose after", "traj before",
@@ -188,7 +212,11 @@ SPATIAL_CASES = [
     ("port_friction", {"port_friction": {"fa": 0.0015, "fn": 0.001}}),
     ("gravity+friction", {**SPATIAL_GRAVITY, "port_friction": {"fa": 0.001, "fn": 0.0008}}),
     ("noise only", {}),
-    ("shaft +4 mm (outside)", None),
+    ("shaft +4 mm (changed length)", None),
+    ("joint_geometry", {"joint_geometry": {"dy_2": 0.002, "rz_2": 0.008, "dx_3": 0.002, "dz_3": 0.003,
+                                           "rx_3": 0.010}}),
+    ("tracker_registration", {"tracker_registration": {"rx": 0.008, "ry": -0.010, "rz": 0.006, "bx": 0.001,
+                                                       "by": 0.0, "bz": -0.001}}),
 ]
 SPATIAL_DESIGN_TRUTHS = [
     ("joint_offset + gravity_sag", {"joint_offset": {"dq1": 0.003, "dq2": -0.002, "dq3": 0.002}, **SPATIAL_GRAVITY}),
@@ -363,6 +391,7 @@ def main() -> int:
     ap.add_argument("--quick", action="store_true", help="timing only")
     ap.add_argument("--design", action="store_true", help="experiment design only")
     ap.add_argument("--spatial", action="store_true", help="spatial rows only")
+    ap.add_argument("--quality", action="store_true", help="the per-effect quality tables only (planar and spatial)")
     ap.add_argument("--ceiling", action="store_true",
                     help="how far any design can lower the sigmas with the default bench's rows")
     args = ap.parse_args()
@@ -375,6 +404,12 @@ def main() -> int:
         design(sc)
         print()
         design(spatial_scenario(), SPATIAL_DESIGN_TRUTHS, "PHANToM bench, 3-D")
+        return 0
+    if args.quality:
+        quality(sc, CASES, _wrong_link, "P1 scenario, 8 starts", "mm, mrad or 1/m^2")
+        print()
+        quality(spatial_scenario(), SPATIAL_CASES, _long_shaft, "spatial (PHANToM bench, 8 starts x 14 targets)",
+                "mm, mrad, mrad/(N m) or 1/m^2")
         return 0
     if args.spatial:
         sp = spatial_scenario()

@@ -21,6 +21,7 @@ and does the fitting: ``tracked tip = plant(values).tip(q_enc, u) + tracker offs
 """
 from __future__ import annotations
 
+import math
 from typing import Sequence
 
 import numpy as np
@@ -42,6 +43,8 @@ class Effect:
     default_scales: tuple[float, ...] = ()
     plant_field: str = ""
     description: str = ""
+    #: identifiable parameters chosen by QR with column pivoting before the fit (geometric groups)
+    qr_identify: bool = False
 
     def __init__(self, scales: Sequence[float] | None = None, *, dim: int = 2, n_joints: int = 2,
                  fixed: Sequence[bool] | None = None):
@@ -136,9 +139,149 @@ PortFriction = _declare("PortFriction", "port_friction", ("fa", "fn"), "m", 1e-3
                         spatial_units_scales=_friction_spatial_units_scales)
 
 
-#: the catalogue, in physics.md order
+#: the catalogue's physical effects, in physics.md order
 CATALOGUE: tuple[type[Effect], ...] = (PortOffset, JointOffset, TrackerOffset, GravitySag, ShaftFlexion, PortFriction)
-EFFECTS: dict[str, type[Effect]] = {c.name: c for c in CATALOGUE}
+
+#: a radian of a geometric parameter counts like a metre at this lever (physics.md: identifiability on
+#: columns with metres and radians weighted by a 0.1 m lever): radians are scaled by 1e-2 where metres
+#: are scaled by 1e-3
+GEOMETRY_LEVER = 0.1
+#: the QR identifiability threshold: a parameter is identifiable when |R_ii| >= QR_RTOL |R_11|
+QR_RTOL = 1e-6
+
+
+class _Geometric(Effect):
+    """A geometric group (physics.md "Closing the loop when the catalogue lacks the effect"): fitted
+    like any effect, but its identifiable parameters are chosen first by QR with column pivoting on
+    the fit rows' regressor (:meth:`EffectModel.fit`), the others held at zero and named."""
+
+    qr_identify = True
+    #: plant fields of the parameters, in order: (field, number of parameters)
+    fields: tuple[tuple[str, int], ...] = ()
+
+    def _fields(self):
+        return self.fields or ((self.plant_field, self.n_params),)
+
+    def apply(self, plant, values):
+        add = np.asarray(values, float)
+        if add.shape != (self.n_params,):
+            raise ErrplanError(f"{self.name}: {add.size} values {add.tolist()}: expected {self.n_params}")
+        changes, i = {}, 0
+        for fld, k in self._fields():
+            cur = np.asarray(changes.get(fld, getattr(plant, fld)), float)
+            if cur.shape != (k,):
+                raise ErrplanError(f"{self.name}: a plant with {fld} = {cur.tolist()} cannot take {k} values")
+            changes[fld] = tuple(float(v) for v in cur + add[i:i + k])
+            i += k
+        return plant.with_(**changes)
+
+    def values_of(self, plant) -> np.ndarray:
+        return np.concatenate([np.asarray(getattr(plant, fld), float) for fld, _ in self._fields()])
+
+
+def _units_scales(units: Sequence[str]) -> tuple[tuple[str, ...], tuple[float, ...]]:
+    return tuple(units), tuple(1e-3 if u == "m" else 1e-3 / GEOMETRY_LEVER for u in units)
+
+
+class LinkLength(_Geometric):
+    """``link_length`` (planar): link lengths = declared + [dl1, dl2]."""
+
+    name, params, units, default_scales = "link_length", ("dl1", "dl2"), ("m", "m"), (1e-3, 1e-3)
+    plant_field = "link_length"
+    description = "link lengths = declared + [dl1, dl2]"
+
+    def __init__(self, scales=None, *, dim: int = 2, n_joints: int = 2, fixed=None):
+        if int(dim) != 2:
+            raise ErrplanError("link_length is an effect of the planar arm; a URDF arm has joint_geometry")
+        super().__init__(scales, dim=dim, n_joints=n_joints, fixed=fixed)
+
+
+class InstrumentLength(_Geometric):
+    """``instrument_length``: the instrument is declared length + dL."""
+
+    name, params, units, default_scales = "instrument_length", ("dL",), ("m",), (1e-3,)
+    plant_field = "instrument_length"
+    description = "the instrument is declared length + dL"
+
+
+class TrackerRegistration(_Geometric):
+    """``tracker_registration``: tracked tip = R(r) true tip + b (planar: r = rx about the world x axis)."""
+
+    name, params = "tracker_registration", ("rx", "by", "bz")
+    units, default_scales = _units_scales(("rad", "m", "m"))
+    description = "tracked tip = R(r) true tip + b, R(r) the rotation by r about the world origin"
+
+    def spatial_units_scales(self):
+        return _units_scales(("rad",) * 3 + ("m",) * 3)
+
+    def _fields(self):
+        k = 1 if self.dim == 2 else 3
+        return (("tracker_rotation", k), ("tracker_offset", self.dim))
+
+
+class JointGeometry(_Geometric):
+    """``joint_geometry`` (URDF arms): each actuated joint's origin moved by [dx, dy, dz] and turned by
+    the rotation vector [rx, ry, rz] in its parent link's frame (keys ``dx_1`` .. ``rz_N``)."""
+
+    name, params, units, default_scales = "joint_geometry", (), (), ()
+    plant_field = "joint_geometry"
+    description = "each actuated joint's origin moved by [dx, dy, dz] and turned by [rx, ry, rz] in its parent frame"
+
+    def __init__(self, scales=None, *, dim: int = 2, n_joints: int = 2, fixed=None):
+        if int(dim) != 3:
+            raise ErrplanError("joint_geometry is an effect of URDF arms; the planar arm has link_length")
+        super().__init__(scales, dim=dim, n_joints=n_joints, fixed=fixed)
+
+    def spatial_units_scales(self):
+        return _units_scales(("m", "m", "m", "rad", "rad", "rad") * self.n_joints)
+
+
+#: plausible sizes of a bench's effects, by unit (SI): a fitted value beyond these is flagged in the
+#: report (not rejected): 20 mm of offset or length error, 50 mrad of angle, a tip load over EI of
+#: 5 /m^2 (P2's 1 N on the ZEUS shaft is 1.7 /m^2), and for the spatial gravity sag 20 mrad of sag at
+#: the joint's RMS generalized gravity (a joint far softer than an arm's servos)
+PLAUSIBLE = {"m": 0.02, "rad": 0.05, "1/m^2": 5.0}
+PLAUSIBLE_SAG = 0.02
+
+
+def implausible(model: "EffectModel", values=None) -> list[dict]:
+    """The parameters of a fitted combination whose size is physically implausible (:data:`PLAUSIBLE`):
+    ``[{"effect", "param", "value", "limit", "unit", "why"}]``."""
+    values = model.values_ if values is None else np.asarray(values, float)
+    out, i = [], 0
+    for e in model.effects:
+        for p, unit, scale, v in zip(e.params, e.units, e.scales, values[i:i + e.n_params]):
+            if unit == "rad/(N m)":
+                lim, size, what = PLAUSIBLE_SAG, abs(v) * 1e-3 / scale, "rad of sag at the joint's RMS gravity torque"
+            else:
+                lim, size, what = PLAUSIBLE.get(unit, math.inf), abs(v), unit
+            if size > lim:
+                out.append({"effect": e.name, "param": p, "value": float(v), "limit": lim, "unit": unit,
+                            "why": f"{e.name}.{p} = {v:.4g} {unit}: {size:.3g} {what} is beyond a plausible "
+                                   f"{lim:g} (a parameter absorbing an effect the combination lacks?)"})
+        i += e.n_params
+    return out
+
+
+class Backlash(Effect):
+    """``backlash``: play of half-width b_i between encoder and link, history-dependent
+    (:func:`backlash_angles`; a run's first row mid-band)."""
+
+    name, params, units, default_scales = "backlash", ("b1", "b2"), ("rad", "rad"), (1e-3, 1e-3)
+    plant_field = "backlash"
+    description = "play of half-width b_i between encoder and link: theta = clip(theta before, q - b, q + b)"
+    #: a candidate alone, beside the geometric groups (its rows need their runs)
+    history = True
+
+
+#: the geometric groups (tried after the physical effects; which apply depends on the arm)
+GEOMETRY: tuple[type[Effect], ...] = (LinkLength, JointGeometry, InstrumentLength, TrackerRegistration)
+EFFECTS: dict[str, type[Effect]] = {c.name: c for c in CATALOGUE + GEOMETRY + (Backlash,)}
+
+
+def geometry_names(dim: int) -> list[str]:
+    """The geometric groups of a planar (``dim`` 2) or URDF (3) arm."""
+    return [c.name for c in GEOMETRY if c.name != ("joint_geometry" if dim == 2 else "link_length")]
 
 
 #: a joint whose generalized gravity stays below this share of the largest one over the joint
@@ -211,6 +354,8 @@ class _GravityCache:
         self._size = size
 
     def __getattr__(self, name):
+        if name.startswith("__") or name == "_arm":
+            raise AttributeError(name)
         return getattr(self._arm, name)
 
     def gravity_torque(self, q):
@@ -231,11 +376,36 @@ def with_gravity_cache(plant):
     return plant.with_(arm=_GravityCache(plant.arm))
 
 
-def predict_tracked(plant, q: np.ndarray, u: np.ndarray | None) -> np.ndarray:
+def backlash_angles(q: np.ndarray, run: np.ndarray | None, b) -> np.ndarray:
+    """Link angles (n, N) behind a play of half-width ``b`` (N,) for encoder rows ``q`` (n, N) in run
+    order (``run`` (n,), each run's rows contiguous, step by step): ``theta = clip(theta of the row
+    before, q - b, q + b)``; at a run's first row theta = q (mid-band: the move to the start was not
+    recorded). Docs/physics.md ``backlash``."""
+    q = np.asarray(q, float)
+    b = np.abs(np.asarray(b, float))  # a half-width: its sign means nothing
+    if not np.any(b):
+        return q
+    if run is None:
+        raise ErrplanError("backlash depends on the motion's history: the rows' runs are needed")
+    run = np.asarray(run)
+    first = np.ones(len(q), bool)
+    first[1:] = run[1:] != run[:-1]
+    start = np.maximum.accumulate(np.where(first, np.arange(len(q)), 0))
+    pos = np.arange(len(q)) - start
+    theta = q.copy()
+    for k in range(1, int(pos.max()) + 1 if len(pos) else 0):
+        idx = np.flatnonzero(pos == k)
+        theta[idx] = np.clip(theta[idx - 1], q[idx] - b, q[idx] + b)
+    return theta
+
+
+def predict_tracked(plant, q: np.ndarray, u: np.ndarray | None, run: np.ndarray | None = None) -> np.ndarray:
     """What the tracker reads (n, 2) for encoder angles ``q`` (n, 2) and friction's directions ``u``
     (n, 2): the unit motion the last command produced under the declared model
     (:meth:`errplan.experiment.MeasuredData.commanded_directions`)."""
-    return plant.tip(q, u) + np.asarray(plant.tracker_offset, float)
+    if any(getattr(plant, "backlash", ())):
+        q = backlash_angles(q, run, plant.backlash)
+    return plant.tracked(plant.tip(q, u))
 
 
 class EffectModel:
@@ -255,8 +425,12 @@ class EffectModel:
     sensitivity) are not fitted: value 0, sigma and covariance NaN.
     """
 
-    def __init__(self, effects: Sequence[Effect] = (), *, fd_step: float = 1e-3, max_nfev: int = 200):
+    def __init__(self, effects: Sequence[Effect] = (), *, fd_step: float = 1e-3, max_nfev: int = 200,
+                 hold: Sequence[bool] | None = None):
         self.effects = list(effects)
+        #: parameters held at zero because QR found them not identifiable on the fit rows (geometric
+        #: groups; None: not decided yet, :meth:`fit` decides)
+        self.hold = None if hold is None else np.asarray(hold, bool)
         names = [e.name for e in self.effects]
         if len(set(names)) != len(names):
             raise ErrplanError(f"effect combination {names}: an effect appears twice")
@@ -287,7 +461,52 @@ class EffectModel:
     @property
     def free(self) -> np.ndarray:
         """Mask (n_params,) of the parameters that are fitted (not fixed at 0 for the robot)."""
-        return np.array([not f for e in self.effects for f in e.fixed], bool)
+        free = np.array([not f for e in self.effects for f in e.fixed], bool)
+        if self.hold is not None:
+            free &= ~self.hold
+        return free
+
+    @property
+    def qr_identify(self) -> bool:
+        """Whether the identifiable parameters are chosen by QR (a geometric group in the combination)."""
+        return any(getattr(e, "qr_identify", False) for e in self.effects)
+
+    @property
+    def held_labels(self) -> list[str]:
+        """Parameters QR found not identifiable on the fit rows (held at zero)."""
+        if self.hold is None:
+            return []
+        return [lab for lab, h in zip(self.param_labels, self.hold) if h]
+
+    def identify(self, q, u, tracked, base, step: float = 1e-4, run=None) -> np.ndarray:
+        """QR with column pivoting on the regressor of the tracked tip over the free parameters at zero
+        (scaled columns: metres by 1e-3, radians by 1e-3 / GEOMETRY_LEVER, the others by their scales;
+        central differences of ``step`` scaled units). Sets and returns :attr:`hold`: the columns
+        with |R_ii| < QR_RTOL |R_11|. Also sets ``qr_diag_`` (|R_ii| in pivot order) and ``qr_order_``."""
+        from scipy.linalg import qr
+
+        self.hold = np.zeros(self.n_params, bool)
+        free = self.free
+        f = self._residual_fn(q, u, tracked, base, run)
+        z0 = np.zeros(int(free.sum()))
+        cols = []
+        for j in range(len(z0)):
+            dz = np.zeros_like(z0)
+            dz[j] = step
+            cols.append((f(z0 - dz) - f(z0 + dz)) / (2 * step))  # d model / d z
+        A = np.stack(cols, axis=-1) if cols else np.zeros((0, 0))
+        if A.size == 0:
+            return self.hold
+        _, R, piv = qr(A, mode="economic", pivoting=True)
+        diag = np.abs(np.diag(R))
+        keep = np.zeros(len(z0), bool)
+        ref = diag[0] if len(diag) else 0.0
+        keep[piv[:len(diag)][diag >= QR_RTOL * ref]] = ref > 0
+        idx = np.flatnonzero(free)
+        self.hold[idx[~keep]] = True
+        self.qr_diag_ = diag
+        self.qr_order_ = [self.param_labels[idx[k]] for k in piv]
+        return self.hold
 
     @property
     def n_free(self) -> int:
@@ -338,11 +557,12 @@ class EffectModel:
     def uncertainties(self) -> dict[str, dict[str, float]]:
         return {e.name: e.as_dict(v) for e, v in zip(self.effects, self._split(self.sigma_))}
 
-    def predict(self, base, q: np.ndarray, u: np.ndarray | None, values: Sequence[float] | None = None) -> np.ndarray:
-        return predict_tracked(self.plant(base, values), q, u)
+    def predict(self, base, q: np.ndarray, u: np.ndarray | None, values: Sequence[float] | None = None,
+                run: np.ndarray | None = None) -> np.ndarray:
+        return predict_tracked(self.plant(base, values), q, u, run)
 
     # ------------------------------------------------------------------ fitting
-    def _residual_fn(self, q, u, tracked, base):
+    def _residual_fn(self, q, u, tracked, base, run=None):
         """Residual (rows x d,) as a function of the free parameters in scaled units."""
         scales = self.scales
         tracked = np.asarray(tracked, float)
@@ -350,7 +570,7 @@ class EffectModel:
 
         def f(z: np.ndarray) -> np.ndarray:
             with np.errstate(invalid="ignore", divide="ignore"):
-                r = (tracked - predict_tracked(self.plant(base, self._full(z) * scales), q, u)).ravel()
+                r = (tracked - predict_tracked(self.plant(base, self._full(z) * scales), q, u, run)).ravel()
             # a parameter value that breaks the geometry (shaft out of the port) is a huge misfit,
             # never a NaN inside the optimiser
             return np.where(np.isfinite(r), r, 1.0)
@@ -367,7 +587,7 @@ class EffectModel:
         return np.stack(cols, axis=-1)
 
     def fit(self, q: np.ndarray, u: np.ndarray | None, tracked: np.ndarray, base,
-            x0: Sequence[float] | None = None) -> "EffectModel":
+            x0: Sequence[float] | None = None, run: np.ndarray | None = None) -> "EffectModel":
         """Fit the combination to measured rows: encoder angles ``q`` (n, N) rad, friction's
         directions ``u`` (n, d) (the motion each row's command produced under the declared model,
         :meth:`errplan.experiment.MeasuredData.commanded_directions`), tracked tips ``tracked``
@@ -379,10 +599,12 @@ class EffectModel:
         n = len(q)
         d = np.shape(tracked)[-1]
         P = self.n_params
+        if self.qr_identify and self.hold is None:
+            self.identify(q, u, tracked, base, run=run)
         free = self.free
         p = int(free.sum())
         self.n_obs_ = d * n
-        f = self._residual_fn(q, u, tracked, base)
+        f = self._residual_fn(q, u, tracked, base, run)
         all_scales = self.scales
         scales = all_scales[free]
         if p == 0:
@@ -402,12 +624,19 @@ class EffectModel:
         if d * n <= p:
             raise ErrplanError(f"{self.label}: {n} rows cannot fit {p} parameters")
         z0 = np.zeros(p) if x0 is None else np.asarray(x0, float)[free] / scales
+        hist = np.array([getattr(e, "history", False) for e in self.effects for _ in e.params], bool)[free]
+        if x0 is None and hist.any():
+            # a play is not smooth at zero (the clip): start from the best of a few sizes, 0.5-8 scales
+            starts = [np.where(hist, c, 0.0) for c in (0.0, 0.5, 1.0, 2.0, 4.0, 8.0)]
+            z0 = min(starts, key=lambda z: float(np.sum(f(z) ** 2)))
         sol = least_squares(f, z0, jac=lambda z: self._jac(f, z), method="lm", max_nfev=self.max_nfev,
                             xtol=1e-10, ftol=1e-12, gtol=1e-12)
         z = sol.x
         r = f(z)
         J = self._jac(f, z)
         self.values_ = self._full(z) * all_scales
+        hist_all = np.array([getattr(e, "history", False) for e in self.effects for _ in e.params], bool)
+        self.values_ = np.where(hist_all, np.abs(self.values_), self.values_)  # a play's half-width is >= 0
         self.rss_ = float(r @ r)
         self.nfev_ = int(sol.nfev)
         self.success_ = bool(sol.success) and bool(np.all(np.isfinite(z)))
@@ -441,9 +670,11 @@ class EffectModel:
         cov[np.ix_(free, free)] = cov_z * np.outer(scales, scales)
         self.cov_ = cov
         self.sigma_ = np.sqrt(np.diag(cov))
-        if cond > MAX_CONDITION:
+        if self.qr_identify:
+            pass  # identifiable by construction (QR above); the sigmas carry what correlation is left
+        elif cond > MAX_CONDITION:
             why.append(f"condition number {cond:.3g} > {MAX_CONDITION:g}")
-        if self.max_correlation_ > MAX_CORRELATION:
+        if self.max_correlation_ > MAX_CORRELATION and not self.qr_identify:
             i, j = np.unravel_index(int(np.nanargmax(np.where(np.isfinite(off), off, 2.0))), off.shape)
             labels = self.free_labels
             why.append(f"{labels[i]} and {labels[j]} correlate {corr[i, j]:+.4f}")

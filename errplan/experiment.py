@@ -553,16 +553,18 @@ def simulate_bench(plant, ctrl, q0: np.ndarray, targets: np.ndarray, gain: float
     q = np.array(q0, float)
     targets = np.asarray(targets, float)
     R, d = targets.shape
-    off = np.asarray(plant.tracker_offset, float)
     u = np.zeros((R, d))
     q_true = q.copy()
+    b = np.asarray(getattr(plant, "backlash", ()), float)
+    play = b.size > 0 and bool(np.any(b))
+    theta = q_true.copy()  # the links behind the play (backlash), mid-band at each run's start
     with np.errstate(invalid="ignore", divide="ignore"):
         tip = plant.tip(q_true, u)
     alive = np.ones(R, bool)
     stop_at = np.full(R, max_steps)          # last step index recorded
     rows_q, rows_x, rows_r, rows_s = [], [], [], []
     for t in range(max_steps + 1):
-        tracked = tip + off
+        tracked = plant.tracked(tip)
         if rng is not None and plant.tracker_sigma > 0:
             tracked = tracked + rng.normal(0.0, plant.tracker_sigma, tracked.shape)
         idx = np.flatnonzero(alive)
@@ -594,8 +596,10 @@ def simulate_bench(plant, ctrl, q0: np.ndarray, targets: np.ndarray, gain: float
         u = np.where(alive[:, None], u_new, u)
         q = np.where(alive[:, None], q_read, q)
         q_true = np.where(alive[:, None], q_new, q_true)
+        if play:
+            theta = np.where(alive[:, None], np.clip(theta, q_true - b, q_true + b), theta)
         with np.errstate(invalid="ignore", divide="ignore"):
-            tip = np.where(alive[:, None], plant.tip(q_true, u), tip)
+            tip = np.where(alive[:, None], plant.tip(theta if play else q_true, u), tip)
     run = np.concatenate(rows_r)
     step = np.concatenate(rows_s)
     order = np.lexsort((step, run))

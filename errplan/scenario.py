@@ -34,14 +34,29 @@ EFFECT_PARAMS: dict[str, tuple[str, ...]] = {
     "gravity_sag": ("c1", "c2", "c3"),
     "shaft_flexion": ("fy", "fz"),
     "port_friction": ("fa", "fn"),
+    # geometry and backlash (physics.md "Closing the loop when the catalogue lacks the effect")
+    "link_length": ("dl1", "dl2"),
+    "instrument_length": ("dL",),
+    "tracker_registration": ("rx", "by", "bz"),
+    "backlash": ("b1", "b2"),
+    "joint_geometry": (),
 }
+#: effects of one dimension only: the planar arm has link lengths, a URDF arm joint origins
+EFFECT_DIMS = {"link_length": 2, "joint_geometry": 3}
 
 
 def effect_params(name: str, dim: int = 2, n_joints: int = 2) -> tuple[str, ...]:
     """Parameter names of effect ``name`` (docs/physics.md): the planar table, or its 3-D version."""
+    if EFFECT_DIMS.get(name, dim) != dim:
+        raise KeyError(name)
     if dim == 2:
         return EFFECT_PARAMS[name]
     return {
+        "link_length": (),
+        "instrument_length": ("dL",),
+        "tracker_registration": ("rx", "ry", "rz", "bx", "by", "bz"),
+        "backlash": tuple(f"b{i + 1}" for i in range(n_joints)),
+        "joint_geometry": tuple(f"{k}_{i + 1}" for i in range(n_joints) for k in ("dx", "dy", "dz", "rx", "ry", "rz")),
         "port_offset": ("dx", "dy", "dz"),
         "joint_offset": tuple(f"dq{i + 1}" for i in range(n_joints)),
         "tracker_offset": ("bx", "by", "bz"),
@@ -826,6 +841,10 @@ def _effects(ctx: _Ctx, t: Mapping[str, Any], d: int = 2, n_joints: int = 2) -> 
             raise ctx.fail(f"[effects.{name}]", params, f"an effect of docs/physics.md: {', '.join(EFFECT_PARAMS)}")
         if not isinstance(params, dict):
             raise ctx.fail(f"[effects.{name}]", params, "a table of parameters")
+        if EFFECT_DIMS.get(name, d) != d:
+            raise ctx.fail(f"[effects.{name}]", params, "an effect of " + ("URDF arms (the planar arm has link_length)"
+                                                                          if name == "joint_geometry" else
+                                                                          "the planar arm (a URDF arm has joint_geometry)"))
         names = effect_params(name, d, n_joints)
         _check_keys(ctx, params, names, f"[effects.{name}] ")
         out[name] = {p: _num(ctx, params.get(p, 0.0), f"[effects.{name}] {p}") for p in names}

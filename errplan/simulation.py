@@ -236,12 +236,15 @@ def simulate(plant: Plant, controller: ControllerModel, q0: np.ndarray, waypoint
         raise ErrplanError(f"waypoints of shape {wp.shape}: expected (m, {d}) points of the plant's space")
     u = np.zeros(d)
     q_true = q.copy()  # the joints' commanded (reached) angles; q holds the encoder reading
+    b = np.asarray(getattr(plant, "backlash", ()), float)
+    play = b.size > 0 and bool(np.any(b))
+    theta = q_true.copy()  # the links behind the play (docs/physics.md backlash): mid-band at the start
     tip = plant.tip(q_true, u)
     Q, T, X, TG, SEG, K = [], [], [], [], [], []
     seg = 0
     status = "max_steps"
     for _ in range(max_steps + 1):
-        tracked = tip + np.asarray(plant.tracker_offset)
+        tracked = plant.tracked(tip)
         if rng is not None and plant.tracker_sigma > 0:
             tracked = tracked + rng.normal(0.0, plant.tracker_sigma, d)
         # switch targets on convergence
@@ -273,7 +276,9 @@ def simulate(plant: Plant, controller: ControllerModel, q0: np.ndarray, waypoint
             status = "left_workspace"
             break
         q, q_true = q_read, q_new
-        tip = plant.tip(q_true, u)
+        if play:
+            theta = np.clip(theta, q_true - b, q_true + b)
+        tip = plant.tip(theta if play else q_true, u)
     start = np.asarray(path_start if path_start is not None else T[0], float)
     return SimResult(np.array(Q), np.array(T), np.array(X), np.array(TG), np.array(SEG), np.array(K),
                      np.vstack([start[None], wp]), status == "converged", status, tolerance)

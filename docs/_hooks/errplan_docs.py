@@ -192,6 +192,11 @@ EFFECT_DOCS = {
     "gravity_sag": "gravity sag of the links, rad (through the URDF's generalized gravity in 3-D)",
     "shaft_flexion": "the shaft bends under a load, m",
     "port_friction": "port friction opposing the motion, m",
+    "link_length": "the links are longer than declared, m (planar)",
+    "instrument_length": "the instrument is longer than declared, m",
+    "tracker_registration": "the tracker is registered with a rotation (rad) and an offset (m)",
+    "backlash": "play between encoder and link, rad (history-dependent)",
+    "joint_geometry": "each actuated joint's origin moved (m) and turned (rad) in its parent frame (URDF arms)",
 }
 
 TABLE_TITLES = {
@@ -262,8 +267,13 @@ def scenario_reference() -> str:
     for name in S.EFFECT_PARAMS:
         if name not in EFFECT_DOCS:
             raise PluginError(f"docs/_hooks/errplan_docs.py: the effect {name!r} has no description (EFFECT_DOCS)")
-        p2 = ", ".join(f"`{p}`" for p in S.effect_params(name, 2))
-        p3 = ", ".join(f"`{p}`" for p in S.effect_params(name, 3, 3))
+        def params_of(*args):
+            try:
+                return ", ".join(f"`{p}`" for p in S.effect_params(name, *args)) or "—"
+            except KeyError:  # an effect of the other dimension only
+                return "—"
+
+        p2, p3 = params_of(2), params_of(3, 3)
         out.append(f"| `{name}` | {p2} | {p3} | {EFFECT_DOCS[name]} |")
     stale = set(KEY_DOCS) - used
     if stale:

@@ -6,7 +6,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from ..effects import EFFECTS, catalogue, predict_tracked
+from ..effects import EFFECTS, catalogue, geometry_names, predict_tracked
 from ..errors import DataError, ErrplanError
 from ..experiment import MeasuredData
 from .blas import single_threaded_blas
@@ -56,7 +56,13 @@ def _calibrate(sc, data: MeasuredData, *, validate, seed, folds, progress, effec
         bad = [e for e in effects if e not in EFFECTS]
         if bad or not effects:
             raise ErrplanError(f"--effects {','.join(effects)}: expected effects of docs/physics.md: {', '.join(EFFECTS)}")
-    cat = catalogue(sc, effects, skip_without_gravity=effects is None)
+    from ..effects import CATALOGUE
+
+    wanted = effects if effects is not None else [c.name for c in CATALOGUE] + geometry_names(dim) + ["backlash"]
+    cat = catalogue(sc, wanted, skip_without_gravity=effects is None)
+    # geometric groups (QR picks their parameters) and backlash: candidates alone
+    geo = [e for e in cat if e.qr_identify or getattr(e, "history", False)]
+    cat = [e for e in cat if e not in geo]
     skipped = [] if effects is not None or any(e.name == "gravity_sag" for e in cat) else [
         "gravity_sag (the URDF has no inertial data, so no generalized gravity)"]
     base = declared_plant(sc)
@@ -73,15 +79,16 @@ def _calibrate(sc, data: MeasuredData, *, validate, seed, folds, progress, effec
         raise DataError(f"{data.source}: row {i + 1}: the declared model has no tip at encoder angles {data.q[i].tolist()}")
     x0 = predict_tracked(base, data.q, u)
     nf = noise_floor(r0, x0, u)
-    st0 = structure_test(r0, u, nf)
+    st0 = structure_test(r0, u, nf, data.run, seed)
     prog(0.05, "noise floor")
     ident, ident_text = _identifiability(sc, data, cat)
     k = min(folds, data.runs)
     fold_of_run = _folds(data.runs, k, seed) if k >= 2 else None
-    by_name = {e.name: e for e in cat}
-    names = list(by_name)
-    combos: list[tuple[str, ...]] = [()] + [(a,) for a in names] + list(itertools.combinations(names, 2))
-    n_params = {e.name: sum(not f for f in e.fixed) for e in cat}
+    by_name = {e.name: e for e in cat + geo}
+    names = [e.name for e in cat]
+    combos: list[tuple[str, ...]] = ([()] + [(a,) for a in names] + list(itertools.combinations(names, 2))
+                                     + [(g.name,) for g in geo])
+    n_params = {e.name: sum(not f for f in e.fixed) for e in cat + geo}
     fits = lambda key: sum(n_params[e] for e in key) <= dim * data.rows - 2  # noqa: E731 (some residual dof left)
     combos = [c for c in combos if fits(c)]
     cands: dict[tuple[str, ...], Candidate] = {}
@@ -108,9 +115,15 @@ def _calibrate(sc, data: MeasuredData, *, validate, seed, folds, progress, effec
             c.note = "not identifiable"
     model = chosen.model
     after = model.plant(base)
-    r1 = data.tip - predict_tracked(after, data.q, u)
-    st1 = structure_test(r1, u, nf)
+    r1 = data.tip - predict_tracked(after, data.q, u, data.run)
+    st1 = structure_test(r1, u, nf, data.run, seed)
     explained = not st1.structured
+    empirical = emp_predict = None
+    if not explained:  # the last resort: a sparse correction over a documented basis (never "explained")
+        from .empirical import fit_empirical
+
+        empirical, emp_predict = fit_empirical(predict_tracked(after, data.q, u, data.run), data.q, r1, data.run,
+                                               folds=max(2, folds), seed=seed)
 
     # before / after errors
     tol = arrival_tolerance(nf.sigma)
@@ -126,11 +139,20 @@ def _calibrate(sc, data: MeasuredData, *, validate, seed, folds, progress, effec
     val_err = None
     if validate is not None:
         uv = validate.commanded_directions(xmodel)
-        val_err = errors(validate, pose_residual(validate, base, uv), pose_residual(validate, after, uv))
+        rv0, rv1 = pose_residual(validate, base, uv), pose_residual(validate, after, uv)
+        val_err = errors(validate, rv0, rv1)
+        if empirical is not None:
+            xv = predict_tracked(after, validate.q, uv, validate.run)
+            empirical["validation_rms_declared"] = rms(rv0)
+            empirical["validation_rms_selected"] = rms(rv1)
+            empirical["validation_rms_with_term"] = rms(rv1 - emp_predict(xv, validate.q))
     pred0, _ = replay(data, base, ctrl, xmodel)
     pred1, _ = replay(data, after, ctrl, xmodel)
     fixed = {f"{e.name}.{p_}": e.why_fixed or "identically zero sensitivity on this robot"
-             for e in cat for p_, fx in zip(e.params, e.fixed) if fx}
+             for e in cat + geo for p_, fx in zip(e.params, e.fixed) if fx}
+    for lab in model.held_labels:
+        fixed[lab] = ("not identifiable from these rows: QR with column pivoting of the regressor puts it below "
+                      "1e-6 of the first pivot (a combination of the other parameters shows the same)")
     prog(1.0, "done")
     cand_list = sorted(cands.values(), key=lambda c: (len(c.effects), c.bic))
     return CalibrationReport(
@@ -139,7 +161,7 @@ def _calibrate(sc, data: MeasuredData, *, validate, seed, folds, progress, effec
         validation_errors=val_err, declared_effects={k2: dict(v) for k2, v in sc.effects.items()}, seed=seed, folds=k,
         points=x0, residual_before=r0, residual_after=r1, tracked=data.tip,
         replay_before=pred0, replay_after=pred1, data=data, fixed=fixed, skipped=skipped, left_out=left_out,
-        identifiability=ident_text, bench=ident)
+        identifiability=ident_text, bench=ident, empirical=empirical, empirical_predict=emp_predict)
 
 
 def _identifiability(sc, data: MeasuredData, cat) -> tuple[dict, str]:

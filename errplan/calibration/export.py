@@ -88,6 +88,17 @@ def to_toml(doc: dict, header: str = "") -> str:
 
 def corrected_scenario_toml(sc, report: CalibrationReport) -> str:
     """The scenario's own TOML with the found effects under ``[effects]`` (declared + fitted)."""
+    return corrected_files(sc, report, None)[0]
+
+
+def corrected_files(sc, report: CalibrationReport, path=None) -> tuple[str, dict]:
+    """The corrected scenario's TOML text and the other files it needs, ``{path: text}``.
+
+    The geometric groups go into the model itself: ``link_length`` into ``[robot] link_lengths``,
+    ``instrument_length`` into ``[instrument] length``, and a URDF arm's ``joint_geometry`` into a
+    corrected URDF (joint origins changed, nothing else; :func:`errplan.kinematics.geometry.corrected_urdf_text`)
+    written beside the scenario ``path`` as ``<scenario stem>.urdf``, which the scenario's ``urdf``
+    names. ``tracker_registration`` and the physical effects stay under ``[effects]``."""
     from pathlib import Path
 
     import tomllib
@@ -106,6 +117,30 @@ def corrected_scenario_toml(sc, report: CalibrationReport) -> str:
         if "package_path" in robot:
             robot["package_path"] = [str(x) for x in sc.robot.package_path]
     effects = report.effects_table()
+    extra: dict = {}
+    urdf_text = None
+    if "link_length" in effects and isinstance(robot, dict):
+        dl = effects.pop("link_length")
+        ll = list(sc.robot.link_lengths)
+        robot["link_lengths"] = [ll[0] + dl.get("dl1", 0.0), ll[1] + dl.get("dl2", 0.0)]
+    if "instrument_length" in effects:
+        dL = effects.pop("instrument_length").get("dL", 0.0)
+        doc.setdefault("instrument", {})["length"] = float(sc.instrument.length + dL)
+    if "joint_geometry" in effects and sc.dim == 3 and isinstance(robot, dict):
+        from ..kinematics.geometry import corrected_urdf_text
+        from ..effects import make_effect
+
+        jg = effects.pop("joint_geometry")
+        names = make_effect("joint_geometry", dim=3, n_joints=len(sc.robot.joints)).params
+        src = Path(str(sc.robot.urdf))
+        urdf_text = corrected_urdf_text(src.read_text(encoding="utf-8"), sc.robot.joints,
+                                        [jg.get(k, 0.0) for k in names], str(src))
+        target = (Path(path).with_suffix(".urdf") if path is not None
+                  else src.with_name(src.stem + "-calibrated.urdf"))
+        if target.resolve() == src.resolve():
+            target = target.with_name(target.stem + "-calibrated.urdf")
+        robot["urdf"] = str(target.resolve()) if path is None else target.name
+        extra[str(target)] = urdf_text
     if effects:
         doc["effects"] = {e: {p: float(v) for p, v in ps.items()} for e, ps in effects.items()}
     else:
@@ -118,5 +153,35 @@ def corrected_scenario_toml(sc, report: CalibrationReport) -> str:
               f"noise floor {report.noise.sigma:.3e} m; pose RMS {report.fit_errors.pose_before:.3e} -> "
               f"{report.fit_errors.pose_after:.3e} m")
     text = to_toml(doc, header)
-    check_scenario(scenario_from_dict(tomllib.loads(text), "<exported scenario>"))  # reads back, or raises before writing
-    return text
+    if urdf_text is None:
+        check_scenario(scenario_from_dict(tomllib.loads(text), "<exported scenario>"))  # reads back, or raises before writing
+    else:  # read back with the corrected URDF in a scratch folder: nothing is written where the user looks
+        import tempfile
+
+        with tempfile.TemporaryDirectory() as tmp:
+            d2 = tomllib.loads(text)
+            (Path(tmp) / "robot.urdf").write_text(urdf_text, encoding="utf-8")
+            d2["robot"]["urdf"] = str(Path(tmp) / "robot.urdf")
+            check_scenario(scenario_from_dict(d2, "<exported scenario>"))
+    return text, extra
+
+
+def predictions_csv(sc, report: CalibrationReport, data) -> str:
+    """``--predictions``: for every row of ``data``, the tracked tip the corrected model predicts at
+    the row's encoder angles, noise-free (``run, step, tip_*``; friction's direction from the row's own
+    run up to that row, as in the fit)."""
+    import numpy as np
+
+    from ..effects import predict_tracked
+    from .residual import declared_plant, motion_model
+
+    base = declared_plant(sc)
+    u = data.commanded_directions(motion_model(sc))
+    x = predict_tracked(report.model.plant(base), data.q, u, data.run)
+    if report.empirical_predict is not None and not report.empirical["history_dependent"]:
+        x = x + report.empirical_predict(x, data.q)
+    axes = ("x", "y", "z")[3 - data.dim:]
+    lines = ["run,step," + ",".join(f"tip_{a}" for a in axes)]
+    for i in range(data.rows):
+        lines.append(f"{data.run_ids[data.run[i]]},{int(data.step[i])}," + ",".join(repr(float(v)) for v in x[i]))
+    return "\n".join(lines) + "\n"

@@ -76,7 +76,7 @@ def fit_candidate(effects, data: MeasuredData, u: np.ndarray, base, fold_of_run:
     scenario's dimension) on all rows, its held-out error on folds of whole runs, and its BIC."""
     from ..effects import Effect, make_effect
 
-    m = EffectModel([e if isinstance(e, Effect) else make_effect(e) for e in effects]).fit(data.q, u, data.tip, base)
+    m = EffectModel([e if isinstance(e, Effect) else make_effect(e) for e in effects]).fit(data.q, u, data.tip, base, run=data.run)
     n, d = data.rows, data.dim
     p = m.n_free
     bic = _bic(m.rss_, d * n, p)
@@ -91,12 +91,13 @@ def fit_candidate(effects, data: MeasuredData, u: np.ndarray, base, fold_of_run:
                 sse = float("nan")  # too few training rows for this candidate: no held-out error
                 break
             if p:
-                mk = EffectModel(m.effects).fit(data.q[tr], u[tr], data.tip[tr], base, x0=m.values_)
+                mk = EffectModel(m.effects, hold=m.hold).fit(data.q[tr], u[tr], data.tip[tr], base, x0=m.values_,
+                                                            run=data.run[tr])
                 vals = mk.values_
             else:
                 vals = np.zeros(m.n_params)
             with np.errstate(invalid="ignore", divide="ignore"):
-                r = data.tip[te] - m.predict(base, data.q[te], u[te], vals)
+                r = data.tip[te] - m.predict(base, data.q[te], u[te], vals, run=data.run[te])
             r = np.where(np.isfinite(r), r, 1.0)
             sse += float(np.sum(r * r))
         ho = math.sqrt(sse / (d * n)) if math.isfinite(sse) else None

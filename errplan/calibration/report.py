@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..effects import EffectModel
+from ..effects import EffectModel, implausible
 from ..experiment import MeasuredData
 from .fit import Candidate, _finite_or_none, _num
 from .noise import STRUCTURE_P, STRUCTURE_RATIO, NoiseFloor, Structure
@@ -77,6 +77,9 @@ class CalibrationReport:
     #: a sentence on what these rows cannot tell apart (effect pairs confused by the bench), and the numbers
     identifiability: str = ""
     bench: dict = field(default_factory=dict)
+    #: the empirical term (calibrate JSON ``empirical``) when the residual stays structured, and its predictor
+    empirical: dict | None = None
+    empirical_predict: object = field(repr=False, default=None)
 
     @property
     def errors(self) -> Errors:
@@ -93,19 +96,31 @@ class CalibrationReport:
         """The selected effects as the bench has them: a declared value of the same effect plus
         the fitted correction (just the fitted value when the scenario declares none)."""
         out = {}
+        held = set(self.model.held_labels)
         for e, ps in self.fitted.items():
             dec = self.declared_effects.get(e, {})
-            out[e] = {p: (None if f"{e}.{p}" in self.fixed else dec.get(p, 0.0) + v) for p, v in ps.items()}
+            out[e] = {p: (None if f"{e}.{p}" in self.fixed else dec.get(p, 0.0) + v) for p, v in ps.items()
+                      if f"{e}.{p}" not in held}  # a geometric group reports only its identifiable parameters
         return out
 
     @property
     def uncertainty(self) -> dict[str, dict[str, float]]:
-        return _finite_or_none(self.model.uncertainties())
+        held = set(self.model.held_labels)
+        return {e: {p: v for p, v in ps.items() if f"{e}.{p}" not in held}
+                for e, ps in _finite_or_none(self.model.uncertainties()).items()}
 
     @property
     def not_identifiable(self) -> dict[str, str]:
         """The selected effects' parameters reported as not identifiable (label -> why)."""
         return {k: v for k, v in self.fixed.items() if k.split(".")[0] in self.model.names}
+
+    def not_identifiable_params(self) -> dict[str, list[str]]:
+        """``{effect: [param, ...]}``: the selected effects' parameters held at zero and not reported."""
+        out: dict[str, list[str]] = {}
+        for lab in self.not_identifiable:
+            e, p = lab.split(".", 1)
+            out.setdefault(e, []).append(p)
+        return out
 
     def effects_table(self) -> dict[str, dict[str, float]]:
         """Effects for the corrected scenario: every declared effect, with the selected ones
@@ -136,11 +151,16 @@ class CalibrationReport:
             "validation": self.validation_errors.to_json() if self.validation_errors else None,
             "noise": self.noise.to_json(),
             "residual_structure": {"before": self.structure_before.to_json(), "after": self.structure.to_json(),
-                                   "rule": f"not explained when the smooth part of the residual is significant "
-                                           f"(F test p < {STRUCTURE_P:g}) and its RMS >= {STRUCTURE_RATIO:g} x noise floor"},
+                                   "rule": f"not explained when the smooth part of the residual, predicted on held-out whole runs, "
+                                           f"is significant (one-sided t test over runs, p < {STRUCTURE_P:g}) and its "
+                                           f"RMS >= {STRUCTURE_RATIO:g} x noise floor"},
             "declared_effects": self.declared_effects,
             "effects": self.effects_table(),
-            "not_identifiable": self.not_identifiable,
+            "exported": [],
+            "empirical": self.empirical,
+            "implausible": implausible(self.model) if self.model.effects else [],
+            "not_identifiable": self.not_identifiable_params(),
+            "not_identifiable_why": self.not_identifiable,
             "identifiability": self.bench,
             "catalogue_fixed": self.fixed,
             "not_tried": list(self.skipped),
@@ -190,6 +210,9 @@ class CalibrationReport:
             units_of = {ef.name: dict(zip(ef.params, ef.units)) for ef in self.model.effects}
             for e, ps in self.parameters.items():
                 units = units_of[e]
+                held = [lab.split(".", 1)[1] for lab in self.model.held_labels if lab.split(".", 1)[0] == e]
+                if held:
+                    prow.append([e, ", ".join(held), "not identifiable", "", "held at 0 (QR)"])
                 for p, v in ps.items():
                     f, unit = display_unit(units[p])
                     if v is None:
@@ -201,6 +224,8 @@ class CalibrationReport:
                     note = f"declared {dec.get(p, 0.0) * f:+.4f} + fitted {self.fitted[e][p] * f:+.4f}" if dec else ""
                     prow.append([e, p, f"{v * f:+.4f} ± {sig}", unit, note])
             lines.append(format_table(["effect", "param", "value ± 1 sigma", "unit", ""], prow, "selected effects"))
+            for flag in implausible(self.model):
+                lines.append("implausible: " + flag["why"])
             chosen = next((c for c in self.candidates if c.selected), None)
             if chosen is not None and not chosen.selectable:
                 lines.append(f"warning: {chosen.model.why_}: the selected effects fit and predict best, but these rows "
@@ -221,7 +246,17 @@ class CalibrationReport:
         s = self.structure
         verdict = "yes" if self.explained else "NO"
         lines.append(f"explained: {verdict} — residual after {s.rms * mm:.4f} mm = {s.ratio:.2f} x noise floor; "
-                     f"structured part {s.structured_rms * mm:.4f} mm (F test p = {s.p_value:.2g})")
+                     f"structured part {s.structured_rms * mm:.4f} mm (held-out-runs test p = {s.p_value:.2g}; in-sample F test "
+                     f"p = {s.f_p_value:.2g}, not used: closed-loop rows are not independent)")
+        if self.empirical is not None:
+            em = self.empirical
+            lines.append(f"empirical term (not a physical effect): {len(em['terms'])} term(s) of degree <= {em['degree']}, "
+                         f"held-out RMS over runs {em['held_out_rms_before'] * mm:.4f} -> {em['held_out_rms_after'] * mm:.4f} mm"
+                         + (f"; validation {em['validation_rms_declared'] * mm:.4f} (declared) -> "
+                            f"{em['validation_rms_with_term'] * mm:.4f} mm" if "validation_rms_with_term" in em else ""))
+            if em["history_dependent"]:
+                lines.append("  the term does not predict held-out runs: the residual depends on the motion's history or "
+                             "on time, not on the pose")
         if not self.explained:
             lines.append("  a structured residual remains well above the noise floor: an effect outside the catalogue "
                          "(see the residual map in --record);\n  the selected combination is only the catalogue's best "

@@ -159,7 +159,7 @@ def pose_residual(data: MeasuredData, plant, u: np.ndarray | None = None) -> np.
     direction per row) defaults to :meth:`MeasuredData.commanded_directions` under
     ``plant.declared()``."""
     u = data.commanded_directions(plant.declared()) if u is None else u
-    return data.tip - predict_tracked(plant, data.q, u)
+    return data.tip - predict_tracked(plant, data.q, u, data.run)
 
 
 def _controller_jacobian(ctrl, plant, q: np.ndarray) -> np.ndarray:

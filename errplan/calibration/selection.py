@@ -6,7 +6,8 @@ from .fit import Candidate
 
 
 def select(cands: dict[tuple[str, ...], Candidate]) -> Candidate:
-    """The first selectable candidate by BIC whose held-out error beats every sub-model with one
+    """Candidates whose held-out error (folds of whole runs) is not below the declared model's are
+    never selected. Then the first selectable candidate by BIC whose held-out error beats every sub-model with one
     effect fewer (and whose BIC beats them too). "none" always qualifies.
 
     A candidate that is not identifiable only because its parameters correlate beyond the limit
@@ -15,6 +16,13 @@ def select(cands: dict[tuple[str, ...], Candidate]) -> Candidate:
     identifiable combination instead would be confidently wrong. Its stated sigmas carry the
     correlation, and the report says that the bench separates them poorly."""
     order = sorted(cands.values(), key=lambda c: c.bic)
+    none = cands[()]
+    for c in order:
+        # never a model that predicts the held-out runs worse than the declared one
+        if c.effects and c.heldout_rms is not None and none.heldout_rms is not None and c.heldout_rms >= none.heldout_rms:
+            c.selectable = False
+            c.weak = False
+            c.note = c.note or "held-out error not below the declared model's"
     ok_cands = [c for c in cands.values() if c.selectable]
     best_bic = min(c.bic for c in ok_cands)
     best_ho = min((c.heldout_rms for c in ok_cands if c.heldout_rms is not None), default=None)

@@ -152,7 +152,12 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--json", default=None, help="calibrate JSON to write (default: none)")
     s.add_argument("--record", default=None, help="rerun recording (.rrd) of the residuals before and after (default: none)")
     s.add_argument("--export-scenario", default=None,
-                   help="write the scenario with the found effects under [effects] (default: none)")
+                   help="write the scenario with the found effects under [effects] (default: none); the "
+                        "geometry goes into the robot (planar link lengths, instrument length) and, for a URDF "
+                        "arm's joint_geometry, into a corrected URDF written beside it")
+    s.add_argument("--predictions", default=None,
+                   help="CSV of the corrected model's noise-free tracked tip at every row of the validation file "
+                        "(the data without one): run, step, tip columns (default: none)")
     s.add_argument("--seed", type=int, default=0, help="seed for the held-out split (default: %(default)s)")
     s.add_argument("--folds", type=int, default=5, help="held-out folds of runs (default: %(default)s)")
     s.add_argument("--effects", default=None,

@@ -13,6 +13,7 @@ bz; ``gravity_sag`` c1..cN against the URDF's generalized gravity; ``shaft_flexi
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from functools import cached_property
 
 import numpy as np
 
@@ -55,18 +56,62 @@ class Plant:
     friction: tuple[float, float] = (0.0, 0.0)
     tracker_sigma: float = 0.0
     encoder_sigma: float = 0.0
+    link_length: tuple[float, ...] = (0.0, 0.0)
+    instrument_length: tuple[float] = (0.0,)
+    tracker_rotation: tuple[float, ...] = (0.0,)
+    joint_geometry: tuple[float, ...] = ()
+    backlash: tuple[float, ...] = (0.0, 0.0)
 
     def __post_init__(self):
         if isinstance(self.arm, Arm):
-            return
-        d, n = 3, int(self.arm.n)
-        for name, size in (("port_offset", d), ("tracker_offset", d), ("world_load", d), ("joint_offset", n),
-                           ("gravity_sag", n)):
+            sizes = (("link_length", 2), ("instrument_length", 1), ("tracker_rotation", 1), ("joint_geometry", 0),
+                     ("backlash", 2))
+        else:
+            d, n = 3, int(self.arm.n)
+            sizes = (("port_offset", d), ("tracker_offset", d), ("world_load", d), ("joint_offset", n),
+                     ("gravity_sag", n), ("link_length", 0), ("instrument_length", 1), ("tracker_rotation", 3),
+                     ("joint_geometry", 6 * n), ("backlash", n))
+        for name, size in sizes:
             v = tuple(float(x) for x in getattr(self, name))
             if len(v) != size:
                 if any(v):
-                    raise ErrplanError(f"Plant {name} = {list(v)}: expected {size} values for the spatial arm")
+                    raise ErrplanError(f"Plant {name} = {list(v)}: expected {size} values for the "
+                                       f"{'planar' if self.dim == 2 else 'spatial'} arm")
                 object.__setattr__(self, name, (0.0,) * size)
+        if self.length + self.instrument_length[0] <= 0:
+            raise ErrplanError(f"Plant instrument_length {self.instrument_length[0]}: the instrument would be "
+                               f"{self.length + self.instrument_length[0]:.4g} m long")
+
+    @cached_property
+    def true_arm(self):
+        """The arm as it is: the declared arm with ``link_length`` (planar) or ``joint_geometry``
+        (URDF) applied (:func:`errplan.kinematics.geometry.perturbed_arm`)."""
+        from .geometry import perturbed_arm
+
+        return perturbed_arm(self.arm, self.link_length, self.joint_geometry)
+
+    @property
+    def true_length(self) -> float:
+        """The instrument's true length: declared + ``instrument_length``."""
+        return float(self.length + self.instrument_length[0])
+
+    def tracked(self, tip: np.ndarray) -> np.ndarray:
+        """What the tracker reads (noise-free) for true tips (..., d): ``R(r) tip + b``
+        (``tracker_registration``; ``tracker_offset`` is its ``b`` with ``r = 0``). Planar: ``r`` is the
+        rotation about the world x axis, turning ``[y, z]`` to ``[c y - s z, s y + c z]``."""
+        tip = np.asarray(tip, float)
+        b = np.asarray(self.tracker_offset, float)
+        r = np.asarray(self.tracker_rotation, float)
+        if not np.any(r):
+            return tip + b
+        if self.dim == 2:
+            c, s = np.cos(r[0]), np.sin(r[0])
+            R = np.array([[c, -s], [s, c]])
+        else:
+            from .geometry import rotation_vector_matrix
+
+            R = rotation_vector_matrix(r)
+        return tip @ R.T + b
 
     @classmethod
     def from_model(cls, m, *, port=None, load=0.0, effects=True, noise: bool = False) -> "Plant":
@@ -119,7 +164,7 @@ class Plant:
         return q
 
     def wrist(self, q_enc: np.ndarray) -> np.ndarray:
-        return self.arm.forward(self.link_angles_q(q_enc))
+        return self.true_arm.forward(self.link_angles_q(q_enc))
 
     def shaft_load(self, w: np.ndarray) -> np.ndarray:
         """Lateral load over EI: the instance load plus the world load's component normal to wrist->port.
@@ -135,7 +180,7 @@ class Plant:
 
     def shaft_reaches(self, w: np.ndarray) -> np.ndarray:
         r = np.linalg.norm(self.true_port - np.asarray(w, float), axis=-1)
-        return (r > 1e-9) & (r < self.length)
+        return (r > 1e-9) & (r < self.true_length)
 
     def declared(self) -> "Plant":
         """The declared model under this plant: its arm, shaft, tip load and ``port`` (the declared
@@ -165,16 +210,16 @@ class Plant:
         friction holds the tip back against it; ``u = 0`` before the first command)."""
         w = self.wrist(q_enc)
         if self.dim == 3:
-            tip = flexed_tip(w, self.true_port, self.length, self.shaft_load(w))
+            tip = flexed_tip(w, self.true_port, self.true_length, self.shaft_load(w))
             fa, fn = self.friction
             if (fa or fn) and u is not None:
                 # s: the shaft axis wrist -> tip (the chord); the normal part is all of u normal to s
-                s = (tip - w) / self.length
+                s = (tip - w) / self.true_length
                 u = np.asarray(u, float)
                 us = np.sum(u * s, axis=-1, keepdims=True)
                 tip = tip - (fa * us * s + fn * (u - us * s))
             return tip
-        g = flexed_geometry(w, self.true_port, self.length, self.shaft_load(w))
+        g = flexed_geometry(w, self.true_port, self.true_length, self.shaft_load(w))
         tip = g["tip"]
         fa, fn = self.friction
         if (fa or fn) and u is not None:
@@ -192,26 +237,26 @@ class Plant:
         controller in 3-D")."""
         w = self.wrist(q_enc)
         if self.dim == 3:
-            tip, dw, dt = flexed_end_directions(w, self.true_port, self.length, self.shaft_load(w))
+            tip, dw, dt = flexed_end_directions(w, self.true_port, self.true_length, self.shaft_load(w))
             return w, tip, dw, dt
-        tip, thw, tht = flexed_end_angles(w, self.true_port, self.length, self.shaft_load(w))
+        tip, thw, tht = flexed_end_angles(w, self.true_port, self.true_length, self.shaft_load(w))
         return w, tip, thw, tht
 
     def true_jacobian(self, q_enc: np.ndarray) -> np.ndarray:
         """``d tip / d q`` of the truth without friction (..., 2, 2)."""
         q = self.link_angles_q(q_enc)
-        w = self.arm.forward(q)
-        J_tw = flexed_jacobian(w, self.true_port, self.length, self.shaft_load(w))
-        return J_tw @ self.arm.jacobian(q)
+        w = self.true_arm.forward(q)
+        J_tw = flexed_jacobian(w, self.true_port, self.true_length, self.shaft_load(w))
+        return J_tw @ self.true_arm.jacobian(q)
 
     def configuration_for_tip(self, x: np.ndarray) -> np.ndarray:
         """Encoder angles putting the true tip at ``x`` (no effects other than port/load)."""
         x = np.asarray(x, float)
-        w = self.true_wrist_for_tip(x) if self.dim == 3 else flexed_wrist(x, self.true_port, self.length, self.load)
-        q, ok = self.arm.inverse(w)
+        w = self.true_wrist_for_tip(x) if self.dim == 3 else flexed_wrist(x, self.true_port, self.true_length, self.load)
+        q, ok = self.true_arm.inverse(w)
         if not np.all(ok) or not np.all(self.shaft_reaches(w)):
             raise ErrplanError(f"tip {np.round(x, 5).tolist()} is not reachable by the true robot "
-                               f"(port {np.round(self.true_port, 5).tolist()}, shaft {self.length} m)")
+                               f"(port {np.round(self.true_port, 5).tolist()}, shaft {self.true_length} m)")
         return q - np.asarray(self.joint_offset)
 
     def true_wrist_for_tip(self, x: np.ndarray) -> np.ndarray:
@@ -220,15 +265,15 @@ class Plant:
         started at the lever wrist)."""
         x = np.asarray(x, float)
         p = self.true_port
-        w = lever_wrist(x, p, self.length)
+        w = lever_wrist(x, p, self.true_length)
         t = self.shaft_load(w)
         if not np.any(t):
             return w
         for _ in range(WRIST_NEWTON_ITERS):
-            f = flexed_tip(w, p, self.length, t) - x
+            f = flexed_tip(w, p, self.true_length, t) - x
             if np.all(np.abs(f) < 1e-13):
                 break
-            J = flexed_jacobian(w, p, self.length, t)
+            J = flexed_jacobian(w, p, self.true_length, t)
             w = w - np.linalg.solve(J, f[..., None])[..., 0]
         return w
 
@@ -250,7 +295,9 @@ def effect_kwargs(effects, dim: int | None = None, n_joints: int | None = None) 
     ``dim`` 3 (or spatial parameter names such as ``dx``, ``bx``, ``fx``, ``dq3``): the spatial
     parametrization, one value per axis or per actuated joint (``n_joints``, default 3)."""
     if dim is None:
-        spatial = any(k in ("dx", "bx", "fx") or (k[:2] == "dq" and k[2:].isdigit() and int(k[2:]) > 2)
+        spatial = any(k in ("dx", "bx", "fx", "ry", "rz") or "_" in k
+                      or (k[:1] == "b" and k[1:].isdigit() and int(k[1:]) > 2)
+                      or (k[:2] == "dq" and k[2:].isdigit() and int(k[2:]) > 2)
                       for p in (effects or {}).values() for k in p)
         dim = 3 if spatial else 2
     if dim == 3:
@@ -260,13 +307,25 @@ def effect_kwargs(effects, dim: int | None = None, n_joints: int | None = None) 
                  "tracker_offset": ("tracker_offset", ("bx", "by", "bz")),
                  "gravity_sag": ("gravity_sag", tuple(f"c{i + 1}" for i in range(n))),
                  "shaft_flexion": ("world_load", ("fx", "fy", "fz")),
-                 "port_friction": ("friction", ("fa", "fn"))}
+                 "port_friction": ("friction", ("fa", "fn")),
+                 "instrument_length": ("instrument_length", ("dL",)),
+                 "joint_geometry": ("joint_geometry", tuple(f"{k}_{i + 1}" for i in range(n)
+                                                            for k in ("dx", "dy", "dz", "rx", "ry", "rz"))),
+                 "backlash": ("backlash", tuple(f"b{i + 1}" for i in range(n)))}
         out3: dict = {}
         for name, p in (effects or {}).items():
+            if name == "tracker_registration":
+                out3["tracker_rotation"] = tuple(float(p.get(k, 0.0)) for k in ("rx", "ry", "rz"))
+                b = tuple(float(p.get(k, 0.0)) for k in ("bx", "by", "bz"))
+                out3["tracker_offset"] = tuple(a + c for a, c in zip(out3.get("tracker_offset", (0.0,) * 3), b))
+                continue
             if name not in names:
                 raise ErrplanError(f"effect {name!r}: not an effect of docs/physics.md")
             fld, params = names[name]
-            out3[fld] = tuple(float(p.get(k, 0.0)) for k in params)
+            v = tuple(float(p.get(k, 0.0)) for k in params)
+            if name == "tracker_offset":
+                v = tuple(a + c for a, c in zip(out3.get("tracker_offset", (0.0,) * 3), v))
+            out3[fld] = v
         return out3
     out: dict = {}
     for name, p in (effects or {}).items():
@@ -275,7 +334,18 @@ def effect_kwargs(effects, dim: int | None = None, n_joints: int | None = None) 
         elif name == "joint_offset":
             out["joint_offset"] = (p.get("dq1", 0.0), p.get("dq2", 0.0))
         elif name == "tracker_offset":
-            out["tracker_offset"] = (p.get("by", 0.0), p.get("bz", 0.0))
+            b = out.get("tracker_offset", (0.0, 0.0))
+            out["tracker_offset"] = (b[0] + p.get("by", 0.0), b[1] + p.get("bz", 0.0))
+        elif name == "tracker_registration":
+            b = out.get("tracker_offset", (0.0, 0.0))
+            out["tracker_offset"] = (b[0] + p.get("by", 0.0), b[1] + p.get("bz", 0.0))
+            out["tracker_rotation"] = (p.get("rx", 0.0),)
+        elif name == "link_length":
+            out["link_length"] = (p.get("dl1", 0.0), p.get("dl2", 0.0))
+        elif name == "instrument_length":
+            out["instrument_length"] = (p.get("dL", 0.0),)
+        elif name == "backlash":
+            out["backlash"] = (p.get("b1", 0.0), p.get("b2", 0.0))
         elif name == "gravity_sag":
             out["gravity_sag"] = (p.get("c1", 0.0), p.get("c2", 0.0), p.get("c3", 0.0))
         elif name == "shaft_flexion":

@@ -1,0 +1,223 @@
+"""Geometric errors of the arm (docs/physics.md "Closing the loop when the catalogue lacks the effect"):
+the arm whose geometry differs from its description.
+
+- Planar P1 arm: ``link_length`` ``[dl1, dl2]`` adds to the link lengths (:func:`perturbed_arm`).
+- URDF arm: ``joint_geometry``, per actuated joint i ``[dx_i, dy_i, dz_i, rx_i, ry_i, rz_i]``: the
+  joint's ``<origin>`` in its parent link's frame ``O = [R0, p0]`` becomes ``[R(r) R0, p0 + d]``
+  (``R(r)`` the rotation by the rotation vector ``r``), before the joint's motion. With the chain's
+  fixed transforms ``T[i] = P_i O_i`` (:class:`~errplan.kinematics.urdf.model.ChainData`; ``P_i``
+  the fixed path from the previous actuated joint's child frame, or from the world, to joint i's
+  parent link), the perturbed chain is ``T'[i] = T[i] O_i^-1 O_i'``: the same compiled kernels run
+  on it (:func:`perturbed_arm`).
+
+:func:`joint_origins` reads each actuated joint's ``<origin>`` from the URDF text, and
+:func:`corrected_urdf_text` writes the origins back (nothing else changed), for the corrected model.
+"""
+from __future__ import annotations
+
+import copy
+import math
+import re
+import xml.etree.ElementTree as ET
+from dataclasses import replace
+from functools import lru_cache
+
+import numpy as np
+
+from ..errors import ErrplanError
+
+#: parameters of one joint's geometry, in order (physics.md): the keys are ``<name>_<i>``, i 1-based
+JOINT_GEOMETRY_PARAMS = ("dx", "dy", "dz", "rx", "ry", "rz")
+#: Newton steps refining the inverse kinematics of a perturbed URDF arm from the declared arm's solution
+IK_NEWTON_ITERS = 20
+
+
+def rotation_vector_matrix(r) -> np.ndarray:
+    """Rotation matrix (3, 3) of the rotation vector ``r`` (3,) (Rodrigues)."""
+    r = np.asarray(r, float)
+    th = float(np.linalg.norm(r))
+    K = np.array([[0.0, -r[2], r[1]], [r[2], 0.0, -r[0]], [-r[1], r[0], 0.0]])
+    if th < 1e-12:
+        return np.eye(3) + K
+    K = K / th
+    return np.eye(3) + math.sin(th) * K + (1.0 - math.cos(th)) * (K @ K)
+
+
+def rotation_matrix_vector(R) -> np.ndarray:
+    """Rotation vector (3,) of a rotation matrix (the inverse of :func:`rotation_vector_matrix`, angles < pi)."""
+    R = np.asarray(R, float)
+    c = float(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))
+    th = math.acos(c)
+    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    if th < 1e-9:
+        return w / 2.0
+    return w * th / (2.0 * math.sin(th))
+
+
+def rpy_to_matrix(rpy) -> np.ndarray:
+    """URDF convention: R = Rz(yaw) Ry(pitch) Rx(roll)."""
+    r, p, y = (float(v) for v in rpy)
+    cr, sr, cp, sp, cy, sy = math.cos(r), math.sin(r), math.cos(p), math.sin(p), math.cos(y), math.sin(y)
+    return np.array([[cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+                     [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+                     [-sp, cp * sr, cp * cr]])
+
+
+def matrix_to_rpy(R) -> np.ndarray:
+    """URDF roll, pitch, yaw of a rotation matrix (inverse of :func:`rpy_to_matrix` away from pitch ±pi/2)."""
+    R = np.asarray(R, float)
+    pitch = math.atan2(-R[2, 0], math.hypot(R[0, 0], R[1, 0]))
+    roll = math.atan2(R[2, 1], R[2, 2])
+    yaw = math.atan2(R[1, 0], R[0, 0])
+    return np.array([roll, pitch, yaw])
+
+
+def _numbers(text: str | None, where: str) -> np.ndarray:
+    if text is None:
+        return np.zeros(3)
+    try:
+        v = np.array([float(x) for x in text.split()], float)
+    except ValueError:
+        v = np.zeros(0)
+    if v.shape != (3,) or not np.all(np.isfinite(v)):
+        raise ErrplanError(f"{where}: expected three finite numbers, got {text!r}")
+    return v
+
+
+def joint_origins(urdf_text: str, joint_names, where: str = "URDF") -> np.ndarray:
+    """Each named joint's ``<origin>`` (n, 4, 4) in its parent link's frame (identity when absent)."""
+    root = ET.fromstring(urdf_text)
+    joints = {j.get("name"): j for j in root.iter("joint")}
+    out = np.empty((len(joint_names), 4, 4))
+    for k, name in enumerate(joint_names):
+        j = joints.get(name)
+        if j is None:
+            raise ErrplanError(f"{where}: no joint named {name!r}")
+        o = j.find("origin")
+        xyz = _numbers(None if o is None else o.get("xyz"), f"{where}: joint {name} origin xyz")
+        rpy = _numbers(None if o is None else o.get("rpy"), f"{where}: joint {name} origin rpy")
+        out[k] = np.eye(4)
+        out[k, :3, :3] = rpy_to_matrix(rpy)
+        out[k, :3, 3] = xyz
+    return out
+
+
+@lru_cache(maxsize=8)
+def _origins(urdf_text: str, joint_names: tuple, where: str) -> np.ndarray:
+    out = joint_origins(urdf_text, joint_names, where)
+    out.setflags(write=False)
+    return out
+
+
+def perturbed_origin(O: np.ndarray, g) -> np.ndarray:
+    """``O`` (4, 4) moved by ``g[:3]`` and turned by the rotation vector ``g[3:]``, both in the parent frame."""
+    g = np.asarray(g, float)
+    out = np.array(O, float)
+    out[:3, :3] = rotation_vector_matrix(g[3:]) @ O[:3, :3]
+    out[:3, 3] = O[:3, 3] + g[:3]
+    return out
+
+
+def perturbed_arm(arm, link_length=None, joint_geometry=None):
+    """The arm with its geometry changed: planar ``link_length`` [dl1, dl2] (m); URDF
+    ``joint_geometry`` (6n,) in the order of :data:`JOINT_GEOMETRY_PARAMS` per actuated joint. The
+    arm itself when nothing changes."""
+    from .arm import Arm
+
+    if isinstance(arm, Arm):
+        if joint_geometry is not None and np.any(joint_geometry):
+            raise ErrplanError("joint_geometry is an effect of URDF arms; the planar arm has link_length")
+        if link_length is None or not np.any(link_length):
+            return arm
+        dl = np.asarray(link_length, float)
+        out = replace(arm, l1=arm.l1 + float(dl[0]), l2=arm.l2 + float(dl[1]))
+        if out.l1 <= 0 or out.l2 <= 0:
+            raise ErrplanError(f"link_length {dl.tolist()}: the links would be {out.l1:.4g} and {out.l2:.4g} m long")
+        return out
+    if link_length is not None and np.any(link_length):
+        raise ErrplanError("link_length is an effect of the planar arm; a URDF arm has joint_geometry")
+    if joint_geometry is None or not np.any(joint_geometry):
+        return arm
+    return GeometryArm(arm, joint_geometry)
+
+
+class GeometryArm:
+    """A URDF arm (:class:`~errplan.kinematics.urdf.UrdfArm`) whose actuated joints' origins are
+    perturbed (module docstring). Forward kinematics and Jacobians run the compiled chain kernels on
+    the perturbed chain; the inverse starts from the declared arm's solution and refines it by
+    Newton steps on the perturbed chain; everything else (limits, gravity, meshes) is the declared
+    arm's."""
+
+    def __init__(self, arm, joint_geometry):
+        from .urdf.model import ChainData, chain_screws
+
+        g = np.asarray(joint_geometry, float).reshape(arm.n, 6)
+        self._arm = arm
+        self.declared_arm = arm
+        self.joint_geometry = g
+        core = arm
+        while not hasattr(type(core), "forward") or hasattr(core, "_arm") and type(core).__name__ != "UrdfArm":
+            core = core._arm  # a wrapper (the calibration's gravity cache): the URDF arm under it
+        O = _origins(arm.urdf_text, tuple(arm.joint_names), str(arm.urdf_path))
+        ch = arm.chain
+        T = np.array(ch.T, float)
+        for i in range(arm.n):
+            T[i] = T[i] @ np.linalg.solve(O[i], perturbed_origin(O[i], g[i]))
+        T = np.ascontiguousarray(T)
+        self.chain = ChainData(T, ch.axis, ch.jtype, ch.A, ch.lo, ch.hi, chain_screws(T, ch.axis))
+        self._shadow = copy.copy(core)
+        self._shadow.chain = self.chain
+        self._shadow.reach_map = arm.reach_map  # seeds of the declared arm's map (Newton refines below)
+
+    def __getattr__(self, name):
+        if name.startswith("__") or name == "_arm":
+            raise AttributeError(name)
+        return getattr(self._arm, name)
+
+    def forward(self, q) -> np.ndarray:
+        return self._shadow.forward(q)
+
+    def jacobian(self, q) -> np.ndarray:
+        return self._shadow.jacobian(q)
+
+    def chain_points(self, q) -> np.ndarray:
+        return self._shadow.chain_points(q)
+
+    def inverse(self, w, near=None):
+        w = np.asarray(w, float)
+        q, ok = self._arm.inverse(w, near)
+        for _ in range(IK_NEWTON_ITERS):
+            f = self.forward(q) - w
+            if np.all(~ok | np.all(np.abs(f) < 1e-13, axis=-1)):
+                break
+            J = self.jacobian(q)
+            with np.errstate(invalid="ignore"):
+                step = np.linalg.solve(np.where(ok[..., None, None], J, np.eye(3)), np.where(ok[..., None], f, 0.0)[..., None])[..., 0]
+            q = q - step
+        ok = ok & np.all(np.abs(self.forward(q) - w) < 1e-9, axis=-1) & self._arm.within_limits(q)
+        return np.where(ok[..., None], q, np.nan), ok
+
+
+def corrected_urdf_text(urdf_text: str, joint_names, joint_geometry, where: str = "URDF") -> str:
+    """The URDF text with each actuated joint's ``<origin>`` replaced by the perturbed one (xyz and
+    rpy written with 12 significant digits); nothing else in the text changes."""
+    g = np.asarray(joint_geometry, float).reshape(len(joint_names), 6)
+    O = joint_origins(urdf_text, joint_names, where)
+    text = urdf_text
+    for name, Oi, gi in zip(joint_names, O, g):
+        if not np.any(gi):
+            continue
+        On = perturbed_origin(Oi, gi)
+        xyz = " ".join(f"{v:.12g}" for v in On[:3, 3])
+        rpy = " ".join(f"{v:.12g}" for v in matrix_to_rpy(On[:3, :3]))
+        new_origin = f'<origin xyz="{xyz}" rpy="{rpy}"/>'
+        # the joint element: from <joint ... name="NAME" ...> to its </joint>
+        m = re.search(r'<joint\b[^>]*\bname\s*=\s*["\']' + re.escape(name) + r'["\'][^>]*>', text)
+        if m is None:
+            raise ErrplanError(f"{where}: no joint named {name!r}")
+        end = text.find("</joint>", m.end())
+        body = text[m.end():end]
+        o = re.search(r"<origin\b[^>]*/>|<origin\b[^>]*>.*?</origin>", body, flags=re.S)
+        body = (body[:o.start()] + new_origin + body[o.end():]) if o else ("\n    " + new_origin + body)
+        text = text[:m.end()] + body + text[end:]
+    return text
