@@ -1116,6 +1116,9 @@ class HeldArms:
 ARM_TABLES = tuple(k for k in TABLE_KEYS["[[arm]]"] if k not in ("name", "rest"))
 _TRIAD_KEYS = TABLE_KEYS["[[tolerance]]"] + TOLERANCE_KEYS["triad_placement"]
 _SETUP_KEYS = TABLE_KEYS["[[tolerance]]"] + TOLERANCE_KEYS["setup_placement"]
+# a setup_placement's base candidates: a pose of a list, or a grid on a horizontal rectangle times yaws
+_BASE_POSE_KEYS = ("position", "rpy")
+_BASE_GRID_KEYS = ("y", "x", "z", "spacing", "yaw")
 
 
 def _box_of(estimate, un: Uncertainty) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
@@ -1264,13 +1267,13 @@ def _setup_bases(ctx: _Ctx, t: Tolerance, arms: Mapping[str, Scenario]) -> Toler
             for j, p in enumerate(b):
                 if not isinstance(p, dict):
                     raise ctx.fail(f"{w}{name}[{j}]", _Short(_short(p)), "{ position = [x, y, z], rpy = [r, p, y] }")
-                _check_keys(ctx, p, ("position", "rpy"), f"{w}{name}[{j}].")
+                _check_keys(ctx, p, _BASE_POSE_KEYS, f"{w}{name}[{j}].")
                 pos = _vec(ctx, _get(ctx, p, "position", f"{w}{name}[{j}]."), f"{w}{name}[{j}].position", 3)
                 rpy = _vec(ctx, p.get("rpy", list(own.base_rpy)), f"{w}{name}[{j}].rpy", 3)
                 poses.append((pos, rpy))
             out[name] = tuple(poses)
         elif isinstance(b, dict):
-            _check_keys(ctx, b, ("y", "x", "z", "spacing", "yaw"), f"{w}{name}.")
+            _check_keys(ctx, b, _BASE_GRID_KEYS, f"{w}{name}.")
             y = _num(ctx, _get(ctx, b, "y", f"{w}{name}."), f"{w}{name}.y")
             xr = _pair(ctx, _get(ctx, b, "x", f"{w}{name}."), f"{w}{name}.x")
             zr = _pair(ctx, _get(ctx, b, "z", f"{w}{name}."), f"{w}{name}.z")
