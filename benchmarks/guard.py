@@ -150,6 +150,11 @@ def measure(rows: dict, peers: dict, warm: dict, repeat: int) -> dict:
     return out
 
 
+def _r(x: float) -> str:
+    """A ratio with three significant digits at least (the flexion row's is about 0.02)."""
+    return f"{x:.3f}" if x >= 0.1 else f"{x:.4f}"
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--repeat", type=int, default=4, help="rounds; each side's fastest counts")
@@ -185,8 +190,8 @@ def main(argv=None) -> int:
         if bad:
             worse.append(name)
         verdict = "no baseline" if b is None else ("SLOWER" if bad else "holds")
-        print(f"| {name} | {r['what']} | {r['errplan_cpu_s']:.2f} | {r['peer_cpu_s']:.2f} | {r['ratio']:.3f} | "
-              f"{'-' if b is None else f'{b:.3f}'} | {'-' if change is None else f'{change * 100:+.0f} %'} | {verdict} |")
+        print(f"| {name} | {r['what']} | {r['errplan_cpu_s']:.3f} | {r['peer_cpu_s']:.3f} | {_r(r['ratio'])} | "
+              f"{'-' if b is None else _r(b)} | {'-' if change is None else f'{change * 100:+.0f} %'} | {verdict} |")
     print()
     if a.update:
         new = dict(base_rows)
