@@ -177,7 +177,7 @@ def main(argv=None) -> int:
     base = json.loads(a.baseline.read_text()) if a.baseline.exists() else {}
     base_rows = base.get("ratios", {})
     print(f"{os.cpu_count()} cores, load average (1 min) {load0:.2f} before, {os.getloadavg()[0]:.2f} after; "
-          f"fastest of {a.repeat}, errplan and its peer alternately, CPU seconds of this process; "
+          f"fastest of {a.repeat} interleaved rounds per side, CPU seconds of this process; "
           f"{time.perf_counter() - t0:.0f} s in all")
     print()
     print("| problem | what | errplan CPU s | peer CPU s | ratio | baseline | change | verdict |")
