@@ -17,7 +17,7 @@ each running every problem once, so that a burst of other work spreads over all 
 the median over the rounds of errplan's CPU time over its peer's in the same round (see :func:`measure`).
 A ratio, not a time: a slower or busier machine slows both sides alike, so the ratio stays meaningful from
 machine to machine where seconds do not. About 15 s of CPU in all (under 30 s of wall time on the 2-core
-machine even with both cores shared by six busy processes).
+machine with both cores shared by six busy processes, about 34 s with nine).
 
 The guard fails (exit 1) when a ratio is more than ``--tolerance`` (15 %) above its baseline, and prints
 what it measured either way. It is a benchmark, not a test: CI times nothing. Run it before a change that
