@@ -290,10 +290,35 @@ def announce(stream=None) -> bool:
 _load_overload = caching.FunctionCache.load_overload
 
 
+def _runtime_ready(target_context) -> bool:
+    """Make the target ready to run kernels loaded from the cache without numba's full ``refresh``.
+
+    numba refreshes its target before every cache lookup: it imports and installs every typing and
+    lowering registry it has (numpy's array functions, linalg, random, typed containers, jitclass ...),
+    about 0.4 s of CPU in each process, only to rebuild machine code that is already compiled. A cached
+    kernel needs the runtime (NRT: its allocations and reference counts) and the code generator, nothing
+    else: the registries type and lower source, which a cache hit does not. So a lookup of an errplan
+    kernel initializes the runtime only; a miss compiles, and numba's compile refreshes the context
+    fully first (``numba.core.compiler.compile_extra``), as before. False where this numba has no such
+    runtime (then the lookup is numba's own)."""
+    try:
+        from numba.core.runtime import rtsys
+
+        rtsys.initialize(target_context)
+    except Exception:  # pragma: no cover - another numba layout: its own lookup
+        return False
+    return True
+
+
 def _load_overload_or_announce(self, sig, target_context):
     _stamp_closure(self)
-    res = _load_overload(self, sig, target_context)
-    if res is None and getattr(getattr(self, "_py_func", None), "__module__", "").startswith("errplan"):
+    ours = getattr(getattr(self, "_py_func", None), "__module__", "").startswith("errplan")
+    if ours and _runtime_ready(target_context):
+        with self._guard_against_spurious_io_errors():
+            res = self._load_overload(sig, target_context)
+    else:
+        res = _load_overload(self, sig, target_context)
+    if res is None and ours:
         announce()
     return res
 
@@ -334,7 +359,28 @@ def _defer_blas_check() -> None:
     am.ensure_blas = real  # its own name for the check, bound at its import: the real one again
 
 
-_defer_blas_check()
+def _defer_blas_check_to_refresh() -> None:
+    """Run :func:`_defer_blas_check` when numba first loads its registries (a compile's refresh), not at
+    errplan's import: a run whose kernels all come from the cache never imports numba's array maths."""
+    try:
+        from numba.core.cpu import CPUContext
+    except ImportError:  # pragma: no cover
+        _defer_blas_check()
+        return
+    real = CPUContext.load_additional_registries
+    if getattr(real, "_errplan_deferred", False):
+        return
+
+    def load_additional_registries(self):
+        _defer_blas_check()
+        return real(self)
+
+    load_additional_registries._errplan_deferred = True
+    load_additional_registries.__wrapped__ = real
+    CPUContext.load_additional_registries = load_additional_registries
+
+
+_defer_blas_check_to_refresh()
 
 
 def _memoize_call_types() -> None:
