@@ -384,15 +384,19 @@ def piece_bound(tree, held, Pg, k, u, wa, wb, top, low):
     # a witness first: the few triangles of each side nearest the other side's capsule
     oa = np.argsort(la[:na])
     ob = np.argsort(lb[:nb])
+    wi, wj, wd = oa[0], B[ob[0]], np.inf
     for ii in range(min(na, 3)):
         for j0 in range(min(nb, 3)):
             d = triangle_distance(A[oa[ii]], held.tris[B[ob[j0]]])
             if d < low:
                 return d
+            if d < wd:
+                wi, wj, wd = oa[ii], B[ob[j0]], d
     # separating directions: the survivors' vertices projected on a line; every point of a triangle lies
     # between its vertices' projections, so the gap of the projections bounds the distance from below (exact
     # for two convex pieces facing along that line, as the links' pieces mostly do). Tried: the line between
-    # the two capsules' axes at their closest points, then the line between the survivors' centroids.
+    # the two capsules' axes at their closest points, the line between the survivors' centroids, the line
+    # between the axes of the nearest two triangles of the witness pass.
     x0, x1, x2 = segment_gap(ua0, ua1, ua2, ub0, ub1, ub2, wa[0], wa[1], wa[2], wb[0], wb[1], wb[2])
     sep = _separation(A, na, held.tris, B, nb, x0, x1, x2)
     if sep < low + 2.0 * SLACK:
@@ -409,6 +413,11 @@ def piece_bound(tree, held, Pg, k, u, wa, wb, top, low):
                 n1 += held.tris[B[jj], v, 1]
                 n2 += held.tris[B[jj], v, 2]
         sep = max(sep, _separation(A, na, held.tris, B, nb, n0 / nb - m0 / na, n1 / nb - m1 / na, n2 / nb - m2 / na))
+    if sep < low + 2.0 * SLACK:  # the line between the axes of the nearest two triangles met above
+        x0, x1, x2 = segment_gap(held.tri_a[wj, 0], held.tri_a[wj, 1], held.tri_a[wj, 2], held.tri_b[wj, 0],
+                                 held.tri_b[wj, 1], held.tri_b[wj, 2], aa[wi, 0], aa[wi, 1], aa[wi, 2],
+                                 ab[wi, 0], ab[wi, 1], ab[wi, 2])
+        sep = max(sep, _separation(A, na, held.tris, B, nb, x0, x1, x2))
     if sep >= low + 2.0 * SLACK:
         return min(sep, top)
     # every pair, nearest triangles first (a pair within the clearance is met early)
@@ -638,19 +647,30 @@ def arm_motion(chain, rmap, tree, held, a, b, port, L, ref, tip_step, c):
     known = np.full((G, H), -np.inf)  # per pair: its bound plus its object's travel at the sample it was found
     rows = np.empty((16, 3), np.int64)
     m = 0
+    order = np.arange(G * H)
     for i in range(k):
         placed = False
-        for g in range(G):
-            for h in range(H):
-                if known[g, h] - travel[i, g] >= cut:
-                    continue
-                if not placed:
-                    place_objects(tree, S[i], P[i])
-                    placed = True
-                d, within, rows, m = pair_bound(tree, held, P[i], g, h, c, top, i, rows, m)
-                if within:
-                    return WITHIN, S, P, np.empty((0, 3), np.int64)
-                known[g, h] = d + travel[i, g]
+        if k == 1:  # one state: the nearest pairs of objects first (a state within the clearance ends early)
+            place_objects(tree, S[i], P[i])
+            placed = True
+            gaps = np.empty(G * H)
+            for g in range(G):
+                c0, c1, c2 = _apply(P[i, g], tree.center[g])
+                for h in range(H):
+                    x0, x1, x2 = c0 - held.center[h, 0], c1 - held.center[h, 1], c2 - held.center[h, 2]
+                    gaps[g * H + h] = math.sqrt(x0 * x0 + x1 * x1 + x2 * x2) - tree.radius[g] - held.radius[h]
+            order = np.argsort(gaps, kind="mergesort")
+        for gh in order:
+            g, h = gh // H, gh % H
+            if known[g, h] - travel[i, g] >= cut:
+                continue
+            if not placed:
+                place_objects(tree, S[i], P[i])
+                placed = True
+            d, within, rows, m = pair_bound(tree, held, P[i], g, h, c, top, i, rows, m)
+            if within:
+                return WITHIN, S, P, np.empty((0, 3), np.int64)
+            known[g, h] = d + travel[i, g]
     return (UNDECIDED if m else CLEAR), S, P, rows[:m]
 
 
