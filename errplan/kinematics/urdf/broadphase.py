@@ -1,25 +1,40 @@
 """The arm checks' compiled part: the moving arm at its tips (the wrist on the rigid shaft through the
-port, the chain's inverse kinematics), its links' placements, the joint-space samples of a motion and a
-conservative broad phase against arms held still (docs/physics.md, "Several instruments and the
-endoscope", "Arms outside"). Numba kernels on plain arrays; the exact distances stay coal's
-(:mod:`.collision`, which builds these arrays and asks coal about the pairs this part cannot decide).
+port, the chain's inverse kinematics), its links' placements, the joint-space samples of a motion, and a
+conservative broad phase and an exact narrow phase against arms held still (docs/physics.md, "Several
+instruments and the endoscope", "Arms outside"). Numba kernels on plain arrays (:mod:`.collision` builds
+them and asks coal about the few pairs this part leaves: a primitive's piece, or a tie with the clearance).
 
 * :class:`LinkTree`: the arm's joints and collision objects as fixed transforms (pinocchio's kinematic
-  tree with every joint off the actuated set at its held value), the objects' bounding spheres and
-  bounding capsules in their own frames, and the per-object motion bounds (``reach``);
-* :class:`HeldShapes`: the held arms' objects' bounding spheres and capsules in the world;
+  tree with every joint off the actuated set at its held value), the objects' bounding spheres, the
+  bounding capsules of their mesh pieces and the pieces' triangles (each with a capsule of its own) in
+  their own frames, and the per-object motion bounds (``reach``);
+* :class:`HeldShapes`: the same of the held arms' objects, in the world;
 * :func:`arm_motion`: for a straight tip motion ``a -> b`` (or one tip), the configurations at the tip
   samples (as :meth:`errplan.planning.arm_checks.ArmChecks.motion_configs` finds them), the joint-space
-  samples (:func:`.collision.motion_samples`), and per sample the pairs (moving object, held object)
-  whose bounding volumes come closer than the clearance. Every other pair of every sample is at least
-  that clearance apart: capsules and spheres hold their object (each capsule holds the vertices of its
-  triangles, so, being convex, the triangles), and the gap between two bounding volumes is a lower
-  bound of the distance of what they hold. Samples are skipped as
-  :func:`.collision.clear_along_held` skips them (the clearance is 1-Lipschitz in the links' motion).
+  samples (:func:`.collision.motion_samples`), and per sample and pair of objects (moving, held)
+  :func:`pair_bound`: the spheres' gap, the capsules' gaps of their pieces, and for two mesh pieces whose
+  capsules come within the clearance :func:`piece_bound`, the exact distance of their triangles
+  (:func:`triangle_distance`) where it matters. Coal's mesh query between two pieces (a collision test with
+  the clearance as security margin) is also a distance between their triangles (coal's meshes are
+  triangle soups), so the answers are coal's.
 
-Rounding: a pair counts as decided only when its bound exceeds the clearance by :data:`SLACK` (1 nm),
-far above the rounding of placements and distances (about 1e-15 m) and far below any figure of the
-model, so a pair the exact query would find within the clearance is never decided here.
+Pruning in the narrow phase, all conservative: a triangle whose capsule lies the clearance away from the
+other piece's capsule cannot come closer (each capsule holds its triangles); the vertices of the triangles
+left, projected on a line, bound the pieces' distance from below by the gap of their projections (every
+point of a triangle projects between its vertices; on the line between the pieces this is the distance of
+two convex pieces, so most pairs of the links' nearly convex pieces are decided by a few hundred dot
+products); a pair of triangles whose capsules (or projections on the line between their axes) lie farther
+apart than the smallest distance met so far cannot lower it. Three triangles of each side nearest the
+other are tried first, so that a pair within the clearance is usually met at once.
+
+Skipping along a motion is per pair of objects: the distance is 1-Lipschitz in the moving object's points,
+and :func:`object_travel` bounds how far they move, so a pair found ``e`` above the clearance is not looked
+at again until its object has moved ``e`` (:func:`arm_motion`).
+
+Rounding: a pair counts as decided clear only when its bound exceeds the clearance by :data:`SLACK` (1 nm),
+and within only when two of its triangles lie closer than the clearance less :data:`SLACK`, far above the
+rounding of placements and distances (about 1e-15 m) and far below any figure of the model; a distance
+within :data:`SLACK` of the clearance goes to coal.
 """
 from __future__ import annotations
 
@@ -33,9 +48,6 @@ from .chain import ik_near, ik_point
 
 #: m: a bound must exceed the clearance by this much to decide a pair (module docstring)
 SLACK = 1e-9
-
-#: along a motion the narrow phase measures distances up to ``(1 + AHEAD) * clearance`` (:func:`arm_motion`)
-AHEAD = 0.5
 
 #: status of :func:`arm_motion`: a tip out of reach (or at the port), every pair decided clear, pairs left,
 #: a pair certainly closer than the clearance (two of its surface points are)
@@ -336,13 +348,16 @@ def _pair_separation(T, U, n0, n1, n2):
 
 @njit(cache=True)
 def piece_bound(tree, held, Pg, k, u, wa, wb, top, low):
-    """``min(distance, top)`` between moving capsule ``k``'s piece (its object placed by ``Pg`` (4, 4); the
-    capsule's axis in the world ``wa -> wb``) and held capsule ``u``'s piece, both meshes: the exact distance of
-    their triangles (:func:`triangle_distance`) where it is below ``top``. Each triangle has a capsule of its
-    own (its longest edge, the radius the third vertex's distance from it: it holds the triangle); triangles
-    whose capsules lie ``top`` from the other piece's capsule cannot come closer, and a pair of triangles
-    whose capsules lie farther apart than the smallest distance found so far cannot lower it. Stops at the
-    first distance below ``low`` (a caller that only needs to know that)."""
+    """The distance between moving capsule ``k``'s piece (its object placed by ``Pg`` (4, 4); the capsule's axis
+    in the world ``wa -> wb``) and held capsule ``u``'s piece, both meshes, as far as a caller asking "closer
+    than ``low``?" needs it: a value below ``low`` is the distance of two of their triangles (so theirs is
+    below ``low`` too); any other value is a lower bound of ``min(distance, top)``, and exactly
+    ``min(distance, top)`` when below ``low + 2 SLACK``. Each triangle has a capsule of its own (its longest
+    edge, the radius the third vertex's distance from it: it holds the triangle); triangles whose capsules
+    lie ``top`` from the other piece's capsule cannot come closer; a separating line (module docstring)
+    showing at least ``low + 2 SLACK`` decides; else every pair of triangles, but those whose capsules (or
+    projections on the line between their axes) lie farther apart than the smallest distance found so far,
+    by :func:`triangle_distance`, stopping at the first below ``low``."""
     t0, t1 = tree.tri_start[k], tree.tri_start[k + 1]
     h0, h1 = held.tri_start[u], held.tri_start[u + 1]
     rk, ru = tree.cap_r[k], held.cap_r[u]
@@ -444,7 +459,7 @@ def piece_bound(tree, held, Pg, k, u, wa, wb, top, low):
 
 
 @njit(cache=True)
-def pair_bound(tree, held, P, g, h, c, top, sample, rows, m):
+def pair_bound(tree, held, P, g, h, c, top, sample, rows, m, known, moved):
     """The broad and narrow phases for moving object ``g`` (placed by ``P`` (G, 4, 4)) and held object ``h``:
     ``(bound, within, rows, m)``. ``bound`` is a lower bound of their distance, at least ``min(distance,
     top)`` where every piece pair is a pair of meshes (the larger of the spheres' gap and, per pair of pieces,
@@ -452,7 +467,10 @@ def pair_bound(tree, held, P, g, h, c, top, sample, rows, m):
     ``c - SLACK`` (certainly within the clearance; the bound is then that distance). A pair of pieces that
     cannot be decided here (a primitive's piece, whose solid coal measures, or a distance within
     :data:`SLACK` of ``c``) is appended to ``rows`` as ``(sample, moving capsule, held capsule)`` (grown as
-    needed) for coal."""
+    needed) for coal. ``known`` (moving capsules, held capsules): per pair of pieces, a lower bound of their
+    distance found before plus how far object ``g`` had moved then; ``moved``, how far it has moved now: a
+    pair with ``known - moved >= c + SLACK`` is clear without a look (the distance is 1-Lipschitz in g's
+    points), every other pair looked at updates it."""
     cut = c + SLACK
     c0, c1, c2 = _apply(P[g], tree.center[g])
     x0 = c0 - held.center[h, 0]
@@ -469,6 +487,11 @@ def pair_bound(tree, held, P, g, h, c, top, sample, rows, m):
         wa[0], wa[1], wa[2] = _apply(P[g], tree.cap_a[k])
         wb[0], wb[1], wb[2] = _apply(P[g], tree.cap_b[k])
         for u in range(held.cap_start[h], held.cap_start[h + 1]):
+            dk = known[k, u] - moved
+            if dk >= cut:
+                if dk < cg:
+                    cg = dk
+                continue
             dk = segment_distance(wa[0], wa[1], wa[2], wb[0], wb[1], wb[2],
                                   held.cap_a[u, 0], held.cap_a[u, 1], held.cap_a[u, 2],
                                   held.cap_b[u, 0], held.cap_b[u, 1], held.cap_b[u, 2])
@@ -489,6 +512,7 @@ def pair_bound(tree, held, P, g, h, c, top, sample, rows, m):
                     rows[m, 1] = k
                     rows[m, 2] = u
                     m += 1
+            known[k, u] = dk + moved
             if dk < cg:
                 cg = dk
     return max(sg, cg), False, rows, m
@@ -611,6 +635,23 @@ def object_travel(reach, S):
 
 
 @njit(cache=True)
+def _nearest_first(gaps, cut):
+    """The indices of ``gaps`` below ``cut``, smallest first (ties in index order): an insertion sort, as
+    there are a few."""
+    idx = np.empty(gaps.shape[0], np.int64)
+    n = 0
+    for i in range(gaps.shape[0]):
+        if gaps[i] < cut:
+            j = n
+            while j > 0 and gaps[idx[j - 1]] > gaps[i]:
+                idx[j] = idx[j - 1]
+                j -= 1
+            idx[j] = i
+            n += 1
+    return idx[:n]
+
+
+@njit(cache=True)
 def arm_motion(chain, rmap, tree, held, a, b, port, L, ref, tip_step, c):
     """The moving arm's motion ``a -> b`` (a tip when ``a == b``) against the held arms (module docstring).
 
@@ -624,9 +665,8 @@ def arm_motion(chain, rmap, tree, held, a, b, port, L, ref, tip_step, c):
     Skipping, per pair of objects (moving g, held h): the bound of :func:`pair_bound` at sample s less how far
     g's points may have moved since (:func:`object_travel`) is a lower bound of their distance at every later
     sample (the distance is 1-Lipschitz in g's points); while it is at least the clearance the pair is not
-    looked at, and a sample none of whose pairs is looked at is not placed. Along a motion the bounds are
-    asked up to ``(1 + AHEAD) c`` rather than ``c``, so that a pair found that far apart is passed over for
-    the next ``AHEAD c`` of its object's travel."""
+    looked at, and a sample none of whose pairs is looked at is not placed; the same per pair of their mesh
+    pieces inside :func:`pair_bound`."""
     n = chain.axis.shape[0]
     G = tree.gparent.shape[0]
     H = held.radius.shape[0]
@@ -642,15 +682,16 @@ def arm_motion(chain, rmap, tree, held, a, b, port, L, ref, tip_step, c):
     if H == 0:
         return CLEAR, S, P, np.empty((0, 3), np.int64)
     cut = c + SLACK
-    top = cut + (AHEAD * c if k > 1 else 0.0)
     travel = object_travel(tree.reach, S)
     known = np.full((G, H), -np.inf)  # per pair: its bound plus its object's travel at the sample it was found
+    pieces = np.full((tree.cap_r.shape[0], held.cap_r.shape[0]), -np.inf)  # the same per pair of pieces
     rows = np.empty((16, 3), np.int64)
     m = 0
     order = np.arange(G * H)
     for i in range(k):
         placed = False
-        if k == 1:  # one state: the nearest pairs of objects first (a state within the clearance ends early)
+        if k == 1:  # one state: the pairs of objects whose spheres come within the clearance, nearest first
+            # (a state within the clearance ends early; the other pairs are clear)
             place_objects(tree, S[i], P[i])
             placed = True
             gaps = np.empty(G * H)
@@ -659,7 +700,7 @@ def arm_motion(chain, rmap, tree, held, a, b, port, L, ref, tip_step, c):
                 for h in range(H):
                     x0, x1, x2 = c0 - held.center[h, 0], c1 - held.center[h, 1], c2 - held.center[h, 2]
                     gaps[g * H + h] = math.sqrt(x0 * x0 + x1 * x1 + x2 * x2) - tree.radius[g] - held.radius[h]
-            order = np.argsort(gaps, kind="mergesort")
+            order = _nearest_first(gaps, cut)
         for gh in order:
             g, h = gh // H, gh % H
             if known[g, h] - travel[i, g] >= cut:
@@ -667,7 +708,7 @@ def arm_motion(chain, rmap, tree, held, a, b, port, L, ref, tip_step, c):
             if not placed:
                 place_objects(tree, S[i], P[i])
                 placed = True
-            d, within, rows, m = pair_bound(tree, held, P[i], g, h, c, top, i, rows, m)
+            d, within, rows, m = pair_bound(tree, held, P[i], g, h, c, cut, i, rows, m, pieces, travel[i, g])
             if within:
                 return WITHIN, S, P, np.empty((0, 3), np.int64)
             known[g, h] = d + travel[i, g]

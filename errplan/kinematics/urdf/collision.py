@@ -25,11 +25,12 @@ overlap. This is the only module of errplan that imports coal or builds a ``Geom
   :func:`link_distances`, :func:`patient_clearances` (exact distances of the links, not the instrument
   shaft, which passes through the port by design) and :func:`patient_clear` (coal's collision test with a
   security margin);
-* for the compiled broad phase (:mod:`.broadphase`): :meth:`ArmCollision.link_tree` (the arm's joints and
-  objects as plain arrays), :meth:`ArmCollision.capsules` and :meth:`ArmCollision.pieces` (each mesh split
-  into up to :data:`CAPSULE_PIECES` pieces of its triangles, each piece a coal mesh with a bounding
-  capsule), :meth:`ArmCollision.surface_points`, :func:`held_shapes`, and :func:`first_within` (coal's
-  collision test on the pairs of pieces the broad phase leaves undecided).
+* for the compiled broad and narrow phases (:mod:`.broadphase`): :meth:`ArmCollision.link_tree` (the arm's
+  joints and objects as plain arrays), :meth:`ArmCollision.capsules` and :meth:`ArmCollision.pieces` (each
+  mesh split into up to :data:`CAPSULE_PIECES` pieces of its triangles, each piece a coal mesh with a
+  bounding capsule), :meth:`ArmCollision.piece_triangles` (the pieces' triangles, each with a capsule,
+  :func:`triangle_capsules`), :meth:`ArmCollision.surface_points`, :func:`held_shapes`, and
+  :func:`first_within` (coal on the pairs of pieces the compiled phases leave undecided: a primitive's).
 
 Configurations are the arm's actuated-joint vectors ``(n,)`` (``UrdfArm``'s order); joints off the
 actuated set stay where the arm holds them (``fixed_joints``, else 0).
@@ -1026,5 +1027,5 @@ def patient_clear(geo: ArmCollision, qs, body: BodySolid, clearance: float) -> n
 
 __all__ = ["ArmCollision", "Closest", "arm_clearance", "clearances", "clear_of", "closest_pair", "min_clearance_along",
            "clear_along", "motion_samples", "arm_at_tip", "HeldArm", "clearance_to_held", "within_held", "clear_along_held",
-           "min_clearance_along_held", "held_shapes", "held_objects", "first_within", "bounding_capsule",
+           "min_clearance_along_held", "held_shapes", "held_objects", "first_within", "bounding_capsule", "triangle_capsules",
            "CAPSULE_PIECES", "BodySolid", "link_distances", "patient_clearances", "patient_clear"]
