@@ -29,7 +29,7 @@ overlap. This is the only module of errplan that imports coal or builds a ``Geom
   joints and objects as plain arrays), :meth:`ArmCollision.capsules` and :meth:`ArmCollision.pieces` (each
   mesh split into up to :data:`CAPSULE_PIECES` pieces of its triangles, each piece a coal mesh with a
   bounding capsule), :meth:`ArmCollision.piece_triangles` (the pieces' triangles, each with a capsule,
-  :func:`triangle_capsules`), :meth:`ArmCollision.surface_points`, :func:`held_shapes`, and
+  :func:`triangle_capsules`), :func:`held_shapes`, and
   :func:`first_within` (coal on the pairs of pieces the compiled phases leave undecided: a primitive's).
 
 Configurations are the arm's actuated-joint vectors ``(n,)`` (``UrdfArm``'s order); joints off the
@@ -298,7 +298,7 @@ class ArmCollision:
     def surface_points(self) -> tuple[np.ndarray, np.ndarray]:
         """Points on the objects, in each object's frame: ``(capsule (k,) int, points (k, 3))``, sorted by
         capsule (:meth:`capsules`): the vertices of each mesh piece's triangles (a primitive has none). Two
-        pieces lie no farther apart than any two of their points: the broad phase's upper bound."""
+        pieces lie no farther apart than any two of their points (an upper bound of their distance)."""
         pts = getattr(self, "_surface", None)
         if pts is None:
             self.capsules()
