@@ -14,9 +14,9 @@ import pytest
 from arms import ARMS
 from errplan import packages
 from errplan.kinematics.urdf import UrdfArm
-from errplan.kinematics.urdf.broadphase import CLEAR, UNDECIDED, UNREACHABLE, WITHIN, arm_motion, place_objects, \
-    segment_distance
-from errplan.kinematics.urdf.collision import ArmCollision, clearance_to_held, motion_samples
+from errplan.kinematics.urdf.broadphase import CLEAR, UNDECIDED, UNREACHABLE, WITHIN, arm_motion, piece_bound, \
+    place_objects, point_triangle, segment_distance, triangle_distance
+from errplan.kinematics.urdf.collision import ArmCollision, clearance_to_held, motion_samples, triangle_capsules
 from errplan.models import arm_model
 from errplan.planning.arm_checks import ArmChecks
 from test_plan_arms import CLEARANCE, api_setup, setup_doc
@@ -92,6 +92,101 @@ def test_segment_distance_against_dense_sampling():
         assert d <= brute + 1e-12 and brute <= d + step
 
 
+def _triangle_points(T, n=40):
+    """Points on the triangle T (3, 3): a barycentric grid of n + 1 steps a side (edges and corners included)."""
+    i, j = np.meshgrid(np.arange(n + 1), np.arange(n + 1), indexing="ij")
+    keep = i + j <= n
+    u, v = i[keep] / n, j[keep] / n
+    return T[0] + u[:, None] * (T[1] - T[0]) + v[:, None] * (T[2] - T[0])
+
+
+def test_triangle_distances_against_dense_sampling():
+    """point_triangle and triangle_distance against the distances of dense grids of points on the triangles
+    (never below the true distance, at most a grid cell above it); triangles that cross each other, meet at
+    a point or lie in one plane; long thin triangles like the UR5 meshes'."""
+    rng = np.random.default_rng(8)
+    for trial in range(50):
+        T = rng.normal(size=(3, 3)) * 0.05
+        U = rng.normal(size=(3, 3)) * 0.05 + rng.normal(size=3) * 0.04
+        if trial % 5 == 1:  # long and thin
+            T[2] = T[0] + 0.98 * (T[1] - T[0]) + 1e-3 * rng.normal(size=3)
+        if trial % 5 == 2:  # U pierces T: an edge of U through a point inside T
+            x = T[0] + 0.3 * (T[1] - T[0]) + 0.3 * (T[2] - T[0])
+            n = np.cross(T[1] - T[0], T[2] - T[0])
+            U[0], U[1] = x + 0.02 * n / np.linalg.norm(n), x - 0.03 * n / np.linalg.norm(n)
+        if trial % 5 == 3:  # coplanar
+            U = T[0] + rng.normal(size=(3, 2)) @ np.stack([T[1] - T[0], T[2] - T[0]]) * 0.8
+        X, Y = _triangle_points(T), _triangle_points(U)
+        cell = max(np.max(np.linalg.norm(np.diff(T[[0, 1, 2, 0]], axis=0), axis=1)),
+                   np.max(np.linalg.norm(np.diff(U[[0, 1, 2, 0]], axis=0), axis=1))) / 40
+        brute = np.min(np.linalg.norm(X[:, None] - Y[None], axis=-1))
+        d = triangle_distance(T, U)
+        assert d <= brute + 1e-12 and brute <= d + 2 * cell, (trial, d, brute)
+        if trial % 5 == 2:
+            assert d <= 1e-15  # 0 up to the rounding of the crossing point
+        for x in rng.normal(size=(3, 3)) * 0.05:
+            px = point_triangle(*x, U)
+            pb = np.min(np.linalg.norm(Y - x, axis=1))
+            assert px <= pb + 1e-12 and pb <= px + cell
+
+
+def test_triangle_capsules_hold_their_triangles():
+    rng = np.random.default_rng(4)
+    T = rng.normal(size=(200, 3, 3)) * 0.05
+    T[::3, 2] = T[::3, 0] + 0.9 * (T[::3, 1] - T[::3, 0])  # degenerate: flat on an edge
+    a, b, r = triangle_capsules(T)
+    for k in range(len(T)):
+        X = _triangle_points(T[k], 20)
+        ab = b[k] - a[k]
+        s = np.clip((X - a[k]) @ ab / max(ab @ ab, 1e-300), 0.0, 1.0)
+        assert np.linalg.norm(X - (a[k] + s[:, None] * ab), axis=1).max() <= r[k]
+
+
+def test_piece_distances_as_coal(checks):
+    """The narrow phase on two mesh pieces, at random placements of the moving arm near the held one, against
+    coal's exact distance between the same pieces: below the clearance (less 1 nm) it returns the distance of
+    two of their triangles (never below coal's), else a lower bound of min(distance, top); either way the
+    decision is coal's (many pairs within 10 mm of the clearance)."""
+    import coal
+
+    (chain, rmap, tree, held), (port, length, ref, step, c), objects = checks._kernel_args()
+    pieces = checks.geo.pieces()
+    rng = np.random.default_rng(21)
+    P = np.empty((len(tree.gparent), 4, 4))
+    seen = 0
+    for _ in range(40):
+        t = LO + rng.random(3) * (HI - LO)
+        q = checks.config(t)
+        if q is None:
+            continue
+        place_objects(tree, q, P)
+        near = []  # pairs of mesh pieces whose capsules come within 15 mm of the clearance
+        for k in range(len(tree.cap_r)):
+            g = int(np.searchsorted(tree.cap_start, k, side="right") - 1)
+            M = P[g]
+            wa, wb = M[:3, :3] @ tree.cap_a[k] + M[:3, 3], M[:3, :3] @ tree.cap_b[k] + M[:3, 3]
+            for u in range(len(held.cap_r)):
+                gap = segment_distance(*wa, *wb, *held.cap_a[u], *held.cap_b[u]) - tree.cap_r[k] - held.cap_r[u]
+                if gap < c + 0.015 and tree.tri_start[k] < tree.tri_start[k + 1] and held.tri_start[u] < held.tri_start[u + 1]:
+                    near.append((g, k, u, wa, wb))
+        for i in rng.permutation(len(near))[:12]:
+            g, k, u, wa, wb = near[i]
+            M = P[g]
+            hg, hT = objects[u]
+            T = coal.Transform3s(np.ascontiguousarray(M[:3, :3]), np.ascontiguousarray(M[:3, 3]))
+            exact = coal.distance(pieces[k], T, hg, hT, coal.DistanceRequest(), coal.DistanceResult())
+            for top in (c + 1e-9, 1.5 * c):  # a state's question, a motion's
+                d = piece_bound(tree, held, M, k, u, wa, wb, top, c - 1e-9)
+                if d < c - 1e-9:  # a witness: two triangles that close
+                    assert exact <= d + 1e-12
+                else:  # a lower bound of min(distance, top)
+                    assert d <= min(exact, top) + 1e-9
+                if abs(exact - c) > 1e-9:
+                    assert (d < c) == (exact < c), (d, exact)
+            seen += abs(exact - c) < 0.01
+    assert seen > 15
+
+
 def test_compiled_tips_and_samples_as_the_python_ones(checks):
     """The compiled configurations at the tip samples and the joint-space samples equal ArmChecks.motion_configs
     and motion_samples (same branch, same count) within the inverse kinematics' tolerance."""
@@ -111,7 +206,7 @@ def test_compiled_tips_and_samples_as_the_python_ones(checks):
         ref_S = motion_samples(checks.geo, Q, c)
         assert st == CLEAR and S.shape == ref_S.shape
         assert np.allclose(S, ref_S, rtol=0, atol=1e-8)
-    assert seen > 20
+    assert seen > 15
 
 
 @pytest.mark.slow
@@ -140,7 +235,8 @@ def test_state_decisions_as_the_python_check_and_coal_distance(checks):
 @pytest.mark.slow
 def test_motion_decisions_as_the_python_check(checks):
     """Random straight motions of up to 3 cm: the compiled motion check answers as the Python one (every
-    joint-space sample, coal's collision test); every broad-phase outcome is met."""
+    joint-space sample, coal's collision test); both outcomes of the compiled phases are met (the UR5's meshes
+    leave nothing to coal: UNDECIDED only for a primitive's piece)."""
     rng = np.random.default_rng(77)
     seen = set()
     (chain, rmap, tree, held), (port, length, ref, step, c), _ = checks._kernel_args()
@@ -153,7 +249,7 @@ def test_motion_decisions_as_the_python_check(checks):
         new = checks.motion_ok(*a, *b)
         assert new == checks.motion_ok_exact(*a, *b), (a.tolist(), b.tolist())
         answers.append(new)
-    assert {CLEAR, WITHIN, UNDECIDED} <= seen and 0.2 < np.mean(answers) < 0.9
+    assert {CLEAR, WITHIN} <= seen and 0.2 < np.mean(answers) < 0.9
 
 
 def test_checks_pickle_and_the_flag_selects_the_python_check(checks):

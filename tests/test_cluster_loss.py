@@ -6,10 +6,12 @@ dead). A worker plugin SIGKILLs its own process at a chosen transition: the shar
 the scatter, its copy fetched by the other worker, a tile starting, a tile finished. The n-th such event
 over the whole cluster is chosen through files created exclusively in ``tmp_path``, so exactly one
 worker dies, at the same point of every run. ``map_tasks`` directly, ``errplan fields --scheduler`` and
-a port_placement query (the tolerance queries share ``map_tasks``) end with the local run's answer.
+a port_placement, a triad_placement and a setup_placement query (the tolerance queries share ``map_tasks``)
+end with the local run's answer.
 """
 from __future__ import annotations
 
+import math
 import os
 import signal
 import subprocess
@@ -264,3 +266,69 @@ def test_port_placement_with_workers_killed_gives_the_local_answer(nanny_cluster
     assert [k.split("-")[1] for k in _kills(tmp_path)] == ["t0", "t1"]
     assert got.data["candidates"] == ref.data["candidates"]
     assert got.data["best"] == ref.data["best"]
+
+
+def _same_placement(a: dict, b: dict):
+    """Two triad or setup answers: the same best and ranked triads, scores and clearances bit for bit."""
+    for x, y in zip([a["best"]] + a["ranked"], [b["best"]] + b["ranked"], strict=True):
+        assert x["indices"] == y["indices"] and x["score"] == y["score"] and x["ports"] == y["ports"]
+        assert x.get("arm_clearance_min") == y.get("arm_clearance_min")
+    assert a["rejected"] == b["rejected"]
+
+
+def _killed_while_placing(cluster_, marks: Path, run):
+    """``run(scheduler=...)`` with one worker killed as the first data arrives on a worker (the first
+    scatter) and another as the first task starts."""
+    addr = cluster_.scheduler_address
+    got = _with_killer(addr, _Kill(marks, [("", "memory", 0), ("_run_remote-", "executing", 0)]),
+                       lambda: run(scheduler=addr))
+    assert [k.split("-")[1] for k in _kills(marks)] == ["t0", "t1"]
+    return got
+
+
+@pytest.mark.slow
+def test_triad_placement_with_workers_killed_gives_the_local_answer(nanny_cluster, tmp_path):
+    """``errplan tolerance --scheduler`` on a triad_placement query (the bundled abdomen triad, coarse):
+    workers killed during the scatter and as a task starts; the local run's triads."""
+    from conftest import to_toml
+    from test_setup import triad_doc
+
+    from errplan.api import load_setup
+    from errplan.tolerance.triad import triad_placement
+
+    doc = triad_doc()
+    doc["tolerance"][0].update(spacing=0.08, resolution=0.04)
+    path = tmp_path / "triad.toml"
+    path.write_text(to_toml(doc), encoding="utf-8")
+    st = load_setup(path)
+    (tol,) = st.triads
+    ref = triad_placement(st, tol, workers=1)
+    marks = tmp_path / "marks"
+    marks.mkdir()
+    got = _killed_while_placing(nanny_cluster, marks, lambda **k: triad_placement(st, tol, **k))
+    _same_placement(ref, got)
+
+
+@pytest.mark.slow
+def test_setup_placement_with_workers_killed_gives_the_local_answer(nanny_cluster, tmp_path):
+    """The setup search (``kind = "setup_placement"``, the bundled UR5 setup with the first base of each arm
+    and a coarse wall) under the same kills: the local run's setups."""
+    from conftest import to_toml
+    from test_setup_placement import setup_doc
+
+    from errplan.api import load_setup
+    from errplan.tolerance.setup import setup_placement
+
+    doc = setup_doc()
+    rpy = [-math.pi / 2, 0.0, 0.0]
+    doc["tolerance"][0].update(spacing=0.12, bases={"left": [{"position": [-0.30, 0.0, -0.05], "rpy": rpy}],
+                                                    "right": [{"position": [0.30, 0.0, 0.10], "rpy": rpy}]})
+    path = tmp_path / "setup.toml"
+    path.write_text(to_toml(doc), encoding="utf-8")
+    st = load_setup(path)
+    (tol,) = st.triads
+    ref = setup_placement(st, tol, workers=1)
+    marks = tmp_path / "marks"
+    marks.mkdir()
+    got = _killed_while_placing(nanny_cluster, marks, lambda **k: setup_placement(st, tol, **k))
+    _same_placement(ref, got)

@@ -37,13 +37,15 @@ The planner's hot path (:meth:`ArmChecks.point_ok`, :meth:`ArmChecks.motion_ok`;
 the six plain floats of a motion to one compiled call
 (:func:`~errplan.kinematics.urdf.broadphase.arm_motion`): the wrists on the shaft, the inverse kinematics
 at every tip sample (the same branch rules as :meth:`ArmChecks.motion_configs`), the joint-space samples,
-the links' placements and a conservative broad phase against the held arms (per object a bounding sphere,
-then the capsules of its mesh pieces; a pair farther apart than the clearance is clear, two surface
-points closer than it decide a violation; samples skipped as above). Only the pairs of mesh pieces it
-cannot decide go to coal (:func:`~errplan.kinematics.urdf.collision.first_within`): at a tip its collision
-test with the clearance as security margin; along a motion its exact distance, so that the later samples of
-the same two pieces are skipped while their link has moved less than that distance above the clearance. The
-answers are the Python check's (:meth:`ArmChecks.point_ok_exact`, :meth:`ArmChecks.motion_ok_exact`, kept
+the links' placements, a conservative broad phase against the held arms (per object a bounding sphere,
+then the capsules of its mesh pieces) and an exact narrow phase on the pairs of mesh pieces it leaves (the
+distance of their triangles, pruned by the triangles' capsules and by projections on separating lines);
+along a motion a pair of objects is looked at again only once its object may have moved as far as it was
+found above the clearance. Only the pairs a primitive's piece takes part in (or whose distance ties with the
+clearance within 1 nm) go to coal (:func:`~errplan.kinematics.urdf.collision.first_within`): at a tip its
+collision test with the clearance as security margin; along a motion its exact distance, so that the later
+samples of the same two pieces are skipped while their link has moved less than that distance above the
+clearance. The answers are the Python check's (:meth:`ArmChecks.point_ok_exact`, :meth:`ArmChecks.motion_ok_exact`, kept
 as the reference; tests/test_arm_broadphase.py compares them, and both with coal's distance); the
 reported clearances (:meth:`ArmChecks.path_clearance`, :meth:`ArmChecks.rest_clearance`) stay coal's exact
 distances computed as before.

@@ -1,25 +1,40 @@
 """The arm checks' compiled part: the moving arm at its tips (the wrist on the rigid shaft through the
-port, the chain's inverse kinematics), its links' placements, the joint-space samples of a motion and a
-conservative broad phase against arms held still (docs/physics.md, "Several instruments and the
-endoscope", "Arms outside"). Numba kernels on plain arrays; the exact distances stay coal's
-(:mod:`.collision`, which builds these arrays and asks coal about the pairs this part cannot decide).
+port, the chain's inverse kinematics), its links' placements, the joint-space samples of a motion, and a
+conservative broad phase and an exact narrow phase against arms held still (docs/physics.md, "Several
+instruments and the endoscope", "Arms outside"). Numba kernels on plain arrays (:mod:`.collision` builds
+them and asks coal about the few pairs this part leaves: a primitive's piece, or a tie with the clearance).
 
 * :class:`LinkTree`: the arm's joints and collision objects as fixed transforms (pinocchio's kinematic
-  tree with every joint off the actuated set at its held value), the objects' bounding spheres and
-  bounding capsules in their own frames, and the per-object motion bounds (``reach``);
-* :class:`HeldShapes`: the held arms' objects' bounding spheres and capsules in the world;
+  tree with every joint off the actuated set at its held value), the objects' bounding spheres, the
+  bounding capsules of their mesh pieces and the pieces' triangles (each with a capsule of its own) in
+  their own frames, and the per-object motion bounds (``reach``);
+* :class:`HeldShapes`: the same of the held arms' objects, in the world;
 * :func:`arm_motion`: for a straight tip motion ``a -> b`` (or one tip), the configurations at the tip
   samples (as :meth:`errplan.planning.arm_checks.ArmChecks.motion_configs` finds them), the joint-space
-  samples (:func:`.collision.motion_samples`), and per sample the pairs (moving object, held object)
-  whose bounding volumes come closer than the clearance. Every other pair of every sample is at least
-  that clearance apart: capsules and spheres hold their object (each capsule holds the vertices of its
-  triangles, so, being convex, the triangles), and the gap between two bounding volumes is a lower
-  bound of the distance of what they hold. Samples are skipped as
-  :func:`.collision.clear_along_held` skips them (the clearance is 1-Lipschitz in the links' motion).
+  samples (:func:`.collision.motion_samples`), and per sample and pair of objects (moving, held)
+  :func:`pair_bound`: the spheres' gap, the capsules' gaps of their pieces, and for two mesh pieces whose
+  capsules come within the clearance :func:`piece_bound`, the exact distance of their triangles
+  (:func:`triangle_distance`) where it matters. Coal's mesh query between two pieces (a collision test with
+  the clearance as security margin) is also a distance between their triangles (coal's meshes are
+  triangle soups), so the answers are coal's.
 
-Rounding: a pair counts as decided only when its bound exceeds the clearance by :data:`SLACK` (1 nm),
-far above the rounding of placements and distances (about 1e-15 m) and far below any figure of the
-model, so a pair the exact query would find within the clearance is never decided here.
+Pruning in the narrow phase, all conservative: a triangle whose capsule lies the clearance away from the
+other piece's capsule cannot come closer (each capsule holds its triangles); the vertices of the triangles
+left, projected on a line, bound the pieces' distance from below by the gap of their projections (every
+point of a triangle projects between its vertices; on the line between the pieces this is the distance of
+two convex pieces, so most pairs of the links' nearly convex pieces are decided by a few hundred dot
+products); a pair of triangles whose capsules (or projections on the line between their axes) lie farther
+apart than the smallest distance met so far cannot lower it. Three triangles of each side nearest the
+other are tried first, so that a pair within the clearance is usually met at once.
+
+Skipping along a motion is per pair of objects: the distance is 1-Lipschitz in the moving object's points,
+and :func:`object_travel` bounds how far they move, so a pair found ``e`` above the clearance is not looked
+at again until its object has moved ``e`` (:func:`arm_motion`).
+
+Rounding: a pair counts as decided clear only when its bound exceeds the clearance by :data:`SLACK` (1 nm),
+and within only when two of its triangles lie closer than the clearance less :data:`SLACK`, far above the
+rounding of placements and distances (about 1e-15 m) and far below any figure of the model; a distance
+within :data:`SLACK` of the clearance goes to coal.
 """
 from __future__ import annotations
 
@@ -52,8 +67,10 @@ class LinkTree(NamedTuple):
     ``radius`` (G,) bounding spheres in the object's frame. Capsules (C of them, several per object):
     ``cap_obj`` (C,) int64 their object, ``cap_a``, ``cap_b`` (C, 3) the ends of the axis segment in the
     object's frame, ``cap_r`` (C,) radii; ``cap_start`` (G + 1,) int64 the first capsule of each object
-    (capsules sorted by object). Surface points (for the upper bound): ``points`` (k, 3) in their object's
-    frame, ``point_start`` (C + 1,) int64 the first of each capsule's piece."""
+    (capsules sorted by object). Triangles (the narrow phase): ``tris`` (t, 3, 3) the vertices of every mesh
+    piece's triangles in their object's frame, sorted by capsule, ``tri_a``, ``tri_b`` (t, 3) and ``tri_r`` (t,)
+    a capsule holding each, ``tri_start`` (C + 1,) int64 the first of each capsule's piece (a primitive's piece has
+    none: its pairs go to coal)."""
 
     jparent: np.ndarray
     jconst: np.ndarray
@@ -70,15 +87,18 @@ class LinkTree(NamedTuple):
     cap_b: np.ndarray
     cap_r: np.ndarray
     cap_start: np.ndarray
-    points: np.ndarray
-    point_start: np.ndarray
+    tris: np.ndarray
+    tri_a: np.ndarray
+    tri_b: np.ndarray
+    tri_r: np.ndarray
+    tri_start: np.ndarray
 
 
 class HeldShapes(NamedTuple):
     """The held arms' objects (H of them, every held arm's in turn) in the world: ``center`` (H, 3),
     ``radius`` (H,) bounding spheres; capsules ``cap_a``, ``cap_b`` (C, 3), ``cap_r`` (C,), ``cap_start``
-    (H + 1,) int64, surface points ``points`` (k, 3) in the world, ``point_start`` (C + 1,) as in
-    :class:`LinkTree`."""
+    (H + 1,) int64, triangles ``tris`` (t, 3, 3), their capsules ``tri_a``, ``tri_b`` (t, 3), ``tri_r`` (t,) in the world and
+    ``tri_start`` (C + 1,) as in :class:`LinkTree`."""
 
     center: np.ndarray
     radius: np.ndarray
@@ -86,8 +106,11 @@ class HeldShapes(NamedTuple):
     cap_b: np.ndarray
     cap_r: np.ndarray
     cap_start: np.ndarray
-    points: np.ndarray
-    point_start: np.ndarray
+    tris: np.ndarray
+    tri_a: np.ndarray
+    tri_b: np.ndarray
+    tri_r: np.ndarray
+    tri_start: np.ndarray
 
 
 # ---------------------------------------------------------------------------- placements
@@ -140,6 +163,13 @@ def _apply(P, x):
 @njit(cache=True)
 def segment_distance(p0, p1, p2, q0, q1, q2, r0, r1, r2, s0, s1, s2):
     """Distance between the segments p -> q and r -> s (Ericson, "Real-Time Collision Detection", 5.1.9)."""
+    x0, x1, x2 = segment_gap(p0, p1, p2, q0, q1, q2, r0, r1, r2, s0, s1, s2)
+    return math.sqrt(x0 * x0 + x1 * x1 + x2 * x2)
+
+
+@njit(cache=True)
+def segment_gap(p0, p1, p2, q0, q1, q2, r0, r1, r2, s0, s1, s2):
+    """The vector from the closest point of the segment r -> s to the closest point of p -> q."""
     d10, d11, d12 = q0 - p0, q1 - p1, q2 - p2
     d20, d21, d22 = s0 - r0, s1 - r1, s2 - r2
     e0, e1, e2 = p0 - r0, p1 - r1, p2 - r2
@@ -172,84 +202,320 @@ def segment_distance(p0, p1, p2, q0, q1, q2, r0, r1, r2, s0, s1, s2):
     x0 = p0 + d10 * s - (r0 + d20 * t)
     x1 = p1 + d11 * s - (r1 + d21 * t)
     x2 = p2 + d12 * s - (r2 + d22 * t)
-    return math.sqrt(x0 * x0 + x1 * x1 + x2 * x2)
+    return x0, x1, x2
 
 
 @njit(cache=True)
-def sample_pairs(tree, held, P, c, cut, sample, rows, m):
-    """The broad phase at one sample (moving objects at world placements ``P`` (G, 4, 4)): per pair of
-    objects (moving, held) the spheres' gap, and where it is below ``cut`` the gaps of their capsules; the
-    capsule pairs below ``cut`` are appended to ``rows`` (grown as needed) from row ``m`` as ``(sample,
-    moving capsule, held capsule)``. Returns ``(d, within, rows, m)``: ``d`` the smallest lower bound over
-    the pairs of objects (each the larger of its spheres' and its capsules' gap), ``within`` whether two
-    surface points of an undecided pair lie closer than ``c`` (then the rows are incomplete)."""
-    G = P.shape[0]
-    H = held.radius.shape[0]
-    d = np.inf
-    for g in range(G):
-        c0, c1, c2 = _apply(P[g], tree.center[g])
-        rg = tree.radius[g]
-        k0, k1 = tree.cap_start[g], tree.cap_start[g + 1]
-        wa = np.empty((0, 3))
-        wb = np.empty((0, 3))
-        for h in range(H):
-            x0 = c0 - held.center[h, 0]
-            x1 = c1 - held.center[h, 1]
-            x2 = c2 - held.center[h, 2]
-            sg = math.sqrt(x0 * x0 + x1 * x1 + x2 * x2) - rg - held.radius[h]
-            if sg < cut:
-                if wa.shape[0] == 0:  # this object's capsules in the world, placed once
-                    wa = np.empty((k1 - k0, 3))
-                    wb = np.empty((k1 - k0, 3))
-                    for k in range(k0, k1):
-                        wa[k - k0, 0], wa[k - k0, 1], wa[k - k0, 2] = _apply(P[g], tree.cap_a[k])
-                        wb[k - k0, 0], wb[k - k0, 1], wb[k - k0, 2] = _apply(P[g], tree.cap_b[k])
-                cg = np.inf
-                for k in range(k0, k1):
-                    i = k - k0
-                    for u in range(held.cap_start[h], held.cap_start[h + 1]):
-                        dk = segment_distance(wa[i, 0], wa[i, 1], wa[i, 2], wb[i, 0], wb[i, 1], wb[i, 2],
-                                              held.cap_a[u, 0], held.cap_a[u, 1], held.cap_a[u, 2],
-                                              held.cap_b[u, 0], held.cap_b[u, 1], held.cap_b[u, 2])
-                        dk -= tree.cap_r[k] + held.cap_r[u]
-                        if dk < cg:
-                            cg = dk
-                        if dk < cut:
-                            if points_within(tree, held, P[g], k, u, c - SLACK):
-                                return dk, True, rows, m
-                            if m == rows.shape[0]:
-                                grown = np.empty((2 * m + 16, 3), np.int64)
-                                grown[:m] = rows[:m]
-                                rows = grown
-                            rows[m, 0] = sample
-                            rows[m, 1] = k
-                            rows[m, 2] = u
-                            m += 1
-                if cg > sg:
-                    sg = cg
-            if sg < d:
-                d = sg
-    return d, False, rows, m
+def point_triangle(x0, x1, x2, T):
+    """Distance from the point x to the triangle ``T`` (3, 3) (its rows the vertices): Ericson, "Real-Time
+    Collision Detection", 5.1.5, the closest point by the point's Voronoi region of the triangle."""
+    a0, a1, a2 = T[0, 0], T[0, 1], T[0, 2]
+    ab0, ab1, ab2 = T[1, 0] - a0, T[1, 1] - a1, T[1, 2] - a2
+    ac0, ac1, ac2 = T[2, 0] - a0, T[2, 1] - a1, T[2, 2] - a2
+    ap0, ap1, ap2 = x0 - a0, x1 - a1, x2 - a2
+    d1 = ab0 * ap0 + ab1 * ap1 + ab2 * ap2
+    d2 = ac0 * ap0 + ac1 * ap1 + ac2 * ap2
+    if d1 <= 0.0 and d2 <= 0.0:
+        y0, y1, y2 = a0, a1, a2
+    else:
+        bp0, bp1, bp2 = x0 - T[1, 0], x1 - T[1, 1], x2 - T[1, 2]
+        d3 = ab0 * bp0 + ab1 * bp1 + ab2 * bp2
+        d4 = ac0 * bp0 + ac1 * bp1 + ac2 * bp2
+        cp0, cp1, cp2 = x0 - T[2, 0], x1 - T[2, 1], x2 - T[2, 2]
+        d5 = ab0 * cp0 + ab1 * cp1 + ab2 * cp2
+        d6 = ac0 * cp0 + ac1 * cp1 + ac2 * cp2
+        vc = d1 * d4 - d3 * d2
+        vb = d5 * d2 - d1 * d6
+        va = d3 * d6 - d5 * d4
+        if d3 >= 0.0 and d4 <= d3:
+            y0, y1, y2 = T[1, 0], T[1, 1], T[1, 2]
+        elif d6 >= 0.0 and d5 <= d6:
+            y0, y1, y2 = T[2, 0], T[2, 1], T[2, 2]
+        elif vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
+            v = d1 / (d1 - d3)
+            y0, y1, y2 = a0 + v * ab0, a1 + v * ab1, a2 + v * ab2
+        elif vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
+            w = d2 / (d2 - d6)
+            y0, y1, y2 = a0 + w * ac0, a1 + w * ac1, a2 + w * ac2
+        elif va <= 0.0 and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0:
+            w = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+            y0 = T[1, 0] + w * (T[2, 0] - T[1, 0])
+            y1 = T[1, 1] + w * (T[2, 1] - T[1, 1])
+            y2 = T[1, 2] + w * (T[2, 2] - T[1, 2])
+        else:
+            den = va + vb + vc
+            if den > 0.0:
+                v = vb / den
+                w = vc / den
+            else:  # a degenerate triangle: its vertex a (the edges' regions above hold the rest)
+                v = 0.0
+                w = 0.0
+            y0, y1, y2 = a0 + ab0 * v + ac0 * w, a1 + ab1 * v + ac1 * w, a2 + ab2 * v + ac2 * w
+    e0, e1, e2 = x0 - y0, x1 - y1, x2 - y2
+    return math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
 
 
 @njit(cache=True)
-def points_within(tree, held, P, k, u, c):
-    """Whether a surface point of moving capsule ``k``'s piece (its object placed by ``P`` (4, 4)) lies closer
-    than ``c`` to one of held capsule ``u``'s: then the two pieces do (an upper bound of their distance)."""
-    k0, k1 = tree.point_start[k], tree.point_start[k + 1]
-    m0, m1 = held.point_start[u], held.point_start[u + 1]
-    if k0 == k1 or m0 == m1:
-        return False
-    c2 = c * c
+def _crossing(T, U, i, j):
+    """Where the edge ``T[i] -> T[j]`` crosses the plane of triangle ``U``, its distance to ``U`` (0 when the
+    edge passes through ``U``); inf when the edge lies on one side of the plane or in it."""
+    n0 = (U[1, 1] - U[0, 1]) * (U[2, 2] - U[0, 2]) - (U[1, 2] - U[0, 2]) * (U[2, 1] - U[0, 1])
+    n1 = (U[1, 2] - U[0, 2]) * (U[2, 0] - U[0, 0]) - (U[1, 0] - U[0, 0]) * (U[2, 2] - U[0, 2])
+    n2 = (U[1, 0] - U[0, 0]) * (U[2, 1] - U[0, 1]) - (U[1, 1] - U[0, 1]) * (U[2, 0] - U[0, 0])
+    dp = n0 * (T[i, 0] - U[0, 0]) + n1 * (T[i, 1] - U[0, 1]) + n2 * (T[i, 2] - U[0, 2])
+    dq = n0 * (T[j, 0] - U[0, 0]) + n1 * (T[j, 1] - U[0, 1]) + n2 * (T[j, 2] - U[0, 2])
+    if (dp > 0.0 and dq > 0.0) or (dp < 0.0 and dq < 0.0) or dp == dq:
+        return np.inf
+    s = dp / (dp - dq)
+    return point_triangle(T[i, 0] + s * (T[j, 0] - T[i, 0]), T[i, 1] + s * (T[j, 1] - T[i, 1]),
+                          T[i, 2] + s * (T[j, 2] - T[i, 2]), U)
+
+
+@njit(cache=True)
+def triangle_distance(T, U):
+    """Distance between the triangles ``T`` and ``U`` (3, 3) (rows the vertices), 0 where they meet. Two
+    triangles that do not meet have a closest pair with a vertex of one or on two edges (the 6 vertex-triangle
+    and 9 edge-edge distances); two that meet have an edge of one crossing the other (the crossing's point
+    is on both: distance 0). Every term is the distance of two points of the triangles, so none is below
+    the true distance, and the smallest is it."""
+    best = np.inf
+    for i in range(3):
+        d = point_triangle(T[i, 0], T[i, 1], T[i, 2], U)
+        if d < best:
+            best = d
+        d = point_triangle(U[i, 0], U[i, 1], U[i, 2], T)
+        if d < best:
+            best = d
+    for i in range(3):
+        i2 = (i + 1) % 3
+        for j in range(3):
+            j2 = (j + 1) % 3
+            d = segment_distance(T[i, 0], T[i, 1], T[i, 2], T[i2, 0], T[i2, 1], T[i2, 2],
+                                 U[j, 0], U[j, 1], U[j, 2], U[j2, 0], U[j2, 1], U[j2, 2])
+            if d < best:
+                best = d
+    if best > 0.0:
+        for i in range(3):
+            i2 = (i + 1) % 3
+            d = _crossing(T, U, i, i2)
+            if d < best:
+                best = d
+            d = _crossing(U, T, i, i2)
+            if d < best:
+                best = d
+    return best
+
+
+@njit(cache=True)
+def _separation(A, na, U, B, nb, n0, n1, n2):
+    """``min_j (U[B[j]] . n) - max_i (A[i] . n)`` over the vertices of the triangles ``A[:na]`` and ``U[B[:nb]]``,
+    ``n`` the unit vector along (n0, n1, n2) (A's side first): a lower bound of the distance of the two sets of
+    triangles (-inf when n is 0), padded for rounding."""
+    nn = math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+    if not nn > 0.0:
+        return -np.inf
+    n0, n1, n2 = n0 / nn, n1 / nn, n2 / nn
+    hi = -np.inf
+    for i in range(na):
+        for v in range(3):
+            x = A[i, v, 0] * n0 + A[i, v, 1] * n1 + A[i, v, 2] * n2
+            if x > hi:
+                hi = x
+    lo = np.inf
+    for jj in range(nb):
+        for v in range(3):
+            x = U[B[jj], v, 0] * n0 + U[B[jj], v, 1] * n1 + U[B[jj], v, 2] * n2
+            if x < lo:
+                lo = x
+    return (lo - hi) - 1e-12 * (abs(lo) + abs(hi) + 1.0)
+
+
+@njit(cache=True)
+def _pair_separation(T, U, n0, n1, n2):
+    """``min (U . n) - max (T . n)`` over the two triangles' vertices, ``n`` a unit vector: a lower bound of
+    their distance, padded for rounding."""
+    hi = -np.inf
+    lo = np.inf
+    for v in range(3):
+        x = T[v, 0] * n0 + T[v, 1] * n1 + T[v, 2] * n2
+        if x > hi:
+            hi = x
+        y = U[v, 0] * n0 + U[v, 1] * n1 + U[v, 2] * n2
+        if y < lo:
+            lo = y
+    return (lo - hi) - 1e-12 * (abs(lo) + abs(hi) + 1.0)
+
+
+@njit(cache=True)
+def piece_bound(tree, held, Pg, k, u, wa, wb, top, low):
+    """The distance between moving capsule ``k``'s piece (its object placed by ``Pg`` (4, 4); the capsule's axis
+    in the world ``wa -> wb``) and held capsule ``u``'s piece, both meshes, as far as a caller asking "closer
+    than ``low``?" needs it: a value below ``low`` is the distance of two of their triangles (so theirs is
+    below ``low`` too); any other value is a lower bound of ``min(distance, top)``, and exactly
+    ``min(distance, top)`` when below ``low + 2 SLACK``. Each triangle has a capsule of its own (its longest
+    edge, the radius the third vertex's distance from it: it holds the triangle); triangles whose capsules
+    lie ``top`` from the other piece's capsule cannot come closer; a separating line (module docstring)
+    showing at least ``low + 2 SLACK`` decides; else every pair of triangles, but those whose capsules (or
+    projections on the line between their axes) lie farther apart than the smallest distance found so far,
+    by :func:`triangle_distance`, stopping at the first below ``low``."""
+    t0, t1 = tree.tri_start[k], tree.tri_start[k + 1]
+    h0, h1 = held.tri_start[u], held.tri_start[u + 1]
+    rk, ru = tree.cap_r[k], held.cap_r[u]
+    ua0, ua1, ua2 = held.cap_a[u, 0], held.cap_a[u, 1], held.cap_a[u, 2]
+    ub0, ub1, ub2 = held.cap_b[u, 0], held.cap_b[u, 1], held.cap_b[u, 2]
+    A = np.empty((t1 - t0, 3, 3))
+    aa = np.empty((t1 - t0, 3))
+    ab = np.empty((t1 - t0, 3))
+    ar = np.empty(t1 - t0)
+    la = np.empty(t1 - t0)
+    lb = np.empty(h1 - h0)
+    na = 0
+    for t in range(t0, t1):
+        p0, p1, p2 = _apply(Pg, tree.tri_a[t])
+        q0, q1, q2 = _apply(Pg, tree.tri_b[t])
+        gap = segment_distance(p0, p1, p2, q0, q1, q2, ua0, ua1, ua2, ub0, ub1, ub2) - tree.tri_r[t] - ru
+        if gap >= top:
+            continue
+        la[na] = gap
+        for v in range(3):
+            A[na, v, 0], A[na, v, 1], A[na, v, 2] = _apply(Pg, tree.tris[t, v])
+        aa[na, 0], aa[na, 1], aa[na, 2] = p0, p1, p2
+        ab[na, 0], ab[na, 1], ab[na, 2] = q0, q1, q2
+        ar[na] = tree.tri_r[t]
+        na += 1
+    if na == 0:
+        return top
+    B = np.empty(h1 - h0, np.int64)
+    nb = 0
+    for t in range(h0, h1):
+        gap = segment_distance(held.tri_a[t, 0], held.tri_a[t, 1], held.tri_a[t, 2], held.tri_b[t, 0], held.tri_b[t, 1],
+                               held.tri_b[t, 2], wa[0], wa[1], wa[2], wb[0], wb[1], wb[2]) - held.tri_r[t] - rk
+        if gap < top:
+            B[nb] = t
+            lb[nb] = gap
+            nb += 1
+    if nb == 0:
+        return top
+    # a witness first: the few triangles of each side nearest the other side's capsule
+    oa = np.argsort(la[:na])
+    ob = np.argsort(lb[:nb])
+    wi, wj, wd = oa[0], B[ob[0]], np.inf
+    for ii in range(min(na, 3)):
+        for j0 in range(min(nb, 3)):
+            d = triangle_distance(A[oa[ii]], held.tris[B[ob[j0]]])
+            if d < low:
+                return d
+            if d < wd:
+                wi, wj, wd = oa[ii], B[ob[j0]], d
+    # separating directions: the survivors' vertices projected on a line; every point of a triangle lies
+    # between its vertices' projections, so the gap of the projections bounds the distance from below (exact
+    # for two convex pieces facing along that line, as the links' pieces mostly do). Tried: the line between
+    # the two capsules' axes at their closest points, the line between the survivors' centroids, the line
+    # between the axes of the nearest two triangles of the witness pass.
+    x0, x1, x2 = segment_gap(ua0, ua1, ua2, ub0, ub1, ub2, wa[0], wa[1], wa[2], wb[0], wb[1], wb[2])
+    sep = _separation(A, na, held.tris, B, nb, x0, x1, x2)
+    if sep < low + 2.0 * SLACK:
+        m0 = m1 = m2 = 0.0
+        for i in range(na):
+            for v in range(3):
+                m0 += A[i, v, 0]
+                m1 += A[i, v, 1]
+                m2 += A[i, v, 2]
+        n0 = n1 = n2 = 0.0
+        for jj in range(nb):
+            for v in range(3):
+                n0 += held.tris[B[jj], v, 0]
+                n1 += held.tris[B[jj], v, 1]
+                n2 += held.tris[B[jj], v, 2]
+        sep = max(sep, _separation(A, na, held.tris, B, nb, n0 / nb - m0 / na, n1 / nb - m1 / na, n2 / nb - m2 / na))
+    if sep < low + 2.0 * SLACK:  # the line between the axes of the nearest two triangles met above
+        x0, x1, x2 = segment_gap(held.tri_a[wj, 0], held.tri_a[wj, 1], held.tri_a[wj, 2], held.tri_b[wj, 0],
+                                 held.tri_b[wj, 1], held.tri_b[wj, 2], aa[wi, 0], aa[wi, 1], aa[wi, 2],
+                                 ab[wi, 0], ab[wi, 1], ab[wi, 2])
+        sep = max(sep, _separation(A, na, held.tris, B, nb, x0, x1, x2))
+    if sep >= low + 2.0 * SLACK:
+        return min(sep, top)
+    # every pair, nearest triangles first (a pair within the clearance is met early)
+    best = top
+    for ii in range(na):
+        i = oa[ii]
+        for j0 in range(nb):
+            jj = ob[j0]
+            j = B[jj]
+            y0, y1, y2 = segment_gap(held.tri_a[j, 0], held.tri_a[j, 1], held.tri_a[j, 2],
+                                     held.tri_b[j, 0], held.tri_b[j, 1], held.tri_b[j, 2],
+                                     aa[i, 0], aa[i, 1], aa[i, 2], ab[i, 0], ab[i, 1], ab[i, 2])
+            ny = math.sqrt(y0 * y0 + y1 * y1 + y2 * y2)
+            if ny - ar[i] - held.tri_r[j] >= best:
+                continue
+            if ny > 0.0 and _pair_separation(A[i], held.tris[j], y0 / ny, y1 / ny, y2 / ny) >= best:
+                continue
+            d = triangle_distance(A[i], held.tris[j])
+            if d < best:
+                best = d
+                if best < low:
+                    return best
+    return best
+
+
+@njit(cache=True)
+def pair_bound(tree, held, P, g, h, c, top, sample, rows, m, known, moved):
+    """The broad and narrow phases for moving object ``g`` (placed by ``P`` (G, 4, 4)) and held object ``h``:
+    ``(bound, within, rows, m)``. ``bound`` is a lower bound of their distance, at least ``min(distance,
+    top)`` where every piece pair is a pair of meshes (the larger of the spheres' gap and, per pair of pieces,
+    of the capsules' gap and :func:`piece_bound`); ``within`` True when two of their triangles lie closer than
+    ``c - SLACK`` (certainly within the clearance; the bound is then that distance). A pair of pieces that
+    cannot be decided here (a primitive's piece, whose solid coal measures, or a distance within
+    :data:`SLACK` of ``c``) is appended to ``rows`` as ``(sample, moving capsule, held capsule)`` (grown as
+    needed) for coal. ``known`` (moving capsules, held capsules): per pair of pieces, a lower bound of their
+    distance found before plus how far object ``g`` had moved then; ``moved``, how far it has moved now: a
+    pair with ``known - moved >= c + SLACK`` is clear without a look (the distance is 1-Lipschitz in g's
+    points), every other pair looked at updates it."""
+    cut = c + SLACK
+    c0, c1, c2 = _apply(P[g], tree.center[g])
+    x0 = c0 - held.center[h, 0]
+    x1 = c1 - held.center[h, 1]
+    x2 = c2 - held.center[h, 2]
+    sg = math.sqrt(x0 * x0 + x1 * x1 + x2 * x2) - tree.radius[g] - held.radius[h]
+    if sg >= top:
+        return sg, False, rows, m
+    k0, k1 = tree.cap_start[g], tree.cap_start[g + 1]
+    wa = np.empty(3)
+    wb = np.empty(3)
+    cg = np.inf
     for k in range(k0, k1):
-        x0, x1, x2 = _apply(P, tree.points[k])
-        for m in range(m0, m1):
-            y0 = x0 - held.points[m, 0]
-            y1 = x1 - held.points[m, 1]
-            y2 = x2 - held.points[m, 2]
-            if y0 * y0 + y1 * y1 + y2 * y2 < c2:
-                return True
-    return False
+        wa[0], wa[1], wa[2] = _apply(P[g], tree.cap_a[k])
+        wb[0], wb[1], wb[2] = _apply(P[g], tree.cap_b[k])
+        for u in range(held.cap_start[h], held.cap_start[h + 1]):
+            dk = known[k, u] - moved
+            if dk >= cut:
+                if dk < cg:
+                    cg = dk
+                continue
+            dk = segment_distance(wa[0], wa[1], wa[2], wb[0], wb[1], wb[2],
+                                  held.cap_a[u, 0], held.cap_a[u, 1], held.cap_a[u, 2],
+                                  held.cap_b[u, 0], held.cap_b[u, 1], held.cap_b[u, 2])
+            dk -= tree.cap_r[k] + held.cap_r[u]
+            if dk < top:
+                mesh = tree.tri_start[k + 1] > tree.tri_start[k] and held.tri_start[u + 1] > held.tri_start[u]
+                exact = piece_bound(tree, held, P[g], k, u, wa, wb, top, c - SLACK) if mesh else -np.inf
+                if exact < c - SLACK and mesh:
+                    return exact, True, rows, m
+                if exact > dk:
+                    dk = exact
+                if dk < cut:  # a primitive's piece, or a tie with the clearance
+                    if m == rows.shape[0]:
+                        grown = np.empty((2 * m + 16, 3), np.int64)
+                        grown[:m] = rows[:m]
+                        rows = grown
+                    rows[m, 0] = sample
+                    rows[m, 1] = k
+                    rows[m, 2] = u
+                    m += 1
+            known[k, u] = dk + moved
+            if dk < cg:
+                cg = dk
+    return max(sg, cg), False, rows, m
 
 
 # ---------------------------------------------------------------------------- the arm at its tips
@@ -369,16 +635,38 @@ def object_travel(reach, S):
 
 
 @njit(cache=True)
+def _nearest_first(gaps, cut):
+    """The indices of ``gaps`` below ``cut``, smallest first (ties in index order): an insertion sort, as
+    there are a few."""
+    idx = np.empty(gaps.shape[0], np.int64)
+    n = 0
+    for i in range(gaps.shape[0]):
+        if gaps[i] < cut:
+            j = n
+            while j > 0 and gaps[idx[j - 1]] > gaps[i]:
+                idx[j] = idx[j - 1]
+                j -= 1
+            idx[j] = i
+            n += 1
+    return idx[:n]
+
+
+@njit(cache=True)
 def arm_motion(chain, rmap, tree, held, a, b, port, L, ref, tip_step, c):
     """The moving arm's motion ``a -> b`` (a tip when ``a == b``) against the held arms (module docstring).
 
     Returns ``(status, S, P, pairs)``: ``status`` :data:`UNREACHABLE`, :data:`CLEAR` (every pair of every
-    sample decided at least ``c`` apart), :data:`WITHIN` (a pair of some sample certainly closer than ``c``:
-    two of its surface points are; the samples after it are not looked at) or :data:`UNDECIDED`; ``S`` (k, n) the joint-space samples; ``P``
+    sample decided at least ``c`` apart), :data:`WITHIN` (two triangles of some sample closer than ``c``: the
+    samples after it are not looked at) or :data:`UNDECIDED`; ``S`` (k, n) the joint-space samples; ``P``
     (k, G, 4, 4) the placements of the samples that were placed; ``pairs`` (m, 3) int64 rows (sample, moving
-    capsule, held capsule) whose capsules' gap is below ``c + SLACK``, sample by sample: the motion keeps
-    the clearance iff no two of those capsules' pieces (their triangles, or the primitive) are closer
-    than ``c``."""
+    capsule, held capsule) that only coal can decide (:func:`pair_bound`), sample by sample: the motion keeps
+    the clearance iff no two of those capsules' pieces are closer than ``c``.
+
+    Skipping, per pair of objects (moving g, held h): the bound of :func:`pair_bound` at sample s less how far
+    g's points may have moved since (:func:`object_travel`) is a lower bound of their distance at every later
+    sample (the distance is 1-Lipschitz in g's points); while it is at least the clearance the pair is not
+    looked at, and a sample none of whose pairs is looked at is not placed; the same per pair of their mesh
+    pieces inside :func:`pair_bound`."""
     n = chain.axis.shape[0]
     G = tree.gparent.shape[0]
     H = held.radius.shape[0]
@@ -387,26 +675,43 @@ def arm_motion(chain, rmap, tree, held, a, b, port, L, ref, tip_step, c):
         return UNREACHABLE, Q, np.empty((0, G, 4, 4)), np.empty((0, 3), np.int64)
     if Q.shape[0] == 1:
         S = Q
-        cum = np.zeros(1)
     else:
-        S, cum = joint_samples(tree.reach, Q, c)
+        S, _ = joint_samples(tree.reach, Q, c)
     k = S.shape[0]
     P = np.empty((k, G, 4, 4))
     if H == 0:
         return CLEAR, S, P, np.empty((0, 3), np.int64)
     cut = c + SLACK
+    travel = object_travel(tree.reach, S)
+    known = np.full((G, H), -np.inf)  # per pair: its bound plus its object's travel at the sample it was found
+    pieces = np.full((tree.cap_r.shape[0], held.cap_r.shape[0]), -np.inf)  # the same per pair of pieces
     rows = np.empty((16, 3), np.int64)
     m = 0
-    reach_to = -np.inf  # the largest d_i + cum_i - cut: every sample j with cum_j up to it is clear
+    order = np.arange(G * H)
     for i in range(k):
-        if cum[i] <= reach_to:
-            continue
-        place_objects(tree, S[i], P[i])
-        d, within, rows, m = sample_pairs(tree, held, P[i], c, cut, i, rows, m)
-        if within:
-            return WITHIN, S, P, np.empty((0, 3), np.int64)
-        if d >= cut and d + cum[i] - cut > reach_to:
-            reach_to = d + cum[i] - cut
+        placed = False
+        if k == 1:  # one state: the pairs of objects whose spheres come within the clearance, nearest first
+            # (a state within the clearance ends early; the other pairs are clear)
+            place_objects(tree, S[i], P[i])
+            placed = True
+            gaps = np.empty(G * H)
+            for g in range(G):
+                c0, c1, c2 = _apply(P[i, g], tree.center[g])
+                for h in range(H):
+                    x0, x1, x2 = c0 - held.center[h, 0], c1 - held.center[h, 1], c2 - held.center[h, 2]
+                    gaps[g * H + h] = math.sqrt(x0 * x0 + x1 * x1 + x2 * x2) - tree.radius[g] - held.radius[h]
+            order = _nearest_first(gaps, cut)
+        for gh in order:
+            g, h = gh // H, gh % H
+            if known[g, h] - travel[i, g] >= cut:
+                continue
+            if not placed:
+                place_objects(tree, S[i], P[i])
+                placed = True
+            d, within, rows, m = pair_bound(tree, held, P[i], g, h, c, cut, i, rows, m, pieces, travel[i, g])
+            if within:
+                return WITHIN, S, P, np.empty((0, 3), np.int64)
+            known[g, h] = d + travel[i, g]
     return (UNDECIDED if m else CLEAR), S, P, rows[:m]
 
 
@@ -415,5 +720,6 @@ def tree_arrays(tree: LinkTree) -> LinkTree:
     return LinkTree(*(np.ascontiguousarray(x, dtype=np.int64 if x.dtype.kind in "iu" else float) for x in tree))
 
 
-__all__ = ["LinkTree", "HeldShapes", "place_objects", "sample_pairs", "segment_distance", "tip_configs",
-           "joint_samples", "object_travel", "arm_motion", "SLACK", "UNREACHABLE", "CLEAR", "UNDECIDED", "WITHIN", "points_within"]
+__all__ = ["LinkTree", "HeldShapes", "place_objects", "pair_bound", "piece_bound", "triangle_distance", "point_triangle",
+           "segment_distance", "tip_configs", "joint_samples", "object_travel", "arm_motion", "SLACK", "UNREACHABLE",
+           "CLEAR", "UNDECIDED", "WITHIN"]

@@ -25,11 +25,12 @@ overlap. This is the only module of errplan that imports coal or builds a ``Geom
   :func:`link_distances`, :func:`patient_clearances` (exact distances of the links, not the instrument
   shaft, which passes through the port by design) and :func:`patient_clear` (coal's collision test with a
   security margin);
-* for the compiled broad phase (:mod:`.broadphase`): :meth:`ArmCollision.link_tree` (the arm's joints and
-  objects as plain arrays), :meth:`ArmCollision.capsules` and :meth:`ArmCollision.pieces` (each mesh split
-  into up to :data:`CAPSULE_PIECES` pieces of its triangles, each piece a coal mesh with a bounding
-  capsule), :meth:`ArmCollision.surface_points`, :func:`held_shapes`, and :func:`first_within` (coal's
-  collision test on the pairs of pieces the broad phase leaves undecided).
+* for the compiled broad and narrow phases (:mod:`.broadphase`): :meth:`ArmCollision.link_tree` (the arm's
+  joints and objects as plain arrays), :meth:`ArmCollision.capsules` and :meth:`ArmCollision.pieces` (each
+  mesh split into up to :data:`CAPSULE_PIECES` pieces of its triangles, each piece a coal mesh with a
+  bounding capsule), :meth:`ArmCollision.piece_triangles` (the pieces' triangles, each with a capsule,
+  :func:`triangle_capsules`), :func:`held_shapes`, and
+  :func:`first_within` (coal on the pairs of pieces the compiled phases leave undecided: a primitive's).
 
 Configurations are the arm's actuated-joint vectors ``(n,)`` (``UrdfArm``'s order); joints off the
 actuated set stay where the arm holds them (``fixed_joints``, else 0).
@@ -258,10 +259,11 @@ class ArmCollision:
         gplace = np.array([o.placement.homogeneous for o in objs]).reshape(len(objs), 4, 4)
         caps = self.capsules()
         start = np.searchsorted(caps[0], np.arange(len(objs) + 1), side="left").astype(np.int64)
-        pcap, pts = self.surface_points()
-        pstart = np.searchsorted(pcap, np.arange(len(caps[0]) + 1), side="left").astype(np.int64)
+        tcap, tris, ta, tb, tr = self.piece_triangles()
+        tstart = np.searchsorted(tcap, np.arange(len(caps[0]) + 1), side="left").astype(np.int64)
         self._tree = tree_arrays(LinkTree(jparent, jconst, jact, jkind, jaxis, gparent, gplace, self.base, self.reach,
-                                          self._center, self._radius, caps[1], caps[2], caps[3], start, pts, pstart))
+                                          self._center, self._radius, caps[1], caps[2], caps[3], start, tris, ta, tb,
+                                          tr, tstart))
         return self._tree
 
     def capsules(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -296,7 +298,7 @@ class ArmCollision:
     def surface_points(self) -> tuple[np.ndarray, np.ndarray]:
         """Points on the objects, in each object's frame: ``(capsule (k,) int, points (k, 3))``, sorted by
         capsule (:meth:`capsules`): the vertices of each mesh piece's triangles (a primitive has none). Two
-        pieces lie no farther apart than any two of their points: the broad phase's upper bound."""
+        pieces lie no farther apart than any two of their points (an upper bound of their distance)."""
         pts = getattr(self, "_surface", None)
         if pts is None:
             self.capsules()
@@ -310,6 +312,25 @@ class ArmCollision:
                 X.append(P)
             pts = self._surface = (np.array(cap, np.int64), np.concatenate(X) if X else np.zeros((0, 3)))
         return pts
+
+    def piece_triangles(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The triangles of every mesh piece (:meth:`pieces`), in its object's frame, for the compiled narrow
+        phase: ``(capsule (t,) int, vertices (t, 3, 3), a (t, 3), b (t, 3), radius (t,))``, sorted by capsule,
+        with a capsule holding each triangle (:func:`triangle_capsules`). A primitive's piece has none. Built
+        once."""
+        out = getattr(self, "_piece_tris", None)
+        if out is None:
+            self.capsules()
+            cap, T = [], []
+            for k, piece in enumerate(self._pieces):
+                V, F = _mesh_of(piece)
+                if F is None:
+                    continue
+                cap += [k] * len(F)
+                T.append(V[F])
+            T = np.concatenate(T) if T else np.zeros((0, 3, 3))
+            out = self._piece_tris = (np.array(cap, np.int64), T, *triangle_capsules(T))
+        return out
 
     # ------------------------------------------------------------------ triangle meshes (for drawing)
     def local_meshes(self) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -404,6 +425,22 @@ def bounding_capsule(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]
     L2 = float(ab @ ab)
     s = np.clip(((X - a) @ ab) / L2, 0.0, 1.0) if L2 > 0.0 else np.zeros(len(X))
     r = float(np.max(np.linalg.norm(X - (a + s[:, None] * ab), axis=1)))
+    return a, b, r * (1.0 + 1e-12) + 1e-12
+
+
+def triangle_capsules(T: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A capsule ``(a (t, 3), b (t, 3), r (t,))`` holding each triangle of ``T`` (t, 3, 3): its axis the
+    triangle's longest edge, its radius the third vertex's distance from that edge (so it holds the three
+    vertices and, being convex, the triangle), padded for rounding."""
+    T = np.asarray(T, float).reshape(-1, 3, 3)
+    E = np.stack([np.linalg.norm(T[:, (i + 1) % 3] - T[:, i], axis=1) for i in range(3)], axis=1)
+    i = np.argmax(E, axis=1) if len(T) else np.zeros(0, np.int64)
+    rows = np.arange(len(T))
+    a, b, x = T[rows, i], T[rows, (i + 1) % 3], T[rows, (i + 2) % 3]
+    ab = b - a
+    L2 = np.einsum("ij,ij->i", ab, ab)
+    s = np.clip(np.einsum("ij,ij->i", x - a, ab) / np.where(L2 > 0.0, L2, 1.0), 0.0, 1.0)
+    r = np.linalg.norm(x - (a + s[:, None] * ab), axis=1)
     return a, b, r * (1.0 + 1e-12) + 1e-12
 
 
@@ -672,10 +709,10 @@ def held_shapes(held: Sequence[HeldArm]) -> HeldShapes:
     spheres and capsules (:meth:`ArmCollision.capsules`) placed in the world (:class:`~.broadphase.HeldShapes`)."""
     centers, radius, A, B, R, start = [np.zeros((0, 3))], [np.zeros(0)], [np.zeros((0, 3))], [np.zeros((0, 3))], \
         [np.zeros(0)], [0]
-    X, pstart = [np.zeros((0, 3))], [0]
+    X, XA, XB, XR, tstart = [np.zeros((0, 3, 3))], [np.zeros((0, 3))], [np.zeros((0, 3))], [np.zeros(0)], [0]
     for h in held:
         obj, a, b, r = h.geo.capsules()
-        pcap, pts = h.geo.surface_points()
+        tcap, tris, ta, tb, tr = h.geo.piece_triangles()
         centers.append(h.centers)
         radius.append(h.geo._radius)
         for g in range(len(h.geo._geoms)):
@@ -686,11 +723,15 @@ def held_shapes(held: Sequence[HeldArm]) -> HeldShapes:
             R.append(r[sel])
             start.append(start[-1] + int(np.count_nonzero(sel)))
             for k in np.flatnonzero(sel):
-                X.append(pts[pcap == k] @ M[:3, :3].T + M[:3, 3])
-                pstart.append(pstart[-1] + int(np.count_nonzero(pcap == k)))
+                mine = tcap == k
+                X.append(tris[mine] @ M[:3, :3].T + M[:3, 3])
+                XA.append(ta[mine] @ M[:3, :3].T + M[:3, 3])
+                XB.append(tb[mine] @ M[:3, :3].T + M[:3, 3])
+                XR.append(tr[mine] * (1.0 + 1e-12) + 1e-12)  # the rounding of the placement
+                tstart.append(tstart[-1] + int(np.count_nonzero(mine)))
     arrays = [np.ascontiguousarray(np.concatenate(x), float) for x in (centers, radius, A, B, R)]
-    return HeldShapes(*arrays, np.array(start, np.int64), np.ascontiguousarray(np.concatenate(X), float),
-                      np.array(pstart, np.int64))
+    tri = [np.ascontiguousarray(np.concatenate(x), float) for x in (X, XA, XB, XR)]
+    return HeldShapes(*arrays, np.array(start, np.int64), *tri, np.array(tstart, np.int64))
 
 
 def held_objects(held: Sequence[HeldArm]) -> list:
@@ -986,5 +1027,5 @@ def patient_clear(geo: ArmCollision, qs, body: BodySolid, clearance: float) -> n
 
 __all__ = ["ArmCollision", "Closest", "arm_clearance", "clearances", "clear_of", "closest_pair", "min_clearance_along",
            "clear_along", "motion_samples", "arm_at_tip", "HeldArm", "clearance_to_held", "within_held", "clear_along_held",
-           "min_clearance_along_held", "held_shapes", "held_objects", "first_within", "bounding_capsule",
+           "min_clearance_along_held", "held_shapes", "held_objects", "first_within", "bounding_capsule", "triangle_capsules",
            "CAPSULE_PIECES", "BodySolid", "link_distances", "patient_clearances", "patient_clear"]
