@@ -121,7 +121,7 @@ def bare_cluster():
         procs = [_dask_worker(c.scheduler_address) for _ in range(2)]
         try:
             with distributed.Client(c.scheduler_address) as client:
-                client.wait_for_workers(2, timeout=60)
+                client.wait_for_workers(2, timeout=300)
             yield c
         finally:
             for p in procs:
@@ -133,7 +133,7 @@ def _with_killer(address: str, plugin, run):
     """``run()`` with ``plugin`` on every worker (and every worker that starts meanwhile). The client that
     installs it is closed before the run: errplan's own is the only one while it runs, as in use."""
     with distributed.Client(address) as client:
-        client.wait_for_workers(2, timeout=120)  # a nanny restarts a worker killed by the test before
+        client.wait_for_workers(2, timeout=600)  # a nanny restarts a worker killed by the test before (slowly on a busy machine)
         client.register_plugin(plugin, name="errplan-kill")
     try:
         return run()
