@@ -317,6 +317,33 @@ def test_backlash_found_within_a_quarter():
 
 
 # ----------------------------------------------------------------------------- the empirical term
+def test_the_empirical_fit_finds_a_sparse_term_and_leaves_noise_alone():
+    """A residual made of three basis terms and a constant plus noise, in runs: scikit-learn's lasso
+    path with grouped CV keeps exactly those terms, and their coefficients are numpy's least squares on
+    the true support (an independent solve); a noise-only residual gets no term and is history-dependent."""
+    from errplan.calibration.empirical import basis, fit_empirical
+
+    rng = np.random.default_rng(0)
+    n, run = 1200, np.repeat(np.arange(12), 100)
+    x = rng.uniform(-0.05, 0.05, (n, 3)) + [0.0, 0.0, 0.3]
+    q = rng.uniform(-1.0, 1.0, (n, 3))
+    z = (x - x.mean(0)) / ((x.max(0) - x.min(0)) / 2)
+    r = np.stack([4e-4 * z[:, 0] ** 2 - 2e-4 * np.sin(q[:, 1]), 3e-4 * z[:, 1] * z[:, 2], np.full(n, 1e-4)], 1)
+    r = r + rng.normal(0, 5e-5, r.shape)
+    out, predict = fit_empirical(x, q, r, run, seed=0)
+    names = [t["name"] for t in out["terms"]]
+    assert sorted(names) == sorted(["1", "x'*x'", "y'*z'", "sin(q2)"]) and out["degree"] == 2
+    F, all_names = basis(x, q, x.mean(0), (x.max(0) - x.min(0)) / 2, 2)
+    cols = [all_names.index(nm) for nm in names]
+    want = np.linalg.lstsq(F[:, cols], r, rcond=None)[0]
+    got = np.array([t["coefficient"] for t in out["terms"]])
+    assert np.allclose(got, want, rtol=1e-9, atol=1e-12)
+    assert np.allclose(predict(x, q), F[:, cols] @ want, rtol=1e-9, atol=1e-12)
+    assert out["held_out_rms_after"] < 0.35 * out["held_out_rms_before"] and not out["history_dependent"]
+    noise, _ = fit_empirical(x, q, rng.normal(0, 5e-5, r.shape), run, seed=0)
+    assert noise["terms"] == [] and noise["history_dependent"]
+
+
 @pytest.mark.slow
 def test_a_smooth_tracker_distortion_is_not_explained_and_the_empirical_term_halves_the_error():
     """A cubic distortion of the tracker's space is in no catalogue: not explained; the empirical term
