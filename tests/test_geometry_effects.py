@@ -397,6 +397,29 @@ def _ur5_longer_upper_arm(tmp: Path, extra: float) -> Path:
     return path
 
 
+def test_ur5_joint_geometry_and_its_corrected_urdf_match_pinocchio(tmp_path):
+    """example-robot-data's UR5 names its joints again inside <transmission> elements (no origin):
+    the origins are the joints' own. The perturbed chain equals pinocchio's reading of the corrected
+    URDF, and a pure 3 mm lengthening of the upper arm (dz_3) is the hand-edited URDF."""
+    sc = load_scenario(UR5)
+    r = sc.robot
+    load = lambda p: UrdfArm.load(p, r.joints, r.wrist, base_position=r.base_position, base_rpy=r.base_rpy,  # noqa: E731
+                                  joint_limits=r.joint_limits, coupled_limits=r.coupled_limits or ())
+    declared = truth_plant(sc, noise=False)
+    rng = np.random.default_rng(7)
+    lim = np.asarray(declared.true_arm.limits)
+    Q = lim[:, 0] + rng.random((40, 3)) * (lim[:, 1] - lim[:, 0])
+    names = make_effect("joint_geometry", dim=3, n_joints=3).params
+    g = np.zeros(18)
+    g[names.index("dz_3")] = 0.003
+    hand = load(_ur5_longer_upper_arm(tmp_path, 0.003))
+    assert np.max(np.abs(declared.with_(joint_geometry=tuple(g)).wrist(Q) - hand.forward(Q))) < 1e-12
+    g = rng.normal(size=18) * np.tile([2e-3, 2e-3, 2e-3, 1e-2, 1e-2, 1e-2], 3)
+    text = Path(str(r.urdf)).read_text()
+    (tmp_path / "c.urdf").write_text(corrected_urdf_text(text, r.joints, g))
+    assert np.max(np.abs(declared.with_(joint_geometry=tuple(g)).wrist(Q) - load(tmp_path / "c.urdf").forward(Q))) < 1e-10
+
+
 @pytest.mark.slow
 def test_a_longer_upper_arm_on_a_ur5_bench_made_by_pinocchio(tmp_path):
     """The bench's arm is pinocchio's reading of example-robot-data's UR5 URDF with the upper arm 3 mm
@@ -409,8 +432,8 @@ def test_a_longer_upper_arm_on_a_ur5_bench_made_by_pinocchio(tmp_path):
     arm = UrdfArm.load(_ur5_longer_upper_arm(tmp_path, 0.003), r.joints, r.wrist, base_position=r.base_position,
                        base_rpy=r.base_rpy, joint_limits=r.joint_limits, coupled_limits=r.coupled_limits or ())
     plant = Plant(arm, sc.instrument.length, tuple(sc.port.position), tracker_sigma=sc.sensors.tracker_sigma)
-    data = run_experiment(sc, seed=61, n_starts=3, plant=plant).data
-    val = run_experiment(sc, seed=62, n_starts=2, plant=plant).data
+    data = run_experiment(sc, seed=61, n_starts=2, plant=plant).data
+    val = run_experiment(sc, seed=62, n_starts=1, plant=plant).data
     rep_scenario[0] = sc
     rep = calibrate(sc, data, validate=val, seed=0)
     _check_geometric(rep, "joint_geometry", plant, val)
@@ -423,6 +446,9 @@ def test_a_longer_upper_arm_on_a_ur5_bench_made_by_pinocchio(tmp_path):
     for path, t in extra.items():
         Path(path).write_text(t)
     out.write_text(text)
-    fixed = truth_plant(load_scenario(out), noise=False)
+    assert tomllib.loads(text)["robot"]["urdf"] == "fixed.urdf" and "joint_geometry" not in tomllib.loads(text).get(
+        "effects", {})
+    fixed = UrdfArm.load(out.with_suffix(".urdf"), r.joints, r.wrist, base_position=r.base_position,
+                         base_rpy=r.base_rpy, joint_limits=r.joint_limits, coupled_limits=r.coupled_limits or ())
     q = val.q[::20]
-    assert np.max(np.abs(fixed.wrist(q) - arm.forward(q))) < 2e-5
+    assert np.max(np.abs(fixed.forward(q) - arm.forward(q))) < 2e-5
