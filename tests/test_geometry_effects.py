@@ -303,6 +303,23 @@ def test_backlash_in_the_bench_is_the_fit_model():
     assert np.max(np.abs(predict_tracked(declared_plant(sc), d.q, u, d.run) - d.tip)) > 1e-4
 
 
+def test_the_trajectory_replay_carries_backlash_and_the_tracker_registration():
+    """The batched controller replay (trajectory_rms_*) on a plant with play and a rotated tracker is
+    the noise-free bench step for step (errplan.simulation's loop); without the play it is not."""
+    from errplan.calibration import declared_plant, motion_model, replay
+    from errplan.experiment import bench_controller
+
+    sc = load_scenario(PORT)
+    eff = {"backlash": {"b1": 0.0015, "b2": 0.001}, "tracker_registration": {"rx": 0.01, "by": 0.001}}
+    truth = truth_plant(sc.with_(effects=eff), noise=False)
+    data = run_experiment(sc, seed=1, n_starts=2, plant=truth).data
+    plant = declared_plant(sc).with_(backlash=(0.0015, 0.001), tracker_rotation=(0.01,), tracker_offset=(0.001, 0.0))
+    pred, alive = replay(data, plant, bench_controller(sc), motion_model(sc))
+    assert np.all(alive) and np.max(np.abs(pred - data.tip)) < 1e-9
+    pred0, _ = replay(data, plant.with_(backlash=(0.0, 0.0)), bench_controller(sc), motion_model(sc))
+    assert np.max(np.abs(pred0 - data.tip)) > 1e-4
+
+
 @pytest.mark.slow
 def test_backlash_found_within_a_quarter():
     sc = load_scenario(PORT)
