@@ -387,6 +387,7 @@ def test_a_smooth_tracker_distortion_is_not_explained_and_the_empirical_term_hal
     rep = calibrate(sc, data, validate=val, seed=0)
     assert not rep.explained and rep.empirical is not None and not rep.empirical["history_dependent"]
     assert rep.to_json()["explained"] is False and rep.to_json()["empirical"]["terms"]
+    assert rep.to_json()["empirical"]["in_exported_scenario"] is False and "--predictions" in rep.text()
     u = val.commanded_directions(motion_model(sc))
     true = plant.tracked(plant.tip(val.q, u))
     dec = declared_plant(sc)

@@ -124,6 +124,11 @@ def _calibrate(sc, data: MeasuredData, *, validate, seed, folds, progress, effec
 
         empirical, emp_predict = fit_empirical(predict_tracked(after, data.q, u, data.run), data.q, r1, data.run,
                                                folds=max(2, folds), seed=seed)
+        # the scenario format has no key for it (a correction of what the tracker reads, centred and
+        # scaled on these rows, not a property of the robot): --predictions carries it, the export not
+        empirical["in_exported_scenario"] = False
+        empirical["export_note"] = ("not in the exported scenario: the scenario format has no key for an empirical "
+                                    "correction of the tracked tip; --predictions includes it")
 
     # before / after errors
     tol = arrival_tolerance(nf.sigma)
