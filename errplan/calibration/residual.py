@@ -205,8 +205,7 @@ def replay(data: MeasuredData, plant, ctrl, model=None) -> tuple[np.ndarray, np.
     play = np.abs(np.asarray(getattr(plant, "backlash", ()) or np.zeros(q.shape[1]), float))
     theta = q.copy()
     for t in range(T):
-        if play.any():
-            theta = np.minimum(np.maximum(theta, q - play), q + play)
+        theta = np.minimum(np.maximum(theta, q - play), q + play) if play.any() else q
         with np.errstate(invalid="ignore", divide="ignore"):
             tr = plant.tracked(plant.tip(theta, u))  # the tracker's registration too, not only its offset
         tracked = np.where(alive[:, None], tr, tracked)
