@@ -269,6 +269,23 @@ def test_instrument_length_and_tracker_registration_found(spatial):
         _check_geometric(rep, group, plant, val)
 
 
+@pytest.mark.slow
+def test_geometry_and_a_physical_effect_together_are_both_found():
+    """Links 3 mm longer / 2 mm shorter and a gravity sag: the best geometric group with each physical
+    effect is a candidate; link_length + gravity_sag is selected, explained, each parameter within
+    four stated sigmas of the truth."""
+    sc = load_scenario(PORT)
+    eff = {"link_length": {"dl1": 0.003, "dl2": -0.002}, "gravity_sag": {"c1": 0.004, "c2": 0.002, "c3": 0.003}}
+    data = run_experiment(sc.with_(effects=eff), seed=71, n_starts=5).data
+    val = run_experiment(sc.with_(effects=eff), seed=72, n_starts=3).data
+    rep = calibrate(sc, data, validate=val, seed=0)
+    assert sorted(rep.selected) == ["gravity_sag", "link_length"] and rep.explained
+    for e, ps in eff.items():
+        for p, v in ps.items():
+            assert abs(rep.parameters[e][p] - v) < 4 * rep.uncertainty[e][p], (e, p)
+    assert rep.validation_errors.trajectory_after < 0.1 * rep.validation_errors.trajectory_before
+
+
 # ----------------------------------------------------------------------------- backlash
 def test_backlash_angles_match_a_row_by_row_loop():
     from errplan.effects import backlash_angles

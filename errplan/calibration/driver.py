@@ -107,6 +107,16 @@ def _calibrate(sc, data: MeasuredData, *, validate, seed, folds, progress, effec
                 key = tuple(x for x in names if x in bp.effects or x == e)
                 if fits(key):
                     cands[key] = fit(key)
+    # geometry plus physics: the best geometric group (when it beats "none") with each physical effect;
+    # a real robot's geometry is off and it sags, and neither alone predicts the runs
+    singles = [(g.name,) for g in geo if g.qr_identify and (g.name,) in cands and cands[(g.name,)].selectable]
+    if singles:
+        bg = min(singles, key=lambda k: cands[k].bic)
+        if cands[bg].bic < cands[()].bic:
+            for e in names:
+                key = bg + (e,)
+                if fits(key):
+                    cands[key] = fit(key)
     prog(0.85, "selection")
     chosen = select(cands)
     chosen.selected = True
