@@ -116,7 +116,12 @@ def _calibrate(sc, data: MeasuredData, *, validate, seed, folds, progress, effec
             for e in names:
                 key = bg + (e,)
                 if fits(key):
-                    cands[key] = fit(key)
+                    c = cands[key] = fit(key)
+                    if c.model.n_free <= cands[bg].model.n_free:
+                        # QR held as many of the group's parameters as the effect brought (a joint offset
+                        # is a joint origin's turn about its axis): the same model, reparametrised
+                        c.selectable = c.weak = False
+                        c.note = f"the same model as {bg[0]}: QR holds as many of its parameters as {e} adds"
     prog(0.85, "selection")
     chosen = select(cands)
     chosen.selected = True
