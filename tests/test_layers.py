@@ -32,7 +32,7 @@ LAYERS = {
     "cli": 12, "__main__": 12, "": 12,  # "": the package's own __init__ (its API names load lazily)
 }
 # third-party libraries that must each be imported by one module only (the brief's "behind one module")
-BEHIND_ONE = ("rerun", "ompl", "casadi", "dask", "distributed", "trimesh", "fcl", "coal")
+BEHIND_ONE = ("rerun", "ompl", "casadi", "dask", "distributed", "trimesh", "fcl", "coal", "sklearn")
 
 
 def _modules() -> dict[str, Path]:

@@ -79,10 +79,20 @@ RIDGE = 1e-9
 
 
 # ----------------------------------------------------------------------------- information
-def catalogue_model(sc) -> EffectModel:
-    """Every catalogue effect of the scenario's dimension, in one model (nothing fitted; gravity sag
-    left out on a URDF without inertial data, its identically zero joints fixed)."""
-    return EffectModel(catalogue(sc, skip_without_gravity=True))
+def catalogue_model(sc, effects=None) -> EffectModel:
+    """Every catalogue effect of the scenario's dimension (or the named ``effects``: physical, geometric
+    or ``backlash``), in one model (nothing fitted; gravity sag left out on a URDF without inertial
+    data, its identically zero joints fixed)."""
+    if effects is None:
+        return EffectModel(catalogue(sc, skip_without_gravity=True))
+    from ..effects import EFFECTS, geometry_names
+
+    allowed = [n for n in EFFECTS if n not in ("link_length", "joint_geometry")] + geometry_names(sc.dim)
+    bad = [e for e in effects if e not in allowed]
+    if bad or not effects or len(set(effects)) != len(effects):
+        raise ErrplanError(f"--effects {','.join(effects)}: expected distinct effects of docs/physics.md for this "
+                           f"scenario: {', '.join(dict.fromkeys(allowed))}")
+    return EffectModel(catalogue(sc, list(effects)))
 
 
 def row_jacobian(sc, data: MeasuredData, model: EffectModel | None = None) -> np.ndarray:
@@ -95,8 +105,18 @@ def row_jacobian(sc, data: MeasuredData, model: EffectModel | None = None) -> np
     model = catalogue_model(sc) if model is None else model
     base = declared_plant(sc)
     u = data.commanded_directions(motion_model(sc))
-    f = model._residual_fn(data.q, u, data.tip, base)
-    J = -model._jac(f, np.zeros(model.n_free))              # f = tracked - predicted
+    f = model._residual_fn(data.q, u, data.tip, base, data.run)
+    z0 = np.zeros(model.n_free)
+    J = -model._jac(f, z0)              # f = tracked - predicted
+    # a history effect (backlash: play of half-width |b|) is even in its parameter, so its central
+    # difference at 0 is 0; its sensitivity is the one-sided one, the tip's lag under a small play
+    hist = np.array([getattr(e, "history", False) for e in model.effects for _ in e.params], bool)[model.free]
+    if hist.any():
+        f0 = f(z0)
+        for j in np.flatnonzero(hist):
+            dz = np.zeros_like(z0)
+            dz[j] = model.fd_step
+            J[:, j] = -(f(dz) - f0) / model.fd_step
     return J.reshape(data.rows, -1, model.n_free)
 
 
@@ -564,9 +584,17 @@ class Design:
         for name, b in ((self.default_label, self.default), (label, self.designed)):
             c, la, lb = b.largest_correlation()
             rows.append([name, b.runs, b.rows, f"{c:.4f}", f"{la} / {lb}", b.condition(), b.criterion("D")])
+        what = (f"{self.default.p} parameters of {', '.join(self.meta['effects'])}" if self.meta.get("effects")
+                else f"all {self.default.p} catalogue parameters")
         out = [format_table(["bench", "runs", "rows", "largest corr", "between", "cond", "log det M"], rows,
-                            f"experiment design for {self.scenario}: all {self.default.p} catalogue parameters, "
-                            f"{self.candidates} candidate runs")]
+                            f"experiment design for {self.scenario}: {what}, {self.candidates} candidate runs")]
+        if self.meta.get("rank"):
+            rk = self.meta["rank"]
+            held = self.meta.get("not_identifiable_by_any_run") or []
+            out.append(f"identifiable parameters (QR rank of the rows' regressor): default bench {rk['default']} of "
+                       f"{self.meta['parameters']}, designed {rk['designed']} of {self.meta['parameters']}"
+                       + (f"; no candidate run can identify {', '.join(held)} (held at zero, as calibrate does)"
+                          if held else ""))
         prow = []
         for a, b, c0, c1 in sorted(self.pairs(), key=lambda t: -t[2]):
             flag = "confused" if c0 > CONFUSED else ""
@@ -589,8 +617,10 @@ class Design:
 def _si(v: float, label: str) -> str:
     if not math.isfinite(v):
         return "inf"
-    unit = "1/m^2" if label.startswith("shaft_flexion") else ("mrad" if label.split(".")[1].startswith(("dq", "c"))
-                                                              else "mm")
+    eff, par = label.split(".", 1)
+    angle = (par.startswith(("dq", "c")) or eff == "backlash"
+             or (eff in ("joint_geometry", "tracker_registration") and par.startswith("r")))
+    unit = "1/m^2" if eff == "shaft_flexion" else ("mrad" if angle else "mm")
     return f"{v:.4g} {unit}" if unit == "1/m^2" else f"{v * 1e3:.4g} {unit}"
 
 
@@ -606,7 +636,7 @@ def design_experiment(sc, n_runs: int | None = None, **kw) -> Design:
 def _design_experiment(sc, n_runs: int | None = None, *, max_rows: int | None = None, criterion: str = "G",
                       separate: float | None = SEPARATE, seed: int = 0, n_starts: int | None = None,
                       max_steps: int | None = None, dwell: int | None = None, spacing: float | None = None,
-                      progress=None) -> Design:
+                      effects=None, progress=None) -> Design:
     """Choose ``n_runs`` bench runs (default: as many as the row budget holds) that maximise the
     :class:`Objective` (``criterion`` of the catalogue's information, every pair of effects kept
     below the cross correlation ``separate``; None: no separation constraint) with at most
@@ -623,15 +653,13 @@ def _design_experiment(sc, n_runs: int | None = None, *, max_rows: int | None = 
         raise ErrplanError(f"separation target {separate!r}: expected a correlation between 0 and 1")
     prog = progress or (lambda f, m="": None)
     t0 = time.perf_counter()
-    model = catalogue_model(sc)
+    model = catalogue_model(sc, effects)
     # the default bench
     S = choose_starts(sc, DEFAULT_STARTS if n_starts is None else n_starts)
     offs = target_offsets(dim=sc.dim)
     default_runs = np.stack([np.repeat(S, len(offs), axis=0), (S[:, None] + offs[None]).reshape(-1, sc.dim)], axis=1)
     d0, _ = predict_runs(sc, default_runs, seed=seed, max_steps=max_steps, dwell=dwell)
-    info0 = bench_info(sc, d0, model)
     n_runs = None if n_runs is None else int(n_runs)
-    max_rows = info0.rows if max_rows is None else (None if max_rows == 0 else int(max_rows))
     prog(0.1, "default bench")
     cand = candidate_runs(sc, spacing=spacing, seed=seed)
     prog(0.2, f"{len(cand)} candidate runs")
@@ -641,6 +669,18 @@ def _design_experiment(sc, n_runs: int | None = None, *, max_rows: int | None = 
     good = arrived(data, max(5e-4, 3 * sc.sensors.tracker_sigma))
     data = data.subset(np.flatnonzero(good))
     cand = cand[kept[good]]
+    structural: list[str] = []
+    if model.qr_identify:
+        # a geometric group: the parameters no run of the whole candidate set can see (a translation
+        # along a revolute axis, two that show the same) are held, as calibrate's QR holds them;
+        # the design makes the rest, the base parameters, identifiable
+        from .residual import declared_plant, motion_model
+
+        model.identify(data.q, data.commanded_directions(motion_model(sc)), data.tip, declared_plant(sc),
+                       run=data.run)
+        structural = model.held_labels
+    info0 = bench_info(sc, d0, model)
+    max_rows = info0.rows if max_rows is None else (None if max_rows == 0 else int(max_rows))
     prog(0.4, "candidate rows")
     blocks = run_blocks(row_jacobian(sc, data, model), data)
     rows = data.lengths
@@ -652,5 +692,26 @@ def _design_experiment(sc, n_runs: int | None = None, *, max_rows: int | None = 
     prog(0.95, "selection")
     M = blocks[chosen].sum(axis=0)
     info1 = _info(sc, model, M, int(rows[chosen].sum()), len(chosen))
+    meta = {"max_rows": max_rows, "seed": seed, "separate": separate}
+    if effects is not None:
+        meta.update(effects=list(effects), not_identifiable_by_any_run=structural,
+                    rank={"default": rank(sc, d0, model), "designed": None})
+        d1, _ = predict_runs(sc, cand[chosen], seed=seed, max_steps=max_steps, dwell=dwell)
+        meta["rank"]["designed"] = rank(sc, d1, model)
+        meta["parameters"] = model.n_free
     return Design(sc.name, criterion, cand[chosen], info0, info1, len(cand), time.perf_counter() - t0,
-                  meta={"max_rows": max_rows, "seed": seed, "separate": separate})
+                  meta=meta)
+
+
+def rank(sc, data: MeasuredData, model: EffectModel) -> int:
+    """The numerical rank of the model's regressor on ``data``'s rows: QR with column pivoting, the
+    columns with |R_ii| >= QR_RTOL |R_11| (the test calibrate's :meth:`EffectModel.identify` applies)."""
+    from scipy.linalg import qr
+
+    from ..effects import QR_RTOL
+
+    A = row_jacobian(sc, data, model).reshape(-1, model.n_free)
+    if A.size == 0:
+        return 0
+    diag = np.abs(np.diag(qr(A, mode="r", pivoting=True)[0]))
+    return int(np.count_nonzero(diag >= QR_RTOL * diag[0])) if diag[0] > 0 else 0

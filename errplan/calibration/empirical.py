@@ -3,13 +3,17 @@ tracked tip when the best catalogue model still leaves a structured residual.
 
 ``Δ(x, q) = Σ_k θ_k φ_k(x, q)`` over a documented basis: monomials of the model tip's coordinates
 about the data's centroid, scaled by the data's extent (half the range per coordinate), total degree
-1..D (D ≤ 3; the constant is included); sin and cos of each encoder angle, orders 1 and 2. Fitted by
-sequentially thresholded least squares (STLSQ, as in SINDy): least squares on the columns normalised
-to unit RMS, coefficients below the threshold zeroed, refit on the survivors, ten rounds. The degree
-D and the threshold are chosen by grouped K-fold cross-validation over whole runs (the lowest held-out
-RMS; among those within 1 % of it, the fewest terms). Written over numpy (about 60 lines): PySINDy's
-STLSQ is this loop, and the library would bring scikit-learn and its own feature-library machinery for
-a basis errplan must define itself anyway.
+1..D (D ≤ 3; the constant is included); sin and cos of each encoder angle, orders 1 and 2.
+
+Fitted with scikit-learn (the only module that imports it): the columns normalised to unit RMS, the
+support of the term from the multi-task lasso path (:func:`sklearn.linear_model.lasso_path` with all
+coordinates at once, so a feature is kept or dropped for every coordinate together), then the
+coefficients refitted by least squares on that support (:class:`sklearn.linear_model.LinearRegression`,
+a "relaxed" lasso: the lasso chooses the terms, its shrinkage does not bias them). The degree D and the
+penalty are chosen by :class:`sklearn.model_selection.GroupKFold` over whole runs (shuffled with the
+seed): the lowest held-out RMS, and among those within 1 % of it the fewest terms. The penalties are
+a fixed grid relative to the full data's ``alpha_max`` (the smallest penalty that keeps no term), so
+every fold is scored on the same grid.
 
 Reported as ``empirical`` (never a physical effect: ``explained`` stays false) with the held-out RMS
 before and after; ``history_dependent`` when the term does not lower the held-out runs' error by
@@ -19,13 +23,17 @@ from __future__ import annotations
 
 import itertools
 import math
+import warnings
 
 import numpy as np
 
 DEGREES = (1, 2, 3)
-THRESHOLDS = (0.0, 0.02, 0.05, 0.1, 0.2, 0.5)   # in units of the residual's RMS per normalised column
-STLSQ_ROUNDS = 10
+#: the penalties, relative to alpha_max (the smallest that keeps no term): 1 .. 1e-2 in 13 steps, and 0
+#: (every term: plain least squares; below 1e-2 the path keeps nearly every term anyway, and coordinate
+#: descent is slowest there)
+ALPHA_GRID = np.r_[np.logspace(0.0, -2.0, 13), 0.0]
 HISTORY_GAIN = 0.9   # held-out RMS after / before above this: the pose basis does not predict the runs
+PARSIMONY = 1.01     # candidates within 1 % of the best held-out RMS: the fewest terms
 
 
 def basis(x: np.ndarray, q: np.ndarray, centre: np.ndarray, extent: np.ndarray, degree: int):
@@ -45,68 +53,95 @@ def basis(x: np.ndarray, q: np.ndarray, centre: np.ndarray, extent: np.ndarray, 
     return np.stack(cols, axis=1), names
 
 
-def stlsq(F: np.ndarray, r: np.ndarray, threshold: float) -> np.ndarray:
-    """Sequentially thresholded least squares: coefficients (m, d) of ``F @ coef ≈ r`` with every
-    coefficient whose normalised size (coefficient x column RMS / residual RMS) is below
-    ``threshold`` zeroed (a feature is kept while any coordinate needs it)."""
+def _normalised(F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     norm = np.sqrt(np.mean(F * F, axis=0))
     norm = np.where(norm > 0, norm, 1.0)
-    Fn = F / norm
-    scale = max(float(np.sqrt(np.mean(r * r))), 1e-300)
-    active = np.ones(F.shape[1], bool)
-    coef = np.zeros((F.shape[1], r.shape[1]))
-    for _ in range(STLSQ_ROUNDS):
-        coef[:] = 0.0
-        if active.any():
-            coef[active] = np.linalg.lstsq(Fn[:, active], r, rcond=1e-10)[0]
-        keep = np.max(np.abs(coef), axis=1) >= threshold * scale
-        if np.array_equal(keep, active):
-            break
-        active = keep
-    coef[~active] = 0.0
-    return coef / norm[:, None]
+    return F / norm, norm
+
+
+def alpha_max(Fn: np.ndarray, r: np.ndarray) -> float:
+    """The multi-task lasso's smallest penalty that keeps no term: ``max_j ‖Fn_jᵀ r‖₂ / n``."""
+    return float(np.max(np.linalg.norm(Fn.T @ r, axis=1)) / len(r))
+
+
+def supports(Fn: np.ndarray, r: np.ndarray, alphas: np.ndarray) -> np.ndarray:
+    """The multi-task lasso path's supports (n_alphas, m) of ``Fn @ W ≈ r`` at ``alphas`` (scikit-learn,
+    positive penalties in decreasing order); a zero penalty is every term."""
+    from sklearn.exceptions import ConvergenceWarning
+    from sklearn.linear_model import lasso_path
+
+    alphas = np.asarray(alphas, float)
+    out = np.ones((len(alphas), Fn.shape[1]), bool)
+    pos = alphas > 0
+    if pos.any():
+        with warnings.catch_warnings():
+            # at the smallest penalties coordinate descent may stop at max_iter; only the support is used
+            warnings.simplefilter("ignore", ConvergenceWarning)
+            _, coefs, _ = lasso_path(np.asfortranarray(Fn), np.asfortranarray(r), alphas=alphas[pos], tol=1e-4,
+                                     max_iter=1000)
+        coefs = coefs.reshape(r.shape[1], Fn.shape[1], int(pos.sum()))  # (targets, features, alphas)
+        out[pos] = np.any(coefs != 0.0, axis=0).T
+    return out
+
+
+def refit(Fn: np.ndarray, r: np.ndarray, support: np.ndarray) -> np.ndarray:
+    """Least squares on the support (scikit-learn's LinearRegression, no intercept: the basis has the
+    constant): coefficients (m, d) on the normalised columns, zero off the support."""
+    from sklearn.linear_model import LinearRegression
+
+    coef = np.zeros((Fn.shape[1], r.shape[1]))
+    if support.any():
+        coef[support] = LinearRegression(fit_intercept=False).fit(Fn[:, support], r).coef_.T
+    return coef
 
 
 def fit_empirical(x: np.ndarray, q: np.ndarray, r: np.ndarray, run: np.ndarray, *, folds: int = 5, seed: int = 0):
     """The empirical term for residual ``r`` (n, d) at model tips ``x`` and encoder angles ``q``,
-    degree and threshold by grouped K-fold over whole runs. Returns the calibrate JSON's
+    degree and penalty by grouped K-fold over whole runs. Returns the calibrate JSON's
     ``empirical`` object and a predictor ``f(x, q) -> (n, d)``."""
+    from threadpoolctl import threadpool_limits
+
+    # one thread for every BLAS and OpenMP pool (scipy's and scikit-learn's too, not only numpy's):
+    # these are hundreds of small problems (errplan.calibration.blas)
+    with threadpool_limits(limits=1):
+        return _fit_empirical(x, q, r, run, folds, seed)
+
+
+def _fit_empirical(x, q, r, run, folds, seed):
+    from sklearn.model_selection import GroupKFold
+
     x, q, r = (np.asarray(a, float) for a in (x, q, r))
     run = np.unique(np.asarray(run), return_inverse=True)[1]
     runs = int(run.max()) + 1
     k = max(2, min(folds, runs))
-    rng = np.random.default_rng(seed)
-    fold_of_run = np.empty(runs, int)
-    fold_of_run[rng.permutation(runs)] = np.arange(runs) % k
-    fold = fold_of_run[run]
+    splits = list(GroupKFold(n_splits=k, shuffle=True, random_state=seed).split(x, r, groups=run))
     centre = x.mean(axis=0)
     extent = np.maximum((x.max(axis=0) - x.min(axis=0)) / 2, 1e-6)
     before = math.sqrt(float(np.mean(r * r)))
-    best = None
-    tried = []
+    tried = []   # (held-out RMS, terms, degree, alpha index)
     for deg in DEGREES:
-        F, names = basis(x, q, centre, extent, deg)
-        for th in THRESHOLDS:
-            sse = 0.0
-            for f in range(k):
-                te = fold == f
-                c = stlsq(F[~te], r[~te], th)
-                e = r[te] - F[te] @ c
-                sse += float(np.sum(e * e))
-            ho = math.sqrt(sse / r.size)
-            terms = int(np.count_nonzero(np.any(stlsq(F, r, th) != 0, axis=1)))
-            cand = (ho, terms, deg, th)
-            if best is None or ho < best[0]:
-                best = cand
-            tried.append(cand)
-    ok = [c for c in tried if c[0] <= 1.01 * best[0]]
-    ho, terms, deg, th = min(ok, key=lambda c: (c[1], c[0]))
+        Fn, _ = _normalised(basis(x, q, centre, extent, deg)[0])
+        alphas = max(alpha_max(Fn, r), 1e-300) * ALPHA_GRID
+        sse = np.zeros(len(alphas))
+        for tr, te in splits:
+            for a, sup in enumerate(supports(Fn[tr], r[tr], alphas)):
+                e = r[te] - Fn[te] @ refit(Fn[tr], r[tr], sup)
+                sse[a] += float(np.sum(e * e))
+        full = supports(Fn, r, alphas)
+        tried += [(math.sqrt(sse[a] / r.size), int(full[a].sum()), deg, a) for a in range(len(alphas))]
+    best = min(c[0] for c in tried)
+    ho, terms, deg, a = min((c for c in tried if c[0] <= PARSIMONY * best), key=lambda c: (c[1], c[0]))
     F, names = basis(x, q, centre, extent, deg)
-    coef = stlsq(F, r, th)
+    Fn, norm = _normalised(F)
+    alpha = max(alpha_max(Fn, r), 1e-300) * ALPHA_GRID[a]
+    coef = refit(Fn, r, supports(Fn, r, np.array([alpha]))[0]) / norm[:, None]
     active = np.flatnonzero(np.any(coef != 0, axis=1))
     out = {"terms": [{"name": names[i], "coefficient": [float(v) for v in coef[i]]} for i in active],
-           "degree": deg, "threshold": th, "folds": k, "held_out_rms_before": before, "held_out_rms_after": ho,
+           "degree": deg, "alpha": float(alpha), "alpha_relative": float(ALPHA_GRID[a]), "folds": k,
+           "held_out_rms_before": before, "held_out_rms_after": ho,
            "history_dependent": bool(ho > HISTORY_GAIN * before),
+           "method": "scikit-learn: support by the multi-task lasso path on unit-RMS columns, least squares on "
+                     "the support; degree and penalty by GroupKFold over whole runs",
            "basis": "monomials of (model tip - centroid) / half-range up to the degree; sin, cos of each encoder "
                     "angle, orders 1 and 2", "centroid": [float(v) for v in centre],
            "extent": [float(v) for v in extent]}

@@ -254,6 +254,8 @@ class CalibrationReport:
                          f"held-out RMS over runs {em['held_out_rms_before'] * mm:.4f} -> {em['held_out_rms_after'] * mm:.4f} mm"
                          + (f"; validation {em['validation_rms_declared'] * mm:.4f} (declared) -> "
                             f"{em['validation_rms_with_term'] * mm:.4f} mm" if "validation_rms_with_term" in em else ""))
+            if em.get("export_note"):
+                lines.append(f"  {em['export_note']}")
             if em["history_dependent"]:
                 lines.append("  the term does not predict held-out runs: the residual depends on the motion's history or "
                              "on time, not on the pose")

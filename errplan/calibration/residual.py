@@ -178,7 +178,8 @@ def replay(data: MeasuredData, plant, ctrl, model=None) -> tuple[np.ndarray, np.
     over runs; friction's direction is the motion each command produces under ``model`` (default
     ``plant.declared()``; :func:`motion_model`). Returns the predicted tracked tip for every row
     (n, d) and, per run, whether the replay stayed in the workspace for the whole measured length
-    (runs,). A replay that leaves the workspace holds its last state.
+    (runs,). A replay that leaves the workspace holds its last state. The plant's backlash is
+    carried: the links lag the replayed encoder angles by the play, mid-band at each run's start.
     """
     from ..experiment import _inv_batch
 
@@ -198,11 +199,15 @@ def replay(data: MeasuredData, plant, ctrl, model=None) -> tuple[np.ndarray, np.
     u = np.zeros((R, d))
     alive = np.ones(R, bool)
     pred = np.zeros_like(data.tip)
-    off = np.asarray(plant.tracker_offset, float)
     tracked = np.zeros((R, d))
+    # backlash: the links lag the encoders by the play, mid-band at a run's start (as the bench and
+    # the fit, effects.backlash_angles); the controller sees the encoders, the tracker the links
+    play = np.abs(np.asarray(getattr(plant, "backlash", ()) or np.zeros(q.shape[1]), float))
+    theta = q.copy()
     for t in range(T):
+        theta = np.minimum(np.maximum(theta, q - play), q + play) if play.any() else q
         with np.errstate(invalid="ignore", divide="ignore"):
-            tr = plant.tip(q, u) + off
+            tr = plant.tracked(plant.tip(theta, u))  # the tracker's registration too, not only its offset
         tracked = np.where(alive[:, None], tr, tracked)
         rows_t = by_step[bounds[t]:bounds[t + 1]]
         pred[rows_t] = tracked[data.run[rows_t]]

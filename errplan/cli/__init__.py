@@ -142,6 +142,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="designed bench: at most this many rows (default: the default bench's; 0: no limit)")
     s.add_argument("--design-json", default=None,
                    help="also write the design (runs, correlations, sigmas) as JSON (default: none)")
+    s.add_argument("--design-effects", default=None, metavar="E1,E2",
+                   help="designed bench: the effects whose parameters it makes identifiable, physical, geometric "
+                        "(link_length, joint_geometry, instrument_length, tracker_registration) or backlash "
+                        "(default: the physical catalogue)")
     s.add_argument("--arm", default=None, help="the arm of a scenario with several instruments, by its [[arm]] name (default: the only arm; required with several)")
 
     s = sub.add_parser("calibrate", help="close the loop: residual, effect found, error before/after")

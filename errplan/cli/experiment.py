@@ -36,8 +36,11 @@ def run(args) -> int:
         raise ErrplanError(f"--design {design_n}: expected a number of runs >= 1 (0: as many as the rows hold)")
     if max_rows is not None and max_rows < 0:
         raise ErrplanError(f"--max-rows {max_rows}: expected an integer >= 0 (0: no limit)")
-    if design_n is None and (max_rows is not None or design_json):
-        raise ErrplanError("--max-rows and --design-json go with --design N")
+    design_effects = getattr(args, "design_effects", None)
+    if design_n is None and (max_rows is not None or design_json or design_effects is not None):
+        raise ErrplanError("--max-rows, --design-json and --design-effects go with --design N")
+    if design_effects is not None:
+        design_effects = [e.strip() for e in design_effects.split(",")]
     sep_text = str(getattr(args, "separate", "0.94"))
     if sep_text.strip().lower() == "none":
         separate = None
@@ -56,7 +59,7 @@ def run(args) -> int:
         prog = Progress("design", quiet=args.quiet)
         prog.quiet = prog.quiet or not prog.tty
         design = design_experiment(sc, design_n or None, max_rows=max_rows, criterion=getattr(args, "criterion", "G"),
-                                   separate=separate,
+                                   separate=separate, effects=design_effects,
                                    seed=args.seed, n_starts=starts, max_steps=max_steps, dwell=dwell, progress=prog)
         prog.done()
         print(design.text())

@@ -87,7 +87,9 @@ def _numbers(text: str | None, where: str) -> np.ndarray:
 def joint_origins(urdf_text: str, joint_names, where: str = "URDF") -> np.ndarray:
     """Each named joint's ``<origin>`` (n, 4, 4) in its parent link's frame (identity when absent)."""
     root = ET.fromstring(urdf_text)
-    joints = {j.get("name"): j for j in root.iter("joint")}
+    # the robot's own joints only: a <transmission> names its joint with a <joint> element too (no
+    # origin), as example-robot-data's UR5 does
+    joints = {j.get("name"): j for j in root.findall("joint")}
     out = np.empty((len(joint_names), 4, 4))
     for k, name in enumerate(joint_names):
         j = joints.get(name)
@@ -212,7 +214,9 @@ def corrected_urdf_text(urdf_text: str, joint_names, joint_geometry, where: str 
         rpy = " ".join(f"{v:.12g}" for v in matrix_to_rpy(On[:3, :3]))
         new_origin = f'<origin xyz="{xyz}" rpy="{rpy}"/>'
         # the joint element: from <joint ... name="NAME" ...> to its </joint>
-        m = re.search(r'<joint\b[^>]*\bname\s*=\s*["\']' + re.escape(name) + r'["\'][^>]*>', text)
+        # the joint element, not a <transmission>'s reference to it (that one has no type)
+        m = next((mm for mm in re.finditer(r'<joint\b[^>]*\bname\s*=\s*["\']' + re.escape(name) + r'["\'][^>]*>', text)
+                  if re.search(r'\btype\s*=', mm.group(0))), None)
         if m is None:
             raise ErrplanError(f"{where}: no joint named {name!r}")
         end = text.find("</joint>", m.end())
