@@ -95,6 +95,14 @@ PHASES = {
 }
 
 
+@pytest.fixture(autouse=True)
+def _patient_wait(monkeypatch):
+    """A nanny restarts a killed worker, slowly when both cores are busy (the suite's other worker runs
+    beside): errplan's wait for a worker is made long here, so that a run the tests kill workers in is
+    judged by its answer, not by how fast the machine restarts them. The tests of the wait itself set it."""
+    monkeypatch.setattr(cluster, "WORKER_WAIT", 600.0)
+
+
 @pytest.fixture(scope="module")
 def reference():
     return map_tasks(_tile, SHARED, ITEMS, workers=1)
