@@ -53,11 +53,11 @@ def test_link_tree_places_objects_as_pinocchio(checks, panda):
 
 def test_capsules_hold_every_vertex_of_their_piece(checks, panda):
     """Each capsule holds every vertex of its piece (so, being convex, its triangles); the pieces of an object
-    partition its triangles; a piece's surface points are its vertices."""
+    partition its triangles; a piece's triangles for the narrow phase are its own (the same vertices)."""
     for geo in (checks.geo, panda):
         obj, A, B, R = geo.capsules()
         pieces = geo.pieces()
-        pcap, pts = geo.surface_points()
+        tcap, tris, *_ = geo.piece_triangles()
         for g, geom in enumerate(geo._geoms):
             ks = np.flatnonzero(obj == g)
             assert len(ks) >= 1
@@ -70,9 +70,11 @@ def test_capsules_hold_every_vertex_of_their_piece(checks, panda):
                 dist = np.linalg.norm(V - (A[k] + s[:, None] * ab), axis=1)
                 assert dist.max() <= R[k]
                 assert dist.max() > 0.5 * R[k]  # and not grossly larger than needed
-                P = pts[pcap == k]
-                if len(P):
-                    assert len(P) == len(V) and np.allclose(np.sort(P, axis=0), np.sort(V, axis=0))
+                T = tris[tcap == k]
+                if len(T):
+                    assert len(T) == pieces[k].num_tris
+                    P = np.unique(T.reshape(-1, 3), axis=0)
+                    assert len(P) == len(V) and np.allclose(P, np.unique(V, axis=0))
 
 
 def test_segment_distance_against_dense_sampling():

@@ -295,24 +295,6 @@ class ArmCollision:
         self.capsules()
         return self._pieces
 
-    def surface_points(self) -> tuple[np.ndarray, np.ndarray]:
-        """Points on the objects, in each object's frame: ``(capsule (k,) int, points (k, 3))``, sorted by
-        capsule (:meth:`capsules`): the vertices of each mesh piece's triangles (a primitive has none). Two
-        pieces lie no farther apart than any two of their points (an upper bound of their distance)."""
-        pts = getattr(self, "_surface", None)
-        if pts is None:
-            self.capsules()
-            cap, X = [], []
-            for k, piece in enumerate(self._pieces):
-                V, F = _mesh_of(piece)
-                if F is None:
-                    continue
-                P = V[np.unique(F)]
-                cap += [k] * len(P)
-                X.append(P)
-            pts = self._surface = (np.array(cap, np.int64), np.concatenate(X) if X else np.zeros((0, 3)))
-        return pts
-
     def piece_triangles(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The triangles of every mesh piece (:meth:`pieces`), in its object's frame, for the compiled narrow
         phase: ``(capsule (t,) int, vertices (t, 3, 3), a (t, 3), b (t, 3), radius (t,))``, sorted by capsule,
