@@ -60,7 +60,7 @@ import numpy as np
 from ..errors import ErrplanError
 from ..kinematics import arm_for
 from ..jit import kernel_array
-from ..kinematics.urdf.broadphase import CLEAR, UNDECIDED, arm_motion, object_travel
+from ..kinematics.urdf.broadphase import CLEAR, UNDECIDED, arm_motion, object_travel, piece_memory
 from ..kinematics.urdf.collision import (ArmCollision, HeldArm, arm_at_tip, clear_along_held, clearance_to_held,
                                          first_within, held_objects, held_shapes, min_clearance_along_held,
                                          within_held)
@@ -90,6 +90,7 @@ class ArmChecks:
     def __getstate__(self):
         state = dict(self.__dict__)
         state.pop("_kargs", None)  # coal's transforms: rebuilt on first use
+        state.pop("_memory", None)
         return state
 
     @classmethod
@@ -172,11 +173,14 @@ class ArmChecks:
         if args is None:
             chain, rmap = self.arm.kernel()
             ref = np.full(self.arm.n, np.nan) if self.reference is None else np.asarray(self.reference, float)
+            tree, held = self.geo.link_tree(), held_shapes(self.held)
             args = self.__dict__["_kargs"] = (
-                (chain, rmap, self.geo.link_tree(), held_shapes(self.held)),
+                (chain, rmap, tree, held),
                 (kernel_array(np.array(self.port, float)), float(self.length), kernel_array(ref.copy()),
                  float(self.tip_step), float(self.clearance)),
                 held_objects(self.held))
+            # each pair of pieces' witness triangles and separating direction, from check to check
+            self.__dict__["_memory"] = piece_memory(tree, held)
         return args
 
     def compiled_ok(self, ax: float, ay: float, az: float, bx: float, by: float, bz: float) -> bool:
@@ -185,7 +189,7 @@ class ArmChecks:
         bounding volumes come closer than the clearance."""
         model, (port, length, ref, step, c), objects = self._kernel_args()
         status, S, P, rows = arm_motion(*model, np.array((ax, ay, az)), np.array((bx, by, bz)), port, length, ref,
-                                        step, c)
+                                        step, c, self._memory)
         if status == UNDECIDED:
             travel = object_travel(model[2].reach, S) if len(S) > 1 else None  # a motion: exact distances, skipping
             return first_within(self.geo, P, objects, rows, c, travel) < 0

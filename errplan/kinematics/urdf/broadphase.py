@@ -70,7 +70,9 @@ class LinkTree(NamedTuple):
     (capsules sorted by object). Triangles (the narrow phase): ``tris`` (t, 3, 3) the vertices of every mesh
     piece's triangles in their object's frame, sorted by capsule, ``tri_a``, ``tri_b`` (t, 3) and ``tri_r`` (t,)
     a capsule holding each, ``tri_start`` (C + 1,) int64 the first of each capsule's piece (a primitive's piece has
-    none: its pairs go to coal)."""
+    none: its pairs go to coal). ``hull`` (v, 3) the vertices of each mesh piece's convex hull in their object's
+    frame (every vertex of the piece's triangles lies in their hull), sorted by capsule, ``hull_start`` (C + 1,)
+    int64 the first of each (a primitive's piece has none)."""
 
     jparent: np.ndarray
     jconst: np.ndarray
@@ -92,13 +94,16 @@ class LinkTree(NamedTuple):
     tri_b: np.ndarray
     tri_r: np.ndarray
     tri_start: np.ndarray
+    hull: np.ndarray
+    hull_start: np.ndarray
 
 
 class HeldShapes(NamedTuple):
     """The held arms' objects (H of them, every held arm's in turn) in the world: ``center`` (H, 3),
     ``radius`` (H,) bounding spheres; capsules ``cap_a``, ``cap_b`` (C, 3), ``cap_r`` (C,), ``cap_start``
     (H + 1,) int64, triangles ``tris`` (t, 3, 3), their capsules ``tri_a``, ``tri_b`` (t, 3), ``tri_r`` (t,) in the world and
-    ``tri_start`` (C + 1,) as in :class:`LinkTree`."""
+    ``tri_start`` (C + 1,), the pieces' hull vertices ``hull`` (v, 3) in the world and ``hull_start`` (C + 1,) as in
+    :class:`LinkTree`."""
 
     center: np.ndarray
     radius: np.ndarray
@@ -111,15 +116,32 @@ class HeldShapes(NamedTuple):
     tri_b: np.ndarray
     tri_r: np.ndarray
     tri_start: np.ndarray
+    hull: np.ndarray
+    hull_start: np.ndarray
 
 
 # ---------------------------------------------------------------------------- placements
+@njit(cache=True)
+def _compose(A, B, C):
+    """``C = A @ B`` for homogeneous transforms (4, 4) whose last row is (0, 0, 0, 1), written out (a small
+    product in numba goes through a general matrix multiply)."""
+    for r in range(3):
+        a0, a1, a2 = A[r, 0], A[r, 1], A[r, 2]
+        for s in range(4):
+            C[r, s] = a0 * B[0, s] + a1 * B[1, s] + a2 * B[2, s]
+        C[r, 3] += A[r, 3]
+    C[3, 0] = C[3, 1] = C[3, 2] = 0.0
+    C[3, 3] = 1.0
+
+
 @njit(cache=True)
 def place_objects(tree, q, P):
     """World placements ``P`` (G, 4, 4) of the objects at actuated joint values ``q`` (n,)."""
     J = tree.jparent.shape[0]
     M = np.empty((J, 4, 4))
     X = np.empty((4, 4))
+    L = np.empty((4, 4))
+    W = np.empty((4, 4))
     for j in range(J):
         C = tree.jconst[j]
         k = tree.jact[j]
@@ -137,20 +159,21 @@ def place_objects(tree, q, P):
                 X[2, 0], X[2, 1], X[2, 2] = az * ax * v - ay * s_, az * ay * v + ax * s_, c + az * az * v
             else:
                 X[0, 3], X[1, 3], X[2, 3] = ax * q[k], ay * q[k], az * q[k]
-            L = C @ X
+            _compose(C, X, L)
         else:
-            L = C
+            L[:] = C
         p = tree.jparent[j]
         if p >= 0:
-            M[j] = M[p] @ L
+            _compose(M[p], L, M[j])
         else:
             M[j] = L
     for g in range(tree.gparent.shape[0]):
         p = tree.gparent[g]
         if p >= 0:
-            P[g] = tree.base @ (M[p] @ tree.gplace[g])
+            _compose(M[p], tree.gplace[g], W)
+            _compose(tree.base, W, P[g])
         else:
-            P[g] = tree.base @ tree.gplace[g]
+            _compose(tree.base, tree.gplace[g], P[g])
 
 
 @njit(cache=True)
@@ -346,8 +369,81 @@ def _pair_separation(T, U, n0, n1, n2):
     return (lo - hi) - 1e-12 * (abs(lo) + abs(hi) + 1.0)
 
 
+#: the most steps of :func:`hull_bound` (each one pass over the two pieces' hull vertices)
+HULL_STEPS = 12
+
+
+@njit(cache=True)
+def hull_bound(tree, held, Pg, k, u, n0, n1, n2, target):
+    """A lower bound of the distance between moving capsule ``k``'s piece (its object placed by ``Pg`` (4, 4))
+    and held capsule ``u``'s piece from their hulls' vertices, and the direction that gave it: ``(bound, m0,
+    m1, m2)`` (-inf without hulls). Along a unit direction ``n`` from the moving piece to the held one, the
+    gap of the two pieces' projections, ``min (held . n) - max (moving . n)`` (padded for rounding), bounds
+    their distance from below; its largest value over ``n`` is the distance of the two hulls. Gilbert's
+    iteration on the hulls' difference climbs towards it from ``n``: ``x`` a point of the difference, the
+    support point ``s`` along ``x``, ``x`` moved to the point of the segment ``x -> s`` nearest the origin.
+    Stops once the bound reaches ``target``, or ``|x|`` (the distance of two points of the hulls) falls
+    below it (the hulls cannot decide), or after :data:`HULL_STEPS` steps. The moving piece's support is
+    taken in its own frame (the direction turned back by ``Pg``), so its vertices are not placed."""
+    v0, v1 = tree.hull_start[k], tree.hull_start[k + 1]
+    w0, w1 = held.hull_start[u], held.hull_start[u + 1]
+    best, m0, m1, m2 = -np.inf, n0, n1, n2
+    if v0 == v1 or w0 == w1:
+        return best, m0, m1, m2
+    x0 = x1 = x2 = 0.0
+    for it in range(HULL_STEPS):
+        nn = math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+        if not nn > 0.0:
+            break
+        n0, n1, n2 = n0 / nn, n1 / nn, n2 / nn
+        l0 = Pg[0, 0] * n0 + Pg[1, 0] * n1 + Pg[2, 0] * n2
+        l1 = Pg[0, 1] * n0 + Pg[1, 1] * n1 + Pg[2, 1] * n2
+        l2 = Pg[0, 2] * n0 + Pg[1, 2] * n1 + Pg[2, 2] * n2
+        hi = -np.inf
+        ia = v0
+        for v in range(v0, v1):
+            y = tree.hull[v, 0] * l0 + tree.hull[v, 1] * l1 + tree.hull[v, 2] * l2
+            if y > hi:
+                hi = y
+                ia = v
+        hi += Pg[0, 3] * n0 + Pg[1, 3] * n1 + Pg[2, 3] * n2
+        lo = np.inf
+        ib = w0
+        for w in range(w0, w1):
+            y = held.hull[w, 0] * n0 + held.hull[w, 1] * n1 + held.hull[w, 2] * n2
+            if y < lo:
+                lo = y
+                ib = w
+        gap = (lo - hi) - 1e-12 * (abs(lo) + abs(hi) + 1.0)
+        if gap > best:
+            best, m0, m1, m2 = gap, n0, n1, n2
+            if best >= target:
+                break
+        p0, p1, p2 = _apply(Pg, tree.hull[ia])
+        s0, s1, s2 = held.hull[ib, 0] - p0, held.hull[ib, 1] - p1, held.hull[ib, 2] - p2
+        if it == 0:
+            x0, x1, x2 = s0, s1, s2
+        else:
+            d0, d1, d2 = s0 - x0, s1 - x1, s2 - x2
+            dd = d0 * d0 + d1 * d1 + d2 * d2
+            if not dd > 0.0:
+                break
+            t = min(max(-(x0 * d0 + x1 * d1 + x2 * d2) / dd, 0.0), 1.0)
+            x0, x1, x2 = x0 + t * d0, x1 + t * d1, x2 + t * d2
+        if math.sqrt(x0 * x0 + x1 * x1 + x2 * x2) < target:
+            break
+        n0, n1, n2 = x0, x1, x2
+    return best, m0, m1, m2
+
+
 @njit(cache=True)
 def piece_bound(tree, held, Pg, k, u, wa, wb, top, low):
+    """:func:`cached_piece_bound` without a memory of earlier calls."""
+    return cached_piece_bound(tree, held, Pg, k, u, wa, wb, top, low, np.full(2, -1, np.int64), np.zeros(3))
+
+
+@njit(cache=True)
+def cached_piece_bound(tree, held, Pg, k, u, wa, wb, top, low, wit, axis):
     """The distance between moving capsule ``k``'s piece (its object placed by ``Pg`` (4, 4); the capsule's axis
     in the world ``wa -> wb``) and held capsule ``u``'s piece, both meshes, as far as a caller asking "closer
     than ``low``?" needs it: a value below ``low`` is the distance of two of their triangles (so theirs is
@@ -357,16 +453,37 @@ def piece_bound(tree, held, Pg, k, u, wa, wb, top, low):
     lie ``top`` from the other piece's capsule cannot come closer; a separating line (module docstring)
     showing at least ``low + 2 SLACK`` decides; else every pair of triangles, but those whose capsules (or
     projections on the line between their axes) lie farther apart than the smallest distance found so far,
-    by :func:`triangle_distance`, stopping at the first below ``low``."""
+    by :func:`triangle_distance`, stopping at the first below ``low``.
+
+    Before all that, the pair's memory of its earlier calls (other states of the same pieces): ``wit`` (2,)
+    int64 the moving and held triangles (indices into ``tree.tris``, ``held.tris``; -1 none) nearest each other
+    when last measured, tried first (their distance below ``low`` answers at once: a state near contact is
+    mostly decided by the pair that decided the one before), and ``axis`` (3,) the direction of the best
+    separation found last time, from which :func:`hull_bound` starts (a bound of at least ``low + 2 SLACK``
+    answers). Both are updated; neither changes an answer, only how soon it comes."""
     t0, t1 = tree.tri_start[k], tree.tri_start[k + 1]
     h0, h1 = held.tri_start[u], held.tri_start[u + 1]
     rk, ru = tree.cap_r[k], held.cap_r[u]
     ua0, ua1, ua2 = held.cap_a[u, 0], held.cap_a[u, 1], held.cap_a[u, 2]
     ub0, ub1, ub2 = held.cap_b[u, 0], held.cap_b[u, 1], held.cap_b[u, 2]
+    if wit[0] >= 0:  # the two triangles nearest each other last time
+        T = np.empty((3, 3))
+        for v in range(3):
+            T[v, 0], T[v, 1], T[v, 2] = _apply(Pg, tree.tris[wit[0], v])
+        d = triangle_distance(T, held.tris[wit[1]])
+        if d < low:
+            return d
+    n0, n1, n2 = axis[0], axis[1], axis[2]
+    if n0 == 0.0 and n1 == 0.0 and n2 == 0.0:  # none yet: the line between the capsules' axes
+        n0, n1, n2 = segment_gap(ua0, ua1, ua2, ub0, ub1, ub2, wa[0], wa[1], wa[2], wb[0], wb[1], wb[2])
+    hb, axis[0], axis[1], axis[2] = hull_bound(tree, held, Pg, k, u, n0, n1, n2, low + 2.0 * SLACK)
+    if hb >= low + 2.0 * SLACK:
+        return min(hb, top)
     A = np.empty((t1 - t0, 3, 3))
     aa = np.empty((t1 - t0, 3))
     ab = np.empty((t1 - t0, 3))
     ar = np.empty(t1 - t0)
+    ia = np.empty(t1 - t0, np.int64)
     la = np.empty(t1 - t0)
     lb = np.empty(h1 - h0)
     na = 0
@@ -382,6 +499,7 @@ def piece_bound(tree, held, Pg, k, u, wa, wb, top, low):
         aa[na, 0], aa[na, 1], aa[na, 2] = p0, p1, p2
         ab[na, 0], ab[na, 1], ab[na, 2] = q0, q1, q2
         ar[na] = tree.tri_r[t]
+        ia[na] = t
         na += 1
     if na == 0:
         return top
@@ -403,10 +521,11 @@ def piece_bound(tree, held, Pg, k, u, wa, wb, top, low):
     for ii in range(min(na, 3)):
         for j0 in range(min(nb, 3)):
             d = triangle_distance(A[oa[ii]], held.tris[B[ob[j0]]])
-            if d < low:
-                return d
             if d < wd:
                 wi, wj, wd = oa[ii], B[ob[j0]], d
+                wit[0], wit[1] = ia[wi], wj
+            if d < low:
+                return d
     # separating directions: the survivors' vertices projected on a line; every point of a triangle lies
     # between its vertices' projections, so the gap of the projections bounds the distance from below (exact
     # for two convex pieces facing along that line, as the links' pieces mostly do). Tried: the line between
@@ -453,13 +572,16 @@ def piece_bound(tree, held, Pg, k, u, wa, wb, top, low):
             d = triangle_distance(A[i], held.tris[j])
             if d < best:
                 best = d
+                if d < wd:
+                    wd = d
+                    wit[0], wit[1] = ia[i], j
                 if best < low:
                     return best
     return best
 
 
 @njit(cache=True)
-def pair_bound(tree, held, P, g, h, c, top, sample, rows, m, known, moved):
+def pair_bound(tree, held, P, g, h, c, top, sample, rows, m, known, moved, wit, axes):
     """The broad and narrow phases for moving object ``g`` (placed by ``P`` (G, 4, 4)) and held object ``h``:
     ``(bound, within, rows, m)``. ``bound`` is a lower bound of their distance, at least ``min(distance,
     top)`` where every piece pair is a pair of meshes (the larger of the spheres' gap and, per pair of pieces,
@@ -470,7 +592,8 @@ def pair_bound(tree, held, P, g, h, c, top, sample, rows, m, known, moved):
     needed) for coal. ``known`` (moving capsules, held capsules): per pair of pieces, a lower bound of their
     distance found before plus how far object ``g`` had moved then; ``moved``, how far it has moved now: a
     pair with ``known - moved >= c + SLACK`` is clear without a look (the distance is 1-Lipschitz in g's
-    points), every other pair looked at updates it."""
+    points), every other pair looked at updates it. ``wit`` (moving capsules, held capsules, 2), ``axes`` (moving
+    capsules, held capsules, 3): each pair of pieces' memory (:func:`cached_piece_bound`)."""
     cut = c + SLACK
     c0, c1, c2 = _apply(P[g], tree.center[g])
     x0 = c0 - held.center[h, 0]
@@ -498,7 +621,8 @@ def pair_bound(tree, held, P, g, h, c, top, sample, rows, m, known, moved):
             dk -= tree.cap_r[k] + held.cap_r[u]
             if dk < top:
                 mesh = tree.tri_start[k + 1] > tree.tri_start[k] and held.tri_start[u + 1] > held.tri_start[u]
-                exact = piece_bound(tree, held, P[g], k, u, wa, wb, top, c - SLACK) if mesh else -np.inf
+                exact = cached_piece_bound(tree, held, P[g], k, u, wa, wb, top, c - SLACK, wit[k, u],
+                                           axes[k, u]) if mesh else -np.inf
                 if exact < c - SLACK and mesh:
                     return exact, True, rows, m
                 if exact > dk:
@@ -652,7 +776,7 @@ def _nearest_first(gaps, cut):
 
 
 @njit(cache=True)
-def arm_motion(chain, rmap, tree, held, a, b, port, L, ref, tip_step, c):
+def arm_motion(chain, rmap, tree, held, a, b, port, L, ref, tip_step, c, memory=None):
     """The moving arm's motion ``a -> b`` (a tip when ``a == b``) against the held arms (module docstring).
 
     Returns ``(status, S, P, pairs)``: ``status`` :data:`UNREACHABLE`, :data:`CLEAR` (every pair of every
@@ -666,7 +790,10 @@ def arm_motion(chain, rmap, tree, held, a, b, port, L, ref, tip_step, c):
     g's points may have moved since (:func:`object_travel`) is a lower bound of their distance at every later
     sample (the distance is 1-Lipschitz in g's points); while it is at least the clearance the pair is not
     looked at, and a sample none of whose pairs is looked at is not placed; the same per pair of their mesh
-    pieces inside :func:`pair_bound`."""
+    pieces inside :func:`pair_bound`.
+
+    ``memory``: :func:`piece_memory`'s arrays, each pair of pieces' witness triangles and separating direction
+    from the calls before (kept by the caller from call to call; None: none kept)."""
     n = chain.axis.shape[0]
     G = tree.gparent.shape[0]
     H = held.radius.shape[0]
@@ -685,6 +812,11 @@ def arm_motion(chain, rmap, tree, held, a, b, port, L, ref, tip_step, c):
     travel = object_travel(tree.reach, S)
     known = np.full((G, H), -np.inf)  # per pair: its bound plus its object's travel at the sample it was found
     pieces = np.full((tree.cap_r.shape[0], held.cap_r.shape[0]), -np.inf)  # the same per pair of pieces
+    if memory is None:
+        wit = np.full((tree.cap_r.shape[0], held.cap_r.shape[0], 2), -1, np.int64)
+        axes = np.zeros((tree.cap_r.shape[0], held.cap_r.shape[0], 3))
+    else:
+        wit, axes = memory
     rows = np.empty((16, 3), np.int64)
     m = 0
     order = np.arange(G * H)
@@ -708,11 +840,19 @@ def arm_motion(chain, rmap, tree, held, a, b, port, L, ref, tip_step, c):
             if not placed:
                 place_objects(tree, S[i], P[i])
                 placed = True
-            d, within, rows, m = pair_bound(tree, held, P[i], g, h, c, cut, i, rows, m, pieces, travel[i, g])
+            d, within, rows, m = pair_bound(tree, held, P[i], g, h, c, cut, i, rows, m, pieces, travel[i, g], wit,
+                                            axes)
             if within:
                 return WITHIN, S, P, np.empty((0, 3), np.int64)
             known[g, h] = d + travel[i, g]
     return (UNDECIDED if m else CLEAR), S, P, rows[:m]
+
+
+def piece_memory(tree: LinkTree, held: HeldShapes) -> tuple[np.ndarray, np.ndarray]:
+    """Empty memories of every pair of pieces for :func:`arm_motion`: witnesses (moving capsules, held capsules,
+    2) int64 all -1, directions (moving capsules, held capsules, 3) all 0."""
+    shape = (tree.cap_r.shape[0], held.cap_r.shape[0])
+    return np.full(shape + (2,), -1, np.int64), np.zeros(shape + (3,))
 
 
 def tree_arrays(tree: LinkTree) -> LinkTree:
@@ -720,6 +860,7 @@ def tree_arrays(tree: LinkTree) -> LinkTree:
     return LinkTree(*(np.ascontiguousarray(x, dtype=np.int64 if x.dtype.kind in "iu" else float) for x in tree))
 
 
-__all__ = ["LinkTree", "HeldShapes", "place_objects", "pair_bound", "piece_bound", "triangle_distance", "point_triangle",
+__all__ = ["LinkTree", "HeldShapes", "place_objects", "pair_bound", "piece_bound", "cached_piece_bound",
+           "hull_bound", "piece_memory", "triangle_distance", "point_triangle",
            "segment_distance", "tip_configs", "joint_samples", "object_travel", "arm_motion", "SLACK", "UNREACHABLE",
            "CLEAR", "UNDECIDED", "WITHIN"]
