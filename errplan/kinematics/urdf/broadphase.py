@@ -376,8 +376,9 @@ HULL_STEPS = 12
 @njit(cache=True)
 def hull_bound(tree, held, Pg, k, u, n0, n1, n2, target):
     """A lower bound of the distance between moving capsule ``k``'s piece (its object placed by ``Pg`` (4, 4))
-    and held capsule ``u``'s piece from their hulls' vertices, and the direction that gave it: ``(bound, m0,
-    m1, m2)`` (-inf without hulls). Along a unit direction ``n`` from the moving piece to the held one, the
+    and held capsule ``u``'s piece from their hulls' vertices, the direction that gave it, and an upper bound:
+    ``(bound, m0, m1, m2, upper)`` (-inf and inf without hulls); ``upper`` the smallest distance of the support
+    vertices met (the hulls' vertices are vertices of the pieces' triangles, so the pieces come that close). Along a unit direction ``n`` from the moving piece to the held one, the
     gap of the two pieces' projections, ``min (held . n) - max (moving . n)`` (padded for rounding), bounds
     their distance from below; its largest value over ``n`` is the distance of the two hulls. Gilbert's
     iteration on the hulls' difference climbs towards it from ``n``: ``x`` a point of the difference, the
@@ -387,9 +388,9 @@ def hull_bound(tree, held, Pg, k, u, n0, n1, n2, target):
     taken in its own frame (the direction turned back by ``Pg``), so its vertices are not placed."""
     v0, v1 = tree.hull_start[k], tree.hull_start[k + 1]
     w0, w1 = held.hull_start[u], held.hull_start[u + 1]
-    best, m0, m1, m2 = -np.inf, n0, n1, n2
+    best, m0, m1, m2, upper = -np.inf, n0, n1, n2, np.inf
     if v0 == v1 or w0 == w1:
-        return best, m0, m1, m2
+        return best, m0, m1, m2, upper
     x0 = x1 = x2 = 0.0
     for it in range(HULL_STEPS):
         nn = math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
@@ -421,6 +422,7 @@ def hull_bound(tree, held, Pg, k, u, n0, n1, n2, target):
                 break
         p0, p1, p2 = _apply(Pg, tree.hull[ia])
         s0, s1, s2 = held.hull[ib, 0] - p0, held.hull[ib, 1] - p1, held.hull[ib, 2] - p2
+        upper = min(upper, math.sqrt(s0 * s0 + s1 * s1 + s2 * s2))
         if it == 0:
             x0, x1, x2 = s0, s1, s2
         else:
@@ -433,7 +435,7 @@ def hull_bound(tree, held, Pg, k, u, n0, n1, n2, target):
         if math.sqrt(x0 * x0 + x1 * x1 + x2 * x2) < target:
             break
         n0, n1, n2 = x0, x1, x2
-    return best, m0, m1, m2
+    return best, m0, m1, m2, upper
 
 
 @njit(cache=True)
@@ -476,9 +478,11 @@ def cached_piece_bound(tree, held, Pg, k, u, wa, wb, top, low, wit, axis):
     n0, n1, n2 = axis[0], axis[1], axis[2]
     if n0 == 0.0 and n1 == 0.0 and n2 == 0.0:  # none yet: the line between the capsules' axes
         n0, n1, n2 = segment_gap(ua0, ua1, ua2, ub0, ub1, ub2, wa[0], wa[1], wa[2], wb[0], wb[1], wb[2])
-    hb, axis[0], axis[1], axis[2] = hull_bound(tree, held, Pg, k, u, n0, n1, n2, low + 2.0 * SLACK)
+    hb, axis[0], axis[1], axis[2], ub = hull_bound(tree, held, Pg, k, u, n0, n1, n2, low + 2.0 * SLACK)
     if hb >= low + 2.0 * SLACK:
         return min(hb, top)
+    if ub < low:  # two vertices of the pieces' triangles that close
+        return ub
     A = np.empty((t1 - t0, 3, 3))
     aa = np.empty((t1 - t0, 3))
     ab = np.empty((t1 - t0, 3))
