@@ -39,7 +39,9 @@ the six plain floats of a motion to one compiled call
 at every tip sample (the same branch rules as :meth:`ArmChecks.motion_configs`), the joint-space samples,
 the links' placements, a conservative broad phase against the held arms (per object a bounding sphere,
 then the capsules of its mesh pieces) and an exact narrow phase on the pairs of mesh pieces it leaves (the
-distance of their triangles, pruned by the triangles' capsules and by projections on separating lines);
+pair's nearest triangles of the check before, a support bound on the pieces' convex hulls, then the distance
+of their triangles, pruned by the triangles' capsules and by projections on separating lines; the checks keep
+each pair's nearest triangles and separating direction from one check to the next, which changes no answer);
 along a motion a pair of objects is looked at again only once its object may have moved as far as it was
 found above the clearance. Only the pairs a primitive's piece takes part in (or whose distance ties with the
 clearance within 1 nm) go to coal (:func:`~errplan.kinematics.urdf.collision.first_within`): at a tip its

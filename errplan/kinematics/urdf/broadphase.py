@@ -6,8 +6,8 @@ them and asks coal about the few pairs this part leaves: a primitive's piece, or
 
 * :class:`LinkTree`: the arm's joints and collision objects as fixed transforms (pinocchio's kinematic
   tree with every joint off the actuated set at its held value), the objects' bounding spheres, the
-  bounding capsules of their mesh pieces and the pieces' triangles (each with a capsule of its own) in
-  their own frames, and the per-object motion bounds (``reach``);
+  bounding capsules of their mesh pieces, the pieces' triangles (each with a capsule of its own) and their
+  hulls' vertices in their own frames, and the per-object motion bounds (``reach``);
 * :class:`HeldShapes`: the same of the held arms' objects, in the world;
 * :func:`arm_motion`: for a straight tip motion ``a -> b`` (or one tip), the configurations at the tip
   samples (as :meth:`errplan.planning.arm_checks.ArmChecks.motion_configs` finds them), the joint-space
@@ -17,6 +17,16 @@ them and asks coal about the few pairs this part leaves: a primitive's piece, or
   (:func:`triangle_distance`) where it matters. Coal's mesh query between two pieces (a collision test with
   the clearance as security margin) is also a distance between their triangles (coal's meshes are
   triangle soups), so the answers are coal's.
+
+Before the triangles, per pair of pieces: the two triangles found nearest each other the last time the pair
+was looked at (a kept memory, :func:`piece_memory`; at any other state of the arm they are still two
+triangles of the pieces, so their distance below the clearance decides "too close" at once), then
+:func:`hull_bound`, a support bound on the pieces' convex hulls (the hulls' vertices, precomputed per piece;
+a piece lies in its hull, so the hulls' distance bounds the pieces' from below) climbed by Gilbert's
+iteration from the pair's last separating direction: it decides most pairs that lie a little above the
+clearance with a few passes over a hundred or so vertices, and two support vertices (vertices of the
+triangles) closer than the clearance decide the other way. The memory changes no answer, only how soon it
+comes.
 
 Pruning in the narrow phase, all conservative: a triangle whose capsule lies the clearance away from the
 other piece's capsule cannot come closer (each capsule holds its triangles); the vertices of the triangles
