@@ -393,8 +393,9 @@ def hull_bound(tree, held, Pg, k, u, n0, n1, n2, target):
     their distance from below; its largest value over ``n`` is the distance of the two hulls. Gilbert's
     iteration on the hulls' difference climbs towards it from ``n``: ``x`` a point of the difference, the
     support point ``s`` along ``x``, ``x`` moved to the point of the segment ``x -> s`` nearest the origin.
-    Stops once the bound reaches ``target``, or ``|x|`` (the distance of two points of the hulls) falls
-    below it (the hulls cannot decide), or after :data:`HULL_STEPS` steps. The moving piece's support is
+    Stops once the bound reaches ``target``, or ``upper`` falls below ``target - 2 SLACK`` (the caller's
+    "closer than" threshold), or after :data:`HULL_STEPS` steps (where the hulls come closer than ``target``
+    the steps go on for a pair of support vertices that close). The moving piece's support is
     taken in its own frame (the direction turned back by ``Pg``), so its vertices are not placed."""
     v0, v1 = tree.hull_start[k], tree.hull_start[k + 1]
     w0, w1 = held.hull_start[u], held.hull_start[u + 1]
@@ -442,7 +443,7 @@ def hull_bound(tree, held, Pg, k, u, n0, n1, n2, target):
                 break
             t = min(max(-(x0 * d0 + x1 * d1 + x2 * d2) / dd, 0.0), 1.0)
             x0, x1, x2 = x0 + t * d0, x1 + t * d1, x2 + t * d2
-        if math.sqrt(x0 * x0 + x1 * x1 + x2 * x2) < target:
+        if upper < target - 2.0 * SLACK:  # two vertices of the pieces within: decided the other way
             break
         n0, n1, n2 = x0, x1, x2
     return best, m0, m1, m2, upper
