@@ -145,6 +145,21 @@ def test_triangle_capsules_hold_their_triangles():
         assert np.linalg.norm(X - (a[k] + s[:, None] * ab), axis=1).max() <= r[k]
 
 
+def _near_piece_pairs(tree, held, P, c):
+    """``(capsules' gap, moving object, moving capsule, held capsule, capsule axis ends in the world)`` of every
+    pair of mesh pieces whose capsules come within 15 mm of the clearance ``c``, the moving arm placed by ``P``."""
+    near = []
+    for k in range(len(tree.cap_r)):
+        g = int(np.searchsorted(tree.cap_start, k, side="right") - 1)
+        M = P[g]
+        wa, wb = M[:3, :3] @ tree.cap_a[k] + M[:3, 3], M[:3, :3] @ tree.cap_b[k] + M[:3, 3]
+        for u in range(len(held.cap_r)):
+            gap = segment_distance(*wa, *wb, *held.cap_a[u], *held.cap_b[u]) - tree.cap_r[k] - held.cap_r[u]
+            if gap < c + 0.015 and tree.tri_start[k] < tree.tri_start[k + 1] and held.tri_start[u] < held.tri_start[u + 1]:
+                near.append((gap, g, k, u, wa, wb))
+    return near
+
+
 def test_piece_distances_as_coal(checks):
     """The narrow phase on two mesh pieces, at random placements of the moving arm near the held one, against
     coal's exact distance between the same pieces: below the clearance (less 1 nm) it returns the distance of
@@ -163,17 +178,9 @@ def test_piece_distances_as_coal(checks):
         if q is None:
             continue
         place_objects(tree, q, P)
-        near = []  # pairs of mesh pieces whose capsules come within 15 mm of the clearance
-        for k in range(len(tree.cap_r)):
-            g = int(np.searchsorted(tree.cap_start, k, side="right") - 1)
-            M = P[g]
-            wa, wb = M[:3, :3] @ tree.cap_a[k] + M[:3, 3], M[:3, :3] @ tree.cap_b[k] + M[:3, 3]
-            for u in range(len(held.cap_r)):
-                gap = segment_distance(*wa, *wb, *held.cap_a[u], *held.cap_b[u]) - tree.cap_r[k] - held.cap_r[u]
-                if gap < c + 0.015 and tree.tri_start[k] < tree.tri_start[k + 1] and held.tri_start[u] < held.tri_start[u + 1]:
-                    near.append((g, k, u, wa, wb))
+        near = _near_piece_pairs(tree, held, P, c)
         for i in rng.permutation(len(near))[:12]:
-            g, k, u, wa, wb = near[i]
+            _, g, k, u, wa, wb = near[i]
             M = P[g]
             hg, hT = objects[u]
             T = coal.Transform3s(np.ascontiguousarray(M[:3, :3]), np.ascontiguousarray(M[:3, 3]))
@@ -317,20 +324,12 @@ def test_hull_bound_and_remembered_pieces_as_coal(checks):
         if q is None:
             continue
         place_objects(tree, q, P)
-        near = []
-        for k in range(len(tree.cap_r)):
-            g = int(np.searchsorted(tree.cap_start, k, side="right") - 1)
-            M = P[g]
-            wa, wb = M[:3, :3] @ tree.cap_a[k] + M[:3, 3], M[:3, :3] @ tree.cap_b[k] + M[:3, 3]
-            for u in range(len(held.cap_r)):
-                gap = segment_distance(*wa, *wb, *held.cap_a[u], *held.cap_b[u]) - tree.cap_r[k] - held.cap_r[u]
-                if gap < c + 0.015 and tree.tri_start[k] < tree.tri_start[k + 1] and held.tri_start[u] < held.tri_start[u + 1]:
-                    near.append((gap, P[g].copy(), k, u, wa, wb))
-        near.sort(key=lambda x: x[0])
+        near = sorted(_near_piece_pairs(tree, held, P, c), key=lambda x: x[0])
         for i in [0, 1] + list(2 + rng.permutation(max(len(near) - 2, 0))[:2]):  # the nearest two, two others
             if i >= len(near):
                 continue
-            _, M, k, u, wa, wb = near[i]
+            _, g, k, u, wa, wb = near[i]
+            M = P[g].copy()
             hg, hT = objects[u]
             T = coal.Transform3s(np.ascontiguousarray(M[:3, :3]), np.ascontiguousarray(M[:3, 3]))
             exact = coal.distance(pieces[k], T, hg, hT, coal.DistanceRequest(), coal.DistanceResult())
