@@ -14,9 +14,9 @@ import pytest
 from arms import ARMS
 from errplan import packages
 from errplan.kinematics.urdf import UrdfArm
-from errplan.kinematics.urdf.broadphase import CLEAR, UNDECIDED, UNREACHABLE, WITHIN, arm_motion, cached_piece_bound, \
-    hull_bound, piece_bound, piece_memory, place_objects, point_triangle, segment_distance, segment_gap, \
-    triangle_distance
+from errplan.kinematics.urdf.broadphase import CLEAR, UNDECIDED, UNREACHABLE, WITHIN, arm_check, arm_motion, \
+    cached_piece_bound, hull_bound, pack_shapes, piece_bound, piece_memory, place_objects, point_triangle, \
+    segment_distance, segment_gap, triangle_distance, unpack_shapes
 from errplan.kinematics.urdf.collision import ArmCollision, clearance_to_held, motion_samples, triangle_capsules
 from errplan.models import arm_model
 from errplan.planning.arm_checks import ArmChecks
@@ -357,3 +357,25 @@ def test_hull_bound_and_remembered_pieces_as_coal(checks):
                 assert (d < c) == (exact < c), (d, exact)
             seen += exact < c
     assert 10 < seen < 2 * len(cases) - 10  # both answers met
+
+
+def test_packed_shapes_are_the_shapes_and_answer_alike(checks):
+    """pack_shapes / unpack_shapes give back every array of the tree and the held shapes (dtype, shape,
+    values), and arm_check (packed, with a memory) answers as arm_motion (unpacked, without one) on tips
+    and motions."""
+    (chain, rmap, tree, held), (port, length, ref, step, c), _ = checks._kernel_args()
+    F, I = pack_shapes(tree, held)
+    t2, h2 = unpack_shapes(F, I)
+    for x, y in zip(tuple(tree) + tuple(held), tuple(t2) + tuple(h2)):
+        assert x.dtype == y.dtype and x.shape == y.shape and np.array_equal(x, y)
+    wit, axes = piece_memory(tree, held)
+    rng = np.random.default_rng(9)
+    seen = set()
+    for _ in range(60):
+        a = LO + rng.random(3) * (HI - LO)
+        b = a if rng.random() < 0.5 else a + rng.normal(size=3) * 0.01
+        st, S, _, rows = arm_check(chain, rmap, F, I, a, b, port, length, ref, step, c, wit, axes)
+        st0, S0, _, rows0 = arm_motion(chain, rmap, tree, held, a, b, port, length, ref, step, c)
+        assert st == st0 and np.array_equal(S, S0) and np.array_equal(rows, rows0)
+        seen.add(int(st))
+    assert {CLEAR, WITHIN} <= seen

@@ -62,7 +62,7 @@ import numpy as np
 from ..errors import ErrplanError
 from ..kinematics import arm_for
 from ..jit import kernel_array
-from ..kinematics.urdf.broadphase import CLEAR, UNDECIDED, arm_motion, object_travel, piece_memory
+from ..kinematics.urdf.broadphase import CLEAR, UNDECIDED, arm_check, object_travel, pack_shapes, piece_memory
 from ..kinematics.urdf.collision import (ArmCollision, HeldArm, arm_at_tip, clear_along_held, clearance_to_held,
                                          first_within, held_objects, held_shapes, min_clearance_along_held,
                                          within_held)
@@ -93,6 +93,7 @@ class ArmChecks:
         state = dict(self.__dict__)
         state.pop("_kargs", None)  # coal's transforms: rebuilt on first use
         state.pop("_memory", None)
+        state.pop("_packed", None)
         return state
 
     @classmethod
@@ -183,17 +184,19 @@ class ArmChecks:
                 held_objects(self.held))
             # each pair of pieces' witness triangles and separating direction, from check to check
             self.__dict__["_memory"] = piece_memory(tree, held)
+            self.__dict__["_packed"] = pack_shapes(tree, held)  # one call takes two buffers, not some 35 arrays
         return args
 
     def compiled_ok(self, ax: float, ay: float, az: float, bx: float, by: float, bz: float) -> bool:
         """:meth:`motion_ok_exact` (:meth:`point_ok_exact` when ``a == b``) by the compiled broad phase
         (module docstring): the same samples, coal's collision test only on the pairs of objects whose
         bounding volumes come closer than the clearance."""
-        model, (port, length, ref, step, c), objects = self._kernel_args()
-        status, S, P, rows = arm_motion(*model, np.array((ax, ay, az)), np.array((bx, by, bz)), port, length, ref,
-                                        step, c, self._memory)
+        (chain, rmap, tree, _), (port, length, ref, step, c), objects = self._kernel_args()
+        a = np.array((ax, ay, az))
+        b = a if ax == bx and ay == by and az == bz else np.array((bx, by, bz))
+        status, S, P, rows = arm_check(chain, rmap, *self._packed, a, b, port, length, ref, step, c, *self._memory)
         if status == UNDECIDED:
-            travel = object_travel(model[2].reach, S) if len(S) > 1 else None  # a motion: exact distances, skipping
+            travel = object_travel(tree.reach, S) if len(S) > 1 else None  # a motion: exact distances, skipping
             return first_within(self.geo, P, objects, rows, c, travel) < 0
         return status == CLEAR  # else out of reach, or two surface points closer than the clearance
 
