@@ -35,7 +35,8 @@ measures with a second distance method.
 
 The planner's hot path (:meth:`ArmChecks.point_ok`, :meth:`ArmChecks.motion_ok`; ``compiled`` True) takes
 the six plain floats of a motion to one compiled call
-(:func:`~errplan.kinematics.urdf.broadphase.arm_motion`): the wrists on the shaft, the inverse kinematics
+(:func:`~errplan.kinematics.urdf.broadphase.arm_check`, :func:`~errplan.kinematics.urdf.broadphase.arm_motion`
+on the arms' shapes packed in two buffers): the wrists on the shaft, the inverse kinematics
 at every tip sample (the same branch rules as :meth:`ArmChecks.motion_configs`), the joint-space samples,
 the links' placements, a conservative broad phase against the held arms (per object a bounding sphere,
 then the capsules of its mesh pieces) and an exact narrow phase on the pairs of mesh pieces it leaves (the
