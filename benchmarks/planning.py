@@ -266,8 +266,8 @@ def arm_checks_case(args) -> None:
                     continue
                 plan_rows.append([q.name, way, qp.iterations, qp.stopped_by, qp.time_solve, qp.planned.cost,
                                   f"{tf:.0f} s fields"])
-    print(format_table(["arm", "state Python (ms)", "state compiled (ms)", "state compiled wall (ms)", "states differing",
-                        "states kept", "motion Python (ms)", "motion compiled (ms)", "motion compiled wall (ms)",
+    print(format_table(["arm", "state Python (ms)", "state compiled (ms)", "state compiled wall (ms)",
+                        "states differing", "states kept", "motion Python (ms)", "motion compiled (ms)", "motion compiled wall (ms)",
                         "motions differing", "motions kept"], cost_rows,
                        f"arm checks on {path.name}: {args.arm_states} random tips of the fields' region and as "
                        f"many 3 cm motions from them, CPU time per check (compiled: also wall; best of "

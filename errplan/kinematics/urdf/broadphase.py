@@ -388,15 +388,17 @@ def hull_bound(tree, held, Pg, k, u, n0, n1, n2, target):
     """A lower bound of the distance between moving capsule ``k``'s piece (its object placed by ``Pg`` (4, 4))
     and held capsule ``u``'s piece from their hulls' vertices, the direction that gave it, and an upper bound:
     ``(bound, m0, m1, m2, upper)`` (-inf and inf without hulls); ``upper`` the smallest distance of the support
-    vertices met (the hulls' vertices are vertices of the pieces' triangles, so the pieces come that close). Along a unit direction ``n`` from the moving piece to the held one, the
-    gap of the two pieces' projections, ``min (held . n) - max (moving . n)`` (padded for rounding), bounds
-    their distance from below; its largest value over ``n`` is the distance of the two hulls. Gilbert's
-    iteration on the hulls' difference climbs towards it from ``n``: ``x`` a point of the difference, the
-    support point ``s`` along ``x``, ``x`` moved to the point of the segment ``x -> s`` nearest the origin.
-    Stops once the bound reaches ``target``, or ``upper`` falls below ``target - 2 SLACK`` (the caller's
-    "closer than" threshold), or after :data:`HULL_STEPS` steps (where the hulls come closer than ``target``
-    the steps go on for a pair of support vertices that close). The moving piece's support is
-    taken in its own frame (the direction turned back by ``Pg``), so its vertices are not placed."""
+    vertices met (the hulls' vertices are vertices of the pieces' triangles, so the pieces come that close).
+
+    Along a unit direction ``n`` from the moving piece to the held one, the gap of the two pieces'
+    projections, ``min (held . n) - max (moving . n)`` (padded for rounding), bounds their distance from
+    below; its largest value over ``n`` is the distance of the two hulls. Gilbert's iteration on the hulls'
+    difference climbs towards it from ``n``: ``x`` a point of the difference, the support point ``s`` along
+    ``x``, ``x`` moved to the point of the segment ``x -> s`` nearest the origin. Stops once the bound reaches
+    ``target``, or ``upper`` falls below ``target - 2 SLACK`` (the caller's "closer than" threshold), or after
+    :data:`HULL_STEPS` steps (where the hulls come closer than ``target`` the steps go on for a pair of
+    support vertices that close). The moving piece's support is taken in its own frame (the direction turned
+    back by ``Pg``), so its vertices are not placed."""
     v0, v1 = tree.hull_start[k], tree.hull_start[k + 1]
     w0, w1 = held.hull_start[u], held.hull_start[u + 1]
     best, m0, m1, m2, upper = -np.inf, n0, n1, n2, np.inf
