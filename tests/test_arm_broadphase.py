@@ -14,8 +14,9 @@ import pytest
 from arms import ARMS
 from errplan import packages
 from errplan.kinematics.urdf import UrdfArm
-from errplan.kinematics.urdf.broadphase import CLEAR, UNDECIDED, UNREACHABLE, WITHIN, arm_motion, piece_bound, \
-    place_objects, point_triangle, segment_distance, triangle_distance
+from errplan.kinematics.urdf.broadphase import CLEAR, UNDECIDED, UNREACHABLE, WITHIN, arm_check, arm_motion, \
+    cached_piece_bound, hull_bound, pack_shapes, piece_bound, piece_memory, place_objects, point_triangle, \
+    segment_distance, segment_gap, triangle_distance, unpack_shapes
 from errplan.kinematics.urdf.collision import ArmCollision, clearance_to_held, motion_samples, triangle_capsules
 from errplan.models import arm_model
 from errplan.planning.arm_checks import ArmChecks
@@ -144,6 +145,21 @@ def test_triangle_capsules_hold_their_triangles():
         assert np.linalg.norm(X - (a[k] + s[:, None] * ab), axis=1).max() <= r[k]
 
 
+def _near_piece_pairs(tree, held, P, c):
+    """``(capsules' gap, moving object, moving capsule, held capsule, capsule axis ends in the world)`` of every
+    pair of mesh pieces whose capsules come within 15 mm of the clearance ``c``, the moving arm placed by ``P``."""
+    near = []
+    for k in range(len(tree.cap_r)):
+        g = int(np.searchsorted(tree.cap_start, k, side="right") - 1)
+        M = P[g]
+        wa, wb = M[:3, :3] @ tree.cap_a[k] + M[:3, 3], M[:3, :3] @ tree.cap_b[k] + M[:3, 3]
+        for u in range(len(held.cap_r)):
+            gap = segment_distance(*wa, *wb, *held.cap_a[u], *held.cap_b[u]) - tree.cap_r[k] - held.cap_r[u]
+            if gap < c + 0.015 and tree.tri_start[k] < tree.tri_start[k + 1] and held.tri_start[u] < held.tri_start[u + 1]:
+                near.append((gap, g, k, u, wa, wb))
+    return near
+
+
 def test_piece_distances_as_coal(checks):
     """The narrow phase on two mesh pieces, at random placements of the moving arm near the held one, against
     coal's exact distance between the same pieces: below the clearance (less 1 nm) it returns the distance of
@@ -162,17 +178,9 @@ def test_piece_distances_as_coal(checks):
         if q is None:
             continue
         place_objects(tree, q, P)
-        near = []  # pairs of mesh pieces whose capsules come within 15 mm of the clearance
-        for k in range(len(tree.cap_r)):
-            g = int(np.searchsorted(tree.cap_start, k, side="right") - 1)
-            M = P[g]
-            wa, wb = M[:3, :3] @ tree.cap_a[k] + M[:3, 3], M[:3, :3] @ tree.cap_b[k] + M[:3, 3]
-            for u in range(len(held.cap_r)):
-                gap = segment_distance(*wa, *wb, *held.cap_a[u], *held.cap_b[u]) - tree.cap_r[k] - held.cap_r[u]
-                if gap < c + 0.015 and tree.tri_start[k] < tree.tri_start[k + 1] and held.tri_start[u] < held.tri_start[u + 1]:
-                    near.append((g, k, u, wa, wb))
+        near = _near_piece_pairs(tree, held, P, c)
         for i in rng.permutation(len(near))[:12]:
-            g, k, u, wa, wb = near[i]
+            _, g, k, u, wa, wb = near[i]
             M = P[g]
             hg, hT = objects[u]
             T = coal.Transform3s(np.ascontiguousarray(M[:3, :3]), np.ascontiguousarray(M[:3, 3]))
@@ -265,3 +273,109 @@ def test_checks_pickle_and_the_flag_selects_the_python_check(checks):
     calls = []
     slow.point_ok_exact = lambda *p: calls.append(p) or True
     assert slow.point_ok(*t) and calls == [t]
+
+
+def test_piece_hulls_hold_their_pieces(checks, panda):
+    """Each mesh piece's hull vertices are vertices of its triangles, and along any direction the largest
+    projection of the piece's vertices is one of its hull vertices' (so a support bound on the hull vertices
+    bounds the triangles); the held arms' hull vertices are their pieces' placed in the world."""
+    rng = np.random.default_rng(5)
+    n = rng.normal(size=(300, 3))
+    n /= np.linalg.norm(n, axis=1)[:, None]
+    fewer = 0
+    for geo in (checks.geo, panda):
+        tcap, tris, *_ = geo.piece_triangles()
+        hcap, hull = geo.piece_hulls()
+        assert np.array_equal(np.unique(hcap), np.unique(tcap))
+        for k in np.unique(tcap):
+            V = np.unique(tris[tcap == k].reshape(-1, 3), axis=0)
+            Hk = hull[hcap == k]
+            assert all(np.any(np.all(V == h, axis=1)) for h in Hk)
+            assert np.max(np.abs((V @ n.T).max(axis=0) - (Hk @ n.T).max(axis=0))) <= 1e-12
+            fewer += len(Hk) < len(V)
+    assert fewer > 20  # hulls do drop vertices
+    (_, _, tree, held), _, _ = checks._kernel_args()
+    h = checks.held[0]
+    obj = h.geo.capsules()[0]
+    hcap, hull = h.geo.piece_hulls()
+    for k in range(len(obj)):
+        M = h.P[obj[k]]
+        assert np.allclose(held.hull[held.hull_start[k]:held.hull_start[k + 1]], hull[hcap == k] @ M[:3, :3].T + M[:3, 3],
+                           rtol=0, atol=1e-14)
+
+
+def test_hull_bound_and_remembered_pieces_as_coal(checks):
+    """At random placements of the moving arm near the held one, per pair of mesh pieces within 15 mm of the
+    clearance, against coal's exact distance: hull_bound's lower bound never exceeds it and its upper bound
+    never falls below it, and most pairs clear of the clearance by 2 mm are decided by the hulls alone; and
+    cached_piece_bound with one memory shared by every pair and state (each state met twice, in two orders,
+    so that the memory holds other states' witnesses and directions) decides as coal and returns, below the
+    clearance, the distance of two triangles (never below coal's)."""
+    import coal
+
+    (chain, rmap, tree, held), (port, length, ref, step, c), objects = checks._kernel_args()
+    pieces = checks.geo.pieces()
+    rng = np.random.default_rng(33)
+    P = np.empty((len(tree.gparent), 4, 4))
+    cases = []
+    while len(cases) < 60 or sum(x[-1] < c for x in cases) < 15:
+        t = LO + rng.random(3) * (HI - LO)
+        q = checks.config(t)
+        if q is None:
+            continue
+        place_objects(tree, q, P)
+        near = sorted(_near_piece_pairs(tree, held, P, c), key=lambda x: x[0])
+        for i in [0, 1] + list(2 + rng.permutation(max(len(near) - 2, 0))[:2]):  # the nearest two, two others
+            if i >= len(near):
+                continue
+            _, g, k, u, wa, wb = near[i]
+            M = P[g].copy()
+            hg, hT = objects[u]
+            T = coal.Transform3s(np.ascontiguousarray(M[:3, :3]), np.ascontiguousarray(M[:3, 3]))
+            exact = coal.distance(pieces[k], T, hg, hT, coal.DistanceRequest(), coal.DistanceResult())
+            cases.append((M, k, u, wa, wb, exact))
+    decided = far = 0
+    for M, k, u, wa, wb, exact in cases:
+        n = segment_gap(*held.cap_a[u], *held.cap_b[u], *wa, *wb)
+        lo, *_, up = hull_bound(tree, held, M, k, u, *n, np.inf)
+        assert lo <= exact + 1e-12 and up >= exact - 1e-12, (lo, exact, up)
+        if exact > c + 0.002:
+            far += 1
+            decided += hull_bound(tree, held, M, k, u, *n, c + 1e-9)[0] >= c + 1e-9
+    assert far > 10 and decided >= 0.7 * far, (decided, far)
+    wit, axes = piece_memory(tree, held)
+    seen = 0
+    for order in (range(len(cases)), reversed(range(len(cases)))):
+        for i in order:
+            M, k, u, wa, wb, exact = cases[i]
+            d = cached_piece_bound(tree, held, M, k, u, wa, wb, c + 1e-9, c - 1e-9, wit[k, u], axes[k, u])
+            if d < c - 1e-9:
+                assert exact <= d + 1e-12
+            else:
+                assert d <= min(exact, c + 1e-9) + 1e-9
+            if abs(exact - c) > 1e-9:
+                assert (d < c) == (exact < c), (d, exact)
+            seen += exact < c
+    assert 10 < seen < 2 * len(cases) - 10  # both answers met
+
+
+def test_packed_shapes_are_the_shapes_and_answer_alike(checks):
+    """pack_shapes / unpack_shapes give back every array of the tree and the held shapes (dtype, shape,
+    values), and arm_check (packed, with a memory) answers as arm_motion (unpacked, without one) on tips
+    and motions."""
+    (chain, rmap, tree, held), (port, length, ref, step, c), _ = checks._kernel_args()
+    F, I = pack_shapes(tree, held)
+    t2, h2 = unpack_shapes(F, I)
+    for x, y in zip(tuple(tree) + tuple(held), tuple(t2) + tuple(h2)):
+        assert x.dtype == y.dtype and x.shape == y.shape and np.array_equal(x, y)
+    wit, axes = piece_memory(tree, held)
+    rng = np.random.default_rng(9)
+    seen = set()
+    for _ in range(60):
+        a = LO + rng.random(3) * (HI - LO)
+        b = a if rng.random() < 0.5 else a + rng.normal(size=3) * 0.01
+        st, S, _, rows = arm_check(chain, rmap, F, I, a, b, port, length, ref, step, c, wit, axes)
+        st0, S0, _, rows0 = arm_motion(chain, rmap, tree, held, a, b, port, length, ref, step, c)
+        assert st == st0 and np.array_equal(S, S0) and np.array_equal(rows, rows0)
+        seen.add(int(st))
+    assert {CLEAR, WITHIN} <= seen

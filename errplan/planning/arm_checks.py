@@ -35,11 +35,14 @@ measures with a second distance method.
 
 The planner's hot path (:meth:`ArmChecks.point_ok`, :meth:`ArmChecks.motion_ok`; ``compiled`` True) takes
 the six plain floats of a motion to one compiled call
-(:func:`~errplan.kinematics.urdf.broadphase.arm_motion`): the wrists on the shaft, the inverse kinematics
+(:func:`~errplan.kinematics.urdf.broadphase.arm_check`, :func:`~errplan.kinematics.urdf.broadphase.arm_motion`
+on the arms' shapes packed in two buffers): the wrists on the shaft, the inverse kinematics
 at every tip sample (the same branch rules as :meth:`ArmChecks.motion_configs`), the joint-space samples,
 the links' placements, a conservative broad phase against the held arms (per object a bounding sphere,
 then the capsules of its mesh pieces) and an exact narrow phase on the pairs of mesh pieces it leaves (the
-distance of their triangles, pruned by the triangles' capsules and by projections on separating lines);
+pair's nearest triangles of the check before, a support bound on the pieces' convex hulls, then the distance
+of their triangles, pruned by the triangles' capsules and by projections on separating lines; the checks keep
+each pair's nearest triangles and separating direction from one check to the next, which changes no answer);
 along a motion a pair of objects is looked at again only once its object may have moved as far as it was
 found above the clearance. Only the pairs a primitive's piece takes part in (or whose distance ties with the
 clearance within 1 nm) go to coal (:func:`~errplan.kinematics.urdf.collision.first_within`): at a tip its
@@ -60,7 +63,7 @@ import numpy as np
 from ..errors import ErrplanError
 from ..kinematics import arm_for
 from ..jit import kernel_array
-from ..kinematics.urdf.broadphase import CLEAR, UNDECIDED, arm_motion, object_travel
+from ..kinematics.urdf.broadphase import CLEAR, UNDECIDED, arm_check, object_travel, pack_shapes, piece_memory
 from ..kinematics.urdf.collision import (ArmCollision, HeldArm, arm_at_tip, clear_along_held, clearance_to_held,
                                          first_within, held_objects, held_shapes, min_clearance_along_held,
                                          within_held)
@@ -90,6 +93,8 @@ class ArmChecks:
     def __getstate__(self):
         state = dict(self.__dict__)
         state.pop("_kargs", None)  # coal's transforms: rebuilt on first use
+        state.pop("_memory", None)
+        state.pop("_packed", None)
         return state
 
     @classmethod
@@ -172,22 +177,27 @@ class ArmChecks:
         if args is None:
             chain, rmap = self.arm.kernel()
             ref = np.full(self.arm.n, np.nan) if self.reference is None else np.asarray(self.reference, float)
+            tree, held = self.geo.link_tree(), held_shapes(self.held)
             args = self.__dict__["_kargs"] = (
-                (chain, rmap, self.geo.link_tree(), held_shapes(self.held)),
+                (chain, rmap, tree, held),
                 (kernel_array(np.array(self.port, float)), float(self.length), kernel_array(ref.copy()),
                  float(self.tip_step), float(self.clearance)),
                 held_objects(self.held))
+            # each pair of pieces' witness triangles and separating direction, from check to check
+            self.__dict__["_memory"] = piece_memory(tree, held)
+            self.__dict__["_packed"] = pack_shapes(tree, held)  # one call takes two buffers, not some 35 arrays
         return args
 
     def compiled_ok(self, ax: float, ay: float, az: float, bx: float, by: float, bz: float) -> bool:
         """:meth:`motion_ok_exact` (:meth:`point_ok_exact` when ``a == b``) by the compiled broad phase
         (module docstring): the same samples, coal's collision test only on the pairs of objects whose
         bounding volumes come closer than the clearance."""
-        model, (port, length, ref, step, c), objects = self._kernel_args()
-        status, S, P, rows = arm_motion(*model, np.array((ax, ay, az)), np.array((bx, by, bz)), port, length, ref,
-                                        step, c)
+        (chain, rmap, tree, _), (port, length, ref, step, c), objects = self._kernel_args()
+        a = np.array((ax, ay, az))
+        b = a if ax == bx and ay == by and az == bz else np.array((bx, by, bz))
+        status, S, P, rows = arm_check(chain, rmap, *self._packed, a, b, port, length, ref, step, c, *self._memory)
         if status == UNDECIDED:
-            travel = object_travel(model[2].reach, S) if len(S) > 1 else None  # a motion: exact distances, skipping
+            travel = object_travel(tree.reach, S) if len(S) > 1 else None  # a motion: exact distances, skipping
             return first_within(self.geo, P, objects, rows, c, travel) < 0
         return status == CLEAR  # else out of reach, or two surface points closer than the clearance
 

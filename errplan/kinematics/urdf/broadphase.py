@@ -6,8 +6,8 @@ them and asks coal about the few pairs this part leaves: a primitive's piece, or
 
 * :class:`LinkTree`: the arm's joints and collision objects as fixed transforms (pinocchio's kinematic
   tree with every joint off the actuated set at its held value), the objects' bounding spheres, the
-  bounding capsules of their mesh pieces and the pieces' triangles (each with a capsule of its own) in
-  their own frames, and the per-object motion bounds (``reach``);
+  bounding capsules of their mesh pieces, the pieces' triangles (each with a capsule of its own) and their
+  hulls' vertices in their own frames, and the per-object motion bounds (``reach``);
 * :class:`HeldShapes`: the same of the held arms' objects, in the world;
 * :func:`arm_motion`: for a straight tip motion ``a -> b`` (or one tip), the configurations at the tip
   samples (as :meth:`errplan.planning.arm_checks.ArmChecks.motion_configs` finds them), the joint-space
@@ -17,6 +17,16 @@ them and asks coal about the few pairs this part leaves: a primitive's piece, or
   (:func:`triangle_distance`) where it matters. Coal's mesh query between two pieces (a collision test with
   the clearance as security margin) is also a distance between their triangles (coal's meshes are
   triangle soups), so the answers are coal's.
+
+Before the triangles, per pair of pieces: the two triangles found nearest each other the last time the pair
+was looked at (a kept memory, :func:`piece_memory`; at any other state of the arm they are still two
+triangles of the pieces, so their distance below the clearance decides "too close" at once), then
+:func:`hull_bound`, a support bound on the pieces' convex hulls (the hulls' vertices, precomputed per piece;
+a piece lies in its hull, so the hulls' distance bounds the pieces' from below) climbed by Gilbert's
+iteration from the pair's last separating direction: it decides most pairs that lie a little above the
+clearance with a few passes over a hundred or so vertices, and two support vertices (vertices of the
+triangles) closer than the clearance decide the other way. The memory changes no answer, only how soon it
+comes.
 
 Pruning in the narrow phase, all conservative: a triangle whose capsule lies the clearance away from the
 other piece's capsule cannot come closer (each capsule holds its triangles); the vertices of the triangles
@@ -70,7 +80,9 @@ class LinkTree(NamedTuple):
     (capsules sorted by object). Triangles (the narrow phase): ``tris`` (t, 3, 3) the vertices of every mesh
     piece's triangles in their object's frame, sorted by capsule, ``tri_a``, ``tri_b`` (t, 3) and ``tri_r`` (t,)
     a capsule holding each, ``tri_start`` (C + 1,) int64 the first of each capsule's piece (a primitive's piece has
-    none: its pairs go to coal)."""
+    none: its pairs go to coal). ``hull`` (v, 3) the vertices of each mesh piece's convex hull in their object's
+    frame (every vertex of the piece's triangles lies in their hull), sorted by capsule, ``hull_start`` (C + 1,)
+    int64 the first of each (a primitive's piece has none)."""
 
     jparent: np.ndarray
     jconst: np.ndarray
@@ -92,13 +104,16 @@ class LinkTree(NamedTuple):
     tri_b: np.ndarray
     tri_r: np.ndarray
     tri_start: np.ndarray
+    hull: np.ndarray
+    hull_start: np.ndarray
 
 
 class HeldShapes(NamedTuple):
     """The held arms' objects (H of them, every held arm's in turn) in the world: ``center`` (H, 3),
     ``radius`` (H,) bounding spheres; capsules ``cap_a``, ``cap_b`` (C, 3), ``cap_r`` (C,), ``cap_start``
     (H + 1,) int64, triangles ``tris`` (t, 3, 3), their capsules ``tri_a``, ``tri_b`` (t, 3), ``tri_r`` (t,) in the world and
-    ``tri_start`` (C + 1,) as in :class:`LinkTree`."""
+    ``tri_start`` (C + 1,), the pieces' hull vertices ``hull`` (v, 3) in the world and ``hull_start`` (C + 1,) as in
+    :class:`LinkTree`."""
 
     center: np.ndarray
     radius: np.ndarray
@@ -111,15 +126,32 @@ class HeldShapes(NamedTuple):
     tri_b: np.ndarray
     tri_r: np.ndarray
     tri_start: np.ndarray
+    hull: np.ndarray
+    hull_start: np.ndarray
 
 
 # ---------------------------------------------------------------------------- placements
+@njit(cache=True)
+def _compose(A, B, C):
+    """``C = A @ B`` for homogeneous transforms (4, 4) whose last row is (0, 0, 0, 1), written out (a small
+    product in numba goes through a general matrix multiply)."""
+    for r in range(3):
+        a0, a1, a2 = A[r, 0], A[r, 1], A[r, 2]
+        for s in range(4):
+            C[r, s] = a0 * B[0, s] + a1 * B[1, s] + a2 * B[2, s]
+        C[r, 3] += A[r, 3]
+    C[3, 0] = C[3, 1] = C[3, 2] = 0.0
+    C[3, 3] = 1.0
+
+
 @njit(cache=True)
 def place_objects(tree, q, P):
     """World placements ``P`` (G, 4, 4) of the objects at actuated joint values ``q`` (n,)."""
     J = tree.jparent.shape[0]
     M = np.empty((J, 4, 4))
     X = np.empty((4, 4))
+    L = np.empty((4, 4))
+    W = np.empty((4, 4))
     for j in range(J):
         C = tree.jconst[j]
         k = tree.jact[j]
@@ -137,20 +169,21 @@ def place_objects(tree, q, P):
                 X[2, 0], X[2, 1], X[2, 2] = az * ax * v - ay * s_, az * ay * v + ax * s_, c + az * az * v
             else:
                 X[0, 3], X[1, 3], X[2, 3] = ax * q[k], ay * q[k], az * q[k]
-            L = C @ X
+            _compose(C, X, L)
         else:
-            L = C
+            L[:] = C
         p = tree.jparent[j]
         if p >= 0:
-            M[j] = M[p] @ L
+            _compose(M[p], L, M[j])
         else:
             M[j] = L
     for g in range(tree.gparent.shape[0]):
         p = tree.gparent[g]
         if p >= 0:
-            P[g] = tree.base @ (M[p] @ tree.gplace[g])
+            _compose(M[p], tree.gplace[g], W)
+            _compose(tree.base, W, P[g])
         else:
-            P[g] = tree.base @ tree.gplace[g]
+            _compose(tree.base, tree.gplace[g], P[g])
 
 
 @njit(cache=True)
@@ -346,8 +379,86 @@ def _pair_separation(T, U, n0, n1, n2):
     return (lo - hi) - 1e-12 * (abs(lo) + abs(hi) + 1.0)
 
 
+#: the most steps of :func:`hull_bound` (each one pass over the two pieces' hull vertices)
+HULL_STEPS = 12
+
+
+@njit(cache=True)
+def hull_bound(tree, held, Pg, k, u, n0, n1, n2, target):
+    """A lower bound of the distance between moving capsule ``k``'s piece (its object placed by ``Pg`` (4, 4))
+    and held capsule ``u``'s piece from their hulls' vertices, the direction that gave it, and an upper bound:
+    ``(bound, m0, m1, m2, upper)`` (-inf and inf without hulls); ``upper`` the smallest distance of the support
+    vertices met (the hulls' vertices are vertices of the pieces' triangles, so the pieces come that close).
+
+    Along a unit direction ``n`` from the moving piece to the held one, the gap of the two pieces'
+    projections, ``min (held . n) - max (moving . n)`` (padded for rounding), bounds their distance from
+    below; its largest value over ``n`` is the distance of the two hulls. Gilbert's iteration on the hulls'
+    difference climbs towards it from ``n``: ``x`` a point of the difference, the support point ``s`` along
+    ``x``, ``x`` moved to the point of the segment ``x -> s`` nearest the origin. Stops once the bound reaches
+    ``target``, or ``upper`` falls below ``target - 2 SLACK`` (the caller's "closer than" threshold), or after
+    :data:`HULL_STEPS` steps (where the hulls come closer than ``target`` the steps go on for a pair of
+    support vertices that close). The moving piece's support is taken in its own frame (the direction turned
+    back by ``Pg``), so its vertices are not placed."""
+    v0, v1 = tree.hull_start[k], tree.hull_start[k + 1]
+    w0, w1 = held.hull_start[u], held.hull_start[u + 1]
+    best, m0, m1, m2, upper = -np.inf, n0, n1, n2, np.inf
+    if v0 == v1 or w0 == w1:
+        return best, m0, m1, m2, upper
+    x0 = x1 = x2 = 0.0
+    for it in range(HULL_STEPS):
+        nn = math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+        if not nn > 0.0:
+            break
+        n0, n1, n2 = n0 / nn, n1 / nn, n2 / nn
+        l0 = Pg[0, 0] * n0 + Pg[1, 0] * n1 + Pg[2, 0] * n2
+        l1 = Pg[0, 1] * n0 + Pg[1, 1] * n1 + Pg[2, 1] * n2
+        l2 = Pg[0, 2] * n0 + Pg[1, 2] * n1 + Pg[2, 2] * n2
+        hi = -np.inf
+        ia = v0
+        for v in range(v0, v1):
+            y = tree.hull[v, 0] * l0 + tree.hull[v, 1] * l1 + tree.hull[v, 2] * l2
+            if y > hi:
+                hi = y
+                ia = v
+        hi += Pg[0, 3] * n0 + Pg[1, 3] * n1 + Pg[2, 3] * n2
+        lo = np.inf
+        ib = w0
+        for w in range(w0, w1):
+            y = held.hull[w, 0] * n0 + held.hull[w, 1] * n1 + held.hull[w, 2] * n2
+            if y < lo:
+                lo = y
+                ib = w
+        gap = (lo - hi) - 1e-12 * (abs(lo) + abs(hi) + 1.0)
+        if gap > best:
+            best, m0, m1, m2 = gap, n0, n1, n2
+            if best >= target:
+                break
+        p0, p1, p2 = _apply(Pg, tree.hull[ia])
+        s0, s1, s2 = held.hull[ib, 0] - p0, held.hull[ib, 1] - p1, held.hull[ib, 2] - p2
+        upper = min(upper, math.sqrt(s0 * s0 + s1 * s1 + s2 * s2))
+        if it == 0:
+            x0, x1, x2 = s0, s1, s2
+        else:
+            d0, d1, d2 = s0 - x0, s1 - x1, s2 - x2
+            dd = d0 * d0 + d1 * d1 + d2 * d2
+            if not dd > 0.0:
+                break
+            t = min(max(-(x0 * d0 + x1 * d1 + x2 * d2) / dd, 0.0), 1.0)
+            x0, x1, x2 = x0 + t * d0, x1 + t * d1, x2 + t * d2
+        if upper < target - 2.0 * SLACK:  # two vertices of the pieces within: decided the other way
+            break
+        n0, n1, n2 = x0, x1, x2
+    return best, m0, m1, m2, upper
+
+
 @njit(cache=True)
 def piece_bound(tree, held, Pg, k, u, wa, wb, top, low):
+    """:func:`cached_piece_bound` without a memory of earlier calls."""
+    return cached_piece_bound(tree, held, Pg, k, u, wa, wb, top, low, np.full(2, -1, np.int64), np.zeros(3))
+
+
+@njit(cache=True)
+def cached_piece_bound(tree, held, Pg, k, u, wa, wb, top, low, wit, axis):
     """The distance between moving capsule ``k``'s piece (its object placed by ``Pg`` (4, 4); the capsule's axis
     in the world ``wa -> wb``) and held capsule ``u``'s piece, both meshes, as far as a caller asking "closer
     than ``low``?" needs it: a value below ``low`` is the distance of two of their triangles (so theirs is
@@ -357,16 +468,39 @@ def piece_bound(tree, held, Pg, k, u, wa, wb, top, low):
     lie ``top`` from the other piece's capsule cannot come closer; a separating line (module docstring)
     showing at least ``low + 2 SLACK`` decides; else every pair of triangles, but those whose capsules (or
     projections on the line between their axes) lie farther apart than the smallest distance found so far,
-    by :func:`triangle_distance`, stopping at the first below ``low``."""
+    by :func:`triangle_distance`, stopping at the first below ``low``.
+
+    Before all that, the pair's memory of its earlier calls (other states of the same pieces): ``wit`` (2,)
+    int64 the moving and held triangles (indices into ``tree.tris``, ``held.tris``; -1 none) nearest each other
+    when last measured, tried first (their distance below ``low`` answers at once: a state near contact is
+    mostly decided by the pair that decided the one before), and ``axis`` (3,) the direction of the best
+    separation found last time, from which :func:`hull_bound` starts (a bound of at least ``low + 2 SLACK``
+    answers). Both are updated; neither changes an answer, only how soon it comes."""
     t0, t1 = tree.tri_start[k], tree.tri_start[k + 1]
     h0, h1 = held.tri_start[u], held.tri_start[u + 1]
     rk, ru = tree.cap_r[k], held.cap_r[u]
     ua0, ua1, ua2 = held.cap_a[u, 0], held.cap_a[u, 1], held.cap_a[u, 2]
     ub0, ub1, ub2 = held.cap_b[u, 0], held.cap_b[u, 1], held.cap_b[u, 2]
+    if wit[0] >= 0:  # the two triangles nearest each other last time
+        T = np.empty((3, 3))
+        for v in range(3):
+            T[v, 0], T[v, 1], T[v, 2] = _apply(Pg, tree.tris[wit[0], v])
+        d = triangle_distance(T, held.tris[wit[1]])
+        if d < low:
+            return d
+    n0, n1, n2 = axis[0], axis[1], axis[2]
+    if n0 == 0.0 and n1 == 0.0 and n2 == 0.0:  # none yet: the line between the capsules' axes
+        n0, n1, n2 = segment_gap(ua0, ua1, ua2, ub0, ub1, ub2, wa[0], wa[1], wa[2], wb[0], wb[1], wb[2])
+    hb, axis[0], axis[1], axis[2], ub = hull_bound(tree, held, Pg, k, u, n0, n1, n2, low + 2.0 * SLACK)
+    if hb >= low + 2.0 * SLACK:
+        return min(hb, top)
+    if ub < low:  # two vertices of the pieces' triangles that close
+        return ub
     A = np.empty((t1 - t0, 3, 3))
     aa = np.empty((t1 - t0, 3))
     ab = np.empty((t1 - t0, 3))
     ar = np.empty(t1 - t0)
+    ia = np.empty(t1 - t0, np.int64)
     la = np.empty(t1 - t0)
     lb = np.empty(h1 - h0)
     na = 0
@@ -382,6 +516,7 @@ def piece_bound(tree, held, Pg, k, u, wa, wb, top, low):
         aa[na, 0], aa[na, 1], aa[na, 2] = p0, p1, p2
         ab[na, 0], ab[na, 1], ab[na, 2] = q0, q1, q2
         ar[na] = tree.tri_r[t]
+        ia[na] = t
         na += 1
     if na == 0:
         return top
@@ -403,10 +538,11 @@ def piece_bound(tree, held, Pg, k, u, wa, wb, top, low):
     for ii in range(min(na, 3)):
         for j0 in range(min(nb, 3)):
             d = triangle_distance(A[oa[ii]], held.tris[B[ob[j0]]])
-            if d < low:
-                return d
             if d < wd:
                 wi, wj, wd = oa[ii], B[ob[j0]], d
+                wit[0], wit[1] = ia[wi], wj
+            if d < low:
+                return d
     # separating directions: the survivors' vertices projected on a line; every point of a triangle lies
     # between its vertices' projections, so the gap of the projections bounds the distance from below (exact
     # for two convex pieces facing along that line, as the links' pieces mostly do). Tried: the line between
@@ -453,13 +589,16 @@ def piece_bound(tree, held, Pg, k, u, wa, wb, top, low):
             d = triangle_distance(A[i], held.tris[j])
             if d < best:
                 best = d
+                if d < wd:
+                    wd = d
+                    wit[0], wit[1] = ia[i], j
                 if best < low:
                     return best
     return best
 
 
 @njit(cache=True)
-def pair_bound(tree, held, P, g, h, c, top, sample, rows, m, known, moved):
+def pair_bound(tree, held, P, g, h, c, top, sample, rows, m, known, moved, wit, axes):
     """The broad and narrow phases for moving object ``g`` (placed by ``P`` (G, 4, 4)) and held object ``h``:
     ``(bound, within, rows, m)``. ``bound`` is a lower bound of their distance, at least ``min(distance,
     top)`` where every piece pair is a pair of meshes (the larger of the spheres' gap and, per pair of pieces,
@@ -470,7 +609,8 @@ def pair_bound(tree, held, P, g, h, c, top, sample, rows, m, known, moved):
     needed) for coal. ``known`` (moving capsules, held capsules): per pair of pieces, a lower bound of their
     distance found before plus how far object ``g`` had moved then; ``moved``, how far it has moved now: a
     pair with ``known - moved >= c + SLACK`` is clear without a look (the distance is 1-Lipschitz in g's
-    points), every other pair looked at updates it."""
+    points), every other pair looked at updates it. ``wit`` (moving capsules, held capsules, 2), ``axes`` (moving
+    capsules, held capsules, 3): each pair of pieces' memory (:func:`cached_piece_bound`)."""
     cut = c + SLACK
     c0, c1, c2 = _apply(P[g], tree.center[g])
     x0 = c0 - held.center[h, 0]
@@ -498,7 +638,8 @@ def pair_bound(tree, held, P, g, h, c, top, sample, rows, m, known, moved):
             dk -= tree.cap_r[k] + held.cap_r[u]
             if dk < top:
                 mesh = tree.tri_start[k + 1] > tree.tri_start[k] and held.tri_start[u + 1] > held.tri_start[u]
-                exact = piece_bound(tree, held, P[g], k, u, wa, wb, top, c - SLACK) if mesh else -np.inf
+                exact = cached_piece_bound(tree, held, P[g], k, u, wa, wb, top, c - SLACK, wit[k, u],
+                                           axes[k, u]) if mesh else -np.inf
                 if exact < c - SLACK and mesh:
                     return exact, True, rows, m
                 if exact > dk:
@@ -652,7 +793,7 @@ def _nearest_first(gaps, cut):
 
 
 @njit(cache=True)
-def arm_motion(chain, rmap, tree, held, a, b, port, L, ref, tip_step, c):
+def arm_motion(chain, rmap, tree, held, a, b, port, L, ref, tip_step, c, memory=None):
     """The moving arm's motion ``a -> b`` (a tip when ``a == b``) against the held arms (module docstring).
 
     Returns ``(status, S, P, pairs)``: ``status`` :data:`UNREACHABLE`, :data:`CLEAR` (every pair of every
@@ -666,7 +807,10 @@ def arm_motion(chain, rmap, tree, held, a, b, port, L, ref, tip_step, c):
     g's points may have moved since (:func:`object_travel`) is a lower bound of their distance at every later
     sample (the distance is 1-Lipschitz in g's points); while it is at least the clearance the pair is not
     looked at, and a sample none of whose pairs is looked at is not placed; the same per pair of their mesh
-    pieces inside :func:`pair_bound`."""
+    pieces inside :func:`pair_bound`.
+
+    ``memory``: :func:`piece_memory`'s arrays, each pair of pieces' witness triangles and separating direction
+    from the calls before (kept by the caller from call to call; None: none kept)."""
     n = chain.axis.shape[0]
     G = tree.gparent.shape[0]
     H = held.radius.shape[0]
@@ -685,6 +829,11 @@ def arm_motion(chain, rmap, tree, held, a, b, port, L, ref, tip_step, c):
     travel = object_travel(tree.reach, S)
     known = np.full((G, H), -np.inf)  # per pair: its bound plus its object's travel at the sample it was found
     pieces = np.full((tree.cap_r.shape[0], held.cap_r.shape[0]), -np.inf)  # the same per pair of pieces
+    if memory is None:
+        wit = np.full((tree.cap_r.shape[0], held.cap_r.shape[0], 2), -1, np.int64)
+        axes = np.zeros((tree.cap_r.shape[0], held.cap_r.shape[0], 3))
+    else:
+        wit, axes = memory
     rows = np.empty((16, 3), np.int64)
     m = 0
     order = np.arange(G * H)
@@ -708,11 +857,98 @@ def arm_motion(chain, rmap, tree, held, a, b, port, L, ref, tip_step, c):
             if not placed:
                 place_objects(tree, S[i], P[i])
                 placed = True
-            d, within, rows, m = pair_bound(tree, held, P[i], g, h, c, cut, i, rows, m, pieces, travel[i, g])
+            d, within, rows, m = pair_bound(tree, held, P[i], g, h, c, cut, i, rows, m, pieces, travel[i, g], wit,
+                                            axes)
             if within:
                 return WITHIN, S, P, np.empty((0, 3), np.int64)
             known[g, h] = d + travel[i, g]
     return (UNDECIDED if m else CLEAR), S, P, rows[:m]
+
+
+
+# ---------------------------------------------------------------------------- one call per check
+#: the number of dimensions of each field of :class:`LinkTree` and of :class:`HeldShapes`, negative for int64
+_TREE_DIMS = (-1, 3, -1, -1, 2, -1, 3, 2, 2, 2, 1, 2, 2, 1, -1, 3, 2, 2, 1, -1, 2, -1)
+_HELD_DIMS = (2, 1, 2, 2, 1, -1, 3, 2, 2, 1, -1, 2, -1)
+_HEAD = 5  # per field: its offset in its buffer, then its shape (up to 4 dimensions)
+
+
+def pack_shapes(tree: LinkTree, held: HeldShapes) -> tuple[np.ndarray, np.ndarray]:
+    """The tree's and the held shapes' arrays in two buffers, ``(floats, ints)``, for :func:`arm_check`: a
+    compiled call spends about a quarter of a microsecond taking each array it is given, and the two hold
+    some 35. ``ints`` begins with a header of :data:`_HEAD` int64 per field (its offset in its buffer, its
+    shape)."""
+    fields = tuple(tree) + tuple(held)
+    dims = _TREE_DIMS + _HELD_DIMS
+    head = np.zeros(_HEAD * len(fields), np.int64)
+    floats, ints, nf, ni = [], [], 0, len(head)
+    for i, (x, d) in enumerate(zip(fields, dims)):
+        x = np.ascontiguousarray(x, dtype=np.int64 if d < 0 else float)
+        if x.ndim != abs(d):
+            raise ValueError(f"field {i} of the shapes has {x.ndim} dimensions, not {abs(d)}")
+        head[_HEAD * i + 1:_HEAD * i + 1 + x.ndim] = x.shape
+        if d < 0:
+            head[_HEAD * i] = ni
+            ints.append(x.ravel())
+            ni += x.size
+        else:
+            head[_HEAD * i] = nf
+            floats.append(x.ravel())
+            nf += x.size
+    return np.concatenate(floats), np.concatenate([head] + ints)
+
+
+@njit(cache=True)
+def _f1(F, I, i):
+    o = I[_HEAD * i]
+    return F[o:o + I[_HEAD * i + 1]]
+
+
+@njit(cache=True)
+def _f2(F, I, i):
+    o, a, b = I[_HEAD * i], I[_HEAD * i + 1], I[_HEAD * i + 2]
+    return F[o:o + a * b].reshape((a, b))
+
+
+@njit(cache=True)
+def _f3(F, I, i):
+    o, a, b, c = I[_HEAD * i], I[_HEAD * i + 1], I[_HEAD * i + 2], I[_HEAD * i + 3]
+    return F[o:o + a * b * c].reshape((a, b, c))
+
+
+@njit(cache=True)
+def _i1(I, i):
+    o = I[_HEAD * i]
+    return I[o:o + I[_HEAD * i + 1]]
+
+
+@njit(cache=True)
+def unpack_shapes(F, I):
+    """:func:`pack_shapes`' buffers back to ``(LinkTree, HeldShapes)`` (views, no copies)."""
+    tree = LinkTree(_i1(I, 0), _f3(F, I, 1), _i1(I, 2), _i1(I, 3), _f2(F, I, 4), _i1(I, 5), _f3(F, I, 6),
+                    _f2(F, I, 7), _f2(F, I, 8), _f2(F, I, 9), _f1(F, I, 10), _f2(F, I, 11), _f2(F, I, 12),
+                    _f1(F, I, 13), _i1(I, 14), _f3(F, I, 15), _f2(F, I, 16), _f2(F, I, 17), _f1(F, I, 18),
+                    _i1(I, 19), _f2(F, I, 20), _i1(I, 21))
+    held = HeldShapes(_f2(F, I, 22), _f1(F, I, 23), _f2(F, I, 24), _f2(F, I, 25), _f1(F, I, 26), _i1(I, 27),
+                      _f3(F, I, 28), _f2(F, I, 29), _f2(F, I, 30), _f1(F, I, 31), _i1(I, 32), _f2(F, I, 33),
+                      _i1(I, 34))
+    return tree, held
+
+
+@njit(cache=True)
+def arm_check(chain, rmap, F, I, a, b, port, L, ref, tip_step, c, wit, axes):
+    """:func:`arm_motion` with the tree and the held shapes packed by :func:`pack_shapes` and the memory
+    :func:`piece_memory`'s ``(wit, axes)``: the planner's per-check call, with a few arrays to take instead of
+    some forty."""
+    tree, held = unpack_shapes(F, I)
+    return arm_motion(chain, rmap, tree, held, a, b, port, L, ref, tip_step, c, (wit, axes))
+
+
+def piece_memory(tree: LinkTree, held: HeldShapes) -> tuple[np.ndarray, np.ndarray]:
+    """Empty memories of every pair of pieces for :func:`arm_motion`: witnesses (moving capsules, held capsules,
+    2) int64 all -1, directions (moving capsules, held capsules, 3) all 0."""
+    shape = (tree.cap_r.shape[0], held.cap_r.shape[0])
+    return np.full(shape + (2,), -1, np.int64), np.zeros(shape + (3,))
 
 
 def tree_arrays(tree: LinkTree) -> LinkTree:
@@ -720,6 +956,7 @@ def tree_arrays(tree: LinkTree) -> LinkTree:
     return LinkTree(*(np.ascontiguousarray(x, dtype=np.int64 if x.dtype.kind in "iu" else float) for x in tree))
 
 
-__all__ = ["LinkTree", "HeldShapes", "place_objects", "pair_bound", "piece_bound", "triangle_distance", "point_triangle",
+__all__ = ["LinkTree", "HeldShapes", "place_objects", "pair_bound", "piece_bound", "cached_piece_bound",
+           "hull_bound", "piece_memory", "pack_shapes", "unpack_shapes", "arm_check", "triangle_distance", "point_triangle",
            "segment_distance", "tip_configs", "joint_samples", "object_travel", "arm_motion", "SLACK", "UNREACHABLE",
            "CLEAR", "UNDECIDED", "WITHIN"]

@@ -261,9 +261,11 @@ class ArmCollision:
         start = np.searchsorted(caps[0], np.arange(len(objs) + 1), side="left").astype(np.int64)
         tcap, tris, ta, tb, tr = self.piece_triangles()
         tstart = np.searchsorted(tcap, np.arange(len(caps[0]) + 1), side="left").astype(np.int64)
+        hcap, hull = self.piece_hulls()
+        hstart = np.searchsorted(hcap, np.arange(len(caps[0]) + 1), side="left").astype(np.int64)
         self._tree = tree_arrays(LinkTree(jparent, jconst, jact, jkind, jaxis, gparent, gplace, self.base, self.reach,
                                           self._center, self._radius, caps[1], caps[2], caps[3], start, tris, ta, tb,
-                                          tr, tstart))
+                                          tr, tstart, hull, hstart))
         return self._tree
 
     def capsules(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -312,6 +314,28 @@ class ArmCollision:
                 T.append(V[F])
             T = np.concatenate(T) if T else np.zeros((0, 3, 3))
             out = self._piece_tris = (np.array(cap, np.int64), T, *triangle_capsules(T))
+        return out
+
+    def piece_hulls(self) -> tuple[np.ndarray, np.ndarray]:
+        """The vertices of each mesh piece's convex hull (:meth:`piece_triangles`), in its object's frame, for
+        the narrow phase's support bounds: ``(capsule (v,) int, vertices (v, 3))``, sorted by capsule; the
+        largest projection of a piece's triangles on any line is that of one of these. A piece whose points
+        span no volume keeps all its distinct vertices. Built once."""
+        out = getattr(self, "_piece_hulls", None)
+        if out is None:
+            from scipy.spatial import ConvexHull, QhullError
+
+            tcap, tris = self.piece_triangles()[:2]
+            cap, V = [], [np.zeros((0, 3))]
+            for k in np.unique(tcap):
+                X = np.unique(tris[tcap == k].reshape(-1, 3), axis=0)
+                try:
+                    X = X[np.sort(ConvexHull(X).vertices)]
+                except (QhullError, ValueError):  # flat or too few points: every vertex
+                    pass
+                cap += [int(k)] * len(X)
+                V.append(X)
+            out = self._piece_hulls = (np.array(cap, np.int64), np.concatenate(V))
         return out
 
     # ------------------------------------------------------------------ triangle meshes (for drawing)
@@ -688,13 +712,16 @@ class HeldArm:
 
 def held_shapes(held: Sequence[HeldArm]) -> HeldShapes:
     """The held arms' objects (every held arm's in turn) for the compiled broad phase: their bounding
-    spheres and capsules (:meth:`ArmCollision.capsules`) placed in the world (:class:`~.broadphase.HeldShapes`)."""
+    spheres and capsules (:meth:`ArmCollision.capsules`), their pieces' triangles and hull vertices placed in
+    the world (:class:`~.broadphase.HeldShapes`)."""
     centers, radius, A, B, R, start = [np.zeros((0, 3))], [np.zeros(0)], [np.zeros((0, 3))], [np.zeros((0, 3))], \
         [np.zeros(0)], [0]
     X, XA, XB, XR, tstart = [np.zeros((0, 3, 3))], [np.zeros((0, 3))], [np.zeros((0, 3))], [np.zeros(0)], [0]
+    V, vstart = [np.zeros((0, 3))], [0]
     for h in held:
         obj, a, b, r = h.geo.capsules()
         tcap, tris, ta, tb, tr = h.geo.piece_triangles()
+        hcap, hull = h.geo.piece_hulls()
         centers.append(h.centers)
         radius.append(h.geo._radius)
         for g in range(len(h.geo._geoms)):
@@ -711,9 +738,13 @@ def held_shapes(held: Sequence[HeldArm]) -> HeldShapes:
                 XB.append(tb[mine] @ M[:3, :3].T + M[:3, 3])
                 XR.append(tr[mine] * (1.0 + 1e-12) + 1e-12)  # the rounding of the placement
                 tstart.append(tstart[-1] + int(np.count_nonzero(mine)))
+                mine = hcap == k
+                V.append(hull[mine] @ M[:3, :3].T + M[:3, 3])
+                vstart.append(vstart[-1] + int(np.count_nonzero(mine)))
     arrays = [np.ascontiguousarray(np.concatenate(x), float) for x in (centers, radius, A, B, R)]
     tri = [np.ascontiguousarray(np.concatenate(x), float) for x in (X, XA, XB, XR)]
-    return HeldShapes(*arrays, np.array(start, np.int64), *tri, np.array(tstart, np.int64))
+    return HeldShapes(*arrays, np.array(start, np.int64), *tri, np.array(tstart, np.int64),
+                      np.ascontiguousarray(np.concatenate(V), float), np.array(vstart, np.int64))
 
 
 def held_objects(held: Sequence[HeldArm]) -> list:
