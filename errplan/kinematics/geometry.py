@@ -43,8 +43,11 @@ def joint_geometry_keys(n: int) -> tuple[str, ...]:
 
 
 def split_geometry(joint_geometry, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """``joint_geometry`` (6n + 3,) as the joints' (n, 6) and the wrist's (3,)."""
+    """``joint_geometry`` (6n + 3,) as the joints' (n, 6) and the wrist's (3,); 6n values are the
+    joints' alone (the wrist unmoved)."""
     g = np.asarray(joint_geometry, float).ravel()
+    if g.size == 6 * n:
+        g = np.concatenate([g, np.zeros(3)])  # the joints' only: the wrist link's origin unmoved
     if g.size != 6 * n + 3:
         raise ErrplanError(f"joint_geometry: {g.size} values for {n} actuated joints: expected {6 * n + 3} "
                            f"(six per joint, then the wrist link's dx, dy, dz)")

@@ -74,6 +74,9 @@ class Plant:
                      ("joint_geometry", 6 * n + 3), ("backlash", n))
         for name, size in sizes:
             v = tuple(float(x) for x in getattr(self, name))
+            if name == "joint_geometry" and size and len(v) == size - 3:
+                v = v + (0.0, 0.0, 0.0)  # the joints' six each only: the wrist link's origin unmoved
+                object.__setattr__(self, name, v)
             if len(v) != size:
                 if any(v):
                     raise ErrplanError(f"Plant {name} = {list(v)}: expected {size} values for the "
