@@ -545,7 +545,8 @@ class EffectModel:
         columns, add the candidate column that lowers the residual most while the BIC
         (n log(RSS / n) + k log n) falls. A geometric group has many parameters (six per joint) and a
         real error is usually a few of them; fitting them all spreads the noise over every prediction
-        (held-out rows far from the fit rows most). Returns the mask of the chosen columns."""
+        (held-out rows far from the fit rows most). The first candidate column is always taken (the
+        group is in the candidate). Returns the mask of the chosen columns."""
         n = len(r0)
         chosen = forced.copy()
 
@@ -560,6 +561,7 @@ class EffectModel:
             return n * np.log(max(value, 1e-300) / n) + int(mask.sum()) * np.log(n)
 
         best = bic(chosen, rss(chosen))
+        first = True
         while True:
             trials = []
             for j in np.flatnonzero(candidates & ~chosen):
@@ -570,9 +572,11 @@ class EffectModel:
                 return chosen
             value, j, m = min(trials, key=lambda t: t[0])
             b = bic(m, value)
-            if b >= best:
+            if b >= best and not first:
                 return chosen
-            chosen, best = m, b
+            # the group's best parameter always (a candidate named for a group has it: with none it
+            # would be the model without the group, under another name)
+            chosen, best, first = m, b, False
 
     @property
     def n_free(self) -> int:
