@@ -156,6 +156,9 @@ class _Geometric(Effect):
     the fit rows' regressor (:meth:`EffectModel.fit`), the others held at zero and named."""
 
     qr_identify = True
+    #: whether the fit keeps only the identifiable parameters the rows need (forward selection,
+    #: :meth:`EffectModel.identify`): for a group of many parameters of which a real error is a few
+    sparse = False
     #: plant fields of the parameters, in order: (field, number of parameters)
     fields: tuple[tuple[str, int], ...] = ()
 
@@ -227,6 +230,7 @@ class JointGeometry(_Geometric):
 
     name, params, units, default_scales = "joint_geometry", (), (), ()
     plant_field = "joint_geometry"
+    sparse = True  # 6N + 3 parameters: a real error is a few of them
     description = ("each actuated joint's origin moved by [dx, dy, dz] and turned by [rx, ry, rz] in its parent frame; "
                    "the wrist link's origin moved by [dx, dy, dz] in the last joint's child frame")
 
@@ -505,8 +509,11 @@ class EffectModel:
         central differences of ``step`` scaled units). Sets and returns :attr:`hold`: the columns
         with |R_ii| < QR_RTOL |R_11|. Also sets ``qr_diag_`` (|R_ii| in pivot order) and ``qr_order_``.
 
-        ``sparse``: then, among the identifiable parameters of the geometric groups, keep only those
-        the rows need (:meth:`_forward_select`); the others are set in :attr:`drop`."""
+        ``sparse``: then, among the identifiable parameters of the groups with many parameters
+        (:attr:`_Geometric.sparse`: ``joint_geometry``), keep only those the rows need
+        (:meth:`_forward_select`); the others are set in :attr:`drop`. The small groups keep every
+        identifiable parameter: with fewer they would be a catalogue effect under another name (a
+        tracker registration without its rotation is ``tracker_offset``)."""
         from scipy.linalg import qr
 
         self.hold = np.zeros(self.n_params, bool)
@@ -532,8 +539,8 @@ class EffectModel:
         self.hold[idx[~keep]] = True
         self.qr_diag_ = diag
         self.qr_order_ = [self.param_labels[idx[k]] for k in piv]
-        if sparse:
-            geo = np.array([getattr(e, "qr_identify", False) for e in self.effects for _ in e.params], bool)[idx]
+        if sparse and any(getattr(e, "sparse", False) for e in self.effects):
+            geo = np.array([getattr(e, "sparse", False) for e in self.effects for _ in e.params], bool)[idx]
             chosen = self._forward_select(A, r0, keep & ~geo, keep & geo)
             self.drop = np.zeros(self.n_params, bool)
             self.drop[idx[keep & geo & ~chosen]] = True
