@@ -128,6 +128,9 @@ def quality(sc, cases, unmodelled, label: str, units: str) -> None:
                     prow.append([name, f"{ef}.{p}", true, "not identifiable", "", ""])
                     continue
                 s = rep.uncertainty[ef][p]
+                if s is None:  # a geometric group's parameter the rows do not need: held at 0
+                    prow.append([name, f"{ef}.{p}", true * 1e3, "0 (not needed)", "", ""])
+                    continue
                 if ef == "joint_geometry":
                     prow.append([name, f"{ef}.{p}", true * 1e3, v * 1e3, s * 1e3, "(base parameter)"])
                     continue

@@ -156,6 +156,9 @@ class _Geometric(Effect):
     the fit rows' regressor (:meth:`EffectModel.fit`), the others held at zero and named."""
 
     qr_identify = True
+    #: whether the fit keeps only the identifiable parameters the rows need (forward selection,
+    #: :meth:`EffectModel.identify`): for a group of many parameters of which a real error is a few
+    sparse = False
     #: plant fields of the parameters, in order: (field, number of parameters)
     fields: tuple[tuple[str, int], ...] = ()
 
@@ -221,11 +224,15 @@ class TrackerRegistration(_Geometric):
 
 class JointGeometry(_Geometric):
     """``joint_geometry`` (URDF arms): each actuated joint's origin moved by [dx, dy, dz] and turned by
-    the rotation vector [rx, ry, rz] in its parent link's frame (keys ``dx_1`` .. ``rz_N``)."""
+    the rotation vector [rx, ry, rz] in its parent link's frame (keys ``dx_1`` .. ``rz_N``), and the
+    wrist link's origin moved by [dx, dy, dz] in the last actuated joint's child frame (keys
+    ``dx_<N+1>`` .. ``dz_<N+1>``: the last link's length)."""
 
     name, params, units, default_scales = "joint_geometry", (), (), ()
     plant_field = "joint_geometry"
-    description = "each actuated joint's origin moved by [dx, dy, dz] and turned by [rx, ry, rz] in its parent frame"
+    sparse = True  # 6N + 3 parameters: a real error is a few of them
+    description = ("each actuated joint's origin moved by [dx, dy, dz] and turned by [rx, ry, rz] in its parent frame; "
+                   "the wrist link's origin moved by [dx, dy, dz] in the last joint's child frame")
 
     def __init__(self, scales=None, *, dim: int = 2, n_joints: int = 2, fixed=None):
         if int(dim) != 3:
@@ -233,7 +240,7 @@ class JointGeometry(_Geometric):
         super().__init__(scales, dim=dim, n_joints=n_joints, fixed=fixed)
 
     def spatial_units_scales(self):
-        return _units_scales(("m", "m", "m", "rad", "rad", "rad") * self.n_joints)
+        return _units_scales(("m", "m", "m", "rad", "rad", "rad") * self.n_joints + ("m", "m", "m"))
 
 
 #: plausible sizes of a bench's effects, by unit (SI): a fitted value beyond these is flagged in the
@@ -426,11 +433,14 @@ class EffectModel:
     """
 
     def __init__(self, effects: Sequence[Effect] = (), *, fd_step: float = 1e-3, max_nfev: int = 200,
-                 hold: Sequence[bool] | None = None):
+                 hold: Sequence[bool] | None = None, drop: Sequence[bool] | None = None):
         self.effects = list(effects)
         #: parameters held at zero because QR found them not identifiable on the fit rows (geometric
         #: groups; None: not decided yet, :meth:`fit` decides)
         self.hold = None if hold is None else np.asarray(hold, bool)
+        #: identifiable parameters of a geometric group held at zero because the fit rows do not need
+        #: them (:meth:`identify`'s forward selection by BIC); reported as 0 with no uncertainty
+        self.drop = None if drop is None else np.asarray(drop, bool)
         names = [e.name for e in self.effects]
         if len(set(names)) != len(names):
             raise ErrplanError(f"effect combination {names}: an effect appears twice")
@@ -461,10 +471,25 @@ class EffectModel:
     @property
     def free(self) -> np.ndarray:
         """Mask (n_params,) of the parameters that are fitted (not fixed at 0 for the robot)."""
+        free = self.identifiable_mask
+        if self.drop is not None:
+            free &= ~self.drop
+        return free
+
+    @property
+    def identifiable_mask(self) -> np.ndarray:
+        """Mask (n_params,) of the parameters neither fixed for the robot nor held by QR."""
         free = np.array([not f for e in self.effects for f in e.fixed], bool)
         if self.hold is not None:
             free &= ~self.hold
         return free
+
+    @property
+    def dropped_labels(self) -> list[str]:
+        """Identifiable parameters of a geometric group the fit rows do not need (held at zero)."""
+        if self.drop is None:
+            return []
+        return [lab for lab, h in zip(self.param_labels, self.drop) if h]
 
     @property
     def qr_identify(self) -> bool:
@@ -478,17 +503,25 @@ class EffectModel:
             return []
         return [lab for lab, h in zip(self.param_labels, self.hold) if h]
 
-    def identify(self, q, u, tracked, base, step: float = 1e-4, run=None) -> np.ndarray:
+    def identify(self, q, u, tracked, base, step: float = 1e-4, run=None, sparse: bool = False) -> np.ndarray:
         """QR with column pivoting on the regressor of the tracked tip over the free parameters at zero
         (scaled columns: metres by 1e-3, radians by 1e-3 / GEOMETRY_LEVER, the others by their scales;
         central differences of ``step`` scaled units). Sets and returns :attr:`hold`: the columns
-        with |R_ii| < QR_RTOL |R_11|. Also sets ``qr_diag_`` (|R_ii| in pivot order) and ``qr_order_``."""
+        with |R_ii| < QR_RTOL |R_11|. Also sets ``qr_diag_`` (|R_ii| in pivot order) and ``qr_order_``.
+
+        ``sparse``: then, among the identifiable parameters of the groups with many parameters
+        (:attr:`_Geometric.sparse`: ``joint_geometry``), keep only those the rows need
+        (:meth:`_forward_select`); the others are set in :attr:`drop`. The small groups keep every
+        identifiable parameter: with fewer they would be a catalogue effect under another name (a
+        tracker registration without its rotation is ``tracker_offset``)."""
         from scipy.linalg import qr
 
         self.hold = np.zeros(self.n_params, bool)
+        self.drop = None
         free = self.free
         f = self._residual_fn(q, u, tracked, base, run)
         z0 = np.zeros(int(free.sum()))
+        r0 = f(z0) if sparse else None  # the residual at zero, before the held columns leave ``free``
         cols = []
         for j in range(len(z0)):
             dz = np.zeros_like(z0)
@@ -506,7 +539,51 @@ class EffectModel:
         self.hold[idx[~keep]] = True
         self.qr_diag_ = diag
         self.qr_order_ = [self.param_labels[idx[k]] for k in piv]
+        if sparse and any(getattr(e, "sparse", False) for e in self.effects):
+            geo = np.array([getattr(e, "sparse", False) for e in self.effects for _ in e.params], bool)[idx]
+            chosen = self._forward_select(A, r0, keep & ~geo, keep & geo)
+            self.drop = np.zeros(self.n_params, bool)
+            self.drop[idx[keep & geo & ~chosen]] = True
         return self.hold
+
+    @staticmethod
+    def _forward_select(A: np.ndarray, r0: np.ndarray, forced: np.ndarray, candidates: np.ndarray) -> np.ndarray:
+        """Forward selection by BIC on the linearised fit ``r0 ~ A z``: start from the ``forced``
+        columns, add the candidate column that lowers the residual most while the BIC
+        (n log(RSS / n) + k log n) falls. A geometric group has many parameters (six per joint) and a
+        real error is usually a few of them; fitting them all spreads the noise over every prediction
+        (held-out rows far from the fit rows most). The first candidate column is always taken (the
+        group is in the candidate). Returns the mask of the chosen columns."""
+        n = len(r0)
+        chosen = forced.copy()
+
+        def rss(mask):
+            if not mask.any():
+                return float(r0 @ r0)
+            z = np.linalg.lstsq(A[:, mask], r0, rcond=None)[0]
+            e = r0 - A[:, mask] @ z
+            return float(e @ e)
+
+        def bic(mask, value):
+            return n * np.log(max(value, 1e-300) / n) + int(mask.sum()) * np.log(n)
+
+        best = bic(chosen, rss(chosen))
+        first = True
+        while True:
+            trials = []
+            for j in np.flatnonzero(candidates & ~chosen):
+                m = chosen.copy()
+                m[j] = True
+                trials.append((rss(m), j, m))
+            if not trials:
+                return chosen
+            value, j, m = min(trials, key=lambda t: t[0])
+            b = bic(m, value)
+            if b >= best and not first:
+                return chosen
+            # the group's best parameter always (a candidate named for a group has it: with none it
+            # would be the model without the group, under another name)
+            chosen, best, first = m, b, False
 
     @property
     def n_free(self) -> int:
@@ -600,7 +677,7 @@ class EffectModel:
         d = np.shape(tracked)[-1]
         P = self.n_params
         if self.qr_identify and self.hold is None:
-            self.identify(q, u, tracked, base, run=run)
+            self.identify(q, u, tracked, base, run=run, sparse=True)
         free = self.free
         p = int(free.sum())
         self.n_obs_ = d * n

@@ -56,7 +56,8 @@ def effect_params(name: str, dim: int = 2, n_joints: int = 2) -> tuple[str, ...]
         "instrument_length": ("dL",),
         "tracker_registration": ("rx", "ry", "rz", "bx", "by", "bz"),
         "backlash": tuple(f"b{i + 1}" for i in range(n_joints)),
-        "joint_geometry": tuple(f"{k}_{i + 1}" for i in range(n_joints) for k in ("dx", "dy", "dz", "rx", "ry", "rz")),
+        "joint_geometry": (tuple(f"{k}_{i + 1}" for i in range(n_joints) for k in ("dx", "dy", "dz", "rx", "ry", "rz"))
+                           + tuple(f"{k}_{n_joints + 1}" for k in ("dx", "dy", "dz"))),  # then the wrist link's origin
         "port_offset": ("dx", "dy", "dz"),
         "joint_offset": tuple(f"dq{i + 1}" for i in range(n_joints)),
         "tracker_offset": ("bx", "by", "bz"),

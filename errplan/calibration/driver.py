@@ -117,7 +117,7 @@ def _calibrate(sc, data: MeasuredData, *, validate, seed, folds, progress, effec
                 key = bg + (e,)
                 if fits(key):
                     c = cands[key] = fit(key)
-                    if c.model.n_free <= cands[bg].model.n_free:
+                    if c.model.identifiable_mask.sum() <= cands[bg].model.identifiable_mask.sum():
                         # QR held as many of the group's parameters as the effect brought (a joint offset
                         # is a joint origin's turn about its axis): the same model, reparametrised
                         c.selectable = c.weak = False

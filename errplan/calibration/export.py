@@ -134,7 +134,7 @@ def corrected_files(sc, report: CalibrationReport, path=None) -> tuple[str, dict
         names = make_effect("joint_geometry", dim=3, n_joints=len(sc.robot.joints)).params
         src = Path(str(sc.robot.urdf))
         urdf_text = corrected_urdf_text(src.read_text(encoding="utf-8"), sc.robot.joints,
-                                        [jg.get(k, 0.0) for k in names], str(src))
+                                        [jg.get(k, 0.0) for k in names], str(src), wrist=sc.robot.wrist)
         target = (Path(path).with_suffix(".urdf") if path is not None
                   else src.with_name(src.stem + "-calibrated.urdf"))
         if target.resolve() == src.resolve():

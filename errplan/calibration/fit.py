@@ -27,6 +27,9 @@ class Candidate:
     #: number, every column informed, the fit converged, finite sigmas): it may still be selected
     #: when it predicts the data better than every identifiable candidate (:func:`.selection.select`)
     weak: bool = False
+    #: held-out squared error of each run (the folds' predictions), for the paired comparison of
+    #: :func:`.selection.select`; None without folds
+    heldout_runs: np.ndarray | None = None
 
     @property
     def effects(self) -> list[str]:
@@ -84,6 +87,7 @@ def fit_candidate(effects, data: MeasuredData, u: np.ndarray, base, fold_of_run:
     if fold_of_run is not None:
         fold = fold_of_run[data.run]
         sse = 0.0
+        run_sse = np.zeros(data.runs)
         for k in range(int(fold_of_run.max()) + 1):
             te = fold == k
             tr = ~te
@@ -91,7 +95,7 @@ def fit_candidate(effects, data: MeasuredData, u: np.ndarray, base, fold_of_run:
                 sse = float("nan")  # too few training rows for this candidate: no held-out error
                 break
             if p:
-                mk = EffectModel(m.effects, hold=m.hold).fit(data.q[tr], u[tr], data.tip[tr], base, x0=m.values_,
+                mk = EffectModel(m.effects, hold=m.hold, drop=m.drop).fit(data.q[tr], u[tr], data.tip[tr], base, x0=m.values_,
                                                             run=data.run[tr])
                 vals = mk.values_
             else:
@@ -100,9 +104,11 @@ def fit_candidate(effects, data: MeasuredData, u: np.ndarray, base, fold_of_run:
                 r = data.tip[te] - m.predict(base, data.q[te], u[te], vals, run=data.run[te])
             r = np.where(np.isfinite(r), r, 1.0)
             sse += float(np.sum(r * r))
+            run_sse += np.bincount(data.run[te], weights=np.sum(r * r, axis=1), minlength=data.runs)
         ho = math.sqrt(sse / (d * n)) if math.isfinite(sse) else None
     note = "" if m.identifiable_ else f"not identifiable: {m.why_}"
     free_sigma = np.asarray(m.sigma_, float)[m.free] if m.n_params else np.zeros(0)
     weak = (not m.identifiable_ and m.success_ and math.isfinite(m.condition_) and "no data depend" not in m.why_
             and bool(np.all(np.isfinite(free_sigma))))
-    return Candidate(m, math.sqrt(m.rss_ / (d * n)), bic, ho, bool(m.identifiable_), note, weak=weak)
+    return Candidate(m, math.sqrt(m.rss_ / (d * n)), bic, ho, bool(m.identifiable_), note, weak=weak,
+                     heldout_runs=run_sse if ho is not None else None)

@@ -213,7 +213,13 @@ class CalibrationReport:
                 held = [lab.split(".", 1)[1] for lab in self.model.held_labels if lab.split(".", 1)[0] == e]
                 if held:
                     prow.append([e, ", ".join(held), "not identifiable", "", "held at 0 (QR)"])
+                dropped = {lab.split(".", 1)[1] for lab in self.model.dropped_labels if lab.split(".", 1)[0] == e}
+                if dropped:
+                    prow.append([e, ", ".join(p for p in ps if p in dropped), "0 (not needed)", "",
+                                 "identifiable, but these rows do not need them (forward selection by BIC)"])
                 for p, v in ps.items():
+                    if p in dropped:
+                        continue
                     f, unit = display_unit(units[p])
                     if v is None:
                         prow.append([e, p, "not identifiable", unit, self.fixed.get(f"{e}.{p}", "")])

@@ -8,7 +8,10 @@ the arm whose geometry differs from its description.
   fixed transforms ``T[i] = P_i O_i`` (:class:`~errplan.kinematics.urdf.model.ChainData`; ``P_i``
   the fixed path from the previous actuated joint's child frame, or from the world, to joint i's
   parent link), the perturbed chain is ``T'[i] = T[i] O_i^-1 O_i'``: the same compiled kernels run
-  on it (:func:`perturbed_arm`).
+  on it (:func:`perturbed_arm`). Then ``[dx_w, dy_w, dz_w]`` (keys ``dx_<N+1>`` .. ``dz_<N+1>``):
+  the wrist link's origin moved in the last actuated joint's child frame (the last link's length
+  and offsets: ``T'[N] = T[N]`` with its translation moved); its rotations cannot move the wrist
+  point, so there are none.
 
 :func:`joint_origins` reads each actuated joint's ``<origin>`` from the URDF text, and
 :func:`corrected_urdf_text` writes the origins back (nothing else changed), for the corrected model.
@@ -28,6 +31,27 @@ from ..errors import ErrplanError
 
 #: parameters of one joint's geometry, in order (physics.md): the keys are ``<name>_<i>``, i 1-based
 JOINT_GEOMETRY_PARAMS = ("dx", "dy", "dz", "rx", "ry", "rz")
+#: parameters of the wrist link's origin (after the N actuated joints' six each): keys ``<name>_<N+1>``
+WRIST_GEOMETRY_PARAMS = ("dx", "dy", "dz")
+
+
+def joint_geometry_keys(n: int) -> tuple[str, ...]:
+    """The ``joint_geometry`` keys of an arm with ``n`` actuated joints: ``dx_1`` .. ``rz_n``, then the
+    wrist link's origin ``dx_<n+1>``, ``dy_<n+1>``, ``dz_<n+1>``."""
+    return (tuple(f"{k}_{i + 1}" for i in range(n) for k in JOINT_GEOMETRY_PARAMS)
+            + tuple(f"{k}_{n + 1}" for k in WRIST_GEOMETRY_PARAMS))
+
+
+def split_geometry(joint_geometry, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """``joint_geometry`` (6n + 3,) as the joints' (n, 6) and the wrist's (3,); 6n values are the
+    joints' alone (the wrist unmoved)."""
+    g = np.asarray(joint_geometry, float).ravel()
+    if g.size == 6 * n:
+        g = np.concatenate([g, np.zeros(3)])  # the joints' only: the wrist link's origin unmoved
+    if g.size != 6 * n + 3:
+        raise ErrplanError(f"joint_geometry: {g.size} values for {n} actuated joints: expected {6 * n + 3} "
+                           f"(six per joint, then the wrist link's dx, dy, dz)")
+    return g[:6 * n].reshape(n, 6), g[6 * n:]
 #: Newton steps refining the inverse kinematics of a perturbed URDF arm from the declared arm's solution
 IK_NEWTON_ITERS = 20
 
@@ -122,8 +146,8 @@ def perturbed_origin(O: np.ndarray, g) -> np.ndarray:
 
 def perturbed_arm(arm, link_length=None, joint_geometry=None):
     """The arm with its geometry changed: planar ``link_length`` [dl1, dl2] (m); URDF
-    ``joint_geometry`` (6n,) in the order of :data:`JOINT_GEOMETRY_PARAMS` per actuated joint. The
-    arm itself when nothing changes."""
+    ``joint_geometry`` (6n + 3,) in the order of :func:`joint_geometry_keys`. The arm itself when
+    nothing changes."""
     from .arm import Arm
 
     if isinstance(arm, Arm):
@@ -145,7 +169,7 @@ def perturbed_arm(arm, link_length=None, joint_geometry=None):
 
 class GeometryArm:
     """A URDF arm (:class:`~errplan.kinematics.urdf.UrdfArm`) whose actuated joints' origins are
-    perturbed (module docstring). Forward kinematics and Jacobians run the compiled chain kernels on
+    perturbed, and its wrist link's origin (module docstring). Forward kinematics and Jacobians run the compiled chain kernels on
     the perturbed chain; the inverse starts from the declared arm's solution and refines it by
     Newton steps on the perturbed chain; everything else (limits, gravity, meshes) is the declared
     arm's."""
@@ -153,10 +177,11 @@ class GeometryArm:
     def __init__(self, arm, joint_geometry):
         from .urdf.model import ChainData, chain_screws
 
-        g = np.asarray(joint_geometry, float).reshape(arm.n, 6)
+        g, gw = split_geometry(joint_geometry, arm.n)
         self._arm = arm
         self.declared_arm = arm
         self.joint_geometry = g
+        self.wrist_geometry = gw
         core = arm
         while not hasattr(type(core), "forward") or hasattr(core, "_arm") and type(core).__name__ != "UrdfArm":
             core = core._arm  # a wrapper (the calibration's gravity cache): the URDF arm under it
@@ -165,6 +190,7 @@ class GeometryArm:
         T = np.array(ch.T, float)
         for i in range(arm.n):
             T[i] = T[i] @ np.linalg.solve(O[i], perturbed_origin(O[i], g[i]))
+        T[arm.n, :3, 3] += gw
         T = np.ascontiguousarray(T)
         self.chain = ChainData(T, ch.axis, ch.jtype, ch.A, ch.lo, ch.hi, chain_screws(T, ch.axis))
         self._shadow = copy.copy(core)
@@ -200,28 +226,65 @@ class GeometryArm:
         return np.where(ok[..., None], q, np.nan), ok
 
 
-def corrected_urdf_text(urdf_text: str, joint_names, joint_geometry, where: str = "URDF") -> str:
+def wrist_joint(urdf_text: str, joint_names, wrist: str, where: str = "URDF") -> str | None:
+    """The joint whose ``<origin>`` carries the wrist link's offset from the last actuated joint's child
+    link: the first joint on the path from that link down to ``wrist`` (None when the wrist is that link)."""
+    root = ET.fromstring(urdf_text)
+    joints = [j for j in root.findall("joint") if j.get("type")]
+    by_child = {j.find("child").get("link"): j for j in joints if j.find("child") is not None}
+    last = next((j for j in joints if j.get("name") == joint_names[-1]), None)
+    if last is None:
+        raise ErrplanError(f"{where}: no joint named {joint_names[-1]!r}")
+    top = last.find("child").get("link")
+    link, first = wrist, None
+    while link != top:
+        j = by_child.get(link)
+        if j is None:
+            raise ErrplanError(f"{where}: the wrist link {wrist!r} is not below joint {joint_names[-1]!r}")
+        first = j
+        link = j.find("parent").get("link")
+    return None if first is None else first.get("name")
+
+
+def _replace_origin(text: str, name: str, new_origin: str, where: str) -> str:
+    # the joint element: from <joint ... name="NAME" ...> to its </joint>; not a <transmission>'s
+    # reference to it (that one has no type)
+    m = next((mm for mm in re.finditer(r'<joint\b[^>]*\bname\s*=\s*["\']' + re.escape(name) + r'["\'][^>]*>', text)
+              if re.search(r'\btype\s*=', mm.group(0))), None)
+    if m is None:
+        raise ErrplanError(f"{where}: no joint named {name!r}")
+    end = text.find("</joint>", m.end())
+    body = text[m.end():end]
+    o = re.search(r"<origin\b[^>]*/>|<origin\b[^>]*>.*?</origin>", body, flags=re.S)
+    body = (body[:o.start()] + new_origin + body[o.end():]) if o else ("\n    " + new_origin + body)
+    return text[:m.end()] + body + text[end:]
+
+
+def corrected_urdf_text(urdf_text: str, joint_names, joint_geometry, where: str = "URDF",
+                        wrist: str | None = None) -> str:
     """The URDF text with each actuated joint's ``<origin>`` replaced by the perturbed one (xyz and
-    rpy written with 12 significant digits); nothing else in the text changes."""
-    g = np.asarray(joint_geometry, float).reshape(len(joint_names), 6)
-    O = joint_origins(urdf_text, joint_names, where)
+    rpy written with 12 significant digits) and the wrist link's offset added to the origin of the
+    first joint from the last actuated joint's child link to ``wrist`` (:func:`wrist_joint`);
+    nothing else in the text changes."""
+    g, gw = split_geometry(joint_geometry, len(joint_names))
     text = urdf_text
+    if np.any(gw):
+        wj = wrist_joint(urdf_text, joint_names, wrist, where) if wrist is not None else None
+        if wj is None:
+            raise ErrplanError(f"{where}: joint_geometry moves the wrist link {wrist!r} in joint "
+                               f"{joint_names[-1]!r}'s child frame, but no joint lies between them to carry it "
+                               f"(add a fixed joint to the wrist link)")
+        Ow = joint_origins(urdf_text, [wj], where)[0]
+        Ow[:3, 3] += gw
+        xyz = " ".join(f"{v:.12g}" for v in Ow[:3, 3])
+        rpy = " ".join(f"{v:.12g}" for v in matrix_to_rpy(Ow[:3, :3]))
+        text = _replace_origin(text, wj, f'<origin xyz="{xyz}" rpy="{rpy}"/>', where)
+    O = joint_origins(urdf_text, joint_names, where)
     for name, Oi, gi in zip(joint_names, O, g):
         if not np.any(gi):
             continue
         On = perturbed_origin(Oi, gi)
         xyz = " ".join(f"{v:.12g}" for v in On[:3, 3])
         rpy = " ".join(f"{v:.12g}" for v in matrix_to_rpy(On[:3, :3]))
-        new_origin = f'<origin xyz="{xyz}" rpy="{rpy}"/>'
-        # the joint element: from <joint ... name="NAME" ...> to its </joint>
-        # the joint element, not a <transmission>'s reference to it (that one has no type)
-        m = next((mm for mm in re.finditer(r'<joint\b[^>]*\bname\s*=\s*["\']' + re.escape(name) + r'["\'][^>]*>', text)
-                  if re.search(r'\btype\s*=', mm.group(0))), None)
-        if m is None:
-            raise ErrplanError(f"{where}: no joint named {name!r}")
-        end = text.find("</joint>", m.end())
-        body = text[m.end():end]
-        o = re.search(r"<origin\b[^>]*/>|<origin\b[^>]*>.*?</origin>", body, flags=re.S)
-        body = (body[:o.start()] + new_origin + body[o.end():]) if o else ("\n    " + new_origin + body)
-        text = text[:m.end()] + body + text[end:]
+        text = _replace_origin(text, name, f'<origin xyz="{xyz}" rpy="{rpy}"/>', where)
     return text

@@ -19,6 +19,7 @@ import numpy as np
 
 from ..errors import ErrplanError
 from .arm import Arm, angle_of, direction, direction_derivative
+from .geometry import joint_geometry_keys
 from .shaft import flexed_end_angles, flexed_end_directions, flexed_geometry, flexed_jacobian, flexed_tip, flexed_wrist, lever_wrist
 
 #: a scalar tip load in 3-D is this world direction times the load (docs/pipeline.md): gravity-like
@@ -70,9 +71,12 @@ class Plant:
             d, n = 3, int(self.arm.n)
             sizes = (("port_offset", d), ("tracker_offset", d), ("world_load", d), ("joint_offset", n),
                      ("gravity_sag", n), ("link_length", 0), ("instrument_length", 1), ("tracker_rotation", 3),
-                     ("joint_geometry", 6 * n), ("backlash", n))
+                     ("joint_geometry", 6 * n + 3), ("backlash", n))
         for name, size in sizes:
             v = tuple(float(x) for x in getattr(self, name))
+            if name == "joint_geometry" and size and len(v) == size - 3:
+                v = v + (0.0, 0.0, 0.0)  # the joints' six each only: the wrist link's origin unmoved
+                object.__setattr__(self, name, v)
             if len(v) != size:
                 if any(v):
                     raise ErrplanError(f"Plant {name} = {list(v)}: expected {size} values for the "
@@ -309,8 +313,7 @@ def effect_kwargs(effects, dim: int | None = None, n_joints: int | None = None) 
                  "shaft_flexion": ("world_load", ("fx", "fy", "fz")),
                  "port_friction": ("friction", ("fa", "fn")),
                  "instrument_length": ("instrument_length", ("dL",)),
-                 "joint_geometry": ("joint_geometry", tuple(f"{k}_{i + 1}" for i in range(n)
-                                                            for k in ("dx", "dy", "dz", "rx", "ry", "rz"))),
+                 "joint_geometry": ("joint_geometry", joint_geometry_keys(n)),
                  "backlash": ("backlash", tuple(f"b{i + 1}" for i in range(n)))}
         out3: dict = {}
         for name, p in (effects or {}).items():
