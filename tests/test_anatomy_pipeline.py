@@ -198,21 +198,34 @@ BAD = {
 }
 
 
+#: the case run as the real console command (a separate process); the others call errplan.cli.main in process
+BAD_SUBPROCESS = "negative radius"
+
+
 @pytest.mark.parametrize("case", [k for k in BAD if BAD[k]])
-def test_bad_anatomy_is_one_line_exit_2(tmp_path, case):
+def test_bad_anatomy_is_one_line_exit_2(tmp_path, case, capsys, monkeypatch):
     from errplan.anatomy.meshes import icosphere, write_surface
+    from errplan.cli import main
     v, f = icosphere(1)
     write_surface(tmp_path / "open.stl", v * 0.01 + [0, 0, 0.4], f[:-4])
     (tmp_path / "empty.stl").write_bytes(b"")
     extra, word = BAD[case]
     p = _write(tmp_path, extra)
     out = tmp_path / "f.npz"
-    r = subprocess.run([sys.executable, "-m", "errplan", "fields", str(p), "--out", str(out)], capture_output=True,
-                       text=True, cwd=tmp_path)
-    assert r.returncode == 2, r.stderr
-    lines = r.stderr.strip().splitlines()
-    assert len(lines) == 1 and word in lines[0], r.stderr
-    assert not out.exists()
+    if case == BAD_SUBPROCESS:
+        r = subprocess.run([sys.executable, "-m", "errplan", "fields", str(p), "--out", str(out)], capture_output=True,
+                           text=True, cwd=tmp_path)
+        rc, err = r.returncode, r.stderr
+    else:
+        monkeypatch.chdir(tmp_path)
+        capsys.readouterr()
+        rc = main(["fields", str(p), "--out", str(out)])
+        err = capsys.readouterr().err
+    assert rc == 2, err
+    assert "Traceback" not in err, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and word in lines[0], err
+    assert not out.exists() and not list(tmp_path.glob("*.part"))
 
 
 def test_anatomy_is_spatial_only():
