@@ -235,12 +235,16 @@ def test_anatomy_is_spatial_only():
         parse_scenario(doc, str(ROOT / "scenarios" / "beasley2004_bounded.toml"))
 
 
-def test_cli_fields_writes_clearance(tmp_path):
+def test_cli_fields_writes_clearance(tmp_path, capsys, monkeypatch):
+    from errplan.cli import main
     out = tmp_path / "a.npz"
-    r = subprocess.run([sys.executable, "-m", "errplan", "fields", str(ROOT / "scenarios" / "abdomen.toml"), "--out",
-                        str(out), "--resolution", "0.012", "--workers", "1"], capture_output=True, text=True, cwd=tmp_path)
-    assert r.returncode == 0, r.stderr
-    assert "clearance" in r.stdout and "not robustly clear" in r.stdout
+    monkeypatch.chdir(tmp_path)
+    capsys.readouterr()
+    rc = main(["fields", str(ROOT / "scenarios" / "abdomen.toml"), "--out", str(out), "--resolution", "0.012",
+               "--workers", "1"])
+    r = capsys.readouterr()
+    assert rc == 0, r.err
+    assert "clearance" in r.out and "not robustly clear" in r.out
     with np.load(out) as d:
         c, v = d["clearance"], d["valid"]
         meta = json.loads(str(d["meta"]))
@@ -308,7 +312,8 @@ def test_wall_coverage_counts_only_clear_points(wall_run):
 
 
 @pytest.mark.slow
-def test_cli_tolerance_body_wall(tmp_path):
+def test_cli_tolerance_body_wall(tmp_path, capsys, monkeypatch):
+    from errplan.cli import main
     abd = ROOT / "scenarios" / "abdomen.toml"
     import shutil
     shutil.copytree(ROOT / "scenarios" / "abdomen", tmp_path / "abdomen")
@@ -316,9 +321,10 @@ def test_cli_tolerance_body_wall(tmp_path):
     (tmp_path / "w.toml").write_text(abd.read_text() + WALL_TOL.replace("spacing = 0.02", "spacing = 0.04")
                                             .replace("resolution = 0.01", "resolution = 0.02"))
     js = tmp_path / "t.json"
-    r = subprocess.run([sys.executable, "-m", "errplan", "tolerance", str(tmp_path / "w.toml"), "--json", str(js),
-                        "--workers", "1"], capture_output=True, text=True, cwd=tmp_path)
-    assert r.returncode == 0, r.stderr
+    monkeypatch.chdir(tmp_path)
+    capsys.readouterr()
+    rc = main(["tolerance", str(tmp_path / "w.toml"), "--json", str(js), "--workers", "1"])
+    assert rc == 0, capsys.readouterr().err
     t = json.loads(js.read_text())["tolerances"][0]
     assert t["kind"] == "port_placement" and len(t["best"]) == 3 and t["candidate_grid"]["body_wall"]
 @pytest.mark.slow
