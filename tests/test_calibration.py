@@ -558,12 +558,13 @@ def spatial():
     return sc.with_(port=Port(sc.port.position, (0.008, 0.004, 0.168)), controller=replace(sc.controller, gain=0.3))
 
 
-#: starts of the spatial bench (x 14 targets): each effect found within 2.5 sigma and 25 % on 3 as on 4
+#: starts of the spatial bench (x 14 targets): each effect found within 2.5 sigma and 25 % on 3 as on 4 (the
+#: shaft-length error needs 4 for its structured residual to stand above the noise floor)
 SPATIAL_STARTS = 3
 
 
-def spatial_bench(sc, effects, seed, plant=None):
-    return run_experiment(sc.with_(effects=effects), seed=seed, n_starts=SPATIAL_STARTS, plant=plant).data
+def spatial_bench(sc, effects, seed, plant=None, starts=SPATIAL_STARTS):
+    return run_experiment(sc.with_(effects=effects), seed=seed, n_starts=starts, plant=plant).data
 
 
 def _spatial_effects():
@@ -602,7 +603,7 @@ def test_spatial_shaft_length_error_is_not_explained_by_the_physical_catalogue(s
     from errplan.experiment import truth_plant
 
     plant = truth_plant(spatial).with_(length=spatial.instrument.length + 0.004)
-    rep = calibrate(spatial, spatial_bench(spatial, {}, 41, plant=plant), seed=0, effects=list(SPATIAL_TRUTHS))
+    rep = calibrate(spatial, spatial_bench(spatial, {}, 41, plant=plant, starts=4), seed=0, effects=list(SPATIAL_TRUTHS))
     assert not rep.explained and rep.structure.p_value < 1e-3 and rep.structure.structured_rms > rep.noise.sigma
     assert rep.to_json()["explained"] is False
 
