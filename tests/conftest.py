@@ -45,6 +45,18 @@ def pytest_configure(config):
             proc.wait()
     sys.stderr.write(f"errplan tests: kernels compiled in {time.perf_counter() - t0:.0f} s\n")
 
+#: the test files with the most CPU, largest first: run first, so that with ``--dist loadfile`` the files
+#: left at the end, when one worker may wait for the other, are the short ones (the rest keep their order)
+HEAVY_FIRST = ("test_calibration", "test_setup_placement", "test_geometry_effects", "test_planning",
+               "test_fields_spatial", "test_anatomy_pipeline", "test_flexion3d", "test_cluster_loss", "test_demo",
+               "test_design", "test_urdf", "test_placement", "test_triad_arms", "test_plan_arms", "test_setup")
+
+
+def pytest_collection_modifyitems(config, items):
+    rank = {name: i for i, name in enumerate(HEAVY_FIRST)}
+    items[:] = sorted(items, key=lambda it: rank.get(it.path.stem, len(rank)))  # stable: order within a file kept
+
+
 BASE_DOC = {
     "name": "test-p1",
     "description": "P1 planar Phantom, port estimate off by (+20, +10) mm",

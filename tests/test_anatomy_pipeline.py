@@ -198,21 +198,34 @@ BAD = {
 }
 
 
+#: the case run as the real console command (a separate process); the others call errplan.cli.main in process
+BAD_SUBPROCESS = "negative radius"
+
+
 @pytest.mark.parametrize("case", [k for k in BAD if BAD[k]])
-def test_bad_anatomy_is_one_line_exit_2(tmp_path, case):
+def test_bad_anatomy_is_one_line_exit_2(tmp_path, case, capsys, monkeypatch):
     from errplan.anatomy.meshes import icosphere, write_surface
+    from errplan.cli import main
     v, f = icosphere(1)
     write_surface(tmp_path / "open.stl", v * 0.01 + [0, 0, 0.4], f[:-4])
     (tmp_path / "empty.stl").write_bytes(b"")
     extra, word = BAD[case]
     p = _write(tmp_path, extra)
     out = tmp_path / "f.npz"
-    r = subprocess.run([sys.executable, "-m", "errplan", "fields", str(p), "--out", str(out)], capture_output=True,
-                       text=True, cwd=tmp_path)
-    assert r.returncode == 2, r.stderr
-    lines = r.stderr.strip().splitlines()
-    assert len(lines) == 1 and word in lines[0], r.stderr
-    assert not out.exists()
+    if case == BAD_SUBPROCESS:
+        r = subprocess.run([sys.executable, "-m", "errplan", "fields", str(p), "--out", str(out)], capture_output=True,
+                           text=True, cwd=tmp_path)
+        rc, err = r.returncode, r.stderr
+    else:
+        monkeypatch.chdir(tmp_path)
+        capsys.readouterr()
+        rc = main(["fields", str(p), "--out", str(out)])
+        err = capsys.readouterr().err
+    assert rc == 2, err
+    assert "Traceback" not in err, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and word in lines[0], err
+    assert not out.exists() and not list(tmp_path.glob("*.part"))
 
 
 def test_anatomy_is_spatial_only():
@@ -222,12 +235,16 @@ def test_anatomy_is_spatial_only():
         parse_scenario(doc, str(ROOT / "scenarios" / "beasley2004_bounded.toml"))
 
 
-def test_cli_fields_writes_clearance(tmp_path):
+def test_cli_fields_writes_clearance(tmp_path, capsys, monkeypatch):
+    from errplan.cli import main
     out = tmp_path / "a.npz"
-    r = subprocess.run([sys.executable, "-m", "errplan", "fields", str(ROOT / "scenarios" / "abdomen.toml"), "--out",
-                        str(out), "--resolution", "0.012", "--workers", "1"], capture_output=True, text=True, cwd=tmp_path)
-    assert r.returncode == 0, r.stderr
-    assert "clearance" in r.stdout and "not robustly clear" in r.stdout
+    monkeypatch.chdir(tmp_path)
+    capsys.readouterr()
+    rc = main(["fields", str(ROOT / "scenarios" / "abdomen.toml"), "--out", str(out), "--resolution", "0.012",
+               "--workers", "1"])
+    r = capsys.readouterr()
+    assert rc == 0, r.err
+    assert "clearance" in r.out and "not robustly clear" in r.out
     with np.load(out) as d:
         c, v = d["clearance"], d["valid"]
         meta = json.loads(str(d["meta"]))
@@ -295,7 +312,8 @@ def test_wall_coverage_counts_only_clear_points(wall_run):
 
 
 @pytest.mark.slow
-def test_cli_tolerance_body_wall(tmp_path):
+def test_cli_tolerance_body_wall(tmp_path, capsys, monkeypatch):
+    from errplan.cli import main
     abd = ROOT / "scenarios" / "abdomen.toml"
     import shutil
     shutil.copytree(ROOT / "scenarios" / "abdomen", tmp_path / "abdomen")
@@ -303,9 +321,10 @@ def test_cli_tolerance_body_wall(tmp_path):
     (tmp_path / "w.toml").write_text(abd.read_text() + WALL_TOL.replace("spacing = 0.02", "spacing = 0.04")
                                             .replace("resolution = 0.01", "resolution = 0.02"))
     js = tmp_path / "t.json"
-    r = subprocess.run([sys.executable, "-m", "errplan", "tolerance", str(tmp_path / "w.toml"), "--json", str(js),
-                        "--workers", "1"], capture_output=True, text=True, cwd=tmp_path)
-    assert r.returncode == 0, r.stderr
+    monkeypatch.chdir(tmp_path)
+    capsys.readouterr()
+    rc = main(["tolerance", str(tmp_path / "w.toml"), "--json", str(js), "--workers", "1"])
+    assert rc == 0, capsys.readouterr().err
     t = json.loads(js.read_text())["tolerances"][0]
     assert t["kind"] == "port_placement" and len(t["best"]) == 3 and t["candidate_grid"]["body_wall"]
 @pytest.mark.slow

@@ -125,10 +125,16 @@ def phi_of(M):
     ang = np.arccos(np.clip(np.sum(V * MV, -1) / np.linalg.norm(MV, axis=-1), -1, 1))
     v0 = V[np.argmax(ang)]
 
-    def neg(a):
-        v = np.array([math.sin(a[0]) * math.cos(a[1]), math.sin(a[0]) * math.sin(a[1]), math.cos(a[0])])
-        mv = M @ v
-        return -math.acos(np.clip(v @ mv / np.linalg.norm(mv), -1, 1))
+    (m00, m01, m02), (m10, m11, m12), (m20, m21, m22) = np.asarray(M, float).tolist()
+
+    def neg(a):  # the angle between v and M v in plain floats (the polish calls it ~100 times per M)
+        s0, s1 = math.sin(a[0]), math.sin(a[1])
+        v0, v1, v2 = s0 * math.cos(a[1]), s0 * s1, math.cos(a[0])
+        w0, w1, w2 = m00 * v0 + m01 * v1 + m02 * v2, m10 * v0 + m11 * v1 + m12 * v2, m20 * v0 + m21 * v1 + m22 * v2
+        n = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+        if n == 0.0:
+            return math.nan
+        return -math.acos(min(1.0, max(-1.0, (v0 * w0 + v1 * w1 + v2 * w2) / n)))
 
     a0 = [math.acos(np.clip(v0[2], -1, 1)), math.atan2(v0[1], v0[0])]
     return max(float(ang.max()), -minimize(neg, a0, method="Nelder-Mead", options={"xatol": 1e-10, "fatol": 1e-12}).fun)
