@@ -203,6 +203,17 @@ def _check_geometric(rep, group: str, truth_plant_, val) -> None:
 rep_scenario: list = [None]
 
 
+def _calibrated_bench(sc, plant, group: str, seeds: tuple[int, int], starts: tuple[int, int], **kw):
+    """A fit bench and a held-out bench of ``plant`` (seeds and starts each), calibrated against ``sc`` and
+    checked by :func:`_check_geometric` for ``group``; the report and the held-out data."""
+    data = run_experiment(sc, seed=seeds[0], n_starts=starts[0], plant=plant).data
+    val = run_experiment(sc, seed=seeds[1], n_starts=starts[1], plant=plant).data
+    rep_scenario[0] = sc
+    rep = calibrate(sc, data, validate=val, seed=0, **kw)
+    _check_geometric(rep, group, plant, val)
+    return rep, val
+
+
 @pytest.mark.slow
 def test_link_length_found_on_a_bench_with_longer_links():
     """A bench whose links differ (upper arm +3 mm, forearm -2 mm: declared in a changed scenario, not
@@ -212,11 +223,7 @@ def test_link_length_found_on_a_bench_with_longer_links():
     wrong = sc.with_(robot=Robot(r.base, (r.link_lengths[0] + 0.003, r.link_lengths[1] - 0.002), r.home_angles,
                                  r.joint_limits, r.joint_sum_limits))
     plant = Plant.from_model(build_arm(wrong), noise=True)
-    data = run_experiment(sc, seed=41, n_starts=5, plant=plant).data
-    val = run_experiment(sc, seed=42, n_starts=3, plant=plant).data
-    rep_scenario[0] = sc
-    rep = calibrate(sc, data, validate=val, seed=0)
-    _check_geometric(rep, "link_length", plant, val)
+    rep, val = _calibrated_bench(sc, plant, "link_length", (41, 42), (5, 3))
     p, s = rep.parameters["link_length"], rep.uncertainty["link_length"]
     assert abs(p["dl1"] - 0.003) < 4 * s["dl1"] and abs(p["dl2"] + 0.002) < 4 * s["dl2"]
 
@@ -227,11 +234,7 @@ def test_joint_geometry_found_on_a_pinocchio_bench(spatial, hand_arm, tmp_path):
     only its identifiable parameters, the others named as not identifiable; nothing physical."""
     plant = Plant(hand_arm, spatial.instrument.length, tuple(spatial.port.position),
                   tracker_sigma=spatial.sensors.tracker_sigma)
-    data = run_experiment(spatial, seed=43, n_starts=6, plant=plant).data
-    val = run_experiment(spatial, seed=44, n_starts=2, plant=plant).data
-    rep_scenario[0] = spatial
-    rep = calibrate(spatial, data, validate=val, seed=0)
-    _check_geometric(rep, "joint_geometry", plant, val)
+    rep, val = _calibrated_bench(spatial, plant, "joint_geometry", (43, 44), (6, 2))
     js = rep.to_json()
     held = js["not_identifiable"]["joint_geometry"]
     assert held and not set(held) & set(js["parameters"]["joint_geometry"])
@@ -274,11 +277,7 @@ def test_instrument_length_and_tracker_registration_found(spatial):
     for group, plant in (("instrument_length", base.with_(length=spatial.instrument.length + 0.004)),
                          ("tracker_registration", base.with_(tracker_rotation=(0.008, -0.010, 0.006),
                                                              tracker_offset=(0.001, 0.0, -0.001)))):
-        data = run_experiment(spatial, seed=45, n_starts=3, plant=plant).data
-        val = run_experiment(spatial, seed=46, n_starts=2, plant=plant).data
-        rep_scenario[0] = spatial
-        rep = calibrate(spatial, data, validate=val, seed=0, effects=None)
-        _check_geometric(rep, group, plant, val)
+        rep, val = _calibrated_bench(spatial, plant, group, (45, 46), (3, 2), effects=None)
 
 
 @pytest.mark.slow
@@ -479,11 +478,7 @@ def test_a_longer_upper_arm_on_a_ur5_bench_made_by_pinocchio(tmp_path):
     arm = UrdfArm.load(_ur5_longer_upper_arm(tmp_path, 0.003), r.joints, r.wrist, base_position=r.base_position,
                        base_rpy=r.base_rpy, joint_limits=r.joint_limits, coupled_limits=r.coupled_limits or ())
     plant = Plant(arm, sc.instrument.length, tuple(sc.port.position), tracker_sigma=sc.sensors.tracker_sigma)
-    data = run_experiment(sc, seed=61, n_starts=2, plant=plant).data
-    val = run_experiment(sc, seed=62, n_starts=1, plant=plant).data
-    rep_scenario[0] = sc
-    rep = calibrate(sc, data, validate=val, seed=0)
-    _check_geometric(rep, "joint_geometry", plant, val)
+    rep, val = _calibrated_bench(sc, plant, "joint_geometry", (61, 62), (2, 1))
     assert rep.to_json()["not_identifiable"]["joint_geometry"]
     # the corrected URDF: its elbow sits where the perturbed one's does
     from errplan.calibration.export import corrected_files
@@ -555,10 +550,6 @@ def test_links_longer_and_shorter_are_joint_geometry_alone_on_a_pinocchio_bench(
                        base_rpy=r.base_rpy, joint_limits=r.joint_limits, coupled_limits=r.coupled_limits or ())
     plant = Plant(arm, spatial.instrument.length, tuple(spatial.port.position),
                   tracker_sigma=spatial.sensors.tracker_sigma)
-    data = run_experiment(spatial, seed=47, n_starts=2, plant=plant).data
-    val = run_experiment(spatial, seed=48, n_starts=1, plant=plant).data
-    rep_scenario[0] = spatial
-    rep = calibrate(spatial, data, validate=val, seed=0)
-    _check_geometric(rep, "joint_geometry", plant, val)
+    rep, val = _calibrated_bench(spatial, plant, "joint_geometry", (47, 48), (2, 1))
     p, s = rep.parameters["joint_geometry"], rep.uncertainty["joint_geometry"]
     assert abs(p["dz_3"] - 0.003) < 4 * s["dz_3"] and abs(p["dz_4"] + 0.002) < 4 * s["dz_4"]
