@@ -45,6 +45,14 @@ EFFECT_PARAMS: dict[str, tuple[str, ...]] = {
 EFFECT_DIMS = {"link_length": 2, "joint_geometry": 3}
 
 
+def joint_geometry_keys(n: int) -> tuple[str, ...]:
+    """The ``joint_geometry`` keys of an arm with ``n`` actuated joints: each joint's origin ``dx_i``,
+    ``dy_i``, ``dz_i``, ``rx_i``, ``ry_i``, ``rz_i`` (i = 1 .. n), then the wrist link's origin
+    ``dx_<n+1>``, ``dy_<n+1>``, ``dz_<n+1>``."""
+    return (tuple(f"{k}_{i + 1}" for i in range(n) for k in ("dx", "dy", "dz", "rx", "ry", "rz"))
+            + tuple(f"{k}_{n + 1}" for k in ("dx", "dy", "dz")))
+
+
 def effect_params(name: str, dim: int = 2, n_joints: int = 2) -> tuple[str, ...]:
     """Parameter names of effect ``name`` (docs/physics.md): the planar table, or its 3-D version."""
     if EFFECT_DIMS.get(name, dim) != dim:
@@ -56,8 +64,7 @@ def effect_params(name: str, dim: int = 2, n_joints: int = 2) -> tuple[str, ...]
         "instrument_length": ("dL",),
         "tracker_registration": ("rx", "ry", "rz", "bx", "by", "bz"),
         "backlash": tuple(f"b{i + 1}" for i in range(n_joints)),
-        "joint_geometry": (tuple(f"{k}_{i + 1}" for i in range(n_joints) for k in ("dx", "dy", "dz", "rx", "ry", "rz"))
-                           + tuple(f"{k}_{n_joints + 1}" for k in ("dx", "dy", "dz"))),  # then the wrist link's origin
+        "joint_geometry": joint_geometry_keys(n_joints),
         "port_offset": ("dx", "dy", "dz"),
         "joint_offset": tuple(f"dq{i + 1}" for i in range(n_joints)),
         "tracker_offset": ("bx", "by", "bz"),

@@ -29,18 +29,6 @@ import numpy as np
 
 from ..errors import ErrplanError
 
-#: parameters of one joint's geometry, in order (physics.md): the keys are ``<name>_<i>``, i 1-based
-JOINT_GEOMETRY_PARAMS = ("dx", "dy", "dz", "rx", "ry", "rz")
-#: parameters of the wrist link's origin (after the N actuated joints' six each): keys ``<name>_<N+1>``
-WRIST_GEOMETRY_PARAMS = ("dx", "dy", "dz")
-
-
-def joint_geometry_keys(n: int) -> tuple[str, ...]:
-    """The ``joint_geometry`` keys of an arm with ``n`` actuated joints: ``dx_1`` .. ``rz_n``, then the
-    wrist link's origin ``dx_<n+1>``, ``dy_<n+1>``, ``dz_<n+1>``."""
-    return (tuple(f"{k}_{i + 1}" for i in range(n) for k in JOINT_GEOMETRY_PARAMS)
-            + tuple(f"{k}_{n + 1}" for k in WRIST_GEOMETRY_PARAMS))
-
 
 def split_geometry(joint_geometry, n: int) -> tuple[np.ndarray, np.ndarray]:
     """``joint_geometry`` (6n + 3,) as the joints' (n, 6) and the wrist's (3,); 6n values are the
@@ -146,7 +134,7 @@ def perturbed_origin(O: np.ndarray, g) -> np.ndarray:
 
 def perturbed_arm(arm, link_length=None, joint_geometry=None):
     """The arm with its geometry changed: planar ``link_length`` [dl1, dl2] (m); URDF
-    ``joint_geometry`` (6n + 3,) in the order of :func:`joint_geometry_keys`. The arm itself when
+    ``joint_geometry`` (6n + 3,) in the order of :func:`errplan.scenario.joint_geometry_keys`. The arm itself when
     nothing changes."""
     from .arm import Arm
 

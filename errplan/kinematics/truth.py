@@ -18,8 +18,8 @@ from functools import cached_property
 import numpy as np
 
 from ..errors import ErrplanError
+from ..scenario import joint_geometry_keys
 from .arm import Arm, angle_of, direction, direction_derivative
-from .geometry import joint_geometry_keys
 from .shaft import flexed_end_angles, flexed_end_directions, flexed_geometry, flexed_jacobian, flexed_tip, flexed_wrist, lever_wrist
 
 #: a scalar tip load in 3-D is this world direction times the load (docs/pipeline.md): gravity-like
