@@ -16,11 +16,18 @@ jobs take on the machine is not counted, only what they do to its caches), inter
 each running every problem once, so that a burst of other work spreads over all rows. A row's ratio is
 the median over the rounds of errplan's CPU time over its peer's in the same round (see :func:`measure`).
 A ratio, not a time: a slower or busier machine slows both sides alike, so the ratio stays meaningful from
-machine to machine where seconds do not. About 15 s of CPU in all (under 30 s of wall time on the 2-core
-machine with both cores shared by six busy processes, about 34 s with nine).
+machine to machine where seconds do not. About 20 s of CPU in all (20 s of wall time on the idle 2-core
+machine, under a minute with both cores shared by six busy processes).
 
-The guard fails (exit 1) when a ratio is more than ``--tolerance`` (15 %) above its baseline, and prints
-what it measured either way. It is a benchmark, not a test: CI times nothing. Run it before a change that
+The guard fails (exit 1) when a ratio is more than ``--tolerance`` (15 %) above its baseline in two
+measurements: a row over the tolerance is measured again (as many rounds, with its peer) and the lower of its
+two ratios is the one compared, so that a burst of other work during one measurement does not fail it, while
+a slower kernel is slower in both. It prints what it measured either way.
+
+The ratios move with the machine's load, not only with the code: the numpy peers stream arrays through the
+shared cache and lose more to other jobs than errplan's kernels do, so on a busy machine (load 6-8) the
+ratios read 5-15 % lower than on an idle one. ``benchmarks/baseline.json`` keeps, per row, the higher of the
+two (the median of five runs in each state), so the same code passes in either state. It is a benchmark, not a test: CI times nothing. Run it before a change that
 touches a kernel lands, and put its table in the change's note.
 """
 from __future__ import annotations
@@ -164,7 +171,7 @@ def _r(x: float) -> str:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--repeat", type=int, default=4, help="rounds; each side's fastest counts")
+    ap.add_argument("--repeat", type=int, default=6, help="interleaved rounds; a row's ratio is the median of theirs")
     ap.add_argument("--tolerance", type=float, default=0.15, help="allowed rise of a ratio over its baseline")
     ap.add_argument("--update", action="store_true", help="write the measured ratios to benchmarks/baseline.json")
     ap.add_argument("--only", action="append", default=None, help="one problem (repeatable)")
@@ -181,8 +188,18 @@ def main(argv=None) -> int:
                 return 2
             probs = {k: v for k, v in probs.items() if k in a.only}
         rows = measure(probs, peers, warm, a.repeat)
-    base = json.loads(a.baseline.read_text()) if a.baseline.exists() else {}
-    base_rows = base.get("ratios", {})
+        base = json.loads(a.baseline.read_text()) if a.baseline.exists() else {}
+        base_rows = base.get("ratios", {})
+        # a second opinion before a verdict of SLOWER: the rows over the tolerance measured again (as many
+        # rounds, with their peers), the lower of the two ratios kept; a burst of other work that hit one
+        # measurement does not fail the guard, a slower kernel is slower in both
+        over = [n for n, r in rows.items() if n in base_rows and r["ratio"] > base_rows[n] * (1 + a.tolerance)]
+        if over and not a.update:
+            print(f"  over the tolerance, measured again: {', '.join(over)}", file=sys.stderr, flush=True)
+            again = measure({n: probs[n] for n in over}, peers, {n: (lambda: None) for n in over}, a.repeat)
+            for n in over:
+                if again[n]["ratio"] < rows[n]["ratio"]:
+                    rows[n] = again[n]
     print(f"{os.cpu_count()} cores, load average (1 min) {load0:.2f} before, {os.getloadavg()[0]:.2f} after; "
           f"{a.repeat} interleaved rounds, CPU seconds of this process (each side's fastest round; the ratio: the "
           f"median of the rounds' ratios); "
