@@ -46,10 +46,14 @@ def pytest_configure(config):
     sys.stderr.write(f"errplan tests: kernels compiled in {time.perf_counter() - t0:.0f} s\n")
 
 #: the test files with the most CPU, largest first: run first, so that with ``--dist loadfile`` the files
-#: left at the end, when one worker may wait for the other, are the short ones (the rest keep their order)
-HEAVY_FIRST = ("test_calibration", "test_setup_placement", "test_geometry_effects", "test_planning",
-               "test_fields_spatial", "test_anatomy_pipeline", "test_flexion3d", "test_cluster_loss", "test_demo",
-               "test_design", "test_urdf", "test_placement", "test_triad_arms", "test_plan_arms", "test_setup")
+#: left at the end, when one worker may wait for the other, are the short ones (the rest keep their order).
+#: xdist dispatches the files in this order only with ``--no-loadscope-reorder`` (pyproject's addopts):
+#: by default it sorts them by their number of tests, which sends the long files of few tests last.
+HEAVY_FIRST = ("test_calibration", "test_geometry_effects", "test_setup_placement", "test_urdf", "test_cluster_loss",
+               "test_anatomy_pipeline", "test_flexion3d", "test_demo", "test_fields_spatial", "test_design",
+               "test_tolerance", "test_arm_broadphase", "test_fields", "test_anatomy_certified", "test_fuzz",
+               "test_planning_spatial", "test_jit", "test_setup", "test_planning", "test_linalg", "test_triad_arms",
+               "test_plan_arms", "test_placement")
 
 
 def pytest_collection_modifyitems(config, items):

@@ -362,15 +362,30 @@ def test_setup_equals_the_triad_brute_force_per_base_pair(tmp_path):
     one = Tolerance("per base pair", "triad_placement", opts)
     ref, counts = [], dict.fromkeys(("port_spacing", "shaft_clearance", "arm_clearance"), 0)
     rejected_at_rest = 0
+    K = 200  # the triads with their figures per base pair (every feasible one is listed below, by score)
     for (j1, p1), (j2, p2) in itertools.product(enumerate(bases[n1]), enumerate(bases[n2])):
         arms = [tr._moved(sc, p1 if n == n1 else p2) for n, sc in zip(st.arm_names, st.arms)]
         st2 = dataclasses.replace(st, arms=tuple(arms))
-        t = tr.triad_placement(st2, one, prune=False, keep=10 ** 6)
+        t = tr.triad_placement(st2, one, prune=False, keep=K)
         for k in counts:
             counts[k] += t["rejected"][k]
+        # every feasible triad of this base pair: the triad's own unpruned search again, on its arrays (the
+        # unpruned run filled every pair's distances), with no limit; its first K are the triad's answer
+        d = t["_arrays"]["data"]
+        every = tr.search(dataclasses.replace(d, keep=10 ** 6), prune=False)
+        shown = [t["best"]] + t["ranked"]
+        assert [e["indices"] for e in shown] == [list(b[1:]) for b in every["best"][:K]]
+        assert all(every["rejected"][k] == t["rejected"][k] for k in counts)
+        figs = {tuple(e["indices"]): e for e in shown}  # the figures (clearances, coverage) of the first K
+        cand = t["candidates"]
+        listed = []
+        for s, i1, i2, ie in every["best"]:
+            q1, q2 = d.ports(i1, i2)
+            listed.append(figs.get((i1, i2, ie)) or {"score": s, "ports": {n1: cand[n1][q1], n2: cand[n2][q2],
+                                                                           "endoscope": cand["endoscope"][ie]}})
         geo = {n: ArmCollision.from_arm(arm_for(s.robot)) for n, s in zip(st.arm_names, arms)}
         at_rest = {}  # the rest clearance of an instrument port pair (triads differ by the endoscope's too)
-        for e in [t["best"]] + t["ranked"]:
+        for e in listed:
             key = tuple(tuple(e["ports"][n]) for n in (n1, n2))
             if key not in at_rest:
                 try:  # the arms at rest, each put there independently
@@ -386,14 +401,15 @@ def test_setup_equals_the_triad_brute_force_per_base_pair(tmp_path):
             if rest < st.arm_clearance:  # the arms at rest too close: rejected (the triad does not know rest)
                 rejected_at_rest += 1
                 continue
-            key = min(rest, math.inf if e["arm_clearance_min"] is None else e["arm_clearance_min"])
-            ref.append((e["score"], key, (j1, j2), e))
+            ref.append((e["score"], rest, (j1, j2), e))
     data = a["_arrays"]["data"]
     P = len(a["candidates"][n1])
     assert not np.array_equal(data.cov1[:P], data.cov1[P:2 * P])  # the base decides coverage of some port
     s0 = min(r[0] for r in ref)
     tied = [r for r in ref if r[0] <= s0 + 1e-9]
-    best = max(tied, key=lambda r: r[1])
+    assert all("arm_clearance_min" in r[3] for r in tied), "a tie beyond the first K of its base pair: raise K"
+    best = max(tied, key=lambda r: min(r[1], math.inf if r[3]["arm_clearance_min"] is None
+                                       else r[3]["arm_clearance_min"]))
     got = a["best"]
     assert got["score"] == pytest.approx(best[0], abs=1e-6)
     assert got["base_indices"] == list(best[2]) and got["ports"] == best[3]["ports"]
