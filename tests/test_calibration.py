@@ -3,9 +3,9 @@
 Bench data carry one catalogue effect (undeclared in the scenario given to calibrate) at bench
 sizes (a few mm) with the tracker noise of the scenario: the right effect is selected, its
 parameters are recovered within 3 stated sigmas, the held-out trajectory error is cut. Also two
-effects at once, noise only (nothing selected), a 4 mm link-length error (found by the geometric
-group ``link_length``, nothing physical), and an effect outside the catalogue (a 1 % tracker scale
-error): ``explained: false``. The noise floor is checked
+effects at once, noise only (nothing selected), and an effect outside the catalogue (a 1 % tracker
+scale error): ``explained: false`` (a link-length error, found by the geometric group
+``link_length``: tests/test_geometry_effects.py). The noise floor is checked
 against the known tracker sigma, the batched replay against ``simulate``, the CLI's CSV errors
 (exit 2, nothing written), the JSON keys of interfaces.md, the recording and the exported scenario
 (read back; calibrating against it selects nothing)."""
@@ -25,7 +25,6 @@ from errplan.cli import main
 from errplan.effects import predict_tracked
 from errplan.errors import DataError
 from errplan.experiment import bench_controller, parse_measured_csv, run_experiment
-from errplan.scenario import Robot
 from errplan.api import load_scenario, parse_scenario
 from errplan.simulation import Plant, simulate
 from errplan.models import build_arm
@@ -116,12 +115,6 @@ def test_noise_only_selects_nothing(port):
     assert best.bic > none.bic
 
 
-def _with_link2(sc, dl):
-    r = sc.robot
-    return sc.with_(robot=Robot(r.base, (r.link_lengths[0], r.link_lengths[1] + dl), r.home_angles,
-                                r.joint_limits, r.joint_sum_limits))
-
-
 @dataclass(frozen=True)
 class ScaledTracker(Plant):
     """A tracker whose scale is off by ``scale`` about ``centre``: a tip-position-dependent bias."""
@@ -134,21 +127,9 @@ class ScaledTracker(Plant):
         return t + self.scale * (t - np.asarray(self.centre))
 
 
-def test_link_length_error_is_found_not_absorbed(port):
-    """A 4 mm error of link 2 (a changed scenario, not the effect): the geometric group link_length is
-    named, no physical effect absorbs it, and the residual is the noise."""
-    truth = Plant.from_model(build_arm(_with_link2(port, 0.004)), noise=True)
-    data = bench(port, {}, 41, plant=truth)
-    rep = calibrate(port, data, seed=0)
-    assert rep.selected == ["link_length"] and rep.explained
-    p, s = rep.parameters["link_length"], rep.uncertainty["link_length"]
-    assert abs(p["dl2"] - 0.004) < 4 * s["dl2"] and abs(p["dl1"]) < 4 * s["dl1"]
-    assert rep.noise.sigma == pytest.approx(port.sensors.tracker_sigma, rel=0.1)
-    # without the geometric groups (the physical catalogue only) it is not explained
-    phys = calibrate(port, data, seed=0, effects=list(TRUTHS))
-    assert not phys.explained and phys.structure.p_value < 1e-3 and phys.structure.structured_rms > rep.noise.sigma
-
-
+# a link-length error (a changed scenario, not the effect) found by the geometric group link_length, and not
+# explained by the physical catalogue alone: tests/test_geometry_effects.py
+# (test_link_length_found_on_a_bench_with_longer_links)
 def test_tracker_scale_error_is_not_explained(port):
     base = Plant.from_model(build_arm(port), noise=True)
     truth = ScaledTracker(**{f: getattr(base, f) for f in base.__dataclass_fields__}, scale=0.015)

@@ -217,7 +217,10 @@ def _calibrated_bench(sc, plant, group: str, seeds: tuple[int, int], starts: tup
 @pytest.mark.slow
 def test_link_length_found_on_a_bench_with_longer_links():
     """A bench whose links differ (upper arm +3 mm, forearm -2 mm: declared in a changed scenario, not
-    through link_length): link_length is named, nothing physical, explained."""
+    through link_length): link_length is named, nothing physical absorbs it, explained, the residual is the
+    noise; the physical catalogue alone does not explain it."""
+    from errplan.effects import CATALOGUE
+
     sc = load_scenario(PORT)
     r = sc.robot
     wrong = sc.with_(robot=Robot(r.base, (r.link_lengths[0] + 0.003, r.link_lengths[1] - 0.002), r.home_angles,
@@ -226,6 +229,10 @@ def test_link_length_found_on_a_bench_with_longer_links():
     rep, val = _calibrated_bench(sc, plant, "link_length", (41, 42), (5, 3))
     p, s = rep.parameters["link_length"], rep.uncertainty["link_length"]
     assert abs(p["dl1"] - 0.003) < 4 * s["dl1"] and abs(p["dl2"] + 0.002) < 4 * s["dl2"]
+    assert rep.noise.sigma == pytest.approx(sc.sensors.tracker_sigma, rel=0.1)
+    phys = calibrate(sc, rep.data, seed=0, effects=[c.name for c in CATALOGUE])
+    assert set(phys.selected) <= {c.name for c in CATALOGUE}
+    assert not phys.explained and phys.structure.p_value < 1e-3 and phys.structure.structured_rms > rep.noise.sigma
 
 
 @pytest.mark.slow
