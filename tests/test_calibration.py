@@ -731,12 +731,12 @@ def test_a_correlated_pair_that_fits_best_is_selected_with_a_warning():
 
 @pytest.mark.slow
 def test_spatial_pair_the_default_bench_confuses_is_still_found(spatial):
-    """joint offset and gravity sag correlate at 0.999 on the spatial default bench: calibrate selects
-    both (the best fit and prediction), recovers them within 2.5 sigma and 25 %, and warns."""
+    """joint offset and gravity sag correlate at 0.998 on the spatial bench (as at 0.999 on the default
+    bench's 8 starts): calibrate selects both (the best fit and prediction), recovers them within 2.5 sigma
+    and 25 %, and warns."""
     truth = {"joint_offset": SPATIAL_TRUTHS["joint_offset"], "gravity_sag": SPATIAL_TRUTHS["gravity_sag"]}
-    data = run_experiment(spatial.with_(effects=truth), seed=11).data
-    val = run_experiment(spatial.with_(effects=truth), seed=12).data
-    rep = calibrate(spatial, data, validate=val, seed=0)
+    rep = calibrate(spatial, spatial_bench(spatial, truth, 11), validate=spatial_bench(spatial, truth, 12), seed=0)
+    assert rep.bench["confused_pairs"]["joint_offset+gravity_sag"] > 0.995
     check_done(rep, truth)
     assert "warning" in rep.text() and "--design" in rep.text()
 
