@@ -3,9 +3,9 @@
 Bench data carry one catalogue effect (undeclared in the scenario given to calibrate) at bench
 sizes (a few mm) with the tracker noise of the scenario: the right effect is selected, its
 parameters are recovered within 3 stated sigmas, the held-out trajectory error is cut. Also two
-effects at once, noise only (nothing selected), a 4 mm link-length error (found by the geometric
-group ``link_length``, nothing physical), and an effect outside the catalogue (a 1 % tracker scale
-error): ``explained: false``. The noise floor is checked
+effects at once, noise only (nothing selected), and an effect outside the catalogue (a 1 % tracker
+scale error): ``explained: false`` (a link-length error, found by the geometric group
+``link_length``: tests/test_geometry_effects.py). The noise floor is checked
 against the known tracker sigma, the batched replay against ``simulate``, the CLI's CSV errors
 (exit 2, nothing written), the JSON keys of interfaces.md, the recording and the exported scenario
 (read back; calibrating against it selects nothing)."""
@@ -25,7 +25,6 @@ from errplan.cli import main
 from errplan.effects import predict_tracked
 from errplan.errors import DataError
 from errplan.experiment import bench_controller, parse_measured_csv, run_experiment
-from errplan.scenario import Robot
 from errplan.api import load_scenario, parse_scenario
 from errplan.simulation import Plant, simulate
 from errplan.models import build_arm
@@ -36,6 +35,10 @@ except ModuleNotFoundError:  # pragma: no cover
     import tomli as tomllib  # type: ignore
 
 ROOT = Path(__file__).resolve().parents[1]
+#: folds of whole runs for the held-out errors of the in-process calibrations: 3, not the command's default 5
+#: (a third fewer fits per candidate, each candidate still held out on runs it was not fitted to); the planar
+#: command-line calibrations (cli_run, test_cli_friction_bench_end_to_end) run with the default
+FOLDS = 3
 PORT = ROOT / "scenarios" / "beasley2004_port.toml"
 STARTS = 5
 
@@ -67,17 +70,10 @@ def check_recovery(rep, truth: dict) -> None:
 
 
 # ----------------------------------------------------------------------------- each effect
-# gravity sag on this bench (seeds 11 and 12) is calibrated through the command line: cli_run and
-# test_cli_calibrate_finds_the_gravity_sag, with the same checks on its JSON
-@pytest.mark.parametrize("effect", [e for e in TRUTHS if e != "gravity_sag"])
-def test_each_catalogue_effect_is_found(port, effect):
-    truth = {effect: TRUTHS[effect]}
-    data, val = bench(port, truth, 11), bench(port, truth, 12)
-    rep = calibrate(port, data, validate=val, seed=0)
-    assert rep.validation_errors is rep.errors  # the errors on the held-out validation file
-    check_found(rep.to_json(), truth)
-
-
+# each catalogue effect alone is found on the one-cm bench below (test_each_effect_on_a_one_cm_bench and, for
+# port friction, test_cli_friction_bench_end_to_end: the done-means checks, tighter than check_found's, and the
+# candidates table of check_candidates); gravity sag on P1's own bench (seeds 11 and 12) is calibrated
+# through the command line: cli_run and test_cli_calibrate_finds_the_gravity_sag, with check_found on its JSON
 def check_found(js: dict, truth: dict) -> None:
     """One effect on P1's bench, from the calibrate JSON: selected alone and explained, its parameters
     within 3 stated sigmas, the held-out pose error at the noise floor, the trajectory error cut; the
@@ -93,6 +89,13 @@ def check_found(js: dict, truth: dict) -> None:
     assert js["errors_on"] == "validation" and js["validation"]["pose_rms_after"] == js["pose_rms_after"]
     assert js["pose_rms_after"] < 1.1 * js["noise_floor"] < js["pose_rms_before"]
     assert js["trajectory_rms_after"] < 0.8 * js["trajectory_rms_before"]
+    check_candidates(js)
+
+
+def check_candidates(js: dict) -> None:
+    """The candidates table of a planar calibrate JSON: every effect alone, every pair, each geometric group
+    alone, each with a held-out error and a score; when a geometric group beats the declared model (a port
+    offset looks like a tracker registration), that group with each physical effect too."""
     cands = js["candidates"]
     singles = {c["name"] for c in cands if len(c["effects"]) == 1}
     geo = {"link_length", "instrument_length", "tracker_registration", "backlash"}
@@ -103,25 +106,9 @@ def check_found(js: dict, truth: dict) -> None:
     assert all(c["heldout_rms"] is not None and math.isfinite(c["bic"]) for c in cands)
 
 
-def test_two_effects_at_once(port):
-    """P1's suspects together: gravity (no compensation) and friction at the port."""
-    truth = {"gravity_sag": TRUTHS["gravity_sag"], "port_friction": {"fa": 0.001, "fn": 0.0008}}
-    data, val = bench(port, truth, 21), bench(port, truth, 22)
-    rep = calibrate(port, data, validate=val, seed=1)
-    assert sorted(rep.selected) == ["gravity_sag", "port_friction"]
-    assert rep.explained
-    check_recovery(rep, truth)
-    assert rep.errors.trajectory_after < 0.8 * rep.errors.trajectory_before
-    # a single effect cannot explain it: both singles are far worse than the pair held out
-    by = {c.label: c for c in rep.candidates}
-    pair = by["gravity_sag+port_friction"]
-    assert by["gravity_sag"].heldout_rms > 1.5 * pair.heldout_rms
-    assert by["port_friction"].heldout_rms > 1.5 * pair.heldout_rms
-
-
 def test_noise_only_selects_nothing(port):
     data = bench(port, {}, 31)
-    rep = calibrate(port, data, seed=2)
+    rep = calibrate(port, data, seed=2, folds=FOLDS)
     assert rep.selected == [] and rep.parameters == {}
     assert rep.explained
     assert rep.fit_errors.pose_after == rep.fit_errors.pose_before
@@ -130,12 +117,6 @@ def test_noise_only_selects_nothing(port):
     best = min((c for c in rep.candidates if c.effects), key=lambda c: c.bic)
     none = next(c for c in rep.candidates if not c.effects)
     assert best.bic > none.bic
-
-
-def _with_link2(sc, dl):
-    r = sc.robot
-    return sc.with_(robot=Robot(r.base, (r.link_lengths[0], r.link_lengths[1] + dl), r.home_angles,
-                                r.joint_limits, r.joint_sum_limits))
 
 
 @dataclass(frozen=True)
@@ -150,26 +131,14 @@ class ScaledTracker(Plant):
         return t + self.scale * (t - np.asarray(self.centre))
 
 
-def test_link_length_error_is_found_not_absorbed(port):
-    """A 4 mm error of link 2 (a changed scenario, not the effect): the geometric group link_length is
-    named, no physical effect absorbs it, and the residual is the noise."""
-    truth = Plant.from_model(build_arm(_with_link2(port, 0.004)), noise=True)
-    data = bench(port, {}, 41, plant=truth)
-    rep = calibrate(port, data, seed=0)
-    assert rep.selected == ["link_length"] and rep.explained
-    p, s = rep.parameters["link_length"], rep.uncertainty["link_length"]
-    assert abs(p["dl2"] - 0.004) < 4 * s["dl2"] and abs(p["dl1"]) < 4 * s["dl1"]
-    assert rep.noise.sigma == pytest.approx(port.sensors.tracker_sigma, rel=0.1)
-    # without the geometric groups (the physical catalogue only) it is not explained
-    phys = calibrate(port, data, seed=0, effects=list(TRUTHS))
-    assert not phys.explained and phys.structure.p_value < 1e-3 and phys.structure.structured_rms > rep.noise.sigma
-
-
+# a link-length error (a changed scenario, not the effect) found by the geometric group link_length, and not
+# explained by the physical catalogue alone: tests/test_geometry_effects.py
+# (test_link_length_found_on_a_bench_with_longer_links)
 def test_tracker_scale_error_is_not_explained(port):
     base = Plant.from_model(build_arm(port), noise=True)
     truth = ScaledTracker(**{f: getattr(base, f) for f in base.__dataclass_fields__}, scale=0.015)
     data = bench(port, {}, 42, plant=truth)
-    rep = calibrate(port, data, seed=0)
+    rep = calibrate(port, data, seed=0, folds=FOLDS)
     assert not rep.explained
     assert rep.structure.structured_rms > rep.noise.sigma
 
@@ -212,17 +181,16 @@ def check_done(rep, truth: dict) -> None:
     check_done_json(rep.to_json(), truth)
 
 
-def _one_cm_effect_params():
-    for e in ONE_CM_TRUTHS:
-        yield e if e == "port_friction" else pytest.param(e, marks=pytest.mark.slow)
-
-
-@pytest.mark.parametrize("effect", list(_one_cm_effect_params()))
+# port friction on this bench (seeds 11 and 12) is calibrated through the command line:
+# test_cli_friction_bench_end_to_end, with the same checks on its JSON
+@pytest.mark.slow
+@pytest.mark.parametrize("effect", [e for e in ONE_CM_TRUTHS if e != "port_friction"])
 def test_each_effect_on_a_one_cm_bench(port, effect):
     sc = one_cm(port)
     truth = {effect: ONE_CM_TRUTHS[effect]}
-    rep = calibrate(sc, bench(sc, truth, 11), validate=bench(sc, truth, 12), seed=0)
+    rep = calibrate(sc, bench(sc, truth, 11), validate=bench(sc, truth, 12), seed=0, folds=FOLDS)
     check_done(rep, truth)
+    check_candidates(rep.to_json())
 
 
 @pytest.mark.parametrize("pair", [
@@ -232,10 +200,17 @@ def test_each_effect_on_a_one_cm_bench(port, effect):
     pytest.param(("joint_offset", "tracker_offset"), marks=pytest.mark.slow),
 ])
 def test_two_effects_on_a_one_cm_bench(port, pair):
+    """Two effects at once (the first pair: P1's suspects, gravity without compensation and friction at
+    the port): the done-means checks, and a single effect cannot explain them: each single predicts the
+    held-out runs far worse than the pair."""
     sc = one_cm(port)
     truth = {e: ONE_CM_TRUTHS[e] for e in pair}
-    rep = calibrate(sc, bench(sc, truth, 11), validate=bench(sc, truth, 12), seed=1)
+    rep = calibrate(sc, bench(sc, truth, 11), validate=bench(sc, truth, 12), seed=1, folds=FOLDS)
     check_done(rep, truth)
+    by = {tuple(sorted(c.effects)): c for c in rep.candidates}
+    both = by[tuple(sorted(pair))]
+    for e in pair:
+        assert by[(e,)].heldout_rms > 1.5 * both.heldout_rms, (e, by[(e,)].heldout_rms, both.heldout_rms)
 
 
 @pytest.mark.slow
@@ -244,7 +219,7 @@ def test_friction_on_other_one_cm_benches(port, estimate, gain):
     """The estimate off along other directions, and a faster gain."""
     sc = one_cm(port, estimate, gain)
     truth = {"port_friction": ONE_CM_TRUTHS["port_friction"]}
-    rep = calibrate(sc, bench(sc, truth, 31), validate=bench(sc, truth, 32), seed=0)
+    rep = calibrate(sc, bench(sc, truth, 31), validate=bench(sc, truth, 32), seed=0, folds=FOLDS)
     check_done(rep, truth)
 
 
@@ -272,7 +247,7 @@ def test_stated_sigmas_match_the_spread_over_benches(port):
 
 def test_noise_only_on_a_one_cm_bench_selects_nothing(port):
     sc = one_cm(port)
-    rep = calibrate(sc, bench(sc, {}, 33), seed=0)
+    rep = calibrate(sc, bench(sc, {}, 33), seed=0, folds=FOLDS)
     assert rep.selected == [] and rep.explained
     assert rep.noise.sigma == pytest.approx(sc.sensors.tracker_sigma, rel=0.06)
 
@@ -301,7 +276,9 @@ def test_friction_fit_uses_the_motion_not_the_desired_direction(port):
 
 
 def test_cli_friction_bench_end_to_end(tmp_path):
-    """errplan experiment + errplan calibrate on files, as in docs/calibration.md's friction example."""
+    """errplan experiment + errplan calibrate on files, as in docs/calibration.md's friction example: the
+    one-cm bench of test_each_effect_on_a_one_cm_bench with port friction (the same seeds and starts), and
+    its checks on the command's JSON."""
     doc = tomllib.loads(PORT.read_text())
     doc["port"]["estimate"] = list(ONE_CM_ESTIMATE)
     doc["controller"]["gain"] = 0.05
@@ -310,18 +287,14 @@ def test_cli_friction_bench_end_to_end(tmp_path):
     doc["effects"] = {"port_friction": dict(ONE_CM_TRUTHS["port_friction"])}
     truth = tmp_path / "truth.toml"
     truth.write_text(to_toml(doc))
-    for seed, name in ((1, "bench.csv"), (2, "val.csv")):
+    for seed, name in ((11, "bench.csv"), (12, "val.csv")):
         assert main(["-q", "experiment", str(truth), "--out", str(tmp_path / name), "--seed", str(seed),
-                     "--starts", "5"]) == 0
+                     "--starts", str(STARTS)]) == 0
     assert main(["-q", "calibrate", str(declared), str(tmp_path / "bench.csv"), "--validate", str(tmp_path / "val.csv"),
                  "--json", str(tmp_path / "cal.json")]) == 0
     js = json.loads((tmp_path / "cal.json").read_text())
-    assert js["selected"] == ["port_friction"] and js["explained"] is True
-    for p, v in ONE_CM_TRUTHS["port_friction"].items():
-        got, sig = js["parameters"]["port_friction"][p], js["uncertainty"]["port_friction"][p]
-        assert abs(got - v) < 2.5 * sig and abs(got - v) < 0.25 * v
-    assert js["pose_rms_after"] <= 1.1 * js["noise_floor"]
-    assert js["trajectory_rms_after"] <= 0.7 * js["trajectory_rms_before"]
+    check_done_json(js, {"port_friction": ONE_CM_TRUTHS["port_friction"]})
+    check_candidates(js)
 
 
 # ----------------------------------------------------------------------------- pieces
@@ -525,7 +498,7 @@ def test_a_declared_effect_is_corrected_not_replaced(port):
     truth = {"gravity_sag": TRUTHS["gravity_sag"]}
     data = bench(port, truth, 61)
     declared = port.with_(effects={"gravity_sag": {"c1": 0.002, "c2": 0.002, "c3": 0.0}})
-    rep = calibrate(declared, data, seed=0)
+    rep = calibrate(declared, data, seed=0, folds=FOLDS)
     assert rep.selected == ["gravity_sag"]
     check_recovery(rep, truth)
     assert rep.fitted["gravity_sag"]["c3"] == pytest.approx(rep.parameters["gravity_sag"]["c3"])
@@ -580,18 +553,19 @@ def test_each_spatial_effect_is_found(spatial, effect):
     truth = {effect: SPATIAL_TRUTHS[effect]}
     data, val = spatial_bench(spatial, truth, 13), spatial_bench(spatial, truth, 14)
     assert data.dim == 3 and data.n_joints == 3
-    rep = calibrate(spatial, data, validate=val, seed=0)
+    rep = calibrate(spatial, data, validate=val, seed=0, folds=FOLDS)
     check_done(rep, truth)
 
 
 def test_two_spatial_effects_at_once(spatial):
     truth = {"gravity_sag": SPATIAL_TRUTHS["gravity_sag"], "port_friction": {"fa": 0.001, "fn": 0.0008}}
-    rep = calibrate(spatial, spatial_bench(spatial, truth, 21), validate=spatial_bench(spatial, truth, 22), seed=1)
+    rep = calibrate(spatial, spatial_bench(spatial, truth, 21), validate=spatial_bench(spatial, truth, 22), seed=1,
+                    folds=FOLDS)
     check_done(rep, truth)
 
 
 def test_spatial_noise_only_selects_nothing(spatial):
-    rep = calibrate(spatial, spatial_bench(spatial, {}, 31), seed=2)
+    rep = calibrate(spatial, spatial_bench(spatial, {}, 31), seed=2, folds=FOLDS)
     assert rep.selected == [] and rep.explained
     assert rep.noise.sigma == pytest.approx(spatial.sensors.tracker_sigma, rel=0.08)
 
@@ -603,7 +577,8 @@ def test_spatial_shaft_length_error_is_not_explained_by_the_physical_catalogue(s
     from errplan.experiment import truth_plant
 
     plant = truth_plant(spatial).with_(length=spatial.instrument.length + 0.004)
-    rep = calibrate(spatial, spatial_bench(spatial, {}, 41, plant=plant, starts=4), seed=0, effects=list(SPATIAL_TRUTHS))
+    rep = calibrate(spatial, spatial_bench(spatial, {}, 41, plant=plant, starts=4), seed=0, folds=FOLDS,
+                    effects=list(SPATIAL_TRUTHS))
     assert not rep.explained and rep.structure.p_value < 1e-3 and rep.structure.structured_rms > rep.noise.sigma
     assert rep.to_json()["explained"] is False
 
@@ -660,7 +635,7 @@ def test_calibrate_on_a_urdf_without_inertial_data(tmp_path, capsys):
     sc = sc.with_(controller=replace(sc.controller, gain=0.5))
     data = run_experiment(sc.with_(effects={"tracker_offset": {"bx": 0.001, "by": 0.0, "bz": 0.0}}), seed=1,
                           n_starts=2).data
-    rep = calibrate(sc, data, seed=0)
+    rep = calibrate(sc, data, seed=0, folds=FOLDS)
     assert rep.selected == ["tracker_offset"]
     assert "gravity_sag" not in {e for c in rep.candidates for e in c.effects}
     assert any("inertial" in s for s in rep.skipped) and "not tried: gravity_sag" in rep.text()
@@ -706,11 +681,11 @@ def test_cli_spatial_calibration_end_to_end(tmp_path, capsys):
     capsys.readouterr()
     assert main(["-q", "calibrate", str(declared), str(tmp_path / "data.csv"), "--validate", str(tmp_path / "val.csv"),
                  "--json", str(tmp_path / "cal.json"), "--record", str(tmp_path / "cal.rrd"),
-                 "--export-scenario", str(tmp_path / "fixed.toml")]) == 0
+                 "--export-scenario", str(tmp_path / "fixed.toml"), "--folds", str(FOLDS)]) == 0
     out = capsys.readouterr().out
     assert "not identifiable" in out and "identifiability of the catalogue on these rows" in out
     js = json.loads((tmp_path / "cal.json").read_text())
-    assert js["selected"] == ["gravity_sag"] and js["explained"] is True
+    assert js["selected"] == ["gravity_sag"] and js["explained"] is True and js["selection"]["folds"] == FOLDS
     check_done_json(js, {"gravity_sag": SPATIAL_TRUTHS["gravity_sag"]})
     # the waist turns about the vertical: its generalized gravity is identically zero, so c1 is
     # reported as not identifiable, not as a number
@@ -729,7 +704,7 @@ def test_cli_spatial_calibration_end_to_end(tmp_path, capsys):
     assert fixed.dim == 3 and set(fixed.effects["gravity_sag"]) == {"c1", "c2", "c3"}
     assert fixed.effects["gravity_sag"]["c1"] == 0.0
     assert main(["-q", "calibrate", str(tmp_path / "fixed.toml"), str(tmp_path / "val.csv"), "--json",
-                 str(tmp_path / "again.json")]) == 0
+                 str(tmp_path / "again.json"), "--folds", str(FOLDS)]) == 0
     assert json.loads((tmp_path / "again.json").read_text())["selected"] == []
 
 
@@ -762,12 +737,12 @@ def test_a_correlated_pair_that_fits_best_is_selected_with_a_warning():
 
 @pytest.mark.slow
 def test_spatial_pair_the_default_bench_confuses_is_still_found(spatial):
-    """joint offset and gravity sag correlate at 0.999 on the spatial default bench: calibrate selects
-    both (the best fit and prediction), recovers them within 2.5 sigma and 25 %, and warns."""
+    """joint offset and gravity sag correlate at 0.998 on the spatial bench (as at 0.999 on the default
+    bench's 8 starts): calibrate selects both (the best fit and prediction), recovers them within 2.5 sigma
+    and 25 %, and warns."""
     truth = {"joint_offset": SPATIAL_TRUTHS["joint_offset"], "gravity_sag": SPATIAL_TRUTHS["gravity_sag"]}
-    data = run_experiment(spatial.with_(effects=truth), seed=11).data
-    val = run_experiment(spatial.with_(effects=truth), seed=12).data
-    rep = calibrate(spatial, data, validate=val, seed=0)
+    rep = calibrate(spatial, spatial_bench(spatial, truth, 11), validate=spatial_bench(spatial, truth, 12), seed=0, folds=FOLDS)
+    assert rep.bench["confused_pairs"]["joint_offset+gravity_sag"] > 0.995
     check_done(rep, truth)
     assert "warning" in rep.text() and "--design" in rep.text()
 
@@ -786,7 +761,7 @@ def test_runs_through_the_port_neighbourhood_are_left_out_not_fatal(tmp_path):
     sc = load_scenario(toy_scenario(tmp_path, port, port, "[controller]\ngain = 0.5\n[sensors]\ntracker_sigma = 0.0002\n"))
     truth = {"gravity_sag": {"c1": 0.05, "c2": 0.05, "c3": 0.001}}
     data = run_experiment(sc.with_(effects=truth), seed=11).data
-    rep = calibrate(sc, data, seed=0)
+    rep = calibrate(sc, data, seed=0, folds=FOLDS)
     assert rep.selected == ["gravity_sag"] and rep.explained
     for p, v in truth["gravity_sag"].items():
         got, sig = rep.parameters["gravity_sag"][p], rep.uncertainty["gravity_sag"][p]
