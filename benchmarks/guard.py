@@ -27,8 +27,10 @@ a slower kernel is slower in both. It prints what it measured either way.
 The ratios move with the machine's load, not only with the code: the numpy peers stream arrays through the
 shared cache and lose more to other jobs than errplan's kernels do, so on a busy machine (load 6-8) the
 ratios read 5-15 % lower than on an idle one. ``benchmarks/baseline.json`` keeps, per row, the higher of the
-two (the median of five runs in each state), so the same code passes in either state. It is a benchmark, not a test: CI times nothing. Run it before a change that
-touches a kernel lands, and put its table in the change's note.
+two (the median of five runs in each state), so the same code passes in either state.
+
+It is a benchmark, not a test: CI times nothing. Run it before a change that touches a kernel lands, and put
+its table in the change's note.
 """
 from __future__ import annotations
 
@@ -221,8 +223,12 @@ def main(argv=None) -> int:
     if a.update:
         new = dict(base_rows)
         new.update({k: round(v["ratio"], 4) for k, v in rows.items()})
-        a.baseline.write_text(json.dumps({"note": "errplan CPU / numpy peer CPU per problem (benchmarks/guard.py); "
-                                                  "updated on purpose when a change makes the fields faster",
+        # the busy and idle medians the old baseline was chosen from no longer describe it: they are dropped,
+        # and the note says when and under what load this one was measured
+        a.baseline.write_text(json.dumps({"note": f"errplan CPU / numpy peer CPU per problem (benchmarks/guard.py: "
+                                                  f"the median of {a.repeat} rounds' paired ratios), measured "
+                                                  f"{time.strftime('%Y-%m-%d')} at load average {load0:.1f}; updated "
+                                                  "on purpose when a change makes the fields faster",
                                           "ratios": new}, indent=2) + "\n")
         print(f"baseline written: {a.baseline}")
         return 0
