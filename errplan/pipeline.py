@@ -7,8 +7,8 @@ For every planned query (the plan JSON's ``planned``/``direct`` path objects, do
    scenario's ``[controller] gain``, as a user commanding the goal directly would);
 2. **simulation** (:mod:`errplan.simulation`): both under the scenario's truth
    (:func:`truth_plant`: true port, ``[effects]``, no sensor noise) and replayed under every
-   corner of the error box (true port = estimate + corner offset, corner tip load; no
-   ``[effects]``: the certificate covers the error set, not effects the model lacks). Each
+   corner of the error box (true port = estimate + corner offset, corner tip load, with the
+   truth's other ``[effects]``: the robot each corner stands for is the true one). Each
    result is the ``R`` object of interfaces.md plus ``max_G_norm`` (the actual ``||G||`` at the
    visited tips under that truth) and ``status``/``converged``;
 3. **record** (:mod:`errplan.recording`, optional): one rerun recording of everything.
@@ -32,6 +32,7 @@ from typing import Any, Callable
 import numpy as np
 
 from .errors import ErrplanError, InfeasibleError
+from .errorset import uncovered_effects
 from .models import arm_model
 from .gains import GainOptions, GainSchedule, SpatialModel, options_from_scenario, schedule_gains, single_segment
 from .report import format_table
@@ -86,6 +87,15 @@ class QueryRun:
     corners: np.ndarray              # (c, 3) error-set corners theta = (dy, dz, t); 3-D (c, 4) (dx, dy, dz, load)
     corner_planned: list[Replay] = field(default_factory=list)
     corner_direct: list[Replay] = field(default_factory=list)
+    #: the truth's [effects] the metrics cannot express (simulated, not covered by the certificate)
+    uncovered: list = field(default_factory=list)
+    #: the scenario whose truth the paths were simulated on, when not the planned one (``--truth``)
+    truth_name: str | None = None
+
+    @property
+    def certificate_covers(self) -> bool:
+        """The certificate covers the truth simulated: it has no effect the metrics cannot express."""
+        return not self.uncovered
 
     def gains_json(self) -> list[dict]:
         return self.schedule.to_json()
@@ -110,9 +120,13 @@ class QueryRun:
 
     def extra_json(self) -> dict:
         """The keys the pipeline adds to the query's plan JSON."""
-        return {"gains": self.gains_json(), "simulation": self.simulation_json(),
-                "gain_schedule": self.schedule.summary(),
-                "direct_gains": self.direct_schedule.to_json()}
+        out = {"gains": self.gains_json(), "simulation": self.simulation_json(),
+               "gain_schedule": self.schedule.summary(),
+               "direct_gains": self.direct_schedule.to_json(),
+               "certificate_covers": self.certificate_covers, "uncovered_effects": list(self.uncovered)}
+        if self.truth_name is not None:
+            out["truth"] = self.truth_name
+        return out
 
 
 # ----------------------------------------------------------------------------- pieces
@@ -149,12 +163,27 @@ def _truth_load(sc) -> float:
 
 
 def corner_plant(sc, theta) -> Plant:
-    """The truth at one error-set instance (no ``[effects]``)."""
+    """The truth at one error-set instance: the corner's true port and tip load, with the truth's
+    ``[effects]`` (its geometry, joint offsets, sag, ...; a ``port_offset`` is the corner's port
+    itself, so it is not added again)."""
     m = arm_model(sc)
     es = m.errors
     theta = np.asarray(theta, float)
     d = es.dim
-    return Plant.from_model(m, port=tuple(es.port(theta)), load=float(theta[d]), effects=False)
+    tables = {k: v for k, v in sc.effects.items() if k != "port_offset"}
+    return Plant.from_model(m, port=tuple(es.port(theta)), load=float(theta[d]), effects=tables)
+
+
+def check_truth_pair(sc, truth_sc) -> None:
+    """``errplan plan SCENARIO --truth T``: T's robot must be the one SCENARIO's controller commands (the
+    same dimension and number of actuated joints), else one error naming both."""
+    if truth_sc.dim != sc.dim:
+        raise ErrplanError(f"--truth {truth_sc.source}: a {truth_sc.dim}-D scenario for the {sc.dim}-D scenario "
+                           f"{sc.source}")
+    if sc.dim == 3 and len(truth_sc.robot.joints) != len(sc.robot.joints):
+        raise ErrplanError(f"--truth {truth_sc.source}: {len(truth_sc.robot.joints)} actuated joints "
+                           f"{list(truth_sc.robot.joints)}; the controller of {sc.source} commands "
+                           f"{len(sc.robot.joints)} {list(sc.robot.joints)}")
 
 
 def check_query_endpoints(sc, name: str, start, goal, model: SpatialModel, margin: float) -> None:
@@ -192,8 +221,12 @@ def replay(plant: Plant, controller: ControllerModel, start, waypoints, gains, o
 
 
 def run_query(sc, qjson: dict, *, options: GainOptions | None = None, corners: bool = True,
-              progress: Progress | None = None, model: SpatialModel | None = None) -> QueryRun:
-    """Gains and simulations for one query JSON (``name``, ``start``, ``goal``, ``planned``, ``direct``)."""
+              progress: Progress | None = None, model: SpatialModel | None = None, truth_sc=None) -> QueryRun:
+    """Gains and simulations for one query JSON (``name``, ``start``, ``goal``, ``planned``, ``direct``).
+
+    ``truth_sc``: another scenario whose truth (its arm with its geometry, its port, its ``[effects]``)
+    the planned and direct paths are simulated on (``errplan plan --truth``); default ``sc``'s own. The
+    gains are certified on ``sc``, and the corner replays run under ``sc``'s error set."""
     opts = options or options_from_scenario(sc)
     dim = sc.dim
     name = str(qjson.get("name", "query"))
@@ -217,14 +250,15 @@ def run_query(sc, qjson: dict, *, options: GainOptions | None = None, corners: b
     if progress:
         progress(0.5, f"{name}: simulating")
     ctrl = ControllerModel.from_model(arm_model(sc))
-    truth = truth_plant(sc)
+    tsc = sc if truth_sc is None else truth_sc
+    truth = truth_plant(tsc)
     seed = int(sc.planner.seed)
     sp = _clearance(an_model, truth, replay(truth, ctrl, ppath[0], sched.waypoints, sched.gains, opts, seed))
     sd = _clearance(an_model, truth, replay(truth, ctrl, dpath[0], dpath[-1:], [kd], opts, seed))
     cs = corner_instances(sc) if corners else np.zeros((0, dim + 1))
     run = QueryRun(name, start, goal, ppath, dpath, dict(qjson["planned"]) if isinstance(qjson["planned"], dict) else {},
                    dict(qjson["direct"]) if isinstance(qjson.get("direct"), dict) else {}, sched, dsched, kd, src,
-                   sp, sd, cs)
+                   sp, sd, cs, uncovered=uncovered_effects(tsc), truth_name=tsc.name if truth_sc is not None else None)
     for i, th in enumerate(cs):
         pl = corner_plant(sc, th)
         run.corner_planned.append(_clearance(an_model, pl, replay(pl, ctrl, ppath[0], sched.waypoints, sched.gains,
@@ -245,7 +279,7 @@ def _as_query_json(q: Any) -> dict:
 
 
 def run_pipeline(sc, query_plans, fields=None, *, record: str | None = None, progress: Progress | None = None,
-                 options: GainOptions | None = None, corners: bool = True, workers: int = 1) -> dict:
+                 options: GainOptions | None = None, corners: bool = True, workers: int = 1, truth_sc=None) -> dict:
     """Add ``gains`` and ``simulation`` to every query's plan JSON; optionally write a recording.
 
     ``query_plans``: the planner's per-query results (objects with ``to_json()`` and an ``extra``
@@ -259,13 +293,16 @@ def run_pipeline(sc, query_plans, fields=None, *, record: str | None = None, pro
     around them, for a caller that runs the :func:`run_query` calls elsewhere (``errplan demo`` runs
     them in worker processes); the result is the same. ``workers`` > 1: the queries run that many at a
     time in forked processes (:class:`errplan.cluster.ForkedTasks`; each has the models and the kernels
-    this process holds), the progress reported as each one ends; the same result.
+    this process holds), the progress reported as each one ends; the same result. ``truth_sc``: simulate
+    the planned and direct paths on another scenario's truth (:func:`run_query`).
     """
     opts = options or options_from_scenario(sc)
+    if truth_sc is not None:
+        check_truth_pair(sc, truth_sc)
     plans = list(query_plans)
     model, qjs = query_jobs(sc, plans)
     if workers > 1 and len(qjs) > 1:
-        return finish_pipeline(sc, plans, _forked_queries(sc, qjs, opts, corners, model, workers, progress), fields,
+        return finish_pipeline(sc, plans, _forked_queries(sc, qjs, opts, corners, model, workers, progress, truth_sc), fields,
                                record=record)
     runs = []
     for i, qj in enumerate(qjs):
@@ -274,12 +311,12 @@ def run_pipeline(sc, query_plans, fields=None, *, record: str | None = None, pro
             if progress:
                 progress((i + f) / max(len(plans), 1), msg)
 
-        runs.append(run_query(sc, qj, options=opts, corners=corners, progress=sub, model=model))
+        runs.append(run_query(sc, qj, options=opts, corners=corners, progress=sub, model=model, truth_sc=truth_sc))
     return finish_pipeline(sc, plans, runs, fields, record=record)
 
 
 def _forked_queries(sc, qjs: list[dict], opts: GainOptions, corners: bool, model, workers: int,
-                    progress: Progress | None) -> list[QueryRun]:
+                    progress: Progress | None, truth_sc=None) -> list[QueryRun]:
     """:func:`run_query` of every query JSON in ``qjs``, at most ``workers`` at a time in forked processes,
     started in order; their runs in the order of ``qjs``."""
     from functools import partial
@@ -292,7 +329,7 @@ def _forked_queries(sc, qjs: list[dict], opts: GainOptions, corners: bool, model
     try:
         while done < len(qjs):
             while tasks.free > 0 and nxt < len(qjs):
-                tasks.start(nxt, partial(run_query, options=opts, corners=corners, model=model), sc, qjs[nxt],
+                tasks.start(nxt, partial(run_query, options=opts, corners=corners, model=model, truth_sc=truth_sc), sc, qjs[nxt],
                             light=True)
                 nxt += 1
             for i, run in tasks.collect():
@@ -378,6 +415,10 @@ def summary_table(runs: list[QueryRun], title: str | None = None) -> str:
                 lines.append(f"{r.name} {kind}: {len(bad)} of {len(sched.segments)} segment(s) not certified: {bad[0].reason}"
                              + (f"; simulated with the scenario gain {r.direct_gain:g}" if kind == "direct" else ""))
     for r in runs:
+        if r.uncovered:
+            lines.append(f"{r.name}: the certificate does not cover {', '.join(r.uncovered)} in the truth simulated "
+                         f"(the metrics cannot express them): simulated, not certified")
+    for r in runs:
         if r.sim_planned.min_clearance is None:
             continue
         parts = []
@@ -387,5 +428,7 @@ def summary_table(runs: list[QueryRun], title: str | None = None) -> str:
         lines.append(f"{r.name} min clearance of the shaft (anatomy): " + ", ".join(parts))
     lines.append("max ||G||: worst case along the path at the scenario gain (fields); certified ||G||: verified "
                  "worst case over every segment's convergence ball at the chosen gain; steps/converged/monotonic: "
-                 "simulated under the scenario's truth; corners: replays under every corner of the error box.")
+                 "simulated under the scenario's truth" + (f" ({', '.join(sorted({r.truth_name for r in runs if r.truth_name}))}'s, "
+                                                  "--truth)" if any(r.truth_name for r in runs) else "")
+                 + "; corners: replays under every corner of the error box, with the truth's [effects].")
     return "\n".join(lines)

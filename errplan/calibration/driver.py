@@ -145,8 +145,9 @@ def _calibrate(sc, data: MeasuredData, *, validate, seed, folds, progress, effec
         empirical["export_note"] = ("not in the exported scenario: the scenario format has no key for an empirical "
                                     "correction of the tracked tip; --predictions includes it")
 
-    # before / after errors
-    tol = arrival_tolerance(nf.sigma)
+    # before / after errors; a run's arrival is judged with the noise left by the selected model (the same rows
+    # calibrated on its bench, the `--export-bench` file, then judge them alike: "before" there is "after" here)
+    tol = arrival_tolerance(noise_floor(r1, predict_tracked(after, data.q, u, data.run), u).sigma)
 
     def errors(d: MeasuredData, r_before: np.ndarray, r_after: np.ndarray) -> Errors:
         tb, tb_all = trajectory_errors(d, base, ctrl, tol, xmodel)

@@ -87,24 +87,16 @@ def to_toml(doc: dict, header: str = "") -> str:
 
 
 def corrected_scenario_toml(sc, report: CalibrationReport) -> str:
-    """The scenario's own TOML with the found effects under ``[effects]`` (declared + fitted)."""
+    """The corrected robot's scenario TOML (:func:`corrected_files`)."""
     return corrected_files(sc, report, None)[0]
 
 
-def corrected_files(sc, report: CalibrationReport, path=None) -> tuple[str, dict]:
-    """The corrected scenario's TOML text and the other files it needs, ``{path: text}``.
-
-    The geometric groups go into the model itself: ``link_length`` into ``[robot] link_lengths``,
-    ``instrument_length`` into ``[instrument] length``, and a URDF arm's ``joint_geometry`` into a
-    corrected URDF (joint origins changed, nothing else; :func:`errplan.kinematics.geometry.corrected_urdf_text`)
-    written beside the scenario ``path`` as ``<scenario stem>.urdf``, which the scenario's ``urdf``
-    names. ``tracker_registration`` and the physical effects stay under ``[effects]``."""
+def _read_doc(sc) -> dict:
+    """The scenario's own TOML, re-read, with its URDF and package paths made absolute (the exported
+    file may be written anywhere)."""
     from pathlib import Path
 
     import tomllib
-
-    from ..kinematics import check_scenario
-    from ..scenario import scenario_from_dict
 
     try:
         doc = tomllib.loads(Path(sc.source).read_text(encoding="utf-8"))
@@ -112,10 +104,46 @@ def corrected_files(sc, report: CalibrationReport, path=None) -> tuple[str, dict
         raise ErrplanError(f"{sc.source}: cannot re-read the scenario to export it: {e}") from None
     robot = doc.get("robot")
     if sc.dim == 3 and isinstance(robot, dict):
-        # the URDF (and package paths) as absolute paths: the corrected file may be written anywhere
         robot["urdf"] = str(sc.robot.urdf)
         if "package_path" in robot:
             robot["package_path"] = [str(x) for x in sc.robot.package_path]
+    return doc
+
+
+def _header(sc, report: CalibrationReport, what: str) -> str:
+    found = ", ".join(report.selected) or "none"
+    return (f"{sc.name}: {what}, by `errplan calibrate` on {report.data_source}\n"
+            f"found effects: {found}; explained: {str(report.explained).lower()}\n"
+            f"noise floor {report.noise.sigma:.3e} m; pose RMS {report.fit_errors.pose_before:.3e} -> "
+            f"{report.fit_errors.pose_after:.3e} m")
+
+
+def _effects_doc(effects: dict) -> dict:
+    return {e: {p: float(v) for p, v in ps.items()} for e, ps in effects.items()}
+
+
+def corrected_files(sc, report: CalibrationReport, path=None) -> tuple[str, dict]:
+    """``--export-scenario``: the corrected robot, what a user runs from now on (docs/physics.md
+    "From measured data to the plan"). Its TOML text and the other files it needs, ``{path: text}``.
+
+    The controller and the truth both take what the fit found: ``link_length`` goes into ``[robot]
+    link_lengths``, ``instrument_length`` into ``[instrument] length``, a URDF arm's ``joint_geometry``
+    into a corrected URDF (joint origins changed, nothing else; every relative mesh path rewritten to
+    resolve from its new folder; :func:`errplan.kinematics.geometry.corrected_urdf_text`) written beside
+    the scenario ``path`` as ``<scenario stem>.urdf``, which the scenario's ``urdf`` names; a
+    ``port_offset`` is folded into ``[port] position``, and when the fit found it the controller's
+    ``estimate`` becomes that identified port (the ``[uncertainty]`` box stays the error set around
+    it). ``tracker_registration`` and the physical effects stay under ``[effects]``: the truth has
+    them, the controller does not model them."""
+    from pathlib import Path
+
+    import tomllib
+
+    from ..kinematics import check_scenario
+    from ..scenario import scenario_from_dict
+
+    doc = _read_doc(sc)
+    robot = doc.get("robot")
     effects = report.effects_table()
     extra: dict = {}
     urdf_text = None
@@ -126,6 +154,13 @@ def corrected_files(sc, report: CalibrationReport, path=None) -> tuple[str, dict
     if "instrument_length" in effects:
         dL = effects.pop("instrument_length").get("dL", 0.0)
         doc.setdefault("instrument", {})["length"] = float(sc.instrument.length + dL)
+    if "port_offset" in effects and isinstance(doc.get("port"), dict):
+        off = effects.pop("port_offset")
+        axes = ("dx", "dy", "dz") if sc.dim == 3 else ("dy", "dz")
+        port = [float(p + off.get(a, 0.0)) for p, a in zip(sc.port.position, axes)]
+        doc["port"]["position"] = port
+        if "port_offset" in report.selected:
+            doc["port"]["estimate"] = list(port)
     if "joint_geometry" in effects and sc.dim == 3 and isinstance(robot, dict):
         from ..kinematics.geometry import corrected_urdf_text
         from ..effects import make_effect
@@ -133,37 +168,70 @@ def corrected_files(sc, report: CalibrationReport, path=None) -> tuple[str, dict
         jg = effects.pop("joint_geometry")
         names = make_effect("joint_geometry", dim=3, n_joints=len(sc.robot.joints)).params
         src = Path(str(sc.robot.urdf))
-        urdf_text = corrected_urdf_text(src.read_text(encoding="utf-8"), sc.robot.joints,
-                                        [jg.get(k, 0.0) for k in names], str(src), wrist=sc.robot.wrist)
         target = (Path(path).with_suffix(".urdf") if path is not None
                   else src.with_name(src.stem + "-calibrated.urdf"))
         if target.resolve() == src.resolve():
             target = target.with_name(target.stem + "-calibrated.urdf")
+        urdf_text = corrected_urdf_text(src.read_text(encoding="utf-8"), sc.robot.joints,
+                                        [jg.get(k, 0.0) for k in names], str(src), wrist=sc.robot.wrist,
+                                        source_dir=src.parent, target_dir=target.parent)
         robot["urdf"] = str(target.resolve()) if path is None else target.name
         extra[str(target)] = urdf_text
     if effects:
-        doc["effects"] = {e: {p: float(v) for p, v in ps.items()} for e, ps in effects.items()}
+        doc["effects"] = _effects_doc(effects)
     else:
         doc.pop("effects", None)
     doc["name"] = f"{sc.name}-calibrated" if report.selected else sc.name
     found = ", ".join(report.selected) or "none"
     doc["description"] = (sc.description + " | " if sc.description else "") + f"calibrated: {found}"
-    header = (f"{sc.name} corrected by `errplan calibrate` on {report.data_source}\n"
-              f"found effects: {found}; explained: {str(report.explained).lower()}\n"
-              f"noise floor {report.noise.sigma:.3e} m; pose RMS {report.fit_errors.pose_before:.3e} -> "
-              f"{report.fit_errors.pose_after:.3e} m")
-    text = to_toml(doc, header)
+    text = to_toml(doc, _header(sc, report, "the corrected robot (controller and truth)"))
     if urdf_text is None:
         check_scenario(scenario_from_dict(tomllib.loads(text), "<exported scenario>"))  # reads back, or raises before writing
-    else:  # read back with the corrected URDF in a scratch folder: nothing is written where the user looks
+    else:  # read back with the corrected URDF in a scratch folder beside the target (its relative mesh paths
+        # resolve as they will there): nothing is written where the user looks
         import tempfile
 
-        with tempfile.TemporaryDirectory() as tmp:
+        tgt = Path(next(iter(extra))).resolve()
+        try:
+            tmp_ctx = tempfile.TemporaryDirectory(dir=tgt.parent, prefix=".errplan-export-")
+        except OSError:
+            tmp_ctx = tempfile.TemporaryDirectory()
+        with tmp_ctx as tmp:
             d2 = tomllib.loads(text)
             (Path(tmp) / "robot.urdf").write_text(urdf_text, encoding="utf-8")
             d2["robot"]["urdf"] = str(Path(tmp) / "robot.urdf")
             _check_corrected_arm(scenario_from_dict(d2, "<exported scenario>"), report)
     return text, extra
+
+
+def bench_files(sc, report: CalibrationReport) -> str:
+    """``--export-bench``: the bench as it ran (docs/physics.md "From measured data to the plan"): the
+    scenario as declared (its controller, arm, shaft, port estimate and error set unchanged) with the
+    fitted truth under ``[effects]`` (every declared effect, the selected ones at their bench values,
+    geometry included). Calibrating the same data on it selects nothing, and its "before" is this
+    calibration's "after". The TOML text, read back before it is returned."""
+    import tomllib
+
+    from ..scenario import scenario_from_dict
+
+    doc = _read_doc(sc)
+    effects = report.effects_table()
+    if effects:
+        doc["effects"] = _effects_doc(effects)
+    else:
+        doc.pop("effects", None)
+    doc["name"] = f"{sc.name}-bench"
+    found = ", ".join(report.selected) or "none"
+    doc["description"] = (sc.description + " | " if sc.description else "") + f"bench as calibrated: {found}"
+    text = to_toml(doc, _header(sc, report, "the bench as it ran (declared controller, fitted truth)"))
+    back = scenario_from_dict(tomllib.loads(text), "<exported bench>")
+    if sc.dim == 3:
+        _check_corrected_arm(back, report)
+    else:
+        from ..kinematics import check_scenario
+
+        check_scenario(back)
+    return text
 
 
 def _check_corrected_arm(sc, report: CalibrationReport) -> None:

@@ -80,6 +80,9 @@ class CalibrationReport:
     #: the empirical term (calibrate JSON ``empirical``) when the residual stays structured, and its predictor
     empirical: dict | None = None
     empirical_predict: object = field(repr=False, default=None)
+    #: the calibrate JSON's ``task`` (errplan.calibration.task; None: not computed) and ``exported`` (paths written)
+    task: list | None = None
+    exported: list = field(default_factory=list)
 
     @property
     def errors(self) -> Errors:
@@ -156,7 +159,8 @@ class CalibrationReport:
                                            f"RMS >= {STRUCTURE_RATIO:g} x noise floor"},
             "declared_effects": self.declared_effects,
             "effects": self.effects_table(),
-            "exported": [],
+            "exported": [str(p) for p in self.exported],
+            **({"task": self.task} if self.task is not None else {}),
             "empirical": self.empirical,
             "implausible": implausible(self.model) if self.model.effects else [],
             "not_identifiable": self.not_identifiable_params(),

@@ -104,6 +104,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--workers", type=int, default=None,
                    help="local worker processes for the fields' tiles and the queries' gains and simulations "
                         "(default: all cores; the results do not depend on it)")
+    s.add_argument("--truth", default=None, metavar="T.toml",
+                   help="simulate the planned and direct paths on this scenario's truth (its arm, port and "
+                        "[effects]; e.g. calibrate's --export-bench) instead of SCENARIO's (default: SCENARIO's)")
 
     s = sub.add_parser("tolerance", help="tolerance-design queries of a scenario (port error, tip load, noise, port placement)")
     s.add_argument("scenario", help="scenario TOML file with [[tolerance]] queries")
@@ -156,9 +159,15 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--json", default=None, help="calibrate JSON to write (default: none)")
     s.add_argument("--record", default=None, help="rerun recording (.rrd) of the residuals before and after (default: none)")
     s.add_argument("--export-scenario", default=None,
-                   help="write the scenario with the found effects under [effects] (default: none); the "
-                        "geometry goes into the robot (planar link lengths, instrument length) and, for a URDF "
-                        "arm's joint_geometry, into a corrected URDF written beside it")
+                   help="write the corrected robot: controller and truth both take the found geometry (planar "
+                        "link lengths, instrument length, a URDF arm's joint_geometry in a corrected URDF written "
+                        "beside it) and the found port; the other effects under [effects] (default: none)")
+    s.add_argument("--export-bench", default=None, metavar="F.toml",
+                   help="write the bench as it ran: the declared controller unchanged, the fitted effects as its "
+                        "truth under [effects] (default: none)")
+    s.add_argument("--no-task", action="store_true",
+                   help="skip the task before/after (each [[query]] planned on the declared and on the corrected "
+                        "model, simulated on the fitted truth: two plans)")
     s.add_argument("--predictions", default=None,
                    help="CSV of the corrected model's noise-free tracked tip at every row of the validation file "
                         "(the data without one): run, step, tip columns (default: none)")

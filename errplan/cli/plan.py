@@ -1,10 +1,11 @@
 """``errplan plan SCENARIO [--json F] [--record F.rrd] [--query NAME] [--iterations N] [--time T] [--planner NAME]
-[--seed N] [--workers N]``.
+[--seed N] [--workers N] [--truth T.toml]``.
 
 Plans every ``[[query]]`` of the scenario (planar or spatial) on its worst-case fields (errplan.planning), prints per
 query the planned and the direct (straight) path (cost, length, max ||G||, max phi_hat_max), then
 picks certified per-segment gains (errplan.gains), simulates both paths (errplan.pipeline) and
-optionally records everything to rerun. The JSON is the "plan JSON" of docs/interfaces.md
+optionally records everything to rerun. ``--truth T.toml`` simulates the planned and direct paths on T's truth
+(its arm and geometry, port and ``[effects]``) instead of the scenario's own. The JSON is the "plan JSON" of docs/interfaces.md
 (``queries[].{name, start, goal, planned, direct, gains, simulation}``).
 
 The fields' tiles and the queries' gains and simulations run on ``--workers`` processes (all cores); the
@@ -97,7 +98,7 @@ def _warm_up(sc) -> None:
     warmup.start(((part,) if part else ()) + (f"plan{sc.dim}", f"gains{sc.dim}"))
 
 
-def plan_arm(sc, args, progress=None, workers: int = 1, record: str | None = None):
+def plan_arm(sc, args, progress=None, workers: int = 1, record: str | None = None, truth_sc=None):
     """:func:`errplan.api.plan` of one arm's model ``sc`` (``args``: ``query``, ``planner``, ``iterations``,
     ``time``, ``seed``), step by step: the fields on ``workers`` processes; the plan with a first run's warm-up
     paused (the planner's budget is CPU time it must not share); the queries' gains and simulations on
@@ -127,7 +128,8 @@ def plan_arm(sc, args, progress=None, workers: int = 1, record: str | None = Non
     warmup.wait(f"gains{sc.dim}")
     if workers > 1 and len(plan.queries) > 1:
         warmup.load_here((f"gains{sc.dim}",) + (("arm", "fields3g") if sc.dim == 3 else ()))
-    res = run_pipeline(sc, plan.queries, mf, record=record, progress=_part(progress, 0.5, 1.0), workers=workers)
+    res = run_pipeline(sc, plan.queries, mf, record=record, progress=_part(progress, 0.5, 1.0), workers=workers,
+                       truth_sc=truth_sc)
     plan.runs = res["runs"]
     return plan
 
@@ -146,9 +148,20 @@ def run(args) -> int:
     workers = _workers(args)
     _warm_up(read_setup(args.scenario).arms[0])  # before the checks: loading the arm compiles its kernels
     st = api.load_setup(args.scenario)
+    truth_path = getattr(args, "truth", None)
     if st.several:
+        if truth_path is not None:
+            raise ErrplanError(f"--truth {truth_path}: a scenario with several instruments plans each arm among the "
+                               "others; --truth takes a scenario with one arm")
         return _run_setup(st, args, workers)
     sc = st.arm(args.arm)
+    truth_sc = None
+    if truth_path is not None:
+        from ..models import arm_model as _am
+        from ..pipeline import check_truth_pair
+
+        truth_sc = _am(api.load_scenario(truth_path))
+        check_truth_pair(sc, truth_sc)
     select_queries(sc, args.query)  # a bad --query fails before the fields are computed
     for opt, value in (("--json", args.json), ("--record", args.record)):
         check_output(opt, value)
@@ -160,11 +173,12 @@ def run(args) -> int:
     from ..models import arm_model
 
     sc = arm_model(sc)  # built once (in 3-D the arm's reachability map): every step below takes it
-    plan = plan_arm(sc, args, prog, workers, record=args.record)
+    plan = plan_arm(sc, args, prog, workers, record=args.record, truth_sc=truth_sc)
     prog.done()
     print(plan_table(plan))
     print()
-    print(summary_table(plan.runs, f"certified gains and simulation: {sc.name}"))
+    on = f"; simulated on the truth of {truth_sc.name} ({truth_path})" if truth_sc is not None else ""
+    print(summary_table(plan.runs, f"certified gains and simulation: {sc.name}{on}"))
     if args.json:
         write_json(args.json, plan.to_json())
     if args.record:

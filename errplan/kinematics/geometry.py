@@ -234,7 +234,10 @@ def wrist_joint(urdf_text: str, joint_names, wrist: str, where: str = "URDF") ->
     return None if first is None else first.get("name")
 
 
-def _replace_origin(text: str, name: str, new_origin: str, where: str) -> str:
+def _replace_origin(text: str, name: str, attrs: dict, where: str) -> str:
+    """``text`` with the ``<origin>`` of joint ``name`` given the attribute values ``attrs``
+    (``{"xyz": "...", "rpy": "..."}``); every other character of the text, the origin's other attributes
+    included, stays as it was (an origin the joint lacks is added)."""
     # the joint element: from <joint ... name="NAME" ...> to its </joint>; not a <transmission>'s
     # reference to it (that one has no type)
     m = next((mm for mm in re.finditer(r'<joint\b[^>]*\bname\s*=\s*["\']' + re.escape(name) + r'["\'][^>]*>', text)
@@ -243,17 +246,37 @@ def _replace_origin(text: str, name: str, new_origin: str, where: str) -> str:
         raise ErrplanError(f"{where}: no joint named {name!r}")
     end = text.find("</joint>", m.end())
     body = text[m.end():end]
-    o = re.search(r"<origin\b[^>]*/>|<origin\b[^>]*>.*?</origin>", body, flags=re.S)
-    body = (body[:o.start()] + new_origin + body[o.end():]) if o else ("\n    " + new_origin + body)
+    o = re.search(r"<origin\b[^>]*?/?>", body)
+    if o is None:
+        body = "\n    <origin " + " ".join(f'{k}="{v}"' for k, v in attrs.items()) + "/>" + body
+    else:
+        tag = o.group(0)
+        for k, v in attrs.items():
+            a = re.search(r'\b' + k + r'\s*=\s*(["\'])(.*?)\1', tag, flags=re.S)
+            if a is not None:
+                tag = tag[:a.start(2)] + v + tag[a.end(2):]
+            else:
+                close = len(tag) - (2 if tag.endswith("/>") else 1)
+                tag = tag[:close].rstrip() + f' {k}="{v}"' + tag[close:]
+        body = body[:o.start()] + tag + body[o.end():]
     return text[:m.end()] + body + text[end:]
 
 
+def _xyz_text(v) -> str:
+    return " ".join(f"{x:.12g}" for x in v)
+
+
 def corrected_urdf_text(urdf_text: str, joint_names, joint_geometry, where: str = "URDF",
-                        wrist: str | None = None) -> str:
+                        wrist: str | None = None, source_dir=None, target_dir=None) -> str:
     """The URDF text with each actuated joint's ``<origin>`` replaced by the perturbed one (xyz and
     rpy written with 12 significant digits) and the wrist link's offset added to the origin of the
     first joint from the last actuated joint's child link to ``wrist`` (:func:`wrist_joint`);
-    nothing else in the text changes."""
+    nothing else in the text changes: a joint the fit left alone keeps its origin's text, and a joint
+    only moved (or only turned) keeps its ``rpy`` (or ``xyz``) as written.
+
+    ``source_dir`` / ``target_dir``: the folder of the URDF read and of the one written; when they
+    differ, every relative mesh path is rewritten to resolve from ``target_dir``
+    (:func:`relocated_mesh_paths`; ``package://`` and absolute paths kept)."""
     g, gw = split_geometry(joint_geometry, len(joint_names))
     text = urdf_text
     if np.any(gw):
@@ -263,16 +286,46 @@ def corrected_urdf_text(urdf_text: str, joint_names, joint_geometry, where: str 
                                f"{joint_names[-1]!r}'s child frame, but no joint lies between them to carry it "
                                f"(add a fixed joint to the wrist link)")
         Ow = joint_origins(urdf_text, [wj], where)[0]
-        Ow[:3, 3] += gw
-        xyz = " ".join(f"{v:.12g}" for v in Ow[:3, 3])
-        rpy = " ".join(f"{v:.12g}" for v in matrix_to_rpy(Ow[:3, :3]))
-        text = _replace_origin(text, wj, f'<origin xyz="{xyz}" rpy="{rpy}"/>', where)
+        text = _replace_origin(text, wj, {"xyz": _xyz_text(Ow[:3, 3] + gw)}, where)
     O = joint_origins(urdf_text, joint_names, where)
     for name, Oi, gi in zip(joint_names, O, g):
-        if not np.any(gi):
-            continue
+        attrs = {}
         On = perturbed_origin(Oi, gi)
-        xyz = " ".join(f"{v:.12g}" for v in On[:3, 3])
-        rpy = " ".join(f"{v:.12g}" for v in matrix_to_rpy(On[:3, :3]))
-        text = _replace_origin(text, name, f'<origin xyz="{xyz}" rpy="{rpy}"/>', where)
+        if np.any(gi[:3]):
+            attrs["xyz"] = _xyz_text(On[:3, 3])
+        if np.any(gi[3:]):
+            attrs["rpy"] = _xyz_text(matrix_to_rpy(On[:3, :3]))
+        if attrs:
+            text = _replace_origin(text, name, attrs, where)
+    if source_dir is not None and target_dir is not None:
+        text = relocated_mesh_paths(text, source_dir, target_dir)
     return text
+
+
+def relocated_mesh_paths(urdf_text: str, source_dir, target_dir) -> str:
+    """The URDF text with every relative ``filename`` of a ``<mesh>`` (a path relative to the URDF's
+    folder ``source_dir``) rewritten relative to ``target_dir``, so that a copy written there finds
+    the same files; ``package://`` and other URIs, and absolute paths, are kept. Nothing else changes."""
+    import os
+    from pathlib import Path
+
+    src = Path(source_dir).resolve()
+    dst = Path(target_dir).resolve()
+    if src == dst:
+        return urdf_text
+
+    def one(m):
+        val = m.group(3)
+        if "://" in val or os.path.isabs(val) or not val.strip():
+            return m.group(0)
+        try:
+            new = os.path.relpath(os.path.normpath(src / val), dst)
+        except ValueError:  # another drive: an absolute path
+            new = str(os.path.normpath(src / val))
+        new = new.replace(os.sep, "/")
+        return m.group(1) + m.group(2) + new + m.group(2)
+
+    def mesh(m):
+        return re.sub(r'(\bfilename\s*=\s*)(["\'])(.*?)\2', one, m.group(0), flags=re.S)
+
+    return re.sub(r"<mesh\b[^>]*>", mesh, urdf_text)
