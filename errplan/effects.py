@@ -747,9 +747,8 @@ class EffectModel:
         cov[np.ix_(free, free)] = cov_z * np.outer(scales, scales)
         self.cov_ = cov
         self.sigma_ = np.sqrt(np.diag(cov))
-        if self.qr_identify:
-            pass  # identifiable by construction (QR above); the sigmas carry what correlation is left
-        elif cond > MAX_CONDITION:
+        if cond > MAX_CONDITION:  # one threshold for every candidate, geometric groups included (QR keeps
+            # the parameters the rows see at all; how well they see them is this number)
             why.append(f"condition number {cond:.3g} > {MAX_CONDITION:g}")
         if self.max_correlation_ > MAX_CORRELATION and not self.qr_identify:
             i, j = np.unravel_index(int(np.nanargmax(np.where(np.isfinite(off), off, 2.0))), off.shape)

@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..effects import EffectModel, implausible
+from ..effects import MAX_CONDITION, MAX_CORRELATION, EffectModel, implausible
 from ..experiment import MeasuredData
 from .fit import Candidate, _finite_or_none, _num
 from .noise import STRUCTURE_P, STRUCTURE_RATIO, NoiseFloor, Structure
@@ -206,7 +206,8 @@ class CalibrationReport:
                          c.model.condition_, "yes" if c.selectable else "no", c.note])
         more = len(order) - len(shown)
         lines.append(format_table(["candidate", "p", "pose rms mm", "held-out mm", "dBIC", "cond", "ok", "note"], rows,
-                                  f"candidates (sorted by BIC; * selected; {len(order)} tried"
+                                  f"candidates (sorted by BIC; * selected; ok: identifiable, condition number <= "
+                                  f"{MAX_CONDITION:g} and correlations <= {MAX_CORRELATION:g}; {len(order)} tried"
                                   + (f", {more} more in the JSON)" if more else ")")))
         lines.append("")
         if self.selected:

@@ -78,6 +78,6 @@ def select(cands: dict[tuple[str, ...], Candidate]) -> Candidate:
                 break
         if ok:
             if not c.selectable:
-                c.note = "selected though correlated: fits and predicts best (see the warning below)"
+                c.note = "selected though poorly identifiable: fits and predicts best (see the warning below)"
             return c
     return cands[()]  # pragma: no cover - "none" is always selectable

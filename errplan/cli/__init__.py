@@ -167,7 +167,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "truth under [effects] (default: none)")
     s.add_argument("--no-task", action="store_true",
                    help="skip the task before/after (each [[query]] planned on the declared and on the corrected "
-                        "model, simulated on the fitted truth: two plans)")
+                        "model, simulated on the fitted truth: two plans; default: computed when the scenario has queries)")
     s.add_argument("--predictions", default=None,
                    help="CSV of the corrected model's noise-free tracked tip at every row of the validation file "
                         "(the data without one): run, step, tip columns (default: none)")
