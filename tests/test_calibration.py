@@ -291,7 +291,7 @@ def test_cli_friction_bench_end_to_end(tmp_path):
         assert main(["-q", "experiment", str(truth), "--out", str(tmp_path / name), "--seed", str(seed),
                      "--starts", str(STARTS)]) == 0
     assert main(["-q", "calibrate", str(declared), str(tmp_path / "bench.csv"), "--validate", str(tmp_path / "val.csv"),
-                 "--json", str(tmp_path / "cal.json")]) == 0
+                 "--json", str(tmp_path / "cal.json"), "--no-task"]) == 0
     js = json.loads((tmp_path / "cal.json").read_text())
     check_done_json(js, {"port_friction": ONE_CM_TRUTHS["port_friction"]})
     check_candidates(js)
@@ -397,7 +397,8 @@ def cli_run(tmp_path_factory):
     assert main(["-q", "experiment", str(truth), "--out", str(d / "data.csv"), "--seed", "11", "--starts", str(STARTS)]) == 0
     assert main(["-q", "experiment", str(truth), "--out", str(d / "val.csv"), "--seed", "12", "--starts", str(STARTS)]) == 0
     rc = main(["-q", "calibrate", str(PORT), str(d / "data.csv"), "--validate", str(d / "val.csv"),
-               "--json", str(d / "cal.json"), "--record", str(d / "cal.rrd"), "--export-scenario", str(d / "fixed.toml")])
+               "--json", str(d / "cal.json"), "--record", str(d / "cal.rrd"), "--export-scenario", str(d / "fixed.toml"),
+               "--no-task"])
     return rc, d
 
 
@@ -433,7 +434,8 @@ def test_cli_calibrate_finds_the_gravity_sag(cli_run):
 
 def test_cli_calibrate_against_the_corrected_model_selects_nothing(cli_run, tmp_path):
     _, d = cli_run
-    assert main(["-q", "calibrate", str(d / "fixed.toml"), str(d / "data.csv"), "--json", str(tmp_path / "again.json")]) == 0
+    assert main(["-q", "calibrate", str(d / "fixed.toml"), str(d / "data.csv"), "--json", str(tmp_path / "again.json"),
+                 "--no-task"]) == 0
     js = json.loads((tmp_path / "again.json").read_text())
     assert js["selected"] == [] and js["explained"] is True
 
@@ -681,7 +683,7 @@ def test_cli_spatial_calibration_end_to_end(tmp_path, capsys):
     capsys.readouterr()
     assert main(["-q", "calibrate", str(declared), str(tmp_path / "data.csv"), "--validate", str(tmp_path / "val.csv"),
                  "--json", str(tmp_path / "cal.json"), "--record", str(tmp_path / "cal.rrd"),
-                 "--export-scenario", str(tmp_path / "fixed.toml"), "--folds", str(FOLDS)]) == 0
+                 "--export-scenario", str(tmp_path / "fixed.toml"), "--folds", str(FOLDS), "--no-task"]) == 0
     out = capsys.readouterr().out
     assert "not identifiable" in out and "identifiability of the catalogue on these rows" in out
     js = json.loads((tmp_path / "cal.json").read_text())
@@ -704,7 +706,7 @@ def test_cli_spatial_calibration_end_to_end(tmp_path, capsys):
     assert fixed.dim == 3 and set(fixed.effects["gravity_sag"]) == {"c1", "c2", "c3"}
     assert fixed.effects["gravity_sag"]["c1"] == 0.0
     assert main(["-q", "calibrate", str(tmp_path / "fixed.toml"), str(tmp_path / "val.csv"), "--json",
-                 str(tmp_path / "again.json"), "--folds", str(FOLDS)]) == 0
+                 str(tmp_path / "again.json"), "--folds", str(FOLDS), "--no-task"]) == 0
     assert json.loads((tmp_path / "again.json").read_text())["selected"] == []
 
 

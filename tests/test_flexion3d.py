@@ -376,7 +376,7 @@ def test_experiment_and_calibrate_with_the_3d_flexion_controller(tmp_path):
     assert main(["-q", "experiment", str(truth), "--out", str(data), "--starts", "3", "--seed", "2"]) == 0
     out = tmp_path / "cal.json"
     # three folds of runs for the held-out errors (the default's five: tests/test_calibration.py's command line)
-    assert main(["-q", "calibrate", str(declared), str(data), "--json", str(out), "--folds", "3"]) == 0
+    assert main(["-q", "calibrate", str(declared), str(data), "--json", str(out), "--folds", "3", "--no-task"]) == 0
     rep = json.loads(out.read_text())
     assert rep["selected"] == ["shaft_flexion"] and rep["explained"] and rep["selection"]["folds"] == 3
     p = rep["parameters"]["shaft_flexion"]
