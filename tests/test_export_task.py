@@ -311,9 +311,15 @@ def test_ur5_export_finds_its_meshes_from_a_new_folder(tmp_path):
     sc = load_scenario(tmp_path / "ur5.toml")
     r = sc.robot
     jg = {"dz_3": 0.003}
+    # the rows a bench ran: configurations whose wrist is within the shaft of the port (the export's read-back)
+    declared_arm = UrdfArm.from_robot(r)
+    lim = np.asarray(declared_arm.limits)
+    q = lim[:, 0] + np.random.default_rng(2).random((4000, 3)) * (lim[:, 1] - lim[:, 0])
+    near = np.linalg.norm(declared_arm.forward(q) - np.asarray(sc.port.position), axis=-1) < 0.3
+    assert near.sum() > 10
     rep = SimpleNamespace(effects_table=lambda: {"joint_geometry": dict(jg)}, selected=["joint_geometry"],
                           data_source="bench.csv", explained=True, noise=SimpleNamespace(sigma=2e-4),
-                          fit_errors=SimpleNamespace(pose_before=3e-3, pose_after=2e-4), data=None)
+                          fit_errors=SimpleNamespace(pose_before=3e-3, pose_after=2e-4), data=SimpleNamespace(q=q[near]))
     out = tmp_path / "elsewhere" / "fixed.toml"
     out.parent.mkdir()
     toml_text, extra = corrected_files(sc, rep, out)

@@ -242,7 +242,7 @@ def _check_corrected_arm(sc, report: CalibrationReport) -> None:
     (minutes for a six-joint arm)."""
     import numpy as np
 
-    from ..kinematics import arm_for
+    from ..kinematics import arm_for, check_scenario
 
     arm = arm_for(sc.robot)
     data = getattr(report, "data", None)
