@@ -8,9 +8,7 @@ was edited by hand (read by pinocchio's model of that file, not through ``joint_
 from __future__ import annotations
 
 import json
-import math
 import re
-import tomllib
 from pathlib import Path
 from types import SimpleNamespace
 
