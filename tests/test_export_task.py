@@ -192,6 +192,9 @@ def test_plan_truth_refuses_another_robot(tmp_path, capsys):
     rc = main(["-q", "plan", str(declared), "--truth", str(SPATIAL)])
     err = capsys.readouterr().err
     assert rc == 2 and err.count("\n") == 1 and "--truth" in err and "3-D" in err
+    rc = main(["-q", "plan", str(declared), "--truth", str(tmp_path / "none.toml")])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.count("\n") == 1 and "--truth" in err and "not found" in err
 
 
 # ----------------------------------------------------------------------------- the URDF bench and the corrected URDF

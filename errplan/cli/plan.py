@@ -160,7 +160,10 @@ def run(args) -> int:
         from ..models import arm_model as _am
         from ..pipeline import check_truth_pair
 
-        truth_sc = _am(api.load_scenario(truth_path))
+        try:
+            truth_sc = _am(api.load_scenario(truth_path))
+        except ErrplanError as e:
+            raise ErrplanError(f"--truth {truth_path}: {e}") from None
         check_truth_pair(sc, truth_sc)
     select_queries(sc, args.query)  # a bad --query fails before the fields are computed
     for opt, value in (("--json", args.json), ("--record", args.record)):
