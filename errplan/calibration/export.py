@@ -198,7 +198,7 @@ def predictions_csv(sc, report: CalibrationReport, data) -> str:
 
     base = declared_plant(sc)
     u = data.commanded_directions(motion_model(sc))
-    x = predict_tracked(report.model.plant(base), data.q, u, data.run)
+    x = predict_tracked(report.model.plant(base), data.q, u, data.run, data.time)  # every row, dropouts too
     if report.empirical_predict is not None and not report.empirical["history_dependent"]:
         x = x + report.empirical_predict(x, data.q)
     axes = ("x", "y", "z")[3 - data.dim:]
