@@ -370,8 +370,8 @@ def parse_measured_csv(text: str, source: str = "<memory>", *, dim: int = 2, n_j
         back = np.flatnonzero(np.diff(tm) <= 0)
         if len(back):
             j = int(back[0]) + 1
-            raise DataError(f"{source}: row {rows[j][1]} column 'time': value {tm[j]!r} (run {rid!r}, step {steps[j]}) is "
-                            f"not after the previous step's time {tm[j - 1]!r} (row {rows[j - 1][1]}); time must increase "
+            raise DataError(f"{source}: row {rows[j][1]} column 'time': value {float(tm[j])!r} (run {rid!r}, step {steps[j]}) "
+                            f"is not after the previous step's time {float(tm[j - 1])!r} (row {rows[j - 1][1]}); time must increase "
                             f"strictly within a run")
         TM.append(tm)
         run_ids.append(rid)

@@ -94,7 +94,11 @@ def _calibrate(sc, data: MeasuredData, *, validate, seed, folds, progress, effec
     fold_of_run = _folds(data.runs, k, seed) if k >= 2 else None
     by_name = {e.name: e for e in cat + geo}
     names = [e.name for e in cat]
-    combos: list[tuple[str, ...]] = ([()] + [(a,) for a in names] + list(itertools.combinations(names, 2))
+    # --- tracker_latency joins the pairs, triples and geometry combinations only when it alone beats
+    # the declared model (a latency shows wherever the tip moves): a bench without one is spared them
+    paired = [a for a in names if a != "tracker_latency"]
+    # ---
+    combos: list[tuple[str, ...]] = ([()] + [(a,) for a in names] + list(itertools.combinations(paired, 2))
                                      + [(g.name,) for g in geo])
     n_params = {e.name: sum(not f for f in e.fixed) for e in cat + geo}
     fits = lambda key: sum(n_params[e] for e in key) <= dim * data.rows - 2  # noqa: E731 (some residual dof left)
@@ -104,7 +108,16 @@ def _calibrate(sc, data: MeasuredData, *, validate, seed, folds, progress, effec
     for i, combo in enumerate(combos):
         cands[combo] = fit(combo)
         prog(0.05 + 0.75 * (i + 1) / len(combos), "+".join(combo) or "none")
-    # triples: the best pair plus each other effect, when that pair beats its singles
+    # --- tracker_latency's pairs, when it alone beats the declared model (else it leaves the combinations)
+    if len(paired) < len(names):
+        if cands[("tracker_latency",)].bic < cands[()].bic:
+            for a in paired:
+                key = tuple(x for x in names if x in (a, "tracker_latency"))
+                if fits(key):
+                    cands[key] = fit(key)
+        else:
+            names = paired
+    # --- triples: the best pair plus each other effect, when that pair beats its singles
     pairs = [c for key, c in cands.items() if len(key) == 2 and c.selectable]
     if pairs:
         bp = min(pairs, key=lambda c: c.bic)
