@@ -387,6 +387,24 @@ def _catalogue(sc, names, skip_without_gravity) -> list[Effect]:
     return out
 
 
+def latency_in_scenario_units(effects: dict, sc, data) -> tuple[dict, float | None]:
+    """``[effects.tracker_latency] tau`` of a scenario written from a calibration on ``data``: the
+    scenario's tau is in seconds with ``[sensors] step_time``, else in steps, the fit's in the data's
+    unit. Data in steps for a scenario with step_time: tau times step_time. Data in seconds for a
+    scenario without: tau stays in seconds and the scenario gains ``step_time`` (the data's median
+    step, returned; None otherwise) so that it reads so."""
+    lat = effects.get("tracker_latency")
+    if not lat or data is None:
+        return effects, None
+    step = sc.sensors.step_time
+    out = dict(effects)
+    if data.time_unit == "steps" and step is not None:
+        out["tracker_latency"] = {"tau": float(lat["tau"]) * step}
+    elif data.time_unit == "seconds" and step is None:
+        return out, data.time_step
+    return out, None
+
+
 def make_effect(name: str, **kw) -> Effect:
     try:
         cls = EFFECTS[name]

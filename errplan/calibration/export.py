@@ -117,6 +117,11 @@ def corrected_files(sc, report: CalibrationReport, path=None) -> tuple[str, dict
         if "package_path" in robot:
             robot["package_path"] = [str(x) for x in sc.robot.package_path]
     effects = report.effects_table()
+    from ..effects import latency_in_scenario_units  # tracker_latency's tau in the scenario's time unit
+
+    effects, step_time = latency_in_scenario_units(effects, sc, getattr(report, "data", None))
+    if step_time is not None:
+        doc.setdefault("sensors", {})["step_time"] = step_time
     extra: dict = {}
     urdf_text = None
     if "link_length" in effects and isinstance(robot, dict):
