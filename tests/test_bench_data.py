@@ -322,3 +322,86 @@ def test_experiment_latency_truth_matches_the_model(tmp_path, sc):
     assert np.abs(x - d.tip)[d.tracked].max() < 1e-9
     pred, _ = replay(d, plant, bench_controller(sc), motion_model(sc))
     assert np.abs(pred - d.tip)[d.tracked].max() < 1e-9
+
+
+# ----------------------------------------------------------------------------- 3-D: a pinocchio plant
+UR5 = ROOT / "scenarios" / "ur5_port.toml"
+#: encoder angles of three UR5 starts (shoulder pan, shoulder lift, elbow) inside the port's reach
+UR5_STARTS = [np.array([-1.40441421306, -0.804477296758, 1.22235537425]),
+              np.array([-1.52785812581, -0.980718245, 1.735563453])]
+
+
+def pinocchio_bench(sc, *, tau, dt, port_offset, steps=22, seed=0, drop=0.03) -> str:
+    """A 3-D bench of the UR5 computed with pinocchio (not errplan): the wrist is the origin of the
+    scenario's wrist link (the other joints at 0), placed by base_rpy (R = Rz Ry Rx); the shaft is the
+    lever through the true port (``port.position`` + ``port_offset``); the controller's Jacobian is a
+    central difference of the lever through the port estimate; the tracker is ``tau`` late
+    (``np.interp`` in time) and drops out in bursts."""
+    import pinocchio as pin
+
+    model = pin.buildModelFromUrdf(str(sc.robot.urdf))
+    pdata = model.createData()
+    fid = model.getFrameId(sc.robot.wrist)
+    iq = [model.joints[model.getJointId(j)].idx_q for j in sc.robot.joints]
+    r, p_, y = sc.robot.base_rpy
+    rot = (pin.rpy.rpyToMatrix(r, p_, y))
+    base = np.asarray(sc.robot.base_position, float)
+    port = np.asarray(sc.port.position, float) + port_offset
+    est = np.asarray(sc.port.estimate, float)
+    L = sc.instrument.length
+
+    def wrist(q):
+        qf = pin.neutral(model)
+        qf[iq] = q
+        pin.framesForwardKinematics(model, pdata, qf)
+        return base + rot @ pdata.oMf[fid].translation
+
+    def tip(q, p=port):
+        w = wrist(q)
+        e = p - w
+        return w + L * e / np.linalg.norm(e)
+
+    def jhat(q, h=1e-7):
+        return np.stack([(tip(q + h * np.eye(3)[j], est) - tip(q - h * np.eye(3)[j], est)) / (2 * h)
+                         for j in range(3)], axis=-1)
+
+    rng = np.random.default_rng(seed)
+    offs = 0.020 * np.vstack([np.eye(3), -np.eye(3)])
+    lines = ["run,step,time,target_x,target_y,target_z,gain,q1,q2,q3,tip_x,tip_y,tip_z"]
+    clock, gain = 3.0, 0.5
+    for si, q0 in enumerate(UR5_STARTS):
+        x0 = tip(q0)
+        for ti, off in enumerate(offs):
+            target, q, held, times, tips, t = x0 + off, q0.copy(), None, [], [], clock
+            lost = burst_mask(steps + 1, drop, 6, rng)
+            for k in range(steps + 1):
+                if k:
+                    t += dt * (1 + rng.uniform(-0.1, 0.1))
+                times.append(t)
+                tips.append(tip(q))
+                x = np.array([np.interp(t - tau, times, [v[c] for v in tips]) for c in range(3)])
+                x = x + rng.normal(0.0, SIGMA, 3)
+                cells = ",," if lost[k] else ",".join(f"{v:.17g}" for v in x)
+                lines.append(f"{si}-{ti},{k},{t:.17g}," + ",".join(f"{v:.17g}" for v in target)
+                             + f",{gain}," + ",".join(f"{v:.17g}" for v in q) + "," + cells)
+                if not lost[k]:
+                    held = x
+                if held is not None:
+                    q = q + gain * np.linalg.solve(jhat(q), target - held)
+            clock = t + 1.0
+    return "\n".join(lines) + "\n"
+
+
+@pytest.mark.slow
+def test_spatial_latency_with_a_port_offset_on_a_pinocchio_plant():
+    """UR5 (pinocchio plant): a 35 ms late tracker at 20 ms steps (+-10 %) and a port 3 mm off:
+    exactly port_offset + tracker_latency, tau within max(10 %, 1 ms), the offset within 0.3 mm."""
+    pytest.importorskip("pinocchio")
+    sc = load_scenario(UR5)
+    off = np.array([0.003, -0.002, 0.0015])
+    d = parse_measured_csv(pinocchio_bench(sc, tau=0.035, dt=0.02, port_offset=off), "ur5.csv", dim=3, n_joints=3)
+    assert d.dropouts > 0
+    rep = calibrate(sc, d, seed=0, folds=3, effects=["port_offset", "tracker_offset", "tracker_latency", "port_friction"])
+    assert sorted(rep.selected) == ["port_offset", "tracker_latency"]
+    assert rep.parameters["tracker_latency"]["tau"] == pytest.approx(0.035, abs=0.0035)
+    np.testing.assert_allclose([rep.parameters["port_offset"][k] for k in ("dx", "dy", "dz")], off, atol=3e-4)
