@@ -387,6 +387,21 @@ def _catalogue(sc, names, skip_without_gravity) -> list[Effect]:
     return out
 
 
+def latency_in_data_units(effects: dict, sc, data) -> dict:
+    """A scenario's ``[effects]`` with ``tracker_latency``'s tau in the unit of measured ``data``'s
+    time (the scenario's tau is in seconds with ``[sensors] step_time``, else in steps)."""
+    lat = effects.get("tracker_latency")
+    if not lat or data is None:
+        return effects
+    step = sc.sensors.step_time
+    tau = float(lat.get("tau", 0.0))
+    if data.time_unit == "seconds" and step is None:
+        tau *= data.time_step
+    elif data.time_unit == "steps" and step is not None:
+        tau /= step
+    return {**effects, "tracker_latency": {"tau": tau}}
+
+
 def latency_in_scenario_units(effects: dict, sc, data) -> tuple[dict, float | None]:
     """``[effects.tracker_latency] tau`` of a scenario written from a calibration on ``data``: the
     scenario's tau is in seconds with ``[sensors] step_time``, else in steps, the fit's in the data's

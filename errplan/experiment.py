@@ -690,14 +690,14 @@ def simulate_bench(plant, ctrl, q0: np.ndarray, targets: np.ndarray, gain: float
     alive = np.ones(R, bool)
     stop_at = np.full(R, max_steps)          # last step index recorded
     rows_q, rows_x, rows_r, rows_s = [], [], [], []
-    tau = float(np.asarray(getattr(plant, "tracker_latency", (0.0,)) or (0.0,), float)[0])  # in steps here
+    tau = float(np.asarray(getattr(plant, "tracker_latency", (0.0,)) or (0.0,), float)[0])
     hist_x: list = []
     for t in range(max_steps + 1):
         if tau:
             from .simulation import delayed_tip
 
             hist_x.append(tip.copy())
-            tracked = plant.tracked(delayed_tip(list(range(t + 1)), hist_x, tau))
+            tracked = plant.tracked(delayed_tip([k * plant.step_duration for k in range(t + 1)], hist_x, tau))
         else:
             tracked = plant.tracked(tip)
         if rng is not None and plant.tracker_sigma > 0:

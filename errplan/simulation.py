@@ -234,7 +234,7 @@ def simulate(plant: Plant, controller: ControllerModel, q0: np.ndarray, waypoint
     A bench as it records (docs/physics.md "Measured data as a bench records it"): the plant's
     ``tracker_latency`` tau makes the tracker read the true tip at the step's time - tau (linear in
     time between steps, :func:`delayed_tip`); ``times`` (max_steps + 1,) the steps' times in tau's
-    unit (default: the step index). ``lost`` (max_steps + 1,) bool: the tracker sees nothing at
+    unit (default: the step index times the plant's ``step_duration``). ``lost`` (max_steps + 1,) bool: the tracker sees nothing at
     that step (a dropout: the result's ``tracked`` is NaN there and the controller reads the last
     tracked tip, zero-order hold; before the first tracked step it commands nothing). ``glitch``
     (max_steps + 1, d): added to the tracker's reading (outliers; the controller reads them too).
@@ -273,7 +273,7 @@ def simulate(plant: Plant, controller: ControllerModel, q0: np.ndarray, waypoint
     held = None  # the last tracked tip the controller read (dropouts: zero-order hold)
     for k in range(max_steps + 1):
         if tau:
-            hist_t.append(float(times[k]) if times is not None else float(k))
+            hist_t.append(float(times[k]) if times is not None else k * float(getattr(plant, "step_duration", 1.0)))
             hist_x.append(tip.copy())
             tracked = plant.tracked(delayed_tip(hist_t, hist_x, tau))
         else:

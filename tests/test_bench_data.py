@@ -221,6 +221,22 @@ def test_replay_reproduces_a_late_tracker_with_dropouts(sc, dt):
     assert np.abs(pred0 - d.tip)[d.tracked].max() > 1e-3
 
 
+def test_noise_free_latency_fit_is_exact_and_bounded(sc):
+    """tracker_latency alone on noise-free rows of the test's plant (time column, jitter, dropouts):
+    tau recovered to 1e-6 s; on rows without latency the fit stays at its bound 0."""
+    from errplan.effects import EffectModel, catalogue
+
+    base = declared_plant(sc)
+    for tau in (0.027, 0.0):
+        d = _data(closed_form_bench(tau=tau, dt=0.02, jitter=0.1, drop=0.05, sigma=0.0, steps=15, seed=6,
+                                    starts=STARTS[:1]))
+        e = catalogue(sc, ["tracker_latency"], data=d)[0]
+        assert e.units == ("s",) and e.scales[0] == pytest.approx(0.02, rel=0.1)
+        m = EffectModel([e]).fit(d.q, d.commanded_directions(motion_model(sc)), d.tip, base, run=d.run, time=d.time)
+        assert m.values_[0] == pytest.approx(tau, abs=1e-6)
+        assert 0.0 <= m.values_[0] <= 5 * d.time_step
+
+
 # ----------------------------------------------------------------------------- calibration
 def test_dropout_bench_keeps_its_answer(sc):
     """3 % burst dropouts on a port-offset bench: port_offset found as on the clean bench, the
@@ -235,6 +251,12 @@ def test_dropout_bench_keeps_its_answer(sc):
     assert m["dropouts"] == int(np.sum(~rep.data.tracked))
     assert math.isfinite(js["noise_floor"]) and math.isfinite(js["pose_rms_after"])
     assert js["noise_floor"] == pytest.approx(SIGMA, rel=0.15)
+    # --predictions: a row for every row of the file, dropouts included, all finite
+    from errplan.calibration.export import predictions_csv
+
+    lines = predictions_csv(sc, rep, rep.data).splitlines()
+    assert len(lines) == rep.data.rows + 1
+    assert all(math.isfinite(float(v)) for line in lines[1:] for v in line.split(",")[2:])
 
 
 def test_latency_in_steps_alone(sc):

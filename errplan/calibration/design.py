@@ -106,7 +106,7 @@ def row_jacobian(sc, data: MeasuredData, model: EffectModel | None = None) -> np
     from .residual import declared_plant, motion_model
 
     model = catalogue_model(sc) if model is None else model
-    base = declared_plant(sc)
+    base = declared_plant(sc, data)
     u = data.commanded_directions(motion_model(sc))
     # the prediction's derivative at every row (f = 0 - predicted); a dropout's row informs nothing
     f = model._residual_fn(data.q, u, np.zeros_like(data.tip), base, data.run, data.time)
@@ -684,7 +684,7 @@ def _design_experiment(sc, n_runs: int | None = None, *, max_rows: int | None = 
         # the design makes the rest, the base parameters, identifiable
         from .residual import declared_plant, motion_model
 
-        model.identify(data.q, data.commanded_directions(motion_model(sc)), data.tip, declared_plant(sc),
+        model.identify(data.q, data.commanded_directions(motion_model(sc)), data.tip, declared_plant(sc, data),
                        run=data.run)
         structural = model.held_labels
     info0 = bench_info(sc, d0, model)

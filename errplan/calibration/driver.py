@@ -6,7 +6,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from ..effects import EFFECTS, catalogue, geometry_names, predict_tracked
+from ..effects import EFFECTS, catalogue, geometry_names, latency_in_data_units, predict_tracked
 from ..errors import DataError, ErrplanError
 from ..experiment import MeasuredData
 from .blas import single_threaded_blas
@@ -65,7 +65,7 @@ def _calibrate(sc, data: MeasuredData, *, validate, seed, folds, progress, effec
     cat = [e for e in cat if e not in geo]
     skipped = [] if effects is not None or any(e.name == "gravity_sag" for e in cat) else [
         "gravity_sag (the URDF has no inertial data, so no generalized gravity)"]
-    base = declared_plant(sc)
+    base = declared_plant(sc, data)  # data: a declared tracker_latency in the data's time unit
     # --- a bench as it records (dropouts, time): the files as read, runs without tracked data named
     measured = data.measured_json()
     if validate is not None:
@@ -200,8 +200,8 @@ def _calibrate(sc, data: MeasuredData, *, validate, seed, folds, progress, effec
     return CalibrationReport(
         scenario=sc.name, data_source=data.source, selected=model.names, explained=explained, model=model,
         noise=nf, structure=st1, structure_before=st0, candidates=cand_list, fit_errors=fit_err,
-        validation_errors=val_err, declared_effects={k2: dict(v) for k2, v in sc.effects.items()}, seed=seed, folds=k,
-        points=x0, residual_before=r0, residual_after=r1, tracked=data.tip,
+        validation_errors=val_err, declared_effects={k2: dict(v) for k2, v in latency_in_data_units(sc.effects, sc, data).items()}, seed=seed, folds=k,
+        points=x0[tr], residual_before=r0[tr], residual_after=r1[tr], tracked=data.tip[tr],  # tracked rows
         replay_before=pred0, replay_after=pred1, data=data, fixed=fixed, skipped=skipped, left_out=left_out,
         identifiability=ident_text, bench=ident, empirical=empirical, empirical_predict=emp_predict,
         measured=measured)

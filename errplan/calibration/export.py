@@ -201,7 +201,7 @@ def predictions_csv(sc, report: CalibrationReport, data) -> str:
     from ..effects import predict_tracked
     from .residual import declared_plant, motion_model
 
-    base = declared_plant(sc)
+    base = declared_plant(sc, data)  # a declared tracker_latency in the data's time unit
     u = data.commanded_directions(motion_model(sc))
     x = predict_tracked(report.model.plant(base), data.q, u, data.run, data.time)  # every row, dropouts too
     if report.empirical_predict is not None and not report.empirical["history_dependent"]:

@@ -18,12 +18,18 @@ def arrival_tolerance(noise_sigma: float) -> float:
 
 
 # ----------------------------------------------------------------------------- residuals
-def declared_plant(sc):
+def declared_plant(sc, data: MeasuredData | None = None):
     """The declared model: the scenario's truth (``[port] position``, its tip load, the effects it
-    already declares), no noise (:func:`errplan.experiment.truth_plant`)."""
+    already declares), no noise (:func:`errplan.experiment.truth_plant`). With measured ``data``, a
+    declared ``tracker_latency`` is taken in the data's time unit (seconds or steps)."""
+    from ..effects import latency_in_data_units
     from ..experiment import truth_plant
 
-    return truth_plant(sc, effects=True, noise=False)
+    plant = truth_plant(sc, effects=True, noise=False)
+    if data is not None and "tracker_latency" in sc.effects:
+        tau = latency_in_data_units(sc.effects, sc, data)["tracker_latency"]["tau"]
+        plant = plant.with_(tracker_latency=(tau,))
+    return plant
 
 
 #: a run in which the declared model's wrist comes this close to the port (m) is left out of the fits:

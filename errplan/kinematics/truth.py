@@ -66,6 +66,9 @@ class Plant:
     #: time unit of the rows: seconds, or steps without a time column); see
     #: :func:`errplan.effects.delayed`
     tracker_latency: tuple[float] = (0.0,)
+    #: a controller step's duration in tracker_latency's unit: ``[sensors] step_time`` when tau is in
+    #: seconds, 1 when it is in steps; a simulation given no times steps by it
+    step_duration: float = 1.0
 
     def __post_init__(self):
         if isinstance(self.arm, Arm):
@@ -134,9 +137,11 @@ class Plant:
         else:
             kw = effect_kwargs(tables) if tables else {}
             ld = float(load)
+        step = getattr(sc.sensors, "step_time", None)
         return cls(m.arm, sc.instrument.length, tuple(sc.port.position if port is None else port), ld,
                    tracker_sigma=sc.sensors.tracker_sigma if noise else 0.0,
-                   encoder_sigma=sc.sensors.encoder_sigma if noise else 0.0, **kw)
+                   encoder_sigma=sc.sensors.encoder_sigma if noise else 0.0,
+                   step_duration=float(step) if step is not None else 1.0, **kw)
 
     @property
     def dim(self) -> int:
