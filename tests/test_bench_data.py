@@ -427,3 +427,17 @@ def test_spatial_latency_with_a_port_offset_on_a_pinocchio_plant():
     assert sorted(rep.selected) == ["port_offset", "tracker_latency"]
     assert rep.parameters["tracker_latency"]["tau"] == pytest.approx(0.035, abs=0.0035)
     np.testing.assert_allclose([rep.parameters["port_offset"][k] for k in ("dx", "dy", "dz")], off, atol=3e-4)
+
+
+def test_runs_without_tracked_data_are_named_and_left_out():
+    """A run with fewer than 2 tracked rows adds nothing to a fit: left out with a sentence naming it;
+    a file with no usable run is one error."""
+    from errplan.calibration.driver import _without_thin_runs
+
+    text = (HEADER + "\na,0,0,0.34,0.5,0,0,0.0,0.32\na,1,0,0.34,0.5,0.01,0,0.001,0.33\n"
+            "b,0,0,0.36,0.5,0,0,,\nb,1,0,0.36,0.5,0.01,0,0.002,0.331\nb,2,0,0.36,0.5,0.02,0,,\n")
+    d = _data(text)
+    kept, notes = _without_thin_runs(d)
+    assert kept.run_ids == ["a"] and len(notes) == 1 and "run 'b' left out: 1 tracked row(s) of 3" in notes[0]
+    with pytest.raises(DataError, match="no run has 2 rows with a tracked tip"):
+        _without_thin_runs(d.subset([1]))

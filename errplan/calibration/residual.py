@@ -299,7 +299,7 @@ def approach_mask(data: MeasuredData, tolerance: float) -> tuple[np.ndarray, np.
     e = np.where(data.tracked, e, -np.inf)  # a dropout: no distance known (neither arrived nor growing)
     big = np.iinfo(np.int64).max
     arrive = np.full(data.runs, big)
-    idx = np.flatnonzero((e < tolerance) & (data.step >= 1))
+    idx = np.flatnonzero((e < tolerance) & (data.step >= 1) & data.tracked)
     np.minimum.at(arrive, data.run[idx], data.step[idx])
     # a run's start distance: its first tracked row's
     e0 = np.full(data.runs, np.inf)
