@@ -549,12 +549,16 @@ def predict_tracked(plant, q: np.ndarray, u: np.ndarray | None, run: np.ndarray 
     (n, 2): the unit motion the last command produced under the declared model
     (:meth:`errplan.experiment.MeasuredData.commanded_directions`). History-dependent effects
     (``backlash``, ``tracker_latency``) need the rows' ``run`` (rows in run order, steps ascending);
-    ``tracker_latency`` also their ``time`` (default: the step index within the run)."""
+    ``tracker_latency`` also their ``time`` (:attr:`errplan.experiment.MeasuredData.time`). Rows left
+    out of a residual (dropouts, outliers) stay in ``q`` and ``time``: their tips are the history
+    (:meth:`errplan.experiment.MeasuredData.without_tips`)."""
     if any(getattr(plant, "backlash", ())):
         q = backlash_angles(q, run, plant.backlash)
     tip = plant.tip(q, u)
     tau = latency_of(plant, time, run)
     if tau:
+        if time is None:  # never guess: rows left out of an array would shift a step index
+            raise ErrplanError("tracker_latency depends on the rows' times: pass the data's time (MeasuredData.time)")
         tip = delayed(tip, time, run, tau)
     return plant.tracked(tip)
 

@@ -135,6 +135,16 @@ class MeasuredData:
         dt = dt[dt > 0]
         return float(np.median(dt)) if len(dt) else 1.0
 
+    def without_tips(self, rows: np.ndarray) -> "MeasuredData":
+        """The same rows with the tracked tip of ``rows`` (n,) bool removed (NaN, ``tracked`` False):
+        rows left out of every pose residual (an outlier, say) stay for the runs' history
+        (``backlash``, ``tracker_latency``) and the controller replay, as a dropout does."""
+        rows = np.asarray(rows, bool)
+        tip = self.tip.copy()
+        tip[rows] = np.nan
+        return MeasuredData(self.run_ids, self.run, self.step, self.target, self.gain, self.q, tip, self.source,
+                            self.time, self.time_unit)
+
     def measured_json(self) -> dict:
         """The calibrate JSON's ``measured`` object (docs/interfaces.md): rows, runs, dropouts, the
         runs with fewer than 2 tracked rows, the time unit, and ``outliers`` (filled by outlier

@@ -140,6 +140,9 @@ def test_parser_time_dropouts_and_errors():
     assert d.dropouts == 3
     m = d.measured_json()
     assert m == {"rows": 5, "runs": 2, "dropouts": 3, "runs_without_data": ["b"], "time": "seconds", "outliers": []}
+    # rows left out of the residuals keep their place (the runs' history)
+    d4 = d.without_tips(np.array([True, False, False, False, False]))
+    assert d4.rows == 5 and d4.dropouts == 4 and np.array_equal(d4.time, d.time) and np.isfinite(d.tip[0]).all()
     # without a time column: the step index, in steps
     d2 = _data(HEADER + "\na,0,0,0.34,0.5,0,0,0.0,0.32\na,1,0,0.34,0.5,0.01,0,,\n")
     assert d2.time_unit == "steps" and d2.time.tolist() == [0.0, 1.0] and d2.dropouts == 1
