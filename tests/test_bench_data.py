@@ -444,3 +444,23 @@ def test_runs_without_tracked_data_are_named_and_left_out():
     assert kept.run_ids == ["a"] and len(notes) == 1 and "run 'b' left out: 1 tracked row(s) of 3" in notes[0]
     with pytest.raises(DataError, match="no run has 2 rows with a tracked tip"):
         _without_thin_runs(d.subset([1]))
+
+
+def test_experiment_latency_truth_in_3d(tmp_path):
+    """The same in 3-D (UR5, latency in steps, dropouts): the bench's tracked tips are the declared
+    model's delayed by tau, and the replay reproduces them."""
+    text = UR5.read_text().split("[[query]]")[0].replace("tracker_sigma = 0.0002",
+                                                        "tracker_sigma = 0.0\ndropout_rate = 0.05\ndropout_burst = 3")
+    p = tmp_path / "ur5_lat.toml"
+    p.write_text(text + "\n[effects.tracker_latency]\ntau = 1.3\n")
+    truth = load_scenario(p)
+    sc = load_scenario(UR5)
+    d = run_experiment(truth, seed=2, starts=[[0.0, 0.0, 0.415]], max_steps=15).data
+    assert d.time_unit == "steps" and d.dim == 3
+    from errplan.effects import predict_tracked
+
+    plant = declared_plant(sc).with_(tracker_latency=(1.3,))
+    x = predict_tracked(plant, d.q, d.commanded_directions(motion_model(sc)), d.run, d.time)
+    assert np.abs(x - d.tip)[d.tracked].max() < 1e-9
+    pred, _ = replay(d, plant, bench_controller(sc), motion_model(sc))
+    assert np.abs(pred - d.tip)[d.tracked].max() < 1e-9
