@@ -139,8 +139,8 @@ PortFriction = _declare("PortFriction", "port_friction", ("fa", "fn"), "m", 1e-3
                         spatial_units_scales=_friction_spatial_units_scales)
 
 
-#: the catalogue's physical effects, in physics.md order
-CATALOGUE: tuple[type[Effect], ...] = (PortOffset, JointOffset, TrackerOffset, GravitySag, ShaftFlexion, PortFriction)
+#: tracker_latency's largest tau, in steps of the data (docs/physics.md: 0 <= tau <= 5 steps)
+MAX_LATENCY_STEPS = 5.0
 
 #: a radian of a geometric parameter counts like a metre at this lever (physics.md: identifiability on
 #: columns with metres and radians weighted by a 0.1 m lever): radians are scaled by 1e-2 where metres
@@ -281,6 +281,40 @@ class Backlash(Effect):
     history = True
 
 
+class TrackerLatency(Effect):
+    """``tracker_latency`` (docs/physics.md "Measured data as a bench records it"): the tracked tip
+    of a row is the true tip at the row's time - tau, the true tip moving linearly in time between
+    a run's rows (:func:`delayed`); ``tau`` in seconds when the rows have a ``time`` column, else in
+    steps; 0 <= tau <= 5 steps. History-dependent: a row's prediction uses its run up to that row.
+    A physical effect of the catalogue: fitted alone and combined with the others."""
+
+    name, params, units, default_scales = "tracker_latency", ("tau",), ("steps",), (1.0,)
+    plant_field = "tracker_latency"
+    description = "the tracked tip of a row is the true tip at the row's time - tau (linear in time between rows)"
+    #: the fit starts from the best of these sizes (scaled units: steps); RSS(tau) has a kink wherever
+    #: a row's delayed time crosses another row's time, so a local start alone may stop on one
+    starts = (0.25, 0.75, 1.25, 2.0, 3.0, 4.5)
+    #: the parameter's range (scaled units: steps)
+    bounds = (0.0, MAX_LATENCY_STEPS)
+
+    def spatial_units_scales(self):
+        return tuple(self.units), tuple(self.default_scales)
+
+    def for_time(self, unit: str = "steps", step: float = 1.0) -> "TrackerLatency":
+        """Set the parameter's unit for the rows' time (``"seconds"``: tau in s, one scaled unit a
+        typical ``step`` of the data; ``"steps"``: tau in steps). Returns self."""
+        step = float(step)
+        if not (math.isfinite(step) and step > 0):
+            raise ErrplanError(f"tracker_latency: the data's step {step!r}: expected a duration > 0")
+        self.units = ("s",) if unit == "seconds" else ("steps",)
+        self.scales = (step if unit == "seconds" else 1.0,)
+        return self
+
+
+#: the catalogue's physical effects, in physics.md order
+CATALOGUE: tuple[type[Effect], ...] = (PortOffset, JointOffset, TrackerOffset, GravitySag, ShaftFlexion, PortFriction,
+                                       TrackerLatency)
+
 #: the geometric groups (tried after the physical effects; which apply depends on the arm)
 GEOMETRY: tuple[type[Effect], ...] = (LinkLength, JointGeometry, InstrumentLength, TrackerRegistration)
 EFFECTS: dict[str, type[Effect]] = {c.name: c for c in CATALOGUE + GEOMETRY + (Backlash,)}
@@ -314,11 +348,22 @@ def gravity_scales(arm) -> tuple[tuple[float, ...], tuple[bool, ...], str]:
     return scales, tuple(bool(z) for z in zero), why
 
 
-def catalogue(sc, names: Sequence[str] | None = None, *, skip_without_gravity: bool = False) -> list[Effect]:
+def catalogue(sc, names: Sequence[str] | None = None, *, skip_without_gravity: bool = False,
+              data=None) -> list[Effect]:
     """The catalogue's effects (``names``, default all, in physics.md order) for scenario ``sc``:
     its dimension and, in 3-D, its arm's joints; gravity sag scaled by the arm's generalized gravity
     with identically zero joints fixed. A URDF without inertial data has no gravity sag: one clear
-    error, or (``skip_without_gravity``) the catalogue without it."""
+    error, or (``skip_without_gravity``) the catalogue without it. ``data`` (measured data) sets
+    ``tracker_latency``'s unit and scale from the rows' time (seconds or steps)."""
+    out = _catalogue(sc, names, skip_without_gravity)
+    if data is not None:
+        for e in out:
+            if isinstance(e, TrackerLatency):
+                e.for_time(data.time_unit, data.time_step)
+    return out
+
+
+def _catalogue(sc, names, skip_without_gravity) -> list[Effect]:
     names = [c.name for c in CATALOGUE] if names is None else list(names)
     if sc.dim == 2:
         return [make_effect(n) for n in names]
@@ -340,6 +385,39 @@ def catalogue(sc, names: Sequence[str] | None = None, *, skip_without_gravity: b
         else:
             out.append(make_effect(n, dim=3, n_joints=arm.n))
     return out
+
+
+def latency_in_data_units(effects: dict, sc, data) -> dict:
+    """A scenario's ``[effects]`` with ``tracker_latency``'s tau in the unit of measured ``data``'s
+    time (the scenario's tau is in seconds with ``[sensors] step_time``, else in steps)."""
+    lat = effects.get("tracker_latency")
+    if not lat or data is None:
+        return effects
+    step = sc.sensors.step_time
+    tau = float(lat.get("tau", 0.0))
+    if data.time_unit == "seconds" and step is None:
+        tau *= data.time_step
+    elif data.time_unit == "steps" and step is not None:
+        tau /= step
+    return {**effects, "tracker_latency": {"tau": tau}}
+
+
+def latency_in_scenario_units(effects: dict, sc, data) -> tuple[dict, float | None]:
+    """``[effects.tracker_latency] tau`` of a scenario written from a calibration on ``data``: the
+    scenario's tau is in seconds with ``[sensors] step_time``, else in steps, the fit's in the data's
+    unit. Data in steps for a scenario with step_time: tau times step_time. Data in seconds for a
+    scenario without: tau stays in seconds and the scenario gains ``step_time`` (the data's median
+    step, returned; None otherwise) so that it reads so."""
+    lat = effects.get("tracker_latency")
+    if not lat or data is None:
+        return effects, None
+    step = sc.sensors.step_time
+    out = dict(effects)
+    if data.time_unit == "steps" and step is not None:
+        out["tracker_latency"] = {"tau": float(lat["tau"]) * step}
+    elif data.time_unit == "seconds" and step is None:
+        return out, data.time_step
+    return out, None
 
 
 def make_effect(name: str, **kw) -> Effect:
@@ -406,13 +484,83 @@ def backlash_angles(q: np.ndarray, run: np.ndarray | None, b) -> np.ndarray:
     return theta
 
 
-def predict_tracked(plant, q: np.ndarray, u: np.ndarray | None, run: np.ndarray | None = None) -> np.ndarray:
+def _run_starts(run: np.ndarray) -> np.ndarray:
+    """For rows in run order (each run's rows contiguous), the index of each row's run's first row."""
+    n = len(run)
+    first = np.ones(n, bool)
+    first[1:] = run[1:] != run[:-1]
+    return np.maximum.accumulate(np.where(first, np.arange(n), 0)) if n else np.zeros(0, int)
+
+
+def median_step(time: np.ndarray, run: np.ndarray) -> float:
+    """The median duration between consecutive rows of a run (1.0 when there is none)."""
+    same = run[1:] == run[:-1]
+    dt = np.diff(np.asarray(time, float))[same]
+    dt = dt[dt > 0]
+    return float(np.median(dt)) if len(dt) else 1.0
+
+
+def delayed(x: np.ndarray, time: np.ndarray | None, run: np.ndarray | None, tau: float) -> np.ndarray:
+    """``tracker_latency`` (docs/physics.md): the value (n, d) at each row's time - ``tau`` of a quantity
+    ``x`` (n, d) known at the rows, moving linearly in time between two rows of a run, and before a
+    run's first row equal to the first row's. Rows in run order, each run contiguous, times strictly
+    increasing within a run (``time`` None: the step index within the run). Causal for tau >= 0: a
+    row uses its run up to that row."""
+    x = np.asarray(x, float)
+    n = len(x)
+    if not tau or n == 0:
+        return x
+    if run is None:
+        raise ErrplanError("tracker_latency depends on the motion's history: the rows' runs are needed")
+    run = np.asarray(run)
+    start = _run_starts(run)
+    idx = np.arange(n)
+    rel = (idx - start).astype(float) if time is None else np.asarray(time, float) - np.asarray(time, float)[start]
+    # one increasing key over all runs: each run's relative time, shifted past the runs before it by
+    # more than tau (a row's delayed time never reaches into the previous run)
+    starts = np.flatnonzero(start == idx)
+    ends = np.r_[starts[1:], n] - 1
+    base = np.concatenate([[0.0], np.cumsum(rel[ends] + abs(tau) + 1.0)[:-1]])
+    key = rel + np.repeat(base, ends - starts + 1)
+    s = key - tau
+    j = np.searchsorted(key, s, side="right") - 1
+    before = j < start
+    j = np.maximum(j, start)
+    nxt = np.minimum(j + 1, n - 1)
+    inside = ~before & (nxt > j) & (nxt <= idx)
+    w = np.where(inside, (s - key[j]) / np.where(inside, key[nxt] - key[j], 1.0), 0.0)
+    w = np.clip(w, 0.0, 1.0)
+    step = np.where((w > 0)[:, None], w[:, None] * (x[nxt] - x[j]), 0.0)
+    return x[j] + step
+
+
+def latency_of(plant, time: np.ndarray | None, run: np.ndarray | None) -> float:
+    """The plant's ``tracker_latency`` tau within its range 0 .. 5 steps of the rows (0 without one)."""
+    tau = float(np.asarray(getattr(plant, "tracker_latency", (0.0,)) or (0.0,), float)[0])
+    if not tau:
+        return 0.0
+    step = 1.0 if time is None or run is None else median_step(time, np.asarray(run))
+    return min(max(tau, 0.0), MAX_LATENCY_STEPS * step)
+
+
+def predict_tracked(plant, q: np.ndarray, u: np.ndarray | None, run: np.ndarray | None = None,
+                    time: np.ndarray | None = None) -> np.ndarray:
     """What the tracker reads (n, 2) for encoder angles ``q`` (n, 2) and friction's directions ``u``
     (n, 2): the unit motion the last command produced under the declared model
-    (:meth:`errplan.experiment.MeasuredData.commanded_directions`)."""
+    (:meth:`errplan.experiment.MeasuredData.commanded_directions`). History-dependent effects
+    (``backlash``, ``tracker_latency``) need the rows' ``run`` (rows in run order, steps ascending);
+    ``tracker_latency`` also their ``time`` (:attr:`errplan.experiment.MeasuredData.time`). Rows left
+    out of a residual (dropouts, outliers) stay in ``q`` and ``time``: their tips are the history
+    (:meth:`errplan.experiment.MeasuredData.without_tips`)."""
     if any(getattr(plant, "backlash", ())):
         q = backlash_angles(q, run, plant.backlash)
-    return plant.tracked(plant.tip(q, u))
+    tip = plant.tip(q, u)
+    tau = latency_of(plant, time, run)
+    if tau:
+        if time is None:  # never guess: rows left out of an array would shift a step index
+            raise ErrplanError("tracker_latency depends on the rows' times: pass the data's time (MeasuredData.time)")
+        tip = delayed(tip, time, run, tau)
+    return plant.tracked(tip)
 
 
 class EffectModel:
@@ -503,7 +651,8 @@ class EffectModel:
             return []
         return [lab for lab, h in zip(self.param_labels, self.hold) if h]
 
-    def identify(self, q, u, tracked, base, step: float = 1e-4, run=None, sparse: bool = False) -> np.ndarray:
+    def identify(self, q, u, tracked, base, step: float = 1e-4, run=None, sparse: bool = False,
+                 time=None) -> np.ndarray:
         """QR with column pivoting on the regressor of the tracked tip over the free parameters at zero
         (scaled columns: metres by 1e-3, radians by 1e-3 / GEOMETRY_LEVER, the others by their scales;
         central differences of ``step`` scaled units). Sets and returns :attr:`hold`: the columns
@@ -519,7 +668,7 @@ class EffectModel:
         self.hold = np.zeros(self.n_params, bool)
         self.drop = None
         free = self.free
-        f = self._residual_fn(q, u, tracked, base, run)
+        f = self._residual_fn(q, u, tracked, base, run, time)
         z0 = np.zeros(int(free.sum()))
         r0 = f(z0) if sparse else None  # the residual at zero, before the held columns leave ``free``
         cols = []
@@ -635,19 +784,26 @@ class EffectModel:
         return {e.name: e.as_dict(v) for e, v in zip(self.effects, self._split(self.sigma_))}
 
     def predict(self, base, q: np.ndarray, u: np.ndarray | None, values: Sequence[float] | None = None,
-                run: np.ndarray | None = None) -> np.ndarray:
-        return predict_tracked(self.plant(base, values), q, u, run)
+                run: np.ndarray | None = None, time: np.ndarray | None = None) -> np.ndarray:
+        return predict_tracked(self.plant(base, values), q, u, run, time)
 
     # ------------------------------------------------------------------ fitting
-    def _residual_fn(self, q, u, tracked, base, run=None):
-        """Residual (rows x d,) as a function of the free parameters in scaled units."""
+    def _residual_fn(self, q, u, tracked, base, run=None, time=None):
+        """Residual (tracked rows x d,) as a function of the free parameters in scaled units. Rows
+        without a tracked tip (NaN: dropouts) have no residual; they stay in the prediction, whose
+        history (backlash, tracker latency) runs through them."""
         scales = self.scales
         tracked = np.asarray(tracked, float)
+        rows = np.all(np.isfinite(tracked), axis=1)
+        rows = None if rows.all() else rows
+        if rows is not None:
+            tracked = tracked[rows]
         base = with_gravity_cache(base)
 
         def f(z: np.ndarray) -> np.ndarray:
             with np.errstate(invalid="ignore", divide="ignore"):
-                r = (tracked - predict_tracked(self.plant(base, self._full(z) * scales), q, u, run)).ravel()
+                pred = predict_tracked(self.plant(base, self._full(z) * scales), q, u, run, time)
+                r = (tracked - (pred if rows is None else pred[rows])).ravel()
             # a parameter value that breaks the geometry (shaft out of the port) is a huge misfit,
             # never a NaN inside the optimiser
             return np.where(np.isfinite(r), r, 1.0)
@@ -664,24 +820,26 @@ class EffectModel:
         return np.stack(cols, axis=-1)
 
     def fit(self, q: np.ndarray, u: np.ndarray | None, tracked: np.ndarray, base,
-            x0: Sequence[float] | None = None, run: np.ndarray | None = None) -> "EffectModel":
+            x0: Sequence[float] | None = None, run: np.ndarray | None = None,
+            time: np.ndarray | None = None) -> "EffectModel":
         """Fit the combination to measured rows: encoder angles ``q`` (n, N) rad, friction's
         directions ``u`` (n, d) (the motion each row's command produced under the declared model,
         :meth:`errplan.experiment.MeasuredData.commanded_directions`), tracked tips ``tracked``
-        (n, d) m; ``base`` the declared :class:`Plant`. ``x0`` a start (physics.md units, default
-        zero). Returns self."""
+        (n, d) m (NaN rows: dropouts, no residual); ``base`` the declared :class:`Plant`. ``x0`` a
+        start (physics.md units, default zero); ``run``, ``time`` the rows' runs and times (history
+        effects). Returns self."""
         from scipy.optimize import least_squares
 
         q = np.asarray(q, float)
-        n = len(q)
+        n = int(np.sum(np.all(np.isfinite(np.asarray(tracked, float)), axis=1)))  # rows with a residual
         d = np.shape(tracked)[-1]
         P = self.n_params
         if self.qr_identify and self.hold is None:
-            self.identify(q, u, tracked, base, run=run, sparse=True)
+            self.identify(q, u, tracked, base, run=run, sparse=True, time=time)
         free = self.free
         p = int(free.sum())
         self.n_obs_ = d * n
-        f = self._residual_fn(q, u, tracked, base, run)
+        f = self._residual_fn(q, u, tracked, base, run, time)
         all_scales = self.scales
         scales = all_scales[free]
         if p == 0:
@@ -706,8 +864,27 @@ class EffectModel:
             # a play is not smooth at zero (the clip): start from the best of a few sizes, 0.5-8 scales
             starts = [np.where(hist, c, 0.0) for c in (0.0, 0.5, 1.0, 2.0, 4.0, 8.0)]
             z0 = min(starts, key=lambda z: float(np.sum(f(z) ** 2)))
-        sol = least_squares(f, z0, jac=lambda z: self._jac(f, z), method="lm", max_nfev=self.max_nfev,
-                            xtol=1e-10, ftol=1e-12, gtol=1e-12)
+        # parameters with a range (tracker_latency: 0 .. 5 steps) and their own starting sizes
+        per = [e for e, f_ in zip([e for e in self.effects for _ in e.params], free) if f_]  # effect of each free param
+        lo = np.array([(getattr(e, "bounds", None) or (-np.inf, np.inf))[0] for e in per], float)
+        hi = np.array([(getattr(e, "bounds", None) or (-np.inf, np.inf))[1] for e in per], float)
+        bounded = bool(np.any(np.isfinite(lo) | np.isfinite(hi)))
+        if bounded:
+            z0 = np.clip(z0, lo, hi)
+            own = [(j, e.starts) for j, e in enumerate(per) if getattr(e, "bounds", None) and getattr(e, "starts", None)]
+            if x0 is None and own:
+                trials = [z0]
+                for j, cs in own:
+                    for c in cs:
+                        z = z0.copy()
+                        z[j] = c
+                        trials.append(z)
+                z0 = min(trials, key=lambda z: float(np.sum(f(z) ** 2)))
+            sol = least_squares(f, z0, jac=lambda z: self._jac(f, z), method="trf", bounds=(lo, hi),
+                                max_nfev=self.max_nfev, xtol=1e-10, ftol=1e-12, gtol=1e-12)
+        else:
+            sol = least_squares(f, z0, jac=lambda z: self._jac(f, z), method="lm", max_nfev=self.max_nfev,
+                                xtol=1e-10, ftol=1e-12, gtol=1e-12)
         z = sol.x
         r = f(z)
         J = self._jac(f, z)

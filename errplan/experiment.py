@@ -73,6 +73,12 @@ class MeasuredData:
     Arrays (n rows, run-major, steps ascending): ``run`` (n,) run index into ``run_ids``,
     ``step`` (n,), ``target`` (n, d) m, ``gain`` (n,), ``q`` (n, N) encoder angles rad,
     ``tip`` (n, d) tracked tip m; d = 2 planar ([y, z]), 3 spatial ([x, y, z]), N the actuated joints.
+
+    A bench as it records (docs/physics.md "Measured data as a bench records it"): ``time`` (n,)
+    the row's time, seconds when the file has a ``time`` column (``time_unit`` "seconds"), else the
+    step index as a float (``time_unit`` "steps"); ``tracked`` (n,) False on a tracker dropout (a
+    row without a tracked tip: its ``tip`` entries are NaN; the row keeps its encoders and its
+    place in the run).
     """
 
     run_ids: list[str]
@@ -83,7 +89,10 @@ class MeasuredData:
     q: np.ndarray
     tip: np.ndarray
     source: str = "<memory>"
+    time: np.ndarray | None = None
+    time_unit: str = "steps"
     first: np.ndarray = field(init=False, repr=False)
+    tracked: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         self.run = np.asarray(self.run, int)
@@ -94,6 +103,55 @@ class MeasuredData:
         self.q = np.asarray(self.q, float).reshape(n, -1) if n else np.zeros((0, 2))
         self.tip = np.asarray(self.tip, float).reshape(n, -1) if n else np.zeros((0, 2))
         self.first = np.flatnonzero(self.step == 0)
+        finite = np.isfinite(self.tip)
+        self.tracked = np.all(finite, axis=1)
+        part = np.flatnonzero(np.any(finite, axis=1) & ~self.tracked)
+        if len(part):
+            i = int(part[0])
+            raise DataError(f"{self.source}: row {i + 1}: tracked tip {self.tip[i].tolist()} has some coordinates and "
+                            f"not others (a dropout has none)")
+        if self.time_unit not in ("seconds", "steps"):
+            raise ErrplanError(f"time_unit {self.time_unit!r}: expected 'seconds' or 'steps'")
+        if self.time is None:
+            self.time, self.time_unit = self.step.astype(float), "steps"
+        else:
+            self.time = np.asarray(self.time, float).reshape(n)
+
+    @property
+    def dropouts(self) -> int:
+        """Rows without a tracked tip."""
+        return int(np.sum(~self.tracked))
+
+    @property
+    def thin_runs(self) -> np.ndarray:
+        """Run indices with fewer than 2 tracked rows: they add nothing to a fit."""
+        return np.flatnonzero(np.bincount(self.run[self.tracked], minlength=self.runs) < 2)
+
+    @property
+    def time_step(self) -> float:
+        """The data's typical step: the median duration between consecutive rows of a run (1.0 in steps)."""
+        same = self.run[1:] == self.run[:-1]
+        dt = np.diff(self.time)[same]
+        dt = dt[dt > 0]
+        return float(np.median(dt)) if len(dt) else 1.0
+
+    def without_tips(self, rows: np.ndarray) -> "MeasuredData":
+        """The same rows with the tracked tip of ``rows`` (n,) bool removed (NaN, ``tracked`` False):
+        rows left out of every pose residual (an outlier, say) stay for the runs' history
+        (``backlash``, ``tracker_latency``) and the controller replay, as a dropout does."""
+        rows = np.asarray(rows, bool)
+        tip = self.tip.copy()
+        tip[rows] = np.nan
+        return MeasuredData(self.run_ids, self.run, self.step, self.target, self.gain, self.q, tip, self.source,
+                            self.time, self.time_unit)
+
+    def measured_json(self) -> dict:
+        """The calibrate JSON's ``measured`` object (docs/interfaces.md): rows, runs, dropouts, the
+        runs with fewer than 2 tracked rows, the time unit, and ``outliers`` (filled by outlier
+        detection; a list)."""
+        return {"rows": self.rows, "runs": self.runs, "dropouts": self.dropouts,
+                "runs_without_data": [self.run_ids[r] for r in self.thin_runs], "time": self.time_unit,
+                "outliers": []}
 
     @property
     def dim(self) -> int:
@@ -165,14 +223,23 @@ class MeasuredData:
         remap = -np.ones(self.runs, int)
         remap[runs] = np.arange(len(runs))
         return MeasuredData([self.run_ids[r] for r in runs], remap[self.run[mask]], self.step[mask],
-                            self.target[mask], self.gain[mask], self.q[mask], self.tip[mask], self.source)
+                            self.target[mask], self.gain[mask], self.q[mask], self.tip[mask], self.source,
+                            self.time[mask], self.time_unit)
 
     def to_csv_text(self) -> str:
+        """The CSV of docs/interfaces.md; a ``time`` column (after ``step``) when the time is in
+        seconds; a dropout's tip cells empty."""
         out = io.StringIO()
-        out.write(",".join(self.columns) + "\n")
+        cols = list(self.columns)
+        seconds = self.time_unit == "seconds"
+        if seconds:
+            cols.insert(2, "time")
+        out.write(",".join(cols) + "\n")
         vals = np.concatenate([self.target, self.gain[:, None], self.q, self.tip], axis=1)
         for i in range(self.rows):
-            out.write(f"{self.run_ids[self.run[i]]},{self.step[i]}," + ",".join(f"{v:.12g}" for v in vals[i]) + "\n")
+            t = f"{self.time[i]:.9f}," if seconds else ""
+            out.write(f"{self.run_ids[self.run[i]]},{self.step[i]},{t}"
+                      + ",".join("" if not math.isfinite(v) else f"{v:.12g}" for v in vals[i]) + "\n")
         return out.getvalue()
 
     def write_csv(self, path: str | Path) -> None:
@@ -227,6 +294,10 @@ def parse_measured_csv(text: str, source: str = "<memory>", *, dim: int = 2, n_j
     file, so data row ``r`` is line ``r + 1``). Extra columns are ignored, except joint columns the
     arm does not have and the other dimension's coordinates. Runs may appear in any order; their
     steps must be 0, 1, ... without gaps or repeats, target and gain constant, at least 2 steps.
+
+    A bench as it records (docs/physics.md): an optional ``time`` column (s, strictly increasing
+    within a run, any step length); a row whose ``tip_*`` cells are all empty is a dropout (kept,
+    its tip NaN, ``MeasuredData.tracked`` False); a row with only some of them empty is an error.
     """
     from .inputs import check_allocation
 
@@ -243,6 +314,11 @@ def parse_measured_csv(text: str, source: str = "<memory>", *, dim: int = 2, n_j
     header = [h.strip() for h in header]
     _check_header(header, cols, source, dim, n_joints)
     idx = {c: header.index(c) for c in cols}
+    if header.count("time") > 1:
+        raise DataError(f"{source}: column(s) time appear more than once in the header")
+    has_time = "time" in header
+    tcol = header.index("time") if has_time else -1
+    tipcols = [c for c in cols if c.startswith("tip_")]
     tcols = [c for c in cols if c.startswith("target_")] + ["gain"]
     runs: dict[str, list] = {}
     nrow = 0
@@ -263,13 +339,19 @@ def parse_measured_csv(text: str, source: str = "<memory>", *, dim: int = 2, n_j
             sv = _cell_float(st, "step", nrow, source)
             if sv != int(sv) or sv < 0:
                 raise DataError(f"{source}: row {nrow} column 'step': value {st!r} is not an integer >= 0")
-            vals = [_cell_float(row[idx[c]].strip(), c, nrow, source) for c in cols[2:]]
-            runs.setdefault(rid, []).append((int(sv), nrow, vals))
+            empty = [c for c in tipcols if not row[idx[c]].strip()]
+            if empty and len(empty) < len(tipcols):
+                full = [c for c in tipcols if c not in empty]
+                raise DataError(f"{source}: row {nrow} column {empty[0]!r}: empty while {', '.join(full)} has a value "
+                                f"(a tracker dropout leaves every tip cell empty)")
+            vals = [math.nan if c in empty else _cell_float(row[idx[c]].strip(), c, nrow, source) for c in cols[2:]]
+            tv = _cell_float(row[tcol].strip(), "time", nrow, source) if has_time else float(sv)
+            runs.setdefault(rid, []).append((int(sv), nrow, vals, tv))
     except csv.Error as e:
         raise DataError(f"{source}: malformed CSV near row {nrow + 1}: {e}") from None
     if nrow == 0:
         raise DataError(f"{source}: no data rows after the header")
-    run_ids, R, S, TG, K, Q, X = [], [], [], [], [], [], []
+    run_ids, R, S, TG, K, Q, X, TM = [], [], [], [], [], [], [], []
     for ri, (rid, rows) in enumerate(runs.items()):
         rows.sort(key=lambda r: r[0])
         steps = [r[0] for r in rows]
@@ -278,7 +360,7 @@ def parse_measured_csv(text: str, source: str = "<memory>", *, dim: int = 2, n_j
                             f"(the state before the first command and after it)")
         if steps != list(range(len(steps))):
             seen = set()
-            for s, r, _ in rows:
+            for s, r, *_ in rows:
                 if s in seen:
                     raise DataError(f"{source}: run {rid!r}: step {s} appears twice (row {r})")
                 seen.add(s)
@@ -294,13 +376,22 @@ def parse_measured_csv(text: str, source: str = "<memory>", *, dim: int = 2, n_j
                                 f"{float(v[bad[0], j])!r}, first row: {float(v[0, j])!r}); a run has one target and one gain")
         if not v[0, dim] > 0:
             raise DataError(f"{source}: run {rid!r} column 'gain': value {float(v[0, dim])!r} (row {rows[0][1]}) is not > 0")
+        tm = np.array([r[3] for r in rows])
+        back = np.flatnonzero(np.diff(tm) <= 0)
+        if len(back):
+            j = int(back[0]) + 1
+            raise DataError(f"{source}: row {rows[j][1]} column 'time': value {float(tm[j])!r} (run {rid!r}, step {steps[j]}) "
+                            f"is not after the previous step's time {float(tm[j - 1])!r} (row {rows[j - 1][1]}); time must increase "
+                            f"strictly within a run")
+        TM.append(tm)
         run_ids.append(rid)
         R.append(np.full(len(rows), ri))
         S.append(np.array(steps))
         TG.append(v[:, 0:dim]); K.append(v[:, dim]); Q.append(v[:, dim + 1:dim + 1 + n_joints])
         X.append(v[:, dim + 1 + n_joints:])
     return MeasuredData(run_ids, np.concatenate(R), np.concatenate(S), np.concatenate(TG), np.concatenate(K),
-                        np.concatenate(Q), np.concatenate(X), source)
+                        np.concatenate(Q), np.concatenate(X), source, np.concatenate(TM),
+                        "seconds" if has_time else "steps")
 
 
 def read_measured_csv(path: str | Path, sc=None) -> MeasuredData:
@@ -517,13 +608,59 @@ class ExperimentResult:
         d = self.data
         rows = []
         for r in range(d.runs):
-            m = d.run == r
+            m = (d.run == r) & d.tracked  # the run's tracked rows (a dropout has no tip)
+            if not m.any():
+                m = d.run == r
             tip = d.tip[m]
             tg = d.target[m][0]
             rows.append([d.run_ids[r], f"({tip[0, 0] * 1000:.1f}, {tip[0, 1] * 1000:.1f})",
-                         f"({tg[0] * 1000:.1f}, {tg[1] * 1000:.1f})", int(m.sum()) - 1,
+                         f"({tg[0] * 1000:.1f}, {tg[1] * 1000:.1f})", int(np.sum(d.run == r)) - 1,
                          float(np.linalg.norm(tip[-1] - tg) * 1000), self.status[r]])
         return rows
+
+
+def burst_mask(n: int, rate: float, burst: int, rng: np.random.Generator) -> np.ndarray:
+    """Rows (n,) without a tracked tip: at each row outside a burst a burst of 1..``burst`` rows
+    (uniform) starts with the probability that makes ``rate`` the expected share of rows,
+    ``p = rate / (rate + m (1 - rate))``, m the mean burst length."""
+    lost = np.zeros(n, bool)
+    if rate <= 0 or n == 0:
+        return lost
+    m = (burst + 1) / 2.0
+    p = rate / (rate + m * (1.0 - rate))
+    start = rng.random(n) < p
+    length = rng.integers(1, burst + 1, n)
+    i = 0
+    while i < n:
+        if start[i]:
+            lost[i:i + length[i]] = True
+            i += int(length[i])
+        else:
+            i += 1
+    return lost
+
+
+def bench_recording(sensors, rows: int, dim: int, rng: np.random.Generator | None, clock: float = 0.0):
+    """How a bench records one run of up to ``rows`` rows ([sensors], docs/interfaces.md): the rows'
+    times (s from ``clock``, durations ``step_time`` times 1 + uniform(-step_jitter, step_jitter);
+    None without ``step_time``: the tracker latency is then in steps), the dropout rows (bursts,
+    :func:`burst_mask`) and the outliers' offsets (rows, dim) (size uniform in ``outlier_size``,
+    random direction). All None when the sensors record a clean table."""
+    if rng is None:
+        return None, None, None
+    times = lost = glitch = None
+    if sensors.step_time is not None:
+        dt = sensors.step_time * (1.0 + rng.uniform(-sensors.step_jitter, sensors.step_jitter, rows))
+        times = clock + np.concatenate([[0.0], np.cumsum(dt[1:])])
+    if sensors.dropout_rate > 0:
+        lost = burst_mask(rows, sensors.dropout_rate, sensors.dropout_burst, rng)
+    if sensors.outlier_rate > 0:
+        hit = rng.random(rows) < sensors.outlier_rate
+        size = rng.uniform(sensors.outlier_size[0], sensors.outlier_size[1], rows)
+        v = rng.normal(size=(rows, dim))
+        v /= np.linalg.norm(v, axis=1, keepdims=True)
+        glitch = np.where(hit[:, None], size[:, None] * v, 0.0)
+    return times, lost, glitch
 
 
 def _inv_batch(A: np.ndarray, rcond: float = 1e-12) -> tuple[np.ndarray, np.ndarray]:
@@ -563,8 +700,16 @@ def simulate_bench(plant, ctrl, q0: np.ndarray, targets: np.ndarray, gain: float
     alive = np.ones(R, bool)
     stop_at = np.full(R, max_steps)          # last step index recorded
     rows_q, rows_x, rows_r, rows_s = [], [], [], []
+    tau = float(np.asarray(getattr(plant, "tracker_latency", (0.0,)) or (0.0,), float)[0])
+    hist_x: list = []
     for t in range(max_steps + 1):
-        tracked = plant.tracked(tip)
+        if tau:
+            from .simulation import delayed_tip
+
+            hist_x.append(tip.copy())
+            tracked = plant.tracked(delayed_tip([k * plant.step_duration for k in range(t + 1)], hist_x, tau))
+        else:
+            tracked = plant.tracked(tip)
         if rng is not None and plant.tracker_sigma > 0:
             tracked = tracked + rng.normal(0.0, plant.tracker_sigma, tracked.shape)
         idx = np.flatnonzero(alive)
@@ -662,7 +807,13 @@ def run_experiment(sc, seed: int = 0, *, plant=None, starts=None, n_starts: int 
                      f"the bench data ({len(S)} start(s), {n_runs} runs x up to {max_steps + 1} rows)")
     rng = np.random.default_rng(seed)
     gain = sc.controller.gain
+    # a bench as it records ([sensors]: time, dropouts, outliers) from its own stream: the noise
+    # draws stay those of the clean bench
+    sensors = sc.sensors
+    srng = np.random.default_rng([seed, 1]) if sensors.records else None
+    clock = 0.0
     ids, R, ST, TG, K, Q, X, status = [], [], [], [], [], [], [], []
+    TM = []
     for si, s in enumerate(S):
         try:
             q0 = truth.configuration_for_tip(s)
@@ -670,9 +821,11 @@ def run_experiment(sc, seed: int = 0, *, plant=None, starts=None, n_starts: int 
             raise ErrplanError(f"start {si} {np.round(s, 4).tolist()}: {e}") from None
         for ti, tg in enumerate(groups[si]):
             tg = np.asarray(tg, float)
+            times, lost, glitch = bench_recording(sensors, max_steps + 1, sc.dim, srng, clock)
             res = simulate(truth, ctrl, q0, tg[None], gain, tolerance=1e-300, max_steps=max_steps, rng=rng,
-                           model=model)
-            e = np.linalg.norm(res.tracked - tg, axis=-1)
+                           model=model, times=times, lost=lost, glitch=glitch)
+            with np.errstate(invalid="ignore"):
+                e = np.linalg.norm(res.tracked - tg, axis=-1)
             hit = np.flatnonzero(e < tol)
             n = len(res.q)
             st = res.status
@@ -687,8 +840,12 @@ def run_experiment(sc, seed: int = 0, *, plant=None, starts=None, n_starts: int 
             ids.append(f"{si}-{ti}")
             R.append(np.full(n, rid)); ST.append(np.arange(n)); TG.append(np.repeat(tg[None], n, 0))
             K.append(np.full(n, gain)); Q.append(res.q[:n]); X.append(res.tracked[:n]); status.append(st)
+            if sensors.step_time is not None:
+                TM.append(times[:n])
+                clock = float(times[n - 1]) + 10 * sensors.step_time  # the next run starts a little later
     if not ids:
         raise ErrplanError(f"{sc.source}: every bench run left the workspace on its first command")
     data = MeasuredData(ids, np.concatenate(R), np.concatenate(ST), np.concatenate(TG), np.concatenate(K),
-                        np.concatenate(Q), np.concatenate(X), "<experiment>")
+                        np.concatenate(Q), np.concatenate(X), "<experiment>",
+                        np.concatenate(TM) if TM else None, "seconds" if TM else "steps")
     return ExperimentResult(data, S, status, tol, dwell, max_steps, [list(g) for g in groups])

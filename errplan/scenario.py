@@ -40,6 +40,9 @@ EFFECT_PARAMS: dict[str, tuple[str, ...]] = {
     "tracker_registration": ("rx", "by", "bz"),
     "backlash": ("b1", "b2"),
     "joint_geometry": (),
+    # a bench as it records (physics.md "Measured data as a bench records it"): tau in s with
+    # [sensors] step_time, else in steps
+    "tracker_latency": ("tau",),
 }
 #: effects of one dimension only: the planar arm has link lengths, a URDF arm joint origins
 EFFECT_DIMS = {"link_length": 2, "joint_geometry": 3}
@@ -71,6 +74,7 @@ def effect_params(name: str, dim: int = 2, n_joints: int = 2) -> tuple[str, ...]
         "gravity_sag": tuple(f"c{i + 1}" for i in range(n_joints)),
         "shaft_flexion": ("fx", "fy", "fz"),
         "port_friction": ("fa", "fn"),
+        "tracker_latency": ("tau",),
     }[name]
 
 
@@ -157,8 +161,26 @@ class Uncertainty:
 
 @dataclass(frozen=True)
 class Sensors:
+    """``[sensors]``: the sensor noise of simulated data, and how ``errplan experiment`` records a bench
+    (docs/physics.md "Measured data as a bench records it"; every one of these off by default):
+    ``step_time`` (s: a ``time`` column, steps this long on average; None: no time column),
+    ``step_jitter`` (relative, each step's duration uniform within ±), ``dropout_rate`` (share of rows
+    without a tracked tip) in bursts of 1..``dropout_burst`` rows, ``outlier_rate`` (share of rows
+    whose tracked tip is far off) at a distance uniform in ``outlier_size`` (m), random direction."""
+
     tracker_sigma: float = 0.0002
     encoder_sigma: float = 0.0
+    step_time: float | None = None
+    step_jitter: float = 0.0
+    dropout_rate: float = 0.0
+    dropout_burst: int = 1
+    outlier_rate: float = 0.0
+    outlier_size: tuple[float, float] = (0.003, 0.010)
+
+    @property
+    def records(self) -> bool:
+        """Whether the bench records anything beyond the clean table (time, dropouts, outliers)."""
+        return self.step_time is not None or self.dropout_rate > 0 or self.outlier_rate > 0
 
 
 @dataclass(frozen=True)
@@ -437,7 +459,8 @@ TABLE_KEYS: dict[str, tuple[str, ...]] = {
     "[uncertainty]": ("port_y", "port_z", "tip_force_over_ei", "sensor_noise", "samples"),
     "[uncertainty] 3-D": ("port_x",),
     "sensor_noise": ("position", "angle"),
-    "[sensors]": ("tracker_sigma", "encoder_sigma"),
+    "[sensors]": ("tracker_sigma", "encoder_sigma", "step_time", "step_jitter", "dropout_rate", "dropout_burst",
+                  "outlier_rate", "outlier_size"),
     "[fields]": ("resolution", "region"),
     "[planner]": ("metric", "weight", "planner", "iterations", "time", "seed", "certifiable", "certify_margin"),
     "[[query]]": ("name", "start", "goal"),
@@ -613,10 +636,41 @@ def _uncertainty(ctx: _Ctx, t: Mapping[str, Any], d: int = 2) -> Uncertainty:
 def _sensors(ctx: _Ctx, t: Mapping[str, Any]) -> Sensors:
     w = "[sensors] "
     _check_keys(ctx, t, TABLE_KEYS["[sensors]"], w)
+    st = _num(ctx, t["step_time"], w + "step_time", positive=True) if "step_time" in t else None
+    jit = _num(ctx, t.get("step_jitter", 0.0), w + "step_jitter", nonneg=True)
+    if jit >= 1:
+        raise ctx.fail(w + "step_jitter", t["step_jitter"], "a relative jitter from 0 to below 1 (a step's duration "
+                       "stays > 0)")
+    if "step_jitter" in t and st is None:
+        raise ctx.fail(w + "step_jitter", t["step_jitter"], "step_time beside it (the jitter of which step?)")
+    rates = {}
+    for k in ("dropout_rate", "outlier_rate"):
+        rates[k] = _num(ctx, t.get(k, 0.0), w + k, nonneg=True)
+        if rates[k] >= 0.5:
+            raise ctx.fail(w + k, t[k], "a share of rows from 0 to below 0.5")
+    burst = t.get("dropout_burst", 1)
+    if isinstance(burst, bool) or not isinstance(burst, int) or not 1 <= burst <= 1000:
+        raise ctx.fail(w + "dropout_burst", burst, "an integer from 1 to 1000 (the longest burst, rows)")
+    size = _pair(ctx, t["outlier_size"], w + "outlier_size", ordered=True) if "outlier_size" in t else (0.003, 0.010)
+    if not size[0] > 0:
+        raise ctx.fail(w + "outlier_size", t["outlier_size"], "[lo, hi] with 0 < lo <= hi (m)")
     return Sensors(
         _num(ctx, t.get("tracker_sigma", 0.0002), w + "tracker_sigma", nonneg=True),
         _num(ctx, t.get("encoder_sigma", 0.0), w + "encoder_sigma", nonneg=True),
+        st, jit, rates["dropout_rate"], burst, rates["outlier_rate"], size,
     )
+
+
+def _check_latency(ctx: _Ctx, effects: Mapping[str, Mapping[str, float]], sensors: Sensors) -> None:
+    """``[effects.tracker_latency] tau``: 0 <= tau <= 5 steps (s with ``[sensors] step_time``, else steps)."""
+    if "tracker_latency" not in effects:
+        return
+    tau = effects["tracker_latency"]["tau"]
+    step = sensors.step_time
+    top = 5.0 * (step if step is not None else 1.0)
+    if not 0.0 <= tau <= top:
+        unit = f"s: 5 steps of [sensors] step_time = {step:g} s" if step is not None else "steps without [sensors] step_time"
+        raise ctx.fail("[effects.tracker_latency] tau", tau, f"a latency from 0 to {top:g} ({unit})")
 
 
 def _fields(ctx: _Ctx, t: Mapping[str, Any], d: int = 2) -> Fields:
@@ -981,6 +1035,7 @@ def scenario_from_dict(doc: Mapping[str, Any], source: str = "<memory>") -> Scen
         source=source,
         anatomy=anatomy,
     )
+    _check_latency(ctx, sc.effects, sc.sensors)
     for i, tol in enumerate(sc.tolerances):
         if tol.get("candidates") == "body_wall" and (anatomy is None or anatomy.body_wall is None):
             raise ctx.fail(f"[[tolerance]][{i}] candidates", "body_wall", "a box of candidate ports, or \"body_wall\" "

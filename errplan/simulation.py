@@ -195,9 +195,25 @@ def plant_at(plant: Plant, q_true: np.ndarray):
     return _AtTrue()
 
 
+def delayed_tip(times, tips, tau: float):
+    """``tracker_latency`` (docs/physics.md): the true tip at ``times[-1] - tau`` from the steps so far
+    (``times`` increasing scalars, ``tips`` arrays (..., d) at them), linear in time between two
+    steps, the first step's before it (:func:`errplan.effects.delayed` for recorded rows)."""
+    s = times[-1] - tau
+    if s <= times[0]:
+        return tips[0]
+    k = len(times) - 1
+    while times[k - 1] > s:
+        k -= 1
+    t0, t1 = times[k - 1], times[k]
+    w = (s - t0) / (t1 - t0) if t1 > t0 else 1.0
+    return tips[k - 1] + min(max(w, 0.0), 1.0) * (tips[k] - tips[k - 1])
+
+
 def simulate(plant: Plant, controller: ControllerModel, q0: np.ndarray, waypoints, gains, *,
              tolerance: float = 1e-5, max_steps: int = 2000, rng: np.random.Generator | None = None,
-             path_start=None, switch_tolerance: float | None = None, model: Plant | None = None) -> SimResult:
+             path_start=None, switch_tolerance: float | None = None, model: Plant | None = None,
+             times=None, lost=None, glitch=None) -> SimResult:
     """Drive the tip through ``waypoints`` (m, d) with per-segment ``gains`` (m,).
 
     The controller aims at waypoint ``i`` until the tracked tip is within ``tolerance`` of it, then
@@ -214,6 +230,14 @@ def simulate(plant: Plant, controller: ControllerModel, q0: np.ndarray, waypoint
     has ``u = 0``. (errplan used to take ``u`` as the desired direction ``target - tracked tip``.
     That was wrong wherever the controller's Jacobian is wrong: friction opposes the motion that
     happens, and the two directions differ by up to phi_max.)
+
+    A bench as it records (docs/physics.md "Measured data as a bench records it"): the plant's
+    ``tracker_latency`` tau makes the tracker read the true tip at the step's time - tau (linear in
+    time between steps, :func:`delayed_tip`); ``times`` (max_steps + 1,) the steps' times in tau's
+    unit (default: the step index times the plant's ``step_duration``). ``lost`` (max_steps + 1,) bool: the tracker sees nothing at
+    that step (a dropout: the result's ``tracked`` is NaN there and the controller reads the last
+    tracked tip, zero-order hold; before the first tracked step it commands nothing). ``glitch``
+    (max_steps + 1, d): added to the tracker's reading (outliers; the controller reads them too).
     """
     from .inputs import check_allocation
     wp = np.atleast_2d(np.asarray(waypoints, float))
@@ -243,17 +267,32 @@ def simulate(plant: Plant, controller: ControllerModel, q0: np.ndarray, waypoint
     Q, T, X, TG, SEG, K = [], [], [], [], [], []
     seg = 0
     status = "max_steps"
-    for _ in range(max_steps + 1):
-        tracked = plant.tracked(tip)
+    tau = float(np.asarray(getattr(plant, "tracker_latency", (0.0,)) or (0.0,), float)[0])
+    hist_t: list = []
+    hist_x: list = []
+    held = None  # the last tracked tip the controller read (dropouts: zero-order hold)
+    for k in range(max_steps + 1):
+        if tau:
+            hist_t.append(float(times[k]) if times is not None else k * float(getattr(plant, "step_duration", 1.0)))
+            hist_x.append(tip.copy())
+            tracked = plant.tracked(delayed_tip(hist_t, hist_x, tau))
+        else:
+            tracked = plant.tracked(tip)
         if rng is not None and plant.tracker_sigma > 0:
             tracked = tracked + rng.normal(0.0, plant.tracker_sigma, d)
+        if glitch is not None:
+            tracked = tracked + glitch[k]
+        if lost is not None and lost[k]:
+            reading, tracked = held, np.full(d, np.nan)
+        else:
+            reading = held = tracked
         # switch targets on convergence
-        while seg < len(wp) - 1 and np.linalg.norm(wp[seg] - tracked) < switch_tol:
+        while reading is not None and seg < len(wp) - 1 and np.linalg.norm(wp[seg] - reading) < switch_tol:
             seg += 1
         Q.append(q.copy()); T.append(tip.copy()); X.append(tracked.copy())
         TG.append(wp[seg].copy()); SEG.append(seg); K.append(gains[seg])
-        err = wp[seg] - tracked
-        if seg == len(wp) - 1 and np.linalg.norm(err) < tolerance:
+        err = wp[seg] - reading if reading is not None else np.zeros(d)  # nothing tracked yet: no command
+        if reading is not None and seg == len(wp) - 1 and np.linalg.norm(err) < tolerance:
             status = "converged"
             break
         if len(Q) > max_steps:

@@ -99,10 +99,14 @@ def check_candidates(js: dict) -> None:
     cands = js["candidates"]
     singles = {c["name"] for c in cands if len(c["effects"]) == 1}
     geo = {"link_length", "instrument_length", "tracker_registration", "backlash"}
-    assert singles == set(TRUTHS) | geo
-    assert sum(len(c["effects"]) == 2 and not set(c["effects"]) & geo for c in cands) == 15
+    assert singles == set(TRUTHS) | geo | {"tracker_latency"}
+    phys = [c for c in cands if len(c["effects"]) == 2 and not set(c["effects"]) & geo]
+    assert sum("tracker_latency" not in c["effects"] for c in phys) == 15
+    # tracker_latency joins the combinations only when it alone beats the declared model
+    lat = sum("tracker_latency" in c["effects"] for c in phys)
+    assert lat in (0, 6)
     mixed = [c for c in cands if len(c["effects"]) == 2 and set(c["effects"]) & geo]
-    assert len(mixed) in (0, 6) and len({e for c in mixed for e in c["effects"]} & geo) <= 1
+    assert len(mixed) in (0, 7 if lat else 6) and len({e for c in mixed for e in c["effects"]} & geo) <= 1
     assert all(c["heldout_rms"] is not None and math.isfinite(c["bic"]) for c in cands)
 
 

@@ -68,6 +68,14 @@ KEY_DOCS: dict[tuple[str, str], str] = {
     ("sensor_noise", "angle"): "bound on each measured direction, rad (0)",
     ("[sensors]", "tracker_sigma"): "std of the tracked tip's noise in simulated data, m (0.0002)",
     ("[sensors]", "encoder_sigma"): "std of the joint encoders' noise in simulated data, rad (0)",
+    ("[sensors]", "step_time"): "`errplan experiment`: write a `time` column, steps this long on average, s (none)",
+    ("[sensors]", "step_jitter"): "`errplan experiment`: each step's duration uniform within ± this share of "
+                                  "step_time (0)",
+    ("[sensors]", "dropout_rate"): "`errplan experiment`: share of rows without a tracked tip, in bursts (0)",
+    ("[sensors]", "dropout_burst"): "`errplan experiment`: longest dropout burst, rows; lengths uniform 1..burst (1)",
+    ("[sensors]", "outlier_rate"): "`errplan experiment`: share of rows whose tracked tip is far off (0)",
+    ("[sensors]", "outlier_size"): "`errplan experiment`: the outliers' distance [lo, hi], uniform, random "
+                                   "direction, m ([0.003, 0.010])",
     ("[fields]", "resolution"): "tip-grid spacing, m, 1e-4 to 0.05 (0.002 planar, 0.004 spatial)",
     ("[fields]", "region"): "`{ y = [lo, hi], z = [lo, hi] }` (`x` too in 3-D), m: the task region (default: the whole robust workspace)",
     ("[planner]", "metric"): '`"phi_hat_max"`, `"G_norm"`, `"phi_max"` or `"rho_star"`: the cost metric',
@@ -196,6 +204,8 @@ EFFECT_DOCS = {
     "instrument_length": "the instrument is longer than declared, m",
     "tracker_registration": "the tracker is registered with a rotation (rad) and an offset (m)",
     "backlash": "play between encoder and link, rad (history-dependent)",
+    "tracker_latency": "the tracked tip is the true tip at the row's time - tau; s with [sensors] step_time, else "
+                       "steps; 0 <= tau <= 5 steps (history-dependent)",
     "joint_geometry": "each actuated joint's origin moved (m) and turned (rad) in its parent frame (URDF arms)",
 }
 

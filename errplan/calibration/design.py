@@ -60,7 +60,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..effects import EffectModel, catalogue
+from ..effects import CATALOGUE, EffectModel, catalogue
 from ..errors import ErrplanError
 from ..experiment import MeasuredData
 
@@ -84,7 +84,10 @@ def catalogue_model(sc, effects=None) -> EffectModel:
     or ``backlash``), in one model (nothing fitted; gravity sag left out on a URDF without inertial
     data, its identically zero joints fixed)."""
     if effects is None:
-        return EffectModel(catalogue(sc, skip_without_gravity=True))
+        # the physical catalogue; tracker_latency is identified wherever the tip moves (every run)
+        # and needs no designed run, so the default design leaves it out
+        return EffectModel(catalogue(sc, [c.name for c in CATALOGUE if c.name != "tracker_latency"],
+                                     skip_without_gravity=True))
     from ..effects import EFFECTS, geometry_names
 
     allowed = [n for n in EFFECTS if n not in ("link_length", "joint_geometry")] + geometry_names(sc.dim)
@@ -103,21 +106,26 @@ def row_jacobian(sc, data: MeasuredData, model: EffectModel | None = None) -> np
     from .residual import declared_plant, motion_model
 
     model = catalogue_model(sc) if model is None else model
-    base = declared_plant(sc)
+    base = declared_plant(sc, data)
     u = data.commanded_directions(motion_model(sc))
-    f = model._residual_fn(data.q, u, data.tip, base, data.run)
+    # the prediction's derivative at every row (f = 0 - predicted); a dropout's row informs nothing
+    f = model._residual_fn(data.q, u, np.zeros_like(data.tip), base, data.run, data.time)
     z0 = np.zeros(model.n_free)
     J = -model._jac(f, z0)              # f = tracked - predicted
     # a history effect (backlash: play of half-width |b|) is even in its parameter, so its central
-    # difference at 0 is 0; its sensitivity is the one-sided one, the tip's lag under a small play
-    hist = np.array([getattr(e, "history", False) for e in model.effects for _ in e.params], bool)[model.free]
+    # difference at 0 is 0; its sensitivity is the one-sided one, the tip's lag under a small play;
+    # a parameter with a range starting at 0 (tracker_latency's tau >= 0) likewise
+    hist = np.array([getattr(e, "history", False) or (getattr(e, "bounds", None) or (None,))[0] == 0.0
+                     for e in model.effects for _ in e.params], bool)[model.free]
     if hist.any():
         f0 = f(z0)
         for j in np.flatnonzero(hist):
             dz = np.zeros_like(z0)
             dz[j] = model.fd_step
             J[:, j] = -(f(dz) - f0) / model.fd_step
-    return J.reshape(data.rows, -1, model.n_free)
+    J = J.reshape(data.rows, -1, model.n_free)
+    J[~data.tracked] = 0.0
+    return J
 
 
 def run_blocks(J: np.ndarray, data: MeasuredData) -> np.ndarray:
@@ -676,7 +684,7 @@ def _design_experiment(sc, n_runs: int | None = None, *, max_rows: int | None = 
         # the design makes the rest, the base parameters, identifiable
         from .residual import declared_plant, motion_model
 
-        model.identify(data.q, data.commanded_directions(motion_model(sc)), data.tip, declared_plant(sc),
+        model.identify(data.q, data.commanded_directions(motion_model(sc)), data.tip, declared_plant(sc, data),
                        run=data.run)
         structural = model.held_labels
     info0 = bench_info(sc, d0, model)

@@ -6,7 +6,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from ..effects import EFFECTS, catalogue, geometry_names, predict_tracked
+from ..effects import EFFECTS, catalogue, geometry_names, latency_in_data_units, predict_tracked
 from ..errors import DataError, ErrplanError
 from ..experiment import MeasuredData
 from .blas import single_threaded_blas
@@ -59,14 +59,21 @@ def _calibrate(sc, data: MeasuredData, *, validate, seed, folds, progress, effec
     from ..effects import CATALOGUE
 
     wanted = effects if effects is not None else [c.name for c in CATALOGUE] + geometry_names(dim) + ["backlash"]
-    cat = catalogue(sc, wanted, skip_without_gravity=effects is None)
+    cat = catalogue(sc, wanted, skip_without_gravity=effects is None, data=data)  # data: tracker_latency's time unit
     # geometric groups (QR picks their parameters) and backlash: candidates alone
     geo = [e for e in cat if e.qr_identify or getattr(e, "history", False)]
     cat = [e for e in cat if e not in geo]
     skipped = [] if effects is not None or any(e.name == "gravity_sag" for e in cat) else [
         "gravity_sag (the URDF has no inertial data, so no generalized gravity)"]
-    base = declared_plant(sc)
+    base = declared_plant(sc, data)  # data: a declared tracker_latency in the data's time unit
+    # --- a bench as it records (dropouts, time): the files as read, runs without tracked data named
+    measured = data.measured_json()
+    if validate is not None:
+        measured["validation"] = validate.measured_json()
+    data, thin = _without_thin_runs(data)
+    # ---
     data, left_out = check_against_model(data, base, leave_out=True)
+    left_out = thin + left_out
     if validate is not None:
         validate, left_v = check_against_model(validate, base, leave_out=True)
         left_out += [f"validation {s}" for s in left_v]
@@ -74,19 +81,24 @@ def _calibrate(sc, data: MeasuredData, *, validate, seed, folds, progress, effec
     xmodel = motion_model(sc)  # friction's u: the motion each command produces under the declared model
     u = data.commanded_directions(xmodel)
     r0 = pose_residual(data, base, u)
-    if not np.all(np.isfinite(r0)):
-        i = int(np.flatnonzero(~np.all(np.isfinite(r0), axis=1))[0])
+    tr = data.tracked  # rows with a tracked tip: the only ones with a pose residual
+    if not np.all(np.isfinite(r0[tr])):
+        i = int(np.flatnonzero(tr & ~np.all(np.isfinite(r0), axis=1))[0])
         raise DataError(f"{data.source}: row {i + 1}: the declared model has no tip at encoder angles {data.q[i].tolist()}")
-    x0 = predict_tracked(base, data.q, u)
-    nf = noise_floor(r0, x0, u)
-    st0 = structure_test(r0, u, nf, data.run, seed)
+    x0 = predict_tracked(base, data.q, u, data.run, data.time)
+    nf = noise_floor(r0[tr], x0[tr], u[tr])
+    st0 = structure_test(r0[tr], u[tr], nf, data.run[tr], seed)
     prog(0.05, "noise floor")
     ident, ident_text = _identifiability(sc, data, cat)
     k = min(folds, data.runs)
     fold_of_run = _folds(data.runs, k, seed) if k >= 2 else None
     by_name = {e.name: e for e in cat + geo}
     names = [e.name for e in cat]
-    combos: list[tuple[str, ...]] = ([()] + [(a,) for a in names] + list(itertools.combinations(names, 2))
+    # --- tracker_latency joins the pairs, triples and geometry combinations only when it alone beats
+    # the declared model (a latency shows wherever the tip moves): a bench without one is spared them
+    paired = [a for a in names if a != "tracker_latency"]
+    # ---
+    combos: list[tuple[str, ...]] = ([()] + [(a,) for a in names] + list(itertools.combinations(paired, 2))
                                      + [(g.name,) for g in geo])
     n_params = {e.name: sum(not f for f in e.fixed) for e in cat + geo}
     fits = lambda key: sum(n_params[e] for e in key) <= dim * data.rows - 2  # noqa: E731 (some residual dof left)
@@ -96,7 +108,16 @@ def _calibrate(sc, data: MeasuredData, *, validate, seed, folds, progress, effec
     for i, combo in enumerate(combos):
         cands[combo] = fit(combo)
         prog(0.05 + 0.75 * (i + 1) / len(combos), "+".join(combo) or "none")
-    # triples: the best pair plus each other effect, when that pair beats its singles
+    # --- tracker_latency's pairs, when it alone beats the declared model (else it leaves the combinations)
+    if len(paired) < len(names):
+        if cands[("tracker_latency",)].bic < cands[()].bic:
+            for a in paired:
+                key = tuple(x for x in names if x in (a, "tracker_latency"))
+                if fits(key):
+                    cands[key] = fit(key)
+        else:
+            names = paired
+    # --- triples: the best pair plus each other effect, when that pair beats its singles
     pairs = [c for key, c in cands.items() if len(key) == 2 and c.selectable]
     if pairs:
         bp = min(pairs, key=lambda c: c.bic)
@@ -130,15 +151,15 @@ def _calibrate(sc, data: MeasuredData, *, validate, seed, folds, progress, effec
             c.note = "not identifiable"
     model = chosen.model
     after = model.plant(base)
-    r1 = data.tip - predict_tracked(after, data.q, u, data.run)
-    st1 = structure_test(r1, u, nf, data.run, seed)
+    r1 = data.tip - predict_tracked(after, data.q, u, data.run, data.time)
+    st1 = structure_test(r1[tr], u[tr], nf, data.run[tr], seed)
     explained = not st1.structured
     empirical = emp_predict = None
     if not explained:  # the last resort: a sparse correction over a documented basis (never "explained")
         from .empirical import fit_empirical
 
-        empirical, emp_predict = fit_empirical(predict_tracked(after, data.q, u, data.run), data.q, r1, data.run,
-                                               folds=max(2, folds), seed=seed)
+        empirical, emp_predict = fit_empirical(predict_tracked(after, data.q, u, data.run, data.time)[tr], data.q[tr],
+                                               r1[tr], data.run[tr], folds=max(2, folds), seed=seed)
         # the scenario format has no key for it (a correction of what the tracker reads, centred and
         # scaled on these rows, not a property of the robot): --predictions carries it, the export not
         empirical["in_exported_scenario"] = False
@@ -153,7 +174,7 @@ def _calibrate(sc, data: MeasuredData, *, validate, seed, folds, progress, effec
         tb, tb_all = trajectory_errors(d, base, ctrl, tol, xmodel)
         ta, ta_all = trajectory_errors(d, after, ctrl, tol, xmodel)
         mask, unsettled = approach_mask(d, tol)
-        return Errors(rms(r_before), rms(r_after), tb, ta, tb_all, ta_all, d.rows, d.runs, d.source, tol,
+        return Errors(rms(r_before[d.tracked]), rms(r_after[d.tracked]), tb, ta, tb_all, ta_all, d.rows, d.runs, d.source, tol,
                       int(mask.sum()), int(unsettled.sum()))
 
     fit_err = errors(data, r0, r1)
@@ -163,10 +184,11 @@ def _calibrate(sc, data: MeasuredData, *, validate, seed, folds, progress, effec
         rv0, rv1 = pose_residual(validate, base, uv), pose_residual(validate, after, uv)
         val_err = errors(validate, rv0, rv1)
         if empirical is not None:
-            xv = predict_tracked(after, validate.q, uv, validate.run)
-            empirical["validation_rms_declared"] = rms(rv0)
-            empirical["validation_rms_selected"] = rms(rv1)
-            empirical["validation_rms_with_term"] = rms(rv1 - emp_predict(xv, validate.q))
+            xv = predict_tracked(after, validate.q, uv, validate.run, validate.time)
+            tv = validate.tracked
+            empirical["validation_rms_declared"] = rms(rv0[tv])
+            empirical["validation_rms_selected"] = rms(rv1[tv])
+            empirical["validation_rms_with_term"] = rms((rv1 - emp_predict(xv, validate.q))[tv])
     pred0, _ = replay(data, base, ctrl, xmodel)
     pred1, _ = replay(data, after, ctrl, xmodel)
     fixed = {f"{e.name}.{p_}": e.why_fixed or "identically zero sensitivity on this robot"
@@ -179,10 +201,26 @@ def _calibrate(sc, data: MeasuredData, *, validate, seed, folds, progress, effec
     return CalibrationReport(
         scenario=sc.name, data_source=data.source, selected=model.names, explained=explained, model=model,
         noise=nf, structure=st1, structure_before=st0, candidates=cand_list, fit_errors=fit_err,
-        validation_errors=val_err, declared_effects={k2: dict(v) for k2, v in sc.effects.items()}, seed=seed, folds=k,
-        points=x0, residual_before=r0, residual_after=r1, tracked=data.tip,
+        validation_errors=val_err, declared_effects={k2: dict(v) for k2, v in latency_in_data_units(sc.effects, sc, data).items()}, seed=seed, folds=k,
+        points=x0[tr], residual_before=r0[tr], residual_after=r1[tr], tracked=data.tip[tr],  # tracked rows
         replay_before=pred0, replay_after=pred1, data=data, fixed=fixed, skipped=skipped, left_out=left_out,
-        identifiability=ident_text, bench=ident, empirical=empirical, empirical_predict=emp_predict)
+        identifiability=ident_text, bench=ident, empirical=empirical, empirical_predict=emp_predict,
+        measured=measured)
+
+
+def _without_thin_runs(data: MeasuredData) -> tuple[MeasuredData, list[str]]:
+    """The data without the runs that have fewer than 2 tracked rows (they add nothing to a fit;
+    docs/physics.md "Dropouts"), and a sentence naming each; none left is one error."""
+    thin = data.thin_runs
+    if not len(thin):
+        return data, []
+    if len(thin) == data.runs:
+        raise DataError(f"{data.source}: no run has 2 rows with a tracked tip ({data.dropouts} of {data.rows} rows are "
+                        f"dropouts): nothing to calibrate")
+    n_tr = np.bincount(data.run[data.tracked], minlength=data.runs)
+    notes = [f"run {data.run_ids[r]!r} left out: {int(n_tr[r])} tracked row(s) of {int(data.lengths[r])} (a run needs "
+             f"2 tracked rows to add anything to the fit)" for r in thin]
+    return data.subset(np.setdiff1d(np.arange(data.runs), thin)), notes
 
 
 def _identifiability(sc, data: MeasuredData, cat) -> tuple[dict, str]:

@@ -145,6 +145,11 @@ def corrected_files(sc, report: CalibrationReport, path=None) -> tuple[str, dict
     doc = _read_doc(sc)
     robot = doc.get("robot")
     effects = report.effects_table()
+    from ..effects import latency_in_scenario_units  # tracker_latency's tau in the scenario's time unit
+
+    effects, step_time = latency_in_scenario_units(effects, sc, getattr(report, "data", None))
+    if step_time is not None:
+        doc.setdefault("sensors", {})["step_time"] = step_time
     extra: dict = {}
     urdf_text = None
     if "link_length" in effects and isinstance(robot, dict):
@@ -264,9 +269,9 @@ def predictions_csv(sc, report: CalibrationReport, data) -> str:
     from ..effects import predict_tracked
     from .residual import declared_plant, motion_model
 
-    base = declared_plant(sc)
+    base = declared_plant(sc, data)  # a declared tracker_latency in the data's time unit
     u = data.commanded_directions(motion_model(sc))
-    x = predict_tracked(report.model.plant(base), data.q, u, data.run)
+    x = predict_tracked(report.model.plant(base), data.q, u, data.run, data.time)  # every row, dropouts too
     if report.empirical_predict is not None and not report.empirical["history_dependent"]:
         x = x + report.empirical_predict(x, data.q)
     axes = ("x", "y", "z")[3 - data.dim:]

@@ -79,8 +79,11 @@ def fit_candidate(effects, data: MeasuredData, u: np.ndarray, base, fold_of_run:
     scenario's dimension) on all rows, its held-out error on folds of whole runs, and its BIC."""
     from ..effects import Effect, make_effect
 
-    m = EffectModel([e if isinstance(e, Effect) else make_effect(e) for e in effects]).fit(data.q, u, data.tip, base, run=data.run)
-    n, d = data.rows, data.dim
+    m = EffectModel([e if isinstance(e, Effect) else make_effect(e) for e in effects]).fit(
+        data.q, u, data.tip, base, run=data.run, time=data.time)
+    # dropouts (rows without a tracked tip) have no residual; they stay for the runs' history
+    tracked = data.tracked
+    n, d = int(tracked.sum()), data.dim
     p = m.n_free
     bic = _bic(m.rss_, d * n, p)
     ho = None
@@ -91,18 +94,19 @@ def fit_candidate(effects, data: MeasuredData, u: np.ndarray, base, fold_of_run:
         for k in range(int(fold_of_run.max()) + 1):
             te = fold == k
             tr = ~te
-            if d * int(tr.sum()) < p + 2:
+            if d * int((tr & tracked).sum()) < p + 2:
                 sse = float("nan")  # too few training rows for this candidate: no held-out error
                 break
             if p:
                 mk = EffectModel(m.effects, hold=m.hold, drop=m.drop).fit(data.q[tr], u[tr], data.tip[tr], base, x0=m.values_,
-                                                            run=data.run[tr])
+                                                            run=data.run[tr], time=data.time[tr])
                 vals = mk.values_
             else:
                 vals = np.zeros(m.n_params)
             with np.errstate(invalid="ignore", divide="ignore"):
-                r = data.tip[te] - m.predict(base, data.q[te], u[te], vals, run=data.run[te])
+                r = data.tip[te] - m.predict(base, data.q[te], u[te], vals, run=data.run[te], time=data.time[te])
             r = np.where(np.isfinite(r), r, 1.0)
+            r[~tracked[te]] = 0.0  # a dropout has no residual
             sse += float(np.sum(r * r))
             run_sse += np.bincount(data.run[te], weights=np.sum(r * r, axis=1), minlength=data.runs)
         ho = math.sqrt(sse / (d * n)) if math.isfinite(sse) else None

@@ -83,6 +83,9 @@ class CalibrationReport:
     #: the calibrate JSON's ``task`` (errplan.calibration.task; None: not computed) and ``exported`` (paths written)
     task: list | None = None
     exported: list = field(default_factory=list)
+    #: the calibrate JSON's ``measured`` (docs/interfaces.md): the data as the bench recorded them
+    #: (rows, runs, dropouts, runs without data, time unit, outliers; ``validation`` the same)
+    measured: dict = field(default_factory=dict)
 
     @property
     def errors(self) -> Errors:
@@ -139,6 +142,7 @@ class CalibrationReport:
         return {
             "scenario": self.scenario,
             "data": self.data_source,
+            "measured": self.measured,
             "selected": list(self.selected),
             "explained": bool(self.explained),
             "parameters": self.parameters,
@@ -182,6 +186,7 @@ class CalibrationReport:
         mm = 1000.0
         lines = [f"calibration of {self.scenario} on {self.data_source} ({self.fit_errors.rows} rows, "
                  f"{self.fit_errors.runs} runs)"]
+        lines += measured_lines(self.measured)
         if self.declared_effects:
             lines.append("declared effects: " + ", ".join(self.declared_effects))
         lines.append(f"noise floor {self.noise.sigma * mm:.4f} mm per coordinate (left by local degree-{self.noise.degree} "
@@ -277,7 +282,22 @@ class CalibrationReport:
         return "\n".join(lines)
 
 
+def measured_lines(measured: dict) -> list[str]:
+    """What the report says about the data as recorded: dropouts, runs without data, the time unit
+    (nothing for a clean table in steps)."""
+    out = []
+    for what, m in (("data", measured), ("validation", measured.get("validation"))):
+        if not m or (not m.get("dropouts") and m.get("time") != "seconds" and not m.get("runs_without_data")):
+            continue
+        s = (f"{what}: {m['rows']} rows in {m['runs']} runs, {m['dropouts']} without a tracked tip (dropouts: kept for "
+             f"the runs' history and the controller replay, no pose residual); time in {m['time']}")
+        if m.get("runs_without_data"):
+            s += f"; runs with fewer than 2 tracked rows (nothing to fit): {', '.join(map(str, m['runs_without_data']))}"
+        out.append(s)
+    return out
+
+
 def display_unit(unit: str) -> tuple[float, str]:
     """Factor and unit a parameter is shown in: metres as mm, radians as mrad, rad/(N m) as
     mrad/(N m), anything else as it is."""
-    return {"m": (1e3, "mm"), "rad": (1e3, "mrad"), "rad/(N m)": (1e3, "mrad/(N m)")}.get(unit, (1.0, unit))
+    return {"m": (1e3, "mm"), "rad": (1e3, "mrad"), "rad/(N m)": (1e3, "mrad/(N m)"), "s": (1e3, "ms")}.get(unit, (1.0, unit))

@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 
-from ..effects import predict_tracked
+from ..effects import latency_of, predict_tracked
 from ..errors import DataError
 from ..experiment import MeasuredData
 
@@ -18,12 +18,18 @@ def arrival_tolerance(noise_sigma: float) -> float:
 
 
 # ----------------------------------------------------------------------------- residuals
-def declared_plant(sc):
+def declared_plant(sc, data: MeasuredData | None = None):
     """The declared model: the scenario's truth (``[port] position``, its tip load, the effects it
-    already declares), no noise (:func:`errplan.experiment.truth_plant`)."""
+    already declares), no noise (:func:`errplan.experiment.truth_plant`). With measured ``data``, a
+    declared ``tracker_latency`` is taken in the data's time unit (seconds or steps)."""
+    from ..effects import latency_in_data_units
     from ..experiment import truth_plant
 
-    return truth_plant(sc, effects=True, noise=False)
+    plant = truth_plant(sc, effects=True, noise=False)
+    if data is not None and "tracker_latency" in sc.effects:
+        tau = latency_in_data_units(sc.effects, sc, data)["tracker_latency"]["tau"]
+        plant = plant.with_(tracker_latency=(tau,))
+    return plant
 
 
 #: a run in which the declared model's wrist comes this close to the port (m) is left out of the fits:
@@ -93,6 +99,7 @@ def check_against_model(data: MeasuredData, plant, what: str = "the declared mod
     with np.errstate(all="ignore"):
         model_tip = plant.tip(data.q)
         off = np.linalg.norm(data.tip - model_tip, axis=-1)
+    off = np.where(data.tracked, off, 0.0)  # a dropout has no tracked tip to check
     kept = np.ones(data.rows, bool)
     notes: list[str] = []
     if leave_out:
@@ -157,9 +164,10 @@ def motion_model(sc):
 def pose_residual(data: MeasuredData, plant, u: np.ndarray | None = None) -> np.ndarray:
     """Tracked tip minus the model's tracked tip at the encoder angles (n, d), m. ``u`` (friction's
     direction per row) defaults to :meth:`MeasuredData.commanded_directions` under
-    ``plant.declared()``."""
+    ``plant.declared()``. A dropout's row is NaN (no tracked tip): select ``data.tracked`` rows
+    for any statistic."""
     u = data.commanded_directions(plant.declared()) if u is None else u
-    return data.tip - predict_tracked(plant, data.q, u, data.run)
+    return data.tip - predict_tracked(plant, data.q, u, data.run, data.time)
 
 
 def _controller_jacobian(ctrl, plant, q: np.ndarray) -> np.ndarray:
@@ -180,6 +188,13 @@ def replay(data: MeasuredData, plant, ctrl, model=None) -> tuple[np.ndarray, np.
     (n, d) and, per run, whether the replay stayed in the workspace for the whole measured length
     (runs,). A replay that leaves the workspace holds its last state. The plant's backlash is
     carried: the links lag the replayed encoder angles by the play, mid-band at each run's start.
+
+    A bench as it records (docs/physics.md): the plant's ``tracker_latency`` delays the tracked
+    tip the controller reads (the model's tip at the row's time - tau, linear in time between the
+    replayed rows, :func:`errplan.effects.delayed`); at a row the data mark as a dropout the
+    controller reads the last tracked tip of its run (zero-order hold; before the run's first
+    tracked row it commands nothing). The predicted tip of every row (dropouts too) is the
+    model's tracked tip there.
     """
     from ..experiment import _inv_batch
 
@@ -204,17 +219,37 @@ def replay(data: MeasuredData, plant, ctrl, model=None) -> tuple[np.ndarray, np.
     # the fit, effects.backlash_angles); the controller sees the encoders, the tracker the links
     play = np.abs(np.asarray(getattr(plant, "backlash", ()) or np.zeros(q.shape[1]), float))
     theta = q.copy()
+    # a bench as it records: the rows' times and dropouts per (step, run), the tracker's latency
+    tau = latency_of(plant, data.time, data.run)
+    seen = np.zeros((T, R), bool)            # the data have this (run, step) row
+    seen[data.step, data.run] = True
+    lost = np.zeros((T, R), bool)             # ... and it is a dropout
+    lost[data.step[~data.tracked], data.run[~data.tracked]] = True
+    if tau:
+        times = np.zeros((T, R))
+        times[data.step, data.run] = data.time
+        # past a run's last row its time keeps its last step (never used: the run has no more rows)
+        times = np.where(seen, times, np.nan)
+        times = np.fmax.accumulate(times, axis=0)
+        tips, true_tip = [], np.zeros((R, d))
+    held = np.full((R, d), np.nan)            # the last tracked tip the controller read, per run
     for t in range(T):
         theta = np.minimum(np.maximum(theta, q - play), q + play) if play.any() else q
         with np.errstate(invalid="ignore", divide="ignore"):
-            tr = plant.tracked(plant.tip(theta, u))  # the tracker's registration too, not only its offset
+            if tau:
+                true_tip = np.where(alive[:, None], plant.tip(theta, u), true_tip)
+                tips.append(true_tip)
+                tr = plant.tracked(_delayed_now(tips, times[:t + 1], tau, seen[t]))
+            else:
+                tr = plant.tracked(plant.tip(theta, u))  # the tracker's registration too, not only its offset
         tracked = np.where(alive[:, None], tr, tracked)
         rows_t = by_step[bounds[t]:bounds[t + 1]]
         pred[rows_t] = tracked[data.run[rows_t]]
+        held = np.where(lost[t][:, None], held, tracked)
         if t == T - 1:
             break
         has = lengths > t
-        err = target - tracked
+        err = np.nan_to_num(target - held)    # a run not tracked yet commands nothing
         with np.errstate(invalid="ignore", divide="ignore"):
             Jinv, singular = _inv_batch(_controller_jacobian(ctrl, plant, q))
             dq = gain[:, None] * np.einsum("rij,rj->ri", np.nan_to_num(Jinv), err)
@@ -230,6 +265,24 @@ def replay(data: MeasuredData, plant, ctrl, model=None) -> tuple[np.ndarray, np.
     return pred, alive
 
 
+def _delayed_now(tips: list, times: np.ndarray, tau: float, now: np.ndarray) -> np.ndarray:
+    """The replay's delayed true tip (R, d) at the current step ``t = len(tips) - 1``: each run's true
+    tip at its time ``times[t] - tau`` (tau > 0), linear in time between the steps ``tips`` (t + 1 of
+    (R, d)) at ``times`` (t + 1, R), the first step's before it (:func:`errplan.effects.delayed`).
+    ``now`` (R,): the runs that have a row at step t (the others are not needed)."""
+    t = len(tips) - 1
+    s = times[t] - tau
+    out = tips[0].copy()
+    for k in range(t, 0, -1):  # the segment [k - 1, k] holding s, searched back from now
+        t0, t1 = times[k - 1], times[k]
+        inside = (s >= t0) & (s < t1)
+        w = np.where(inside, (s - t0) / np.where(t1 > t0, t1 - t0, 1.0), 0.0)[:, None]
+        out = np.where(inside[:, None], tips[k - 1] + w * (tips[k] - tips[k - 1]), out)
+        if np.all((s >= t0) | ~now):
+            break
+    return out
+
+
 def approach_mask(data: MeasuredData, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
     """Rows (n,) compared by the trajectory residual, and the runs (runs,) left out.
 
@@ -243,16 +296,21 @@ def approach_mask(data: MeasuredData, tolerance: float) -> tuple[np.ndarray, np.
     port friction then holds the tip back by up to its size, once, in a run that converges.
     """
     e = np.linalg.norm(data.tip - data.target, axis=-1)
+    e = np.where(data.tracked, e, -np.inf)  # a dropout: no distance known (neither arrived nor growing)
     big = np.iinfo(np.int64).max
     arrive = np.full(data.runs, big)
-    idx = np.flatnonzero((e < tolerance) & (data.step >= 1))
+    idx = np.flatnonzero((e < tolerance) & (data.step >= 1) & data.tracked)
     np.minimum.at(arrive, data.run[idx], data.step[idx])
-    e0 = e[data.first][np.argsort(data.run[data.first])]
+    # a run's start distance: its first tracked row's
+    e0 = np.full(data.runs, np.inf)
+    tr = np.flatnonzero(data.tracked)
+    first_tr = tr[np.unique(data.run[tr], return_index=True)[1]] if len(tr) else tr
+    e0[data.run[first_tr]] = e[first_tr]
     late = data.step >= 2
     elate = np.zeros(data.runs)
     np.maximum.at(elate, data.run[late], e[late])
     unsettled = (arrive == big) & (elate > e0 + tolerance)
-    mask = (data.step >= 1) & (data.step <= arrive[data.run]) & ~unsettled[data.run]
+    mask = (data.step >= 1) & (data.step <= arrive[data.run]) & ~unsettled[data.run] & data.tracked
     return mask, unsettled
 
 
@@ -262,4 +320,4 @@ def trajectory_errors(data: MeasuredData, plant, ctrl, tolerance: float, model=N
     pred, _ = replay(data, plant, ctrl, model)
     r = data.tip - pred
     mask, _ = approach_mask(data, tolerance)
-    return (rms(r[mask]) if np.any(mask) else float("nan")), rms(r[data.step >= 1])
+    return (rms(r[mask]) if np.any(mask) else float("nan")), rms(r[(data.step >= 1) & data.tracked])

@@ -78,7 +78,8 @@ def run(args) -> int:
             continue
         per = len(ex.targets[si]) if ex.targets is not None else len(ids)
         steps = [int(np.sum(d.run == r)) - 1 for r in ids]
-        final = [float(np.linalg.norm(d.tip[d.run == r][-1] - d.target[d.run == r][0]) * 1000) for r in ids]
+        final = [float(np.linalg.norm(d.tip[(d.run == r) & d.tracked][-1] - d.target[d.run == r][0]) * 1000)
+                 if np.any((d.run == r) & d.tracked) else float("nan") for r in ids]  # the last tracked row
         st = [ex.status[r] for r in ids]
         rows.append(["(" + ", ".join(f"{v * 1000:.1f}" for v in s) + ")", f"{len(ids)}/{per}", int(np.mean(steps)),
                      max(steps), st.count("converged"), max(final)])
@@ -90,4 +91,15 @@ def run(args) -> int:
     print(f"truth: effects {eff}; tracker sigma {sc.sensors.tracker_sigma * 1000:g} mm, encoder sigma "
           f"{sc.sensors.encoder_sigma:g} rad; arrival tolerance {ex.tolerance * 1000:.2f} mm, dwell {ex.dwell} steps")
     print(f"{d.rows} rows, {d.runs} runs")
+    se = sc.sensors
+    if se.records:  # a bench as it records ([sensors]): say what the file holds besides the clean table
+        parts = []
+        if se.step_time is not None:
+            parts.append(f"a time column (steps of {se.step_time * 1000:g} ms ± {se.step_jitter * 100:g} %)")
+        if se.dropout_rate > 0:
+            parts.append(f"{d.dropouts} dropout rows (bursts of 1..{se.dropout_burst})")
+        if se.outlier_rate > 0:
+            parts.append(f"outliers at a rate of {se.outlier_rate:g}, {se.outlier_size[0] * 1000:g}-"
+                         f"{se.outlier_size[1] * 1000:g} mm")
+        print("recorded as a bench records: " + ", ".join(parts))
     return 0

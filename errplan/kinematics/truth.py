@@ -62,16 +62,23 @@ class Plant:
     tracker_rotation: tuple[float, ...] = (0.0,)
     joint_geometry: tuple[float, ...] = ()
     backlash: tuple[float, ...] = (0.0, 0.0)
+    #: ``tracker_latency`` tau: the tracked tip of a row is the true tip at the row's time - tau (the
+    #: time unit of the rows: seconds, or steps without a time column); see
+    #: :func:`errplan.effects.delayed`
+    tracker_latency: tuple[float] = (0.0,)
+    #: a controller step's duration in tracker_latency's unit: ``[sensors] step_time`` when tau is in
+    #: seconds, 1 when it is in steps; a simulation given no times steps by it
+    step_duration: float = 1.0
 
     def __post_init__(self):
         if isinstance(self.arm, Arm):
             sizes = (("link_length", 2), ("instrument_length", 1), ("tracker_rotation", 1), ("joint_geometry", 0),
-                     ("backlash", 2))
+                     ("backlash", 2), ("tracker_latency", 1))
         else:
             d, n = 3, int(self.arm.n)
             sizes = (("port_offset", d), ("tracker_offset", d), ("world_load", d), ("joint_offset", n),
                      ("gravity_sag", n), ("link_length", 0), ("instrument_length", 1), ("tracker_rotation", 3),
-                     ("joint_geometry", 6 * n + 3), ("backlash", n))
+                     ("joint_geometry", 6 * n + 3), ("backlash", n), ("tracker_latency", 1))
         for name, size in sizes:
             v = tuple(float(x) for x in getattr(self, name))
             if name == "joint_geometry" and size and len(v) == size - 3:
@@ -130,9 +137,11 @@ class Plant:
         else:
             kw = effect_kwargs(tables) if tables else {}
             ld = float(load)
+        step = getattr(sc.sensors, "step_time", None)
         return cls(m.arm, sc.instrument.length, tuple(sc.port.position if port is None else port), ld,
                    tracker_sigma=sc.sensors.tracker_sigma if noise else 0.0,
-                   encoder_sigma=sc.sensors.encoder_sigma if noise else 0.0, **kw)
+                   encoder_sigma=sc.sensors.encoder_sigma if noise else 0.0,
+                   step_duration=float(step) if step is not None else 1.0, **kw)
 
     @property
     def dim(self) -> int:
@@ -314,7 +323,8 @@ def effect_kwargs(effects, dim: int | None = None, n_joints: int | None = None) 
                  "port_friction": ("friction", ("fa", "fn")),
                  "instrument_length": ("instrument_length", ("dL",)),
                  "joint_geometry": ("joint_geometry", joint_geometry_keys(n)),
-                 "backlash": ("backlash", tuple(f"b{i + 1}" for i in range(n)))}
+                 "backlash": ("backlash", tuple(f"b{i + 1}" for i in range(n))),
+                 "tracker_latency": ("tracker_latency", ("tau",))}
         out3: dict = {}
         for name, p in (effects or {}).items():
             if name == "tracker_registration":
@@ -355,6 +365,8 @@ def effect_kwargs(effects, dim: int | None = None, n_joints: int | None = None) 
             out["world_load"] = (p.get("fy", 0.0), p.get("fz", 0.0))
         elif name == "port_friction":
             out["friction"] = (p.get("fa", 0.0), p.get("fn", 0.0))
+        elif name == "tracker_latency":
+            out["tracker_latency"] = (p.get("tau", 0.0),)
         else:
             raise ErrplanError(f"effect {name!r}: not an effect of docs/physics.md")
     return out
