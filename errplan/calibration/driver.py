@@ -168,7 +168,8 @@ def _calibrate(sc, data: MeasuredData, *, validate, seed, folds, progress, effec
 
     # before / after errors; a run's arrival is judged with the noise left by the selected model (the same rows
     # calibrated on its bench, the `--export-bench` file, then judge them alike: "before" there is "after" here)
-    tol = arrival_tolerance(noise_floor(r1, predict_tracked(after, data.q, u, data.run), u).sigma)
+    x1 = predict_tracked(after, data.q, u, data.run, data.time)
+    tol = arrival_tolerance(noise_floor(r1[tr], x1[tr], u[tr]).sigma)
 
     def errors(d: MeasuredData, r_before: np.ndarray, r_after: np.ndarray) -> Errors:
         tb, tb_all = trajectory_errors(d, base, ctrl, tol, xmodel)
