@@ -101,8 +101,7 @@ class Evaluator:
     def parts_reach(self, x: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """:meth:`parts` and the truth's reach of :meth:`true_wrist` (...), the true wrist solved once."""
         if self.effects:
-            mu, nu, ok = self._effect_parts(np.asarray(x, float), np.asarray(theta, float))
-            return mu, nu, ok, self.true_wrist(x, theta)[1]
+            return self._effect_parts(np.asarray(x, float), np.asarray(theta, float))
         w, ok = self.true_wrist(x, theta)
         reach = ok
         wsafe = np.where(ok[..., None], w, np.asarray(self.arm.base))
@@ -125,22 +124,30 @@ class Evaluator:
         """The truth of instance(s) ``theta`` with the scenario's effects."""
         return Plant(self.arm, self.length, self.errors.port(theta), theta[..., 2], **self.effects)
 
-    def _effect_parts(self, x: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _effect_parts(self, x: np.ndarray, theta: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """General path for a truth with [effects] (joint offsets, gravity sag, world tip load, port
-        offset): the arm Jacobian no longer cancels. Encoder angles putting the true tip at ``x``
-        by Newton's method on the full forward map, true ``J = d tip/d q_enc`` by central
-        differences, ``Jhat`` from the controller model at the encoder angles."""
+        offset, the arm's ``link_length``, ``instrument_length``, a tracker registration's rotation):
+        the arm Jacobian no longer cancels. Encoder angles putting the true tip at ``x`` by Newton's
+        method on the true forward map (started from the true arm's inverse of the true shaft's
+        wrist), true ``J = d tip/d q_enc`` by central differences, ``Jhat`` from the controller's
+        (declared) model at the same encoder angles, and ``M = R J Jhat^-1`` with ``R`` the tracker
+        registration's rotation (the loop closes on the tracked tip ``R x + b``). Returns the conformal
+        parts ``(mu, nu)`` (..., c), validity and the truth's reach (...): the shaft through the true
+        port and the true arm's inverse of its wrist within the limits."""
         theta = np.broadcast_to(theta, x.shape[:-1] + (3,))
         plant = self.plant(theta)
         port = plant.true_port
+        L = plant.true_length
         d = x - port
         r = np.sqrt(d[..., 0] ** 2 + d[..., 1] ** 2)
-        ok = (r > 1e-9) & (r < self.length)
-        xs = np.where(ok[..., None], x, port + [0.0, 0.5 * self.length])
+        ok = (r > 1e-9) & (r < L)
+        xs = np.where(ok[..., None], x, port + [0.0, 0.5 * L])
         with np.errstate(invalid="ignore", divide="ignore"):
-            w0 = flexed_wrist(xs, port, self.length, plant.shaft_load(lever_wrist(xs, port, self.length)))
-            q_link, ok_ik = self.arm.inverse(w0)
+            w0 = flexed_wrist(xs, port, L, plant.shaft_load(lever_wrist(xs, port, L)))
+            q_link, ok_ik = plant.true_arm.inverse(w0)
             ok &= ok_ik
+            reach = ok.copy()
             q = np.where(ok[..., None], q_link - np.asarray(plant.joint_offset), 0.0)
             for _ in range(EFFECT_NEWTON_ITERS):
                 f = plant.tip(q) - xs
@@ -152,6 +159,9 @@ class Evaluator:
             ok &= plant.shaft_reaches(plant.wrist(q))
             q = np.where(ok[..., None], q, 0.0)
             J = _fd_jacobian(plant.tip, q)
+            R = tracker_rotation_matrix(plant)
+            if R is not None:
+                J = R @ J
             Jr = self.arm.jacobian(q)
             if self.jacobian == "rigid":
                 Jh = (lever_jacobian(self.arm.forward(q), np.asarray(self.estimate), self.length) @ Jr)[..., None, :, :]
@@ -168,7 +178,22 @@ class Evaluator:
             mu, nu = conformal_parts(J[..., None, :, :] @ Jh_inv)
         bad = singular | ~np.isfinite(mu) | ~np.isfinite(nu)
         ok = ok & ~np.any(bad, axis=-1)
-        return mu, nu, ok
+        return mu, nu, ok, reach
+
+
+def tracker_rotation_matrix(plant: Plant) -> np.ndarray | None:
+    """The rotation ``R`` (d, d) of the truth's tracker registration (the tracked tip is ``R x + b``),
+    or None without one: the loop's matrix is ``G = I - k R J Jhat^-1`` (docs/physics.md "From measured
+    data to the plan")."""
+    r = np.asarray(plant.tracker_rotation, float)
+    if not np.any(r):
+        return None
+    if plant.dim == 2:
+        c, s = math.cos(float(r[0])), math.sin(float(r[0]))
+        return np.array([[c, -s], [s, c]])
+    from ..kinematics.geometry import rotation_vector_matrix
+
+    return rotation_vector_matrix(r)
 
 
 EFFECT_NEWTON_ITERS = 8
@@ -245,12 +270,14 @@ def _perp_basis(e1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 @dataclass
 class SpatialEffectsEvaluator:
-    """3-D truth whose ``[effects]`` move the arm (``joint_offset``, ``gravity_sag``,
-    ``shaft_flexion``): ``J Jhat^-1`` no longer reduces to the wrist Jacobians. Per (tip, instance):
-    the encoder angles that put the true tip at ``x`` by Newton's method on the full forward map
-    (started from the inverse kinematics of the wrist without the arm effects), the true
-    ``J = d tip / d q_enc`` by central differences, and the controller's
-    ``Jhat = J_lever(w_model(q_enc), estimate) J_arm(q_enc)``. A load instance ``(tau, psi)`` is the
+    """3-D truth whose ``[effects]`` change the true Jacobian or the loop's frame (``joint_offset``,
+    ``gravity_sag``, ``shaft_flexion``, ``joint_geometry``, ``instrument_length``,
+    ``tracker_registration``): ``J Jhat^-1`` no longer reduces to the wrist Jacobians. Per (tip,
+    instance): the encoder angles that put the true tip at ``x`` by Newton's method on the true
+    forward map (started from the true arm's inverse kinematics of the true shaft's wrist), the true
+    ``J = d tip / d q_enc`` by central differences, the controller's (declared)
+    ``Jhat = J_lever(w_model(q_enc), estimate) J_arm(q_enc)`` at the same encoder angles, and
+    ``M = R J Jhat^-1`` with ``R`` the tracker registration's rotation. A load instance ``(tau, psi)`` is the
     world vector the lever geometry gives it (as in the compiled kernels), added to the truth's
     ``shaft_flexion`` load. The general path: numpy, much slower than the compiled kernels (and
     slower still with ``gravity_sag``, whose generalized gravity comes from pinocchio point by point).
@@ -296,7 +323,8 @@ class SpatialEffectsEvaluator:
             e1 = e / np.linalg.norm(e, axis=-1, keepdims=True)
             f1, f2 = _perp_basis(e1)
             psi = theta[bent, 4][:, None]
-            _, t[bent] = flexed_wrist_plane(x[bent], port[bent], self.length, tau[bent], np.cos(psi) * f1 + np.sin(psi) * f2)
+            _, t[bent] = flexed_wrist_plane(x[bent], port[bent], self.plant.true_length, tau[bent],
+                                            np.cos(psi) * f1 + np.sin(psi) * f2)
         return self.plant.with_(port=port, load=t), port
 
     def parts(self, x: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, None, np.ndarray]:
@@ -305,12 +333,12 @@ class SpatialEffectsEvaluator:
         n = len(x)
         M = np.full((n, 1 if self.noise is None else len(self.noise), 3, 3), np.nan)
         plant, port = self._plant(x, theta)
-        L = self.length
+        L = self.length  # the declared instrument (the controller's)
         r = np.linalg.norm(x - port, axis=-1)
-        ok = (r > 1e-9) & (r < L)
+        ok = (r > 1e-9) & (r < plant.true_length)
         with np.errstate(invalid="ignore", divide="ignore"):
             w0 = np.where(ok[:, None], plant.true_wrist_for_tip(np.where(ok[:, None], x, port + [0, 0, 0.5 * L])), 0.0)
-            q_link, ok_ik = self.arm.inverse(w0)
+            q_link, ok_ik = plant.true_arm.inverse(w0)
             ok &= ok_ik
             q = np.where(ok[:, None], q_link - np.asarray(plant.joint_offset), 0.0)
             for _ in range(EFFECT_NEWTON_ITERS):
@@ -329,6 +357,9 @@ class SpatialEffectsEvaluator:
                 return M, None, ok
             qo = q[ok]
             J = _fd_jacobian(plant.with_(port=port[ok], load=plant.load_vector[ok]).tip, qo)
+            R = tracker_rotation_matrix(plant)
+            if R is not None:  # the loop closes on the tracked tip R x + b
+                J = R @ J
             wm = self.arm.forward(qo)
             lever = lever_jacobian(wm, np.asarray(self.estimate), L)
             if self.jacobian == "flexion":  # P2's controller in 3-D fed the true end poses + noise corners
