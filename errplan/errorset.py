@@ -205,7 +205,10 @@ def error_set(sc, es: ErrorSet | None = None) -> tuple[ErrorSet, dict]:
         return sc.true_errors, dict(sc.jacobian_effects)
     es = es or ErrorSet.from_tables(sc.port, sc.uncertainty, sc.dim)
     if sc.dim == 2:
-        kw = {k: v for k, v in effect_kwargs(sc.effects).items() if k in JACOBIAN_EFFECTS and any(x != 0 for x in v)}
+        allkw = effect_kwargs(sc.effects)
+        kw = {k: v for k, v in allkw.items() if k in JACOBIAN_EFFECTS and any(x != 0 for x in v)}
+        if "tracker_rotation" in kw and "tracker_offset" in allkw:  # the loop's frame: R x + b, b with it
+            kw["tracker_offset"] = allkw["tracker_offset"]
         off = kw.pop("port_offset", None)
     else:
         kw = {name: p for name, p in sc.effects.items()

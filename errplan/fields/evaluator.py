@@ -14,7 +14,7 @@ from ..kinematics.compiled import _reachable_kernel, _wrist2_kernel
 from ..kinematics.shaft import (estimate_from_ends, flexed_end_angles, flexed_jacobian, flexed_wrist,
                                 flexed_wrist_plane, lever_jacobian, lever_parts, lever_wrist)
 from ..kinematics.truth import Plant
-from ..metrics import conformal_parts, compose_parts, inv2, inverse_parts
+from ..metrics import conformal_parts, compose_parts, inv, inv2, inverse_parts
 from ..errorset import JACOBIAN_EFFECTS, ErrorSet  # noqa: F401  (JACOBIAN_EFFECTS: re-exported by errplan.fields)
 
 
@@ -120,21 +120,26 @@ class Evaluator:
         ok = ok & ~np.any(bad, axis=-1)
         return mu, nu, ok, reach
 
+    def parts_tracked(self, y: np.ndarray, theta: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`parts_reach` at the tips whose tracked readings are ``y`` (the loop's frame, what a
+        gain certificate's ball is drawn in): the true tips ``R^-1 (y - b)`` of a truth with a tracker
+        registration, ``y`` itself otherwise."""
+        y = np.asarray(y, float)
+        if self.effects and "tracker_rotation" in self.effects:
+            y = true_tips(self.plant(np.broadcast_to(theta, y.shape[:-1] + (3,))), y)
+        return self.parts_reach(y, theta)
+
     def plant(self, theta: np.ndarray) -> Plant:
         """The truth of instance(s) ``theta`` with the scenario's effects."""
         return Plant(self.arm, self.length, self.errors.port(theta), theta[..., 2], **self.effects)
 
-    def _effect_parts(self, x: np.ndarray, theta: np.ndarray
-                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """General path for a truth with [effects] (joint offsets, gravity sag, world tip load, port
-        offset, the arm's ``link_length``, ``instrument_length``, a tracker registration's rotation):
-        the arm Jacobian no longer cancels. Encoder angles putting the true tip at ``x`` by Newton's
-        method on the true forward map (started from the true arm's inverse of the true shaft's
-        wrist), true ``J = d tip/d q_enc`` by central differences, ``Jhat`` from the controller's
-        (declared) model at the same encoder angles, and ``M = R J Jhat^-1`` with ``R`` the tracker
-        registration's rotation (the loop closes on the tracked tip ``R x + b``). Returns the conformal
-        parts ``(mu, nu)`` (..., c), validity and the truth's reach (...): the shaft through the true
-        port and the true arm's inverse of its wrist within the limits."""
+    def effect_configuration(self, x: np.ndarray, theta: np.ndarray):
+        """The truth of instances ``theta`` putting its true tip at ``x`` (..., 2): ``(plant, q, ok,
+        reach)``, ``q`` the encoder angles by Newton's method on the true forward map (started from the
+        true arm's inverse of the true shaft's wrist; 0 where ``ok`` is False), ``ok`` where it
+        converged inside the limits with the shaft through the true port, ``reach`` the truth's reach
+        (the shaft through the true port and the true arm's inverse of its wrist within the limits)."""
         theta = np.broadcast_to(theta, x.shape[:-1] + (3,))
         plant = self.plant(theta)
         port = plant.true_port
@@ -157,28 +162,85 @@ class Evaluator:
             resid = np.linalg.norm(plant.tip(q) - xs, axis=-1)
             ok &= (resid < 1e-10) & self.arm.within_limits(plant.link_angles_q(q))
             ok &= plant.shaft_reaches(plant.wrist(q))
-            q = np.where(ok[..., None], q, 0.0)
+        return plant, np.where(ok[..., None], q, 0.0), ok, reach
+
+    def effect_controller_jacobian(self, plant: Plant, q: np.ndarray) -> np.ndarray:
+        """The controller's ``Jhat`` (..., c, 2, 2) at encoder angles ``q``: its (declared) model at the
+        same encoder angles, over the flexion controller's noise corners (``c`` = 1 for the lever)."""
+        Jr = self.arm.jacobian(q)
+        lever = lever_jacobian(self.arm.forward(q), np.asarray(self.estimate), self.length) @ Jr
+        if self.jacobian == "rigid":
+            return lever[..., None, :, :]
+        w, tip, thw, tht = plant.end_poses(q)
+        nc = self.errors.noise_corners()
+        pw = w[..., None, :] + nc[:, 0:2]
+        est = estimate_from_ends(pw, tip[..., None, :] + nc[:, 2:4], thw[..., None] + nc[:, 4],
+                                 tht[..., None] + nc[:, 5], self.length)
+        Jh = flexed_jacobian(pw, est["port"], self.length, est["t"]) @ Jr[..., None, :, :]
+        return np.where(np.all(np.isfinite(Jh), axis=(-2, -1))[..., None, None], Jh, lever[..., None, :, :])
+
+    def _effect_parts(self, x: np.ndarray, theta: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """General path for a truth with [effects] (joint offsets, gravity sag, world tip load, port
+        offset, the arm's ``link_length``, ``instrument_length``, a tracker registration's rotation):
+        the arm Jacobian no longer cancels. The encoder angles of :meth:`effect_configuration`, true
+        ``J = d tip/d q_enc`` by central differences, ``Jhat`` from the controller's (declared) model
+        at the same encoder angles (:meth:`effect_controller_jacobian`), and ``M = R J Jhat^-1`` with
+        ``R`` the tracker registration's rotation (the loop closes on the tracked tip ``R x + b``).
+        Returns the conformal parts ``(mu, nu)`` (..., c), validity and the truth's reach (...)."""
+        plant, q, ok, reach = self.effect_configuration(x, theta)
+        with np.errstate(invalid="ignore", divide="ignore"):
             J = _fd_jacobian(plant.tip, q)
             R = tracker_rotation_matrix(plant)
             if R is not None:
                 J = R @ J
-            Jr = self.arm.jacobian(q)
-            if self.jacobian == "rigid":
-                Jh = (lever_jacobian(self.arm.forward(q), np.asarray(self.estimate), self.length) @ Jr)[..., None, :, :]
-            else:
-                w, tip, thw, tht = plant.end_poses(q)
-                nc = self.errors.noise_corners()
-                pw = w[..., None, :] + nc[:, 0:2]
-                est = estimate_from_ends(pw, tip[..., None, :] + nc[:, 2:4], thw[..., None] + nc[:, 4],
-                                         tht[..., None] + nc[:, 5], self.length)
-                Jh = flexed_jacobian(pw, est["port"], self.length, est["t"]) @ Jr[..., None, :, :]
-                lever = lever_jacobian(self.arm.forward(q), np.asarray(self.estimate), self.length) @ Jr
-                Jh = np.where(np.all(np.isfinite(Jh), axis=(-2, -1))[..., None, None], Jh, lever[..., None, :, :])
-            Jh_inv, singular = inv2(Jh)
+            Jh_inv, singular = inv2(self.effect_controller_jacobian(plant, q))
             mu, nu = conformal_parts(J[..., None, :, :] @ Jh_inv)
         bad = singular | ~np.isfinite(mu) | ~np.isfinite(nu)
         ok = ok & ~np.any(bad, axis=-1)
         return mu, nu, ok, reach
+
+    def effect_step_ratio(self, target, y: np.ndarray, theta: np.ndarray, k) -> np.ndarray:
+        """One controller step on the truth with its [effects], per pair, in the loop's frame: ``y``
+        (n, 2) and ``target`` the tracked tip and the target (the tracker's frame, ``R x + b``); the
+        true tip ``x = R^-1 (y - b)``, the encoder angles putting it there, ``dq = k Jhat^-1 (target -
+        y)`` over the controller's noise corners, the true tip after the step and its tracked reading.
+        Returns ``|y' - target| / |y - target|`` (n,), worst over the corners; ``nan`` where the truth
+        cannot reach ``x``, ``inf`` where the step leaves the limits, pulls the shaft out of the port or
+        the controller's Jacobian is singular."""
+        y = np.asarray(y, float)
+        theta = np.asarray(theta, float)
+        b = np.broadcast_to(np.asarray(target, float), y.shape)
+        k = np.broadcast_to(np.asarray(k, float), y.shape[:-1])
+        plant0 = self.plant(theta)
+        x = true_tips(plant0, y)
+        plant, q, ok, reach = self.effect_configuration(x, theta)
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            Jh_inv, sing = inv2(self.effect_controller_jacobian(plant, q))          # (n, c, 2, 2)
+            e = b - y
+            dq = k[:, None, None] * np.einsum("ncij,nj->nci", np.nan_to_num(Jh_inv), e)
+            q2 = q[:, None, :] + dq
+            c = q2.shape[1]
+            rep = plant.with_(port=np.repeat(plant.port, c, axis=0), load=np.repeat(plant.load, c, axis=0))
+            q2f = q2.reshape(-1, 2)
+            ok_lim = self.arm.within_limits(rep.link_angles_q(q2f))
+            ok_shaft = rep.shaft_reaches(rep.wrist(q2f))
+            y2 = rep.tracked(rep.tip(q2f)).reshape(-1, c, 2)
+            e0 = np.linalg.norm(e, axis=-1)
+            ratio = np.linalg.norm(y2 - b[:, None, :], axis=-1) / np.where(e0 > 0, e0, np.nan)[:, None]
+        good = (ok_lim & ok_shaft).reshape(-1, c) & ~sing & np.isfinite(ratio)
+        ratio = np.where(good, ratio, np.inf).max(axis=-1)
+        return np.where(ok, ratio, np.where(reach, np.inf, np.nan))
+
+
+def true_tips(plant: Plant, y: np.ndarray) -> np.ndarray:
+    """The true tips (..., d) whose tracked readings are ``y``: ``R^-1 (y - b)`` (the inverse of
+    :meth:`Plant.tracked`; ``y - b`` without a rotation, ``y`` itself without a registration)."""
+    y = np.asarray(y, float)
+    b = np.asarray(plant.tracker_offset, float)
+    R = tracker_rotation_matrix(plant)
+    z = y - b if np.any(b) else y
+    return z if R is None else z @ R
 
 
 def tracker_rotation_matrix(plant: Plant) -> np.ndarray | None:
@@ -327,17 +389,19 @@ class SpatialEffectsEvaluator:
                                             np.cos(psi) * f1 + np.sin(psi) * f2)
         return self.plant.with_(port=port, load=t), port
 
-    def parts(self, x: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, None, np.ndarray]:
+    def configuration(self, x: np.ndarray, theta: np.ndarray) -> tuple[Plant, np.ndarray, np.ndarray, np.ndarray]:
+        """The truth of instances ``theta`` (n, 5) putting its true tip at ``x`` (n, 3): ``(plant, port, q,
+        ok)``, ``q`` the encoder angles by Newton's method on the true forward map (started from the true
+        arm's inverse of the true shaft's wrist), ``ok`` where it converged inside the limits with the
+        shaft through the true port."""
         x = np.asarray(x, float).reshape(-1, 3)
         theta = np.broadcast_to(np.asarray(theta, float), (len(x), 5))
-        n = len(x)
-        M = np.full((n, 1 if self.noise is None else len(self.noise), 3, 3), np.nan)
         plant, port = self._plant(x, theta)
-        L = self.length  # the declared instrument (the controller's)
         r = np.linalg.norm(x - port, axis=-1)
         ok = (r > 1e-9) & (r < plant.true_length)
         with np.errstate(invalid="ignore", divide="ignore"):
-            w0 = np.where(ok[:, None], plant.true_wrist_for_tip(np.where(ok[:, None], x, port + [0, 0, 0.5 * L])), 0.0)
+            w0 = np.where(ok[:, None], plant.true_wrist_for_tip(np.where(ok[:, None], x, port + [0, 0, 0.5 * self.length])),
+                          0.0)
             q_link, ok_ik = plant.true_arm.inverse(w0)
             ok &= ok_ik
             q = np.where(ok[:, None], q_link - np.asarray(plant.joint_offset), 0.0)
@@ -353,27 +417,41 @@ class SpatialEffectsEvaluator:
             resid = np.linalg.norm(plant.tip(q) - x, axis=-1)
             ok &= (resid < 1e-10) & self.arm.within_limits(plant.link_angles_q(q))
             ok &= plant.shaft_reaches(plant.wrist(q))
-            if not np.any(ok):
-                return M, None, ok
+        return plant, port, q, ok
+
+    def controller_jacobian_at(self, pl: Plant, q: np.ndarray) -> np.ndarray:
+        """The controller's ``Jhat`` (n, c, 3, 3) at encoder angles ``q`` (n, 3) of the truth ``pl`` (one
+        port and load per row): the lever through the estimate on the declared arm's wrist, or P2's
+        controller fed the true end poses under the noise corners, times the declared arm's Jacobian."""
+        L = self.length  # the declared instrument (the controller's)
+        lever = lever_jacobian(self.arm.forward(q), np.asarray(self.estimate), L)
+        if self.jacobian == "flexion":  # P2's controller in 3-D fed the true end poses + noise corners
+            from ..kinematics.shaft import flexion_controller_jacobian
+
+            w, tip, dw, dt = pl.end_poses(q)
+            m = bending_frame(w, pl.true_port, pl.true_length, pl.shaft_load(w))
+            pw, pt, mw, mt = noisy_end_poses(w, tip, dw, dt, m, self.noise)
+            Jtw = flexion_controller_jacobian(pw, pt, mw, mt, L)
+            Jtw = np.where(np.all(np.isfinite(Jtw), axis=(-2, -1))[..., None, None], Jtw, lever[:, None])
+        else:
+            Jtw = lever[:, None]
+        return Jtw @ self.arm.jacobian(q)[:, None]  # (n, c, 3, 3)
+
+    def parts(self, x: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, None, np.ndarray]:
+        x = np.asarray(x, float).reshape(-1, 3)
+        n = len(x)
+        M = np.full((n, 1 if self.noise is None else len(self.noise), 3, 3), np.nan)
+        plant, port, q, ok = self.configuration(x, theta)
+        if not np.any(ok):
+            return M, None, ok
+        with np.errstate(invalid="ignore", divide="ignore"):
             qo = q[ok]
-            J = _fd_jacobian(plant.with_(port=port[ok], load=plant.load_vector[ok]).tip, qo)
+            pl = plant.with_(port=port[ok], load=plant.load_vector[ok])
+            J = _fd_jacobian(pl.tip, qo)
             R = tracker_rotation_matrix(plant)
             if R is not None:  # the loop closes on the tracked tip R x + b
                 J = R @ J
-            wm = self.arm.forward(qo)
-            lever = lever_jacobian(wm, np.asarray(self.estimate), L)
-            if self.jacobian == "flexion":  # P2's controller in 3-D fed the true end poses + noise corners
-                from ..kinematics.shaft import flexion_controller_jacobian
-
-                pl = plant.with_(port=port[ok], load=plant.load_vector[ok])
-                w, tip, dw, dt = pl.end_poses(qo)
-                m = bending_frame(w, pl.true_port, L, pl.shaft_load(w))
-                pw, pt, mw, mt = noisy_end_poses(w, tip, dw, dt, m, self.noise)
-                Jtw = flexion_controller_jacobian(pw, pt, mw, mt, L)
-                Jtw = np.where(np.all(np.isfinite(Jtw), axis=(-2, -1))[..., None, None], Jtw, lever[:, None])
-            else:
-                Jtw = lever[:, None]
-            Jh = Jtw @ self.arm.jacobian(qo)[:, None]  # (n, c, 3, 3)
+            Jh = self.controller_jacobian_at(pl, qo)
             det = np.linalg.det(Jh)
             fro = np.sqrt(np.sum(Jh * Jh, axis=(-2, -1)))
             nonsing = np.all(np.abs(det) > 1e-12 * fro**3, axis=-1)
@@ -385,6 +463,41 @@ class SpatialEffectsEvaluator:
         M[idx] = Mo
         M[~ok] = np.nan
         return M, None, ok
+
+    def step_ratio(self, target, y: np.ndarray, theta: np.ndarray, k) -> np.ndarray:
+        """One controller step on the truth with its [effects], per pair, in the loop's frame (``y`` (n,
+        3) the tracked tips, ``target`` (3,) or (n, 3) in the tracker's frame): as
+        :meth:`Evaluator.effect_step_ratio`, the worst over the controller's noise corners. ``nan`` where
+        the truth cannot put its tip at ``R^-1 (y - b)``, ``inf`` where the step leaves the limits, pulls
+        the shaft out of the port or the controller's Jacobian is singular."""
+        y = np.asarray(y, float).reshape(-1, 3)
+        n = len(y)
+        theta = np.broadcast_to(np.asarray(theta, float), (n, 5))
+        b = np.broadcast_to(np.asarray(target, float), y.shape)
+        k = np.broadcast_to(np.asarray(k, float), (n,))
+        out = np.full(n, np.nan)
+        x = true_tips(self.plant, y)
+        plant, port, q, ok = self.configuration(x, theta)
+        if not np.any(ok):
+            return out
+        i = np.flatnonzero(ok)
+        pl = plant.with_(port=port[i], load=plant.load_vector[i])
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            Jh = self.controller_jacobian_at(pl, q[i])                   # (m, c, 3, 3)
+            c = Jh.shape[1]
+            Jh_inv, sing = inv(Jh)
+            e = b[i] - y[i]
+            dq = k[i][:, None, None] * np.einsum("ncij,nj->nci", np.nan_to_num(Jh_inv), e)
+            q2 = (q[i][:, None, :] + dq).reshape(-1, 3)
+            rep = pl.with_(port=np.repeat(pl.port, c, axis=0), load=np.repeat(pl.load_vector, c, axis=0))
+            ok_lim = self.arm.within_limits(rep.link_angles_q(q2))
+            ok_shaft = rep.shaft_reaches(rep.wrist(q2))
+            y2 = rep.tracked(rep.tip(q2)).reshape(-1, c, 3)
+            e0 = np.linalg.norm(e, axis=-1)
+            ratio = np.linalg.norm(y2 - b[i][:, None, :], axis=-1) / np.where(e0 > 0, e0, np.nan)[:, None]
+        good = (ok_lim & ok_shaft).reshape(-1, c) & ~sing & np.isfinite(ratio)
+        out[i] = np.where(good, ratio, np.inf).max(axis=-1)
+        return out
 
 
 def bending_frame(w: np.ndarray, port: np.ndarray, L: float, t: np.ndarray) -> np.ndarray:
