@@ -356,17 +356,23 @@ def test_a_segment_certified_on_the_declared_model_is_not_on_a_truth_it_diverges
     assert not sim.monotonic
 
 
-@pytest.mark.parametrize("effects", [
-    {"link_length": {"dl1": 0.004, "dl2": -0.003}, "instrument_length": {"dL": 0.006}},
-])
-def test_every_certified_segment_of_a_plan_replays_monotonic_on_its_truth(effects, tmp_path):
+@pytest.mark.parametrize("arm", ["planar", "ur5"])
+def test_every_certified_segment_of_a_plan_replays_monotonic_on_its_truth(arm, tmp_path):
+    """Planar: longer/shorter links and a longer instrument; the UR5: joint_geometry and a longer
+    instrument, with a port box (the truth is the box's centre, the certificate covers the box)."""
     from errplan.gains import options_from_scenario, schedule_gains
     from errplan.pipeline import replay, truth_plant
     from errplan.simulation import ControllerModel
 
-    sc = _planar(effects, tmp_path)
+    if arm == "planar":
+        sc = _planar({"link_length": {"dl1": 0.004, "dl2": -0.003}, "instrument_length": {"dL": 0.006}}, tmp_path)
+        path = np.array([[0.0, 0.415], [0.03, 0.38], [0.0, 0.33], [-0.04, 0.30]])
+    else:
+        p = arm_scenario(tmp_path, "ur5", [0.103, 0.196, 0.603], [0.1, 0.2, 0.6],
+                         "[controller]\ngain = 0.9\n[uncertainty]\nport_x = [-0.002, 0.002]\n")
+        sc = load_scenario(p).with_(effects={"joint_geometry": UR5_GEOM, "instrument_length": {"dL": 0.004}})
+        path = np.array([[0.02, 0.03, 0.72], [0.05, 0.05, 0.70]])
     opts = options_from_scenario(sc)
-    path = np.array([[0.0, 0.415], [0.03, 0.38], [0.0, 0.33], [-0.04, 0.30]])
     sched = schedule_gains(sc, path, opts)
     plant = truth_plant(sc)
     ctrl = ControllerModel.from_model(arm_model(sc))
