@@ -148,6 +148,14 @@ class Evaluator:
         r = np.sqrt(d[..., 0] ** 2 + d[..., 1] ** 2)
         ok = (r > 1e-9) & (r < L)
         xs = np.where(ok[..., None], x, port + [0.0, 0.5 * L])
+        if self.closed_form:  # the true shaft's wrist, the true arm's inverse: exact, no Newton
+            t = np.where(ok, theta[..., 2], 0.0)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                w = lever_wrist(xs, port, L) if not np.any(t != 0) else flexed_wrist(xs, port, L, t)
+                q_link, ok_ik = plant.true_arm.inverse(np.where(ok[..., None], w, 0.0))
+            ok &= ok_ik
+            q = np.where(ok[..., None], q_link - np.asarray(plant.joint_offset), 0.0)
+            return plant, q, ok, ok.copy()
         with np.errstate(invalid="ignore", divide="ignore"):
             w0 = flexed_wrist(xs, port, L, plant.shaft_load(lever_wrist(xs, port, L)))
             q_link, ok_ik = plant.true_arm.inverse(w0)
@@ -163,6 +171,26 @@ class Evaluator:
             ok &= (resid < 1e-10) & self.arm.within_limits(plant.link_angles_q(q))
             ok &= plant.shaft_reaches(plant.wrist(q))
         return plant, np.where(ok[..., None], q, 0.0), ok, reach
+
+    @property
+    def closed_form(self) -> bool:
+        """True when no effect moves the links against the encoders in a way only Newton's method
+        solves (``gravity_sag``, a world tip load): the encoder angles are the true arm's inverse of the
+        true shaft's wrist, less ``joint_offset``, and ``J`` is exact (:meth:`true_jacobian`)."""
+        return not any(k in self.effects for k in ("gravity_sag", "world_load"))
+
+    def true_jacobian(self, plant: Plant, q: np.ndarray, theta: np.ndarray) -> np.ndarray:
+        """``J = d tip / d q_enc`` (..., 2, 2) of the truth at encoder angles ``q``: exact where
+        :attr:`closed_form` (the true shaft's Jacobian at the true wrist times the true arm's),
+        central differences of the true forward map otherwise."""
+        if not self.closed_form:
+            return _fd_jacobian(plant.tip, q)
+        ql = q + np.asarray(plant.joint_offset)
+        w = plant.true_arm.forward(ql)
+        t = np.broadcast_to(np.asarray(theta, float)[..., 2], w.shape[:-1])
+        Jtw = lever_jacobian(w, plant.true_port, plant.true_length) if not np.any(t != 0) else \
+            flexed_jacobian(w, plant.true_port, plant.true_length, t)
+        return Jtw @ plant.true_arm.jacobian(ql)
 
     def effect_controller_jacobian(self, plant: Plant, q: np.ndarray) -> np.ndarray:
         """The controller's ``Jhat`` (..., c, 2, 2) at encoder angles ``q``: its (declared) model at the
@@ -190,7 +218,7 @@ class Evaluator:
         Returns the conformal parts ``(mu, nu)`` (..., c), validity and the truth's reach (...)."""
         plant, q, ok, reach = self.effect_configuration(x, theta)
         with np.errstate(invalid="ignore", divide="ignore"):
-            J = _fd_jacobian(plant.tip, q)
+            J = self.true_jacobian(plant, q, theta)
             R = tracker_rotation_matrix(plant)
             if R is not None:
                 J = R @ J
@@ -405,6 +433,8 @@ class SpatialEffectsEvaluator:
             q_link, ok_ik = plant.true_arm.inverse(w0)
             ok &= ok_ik
             q = np.where(ok[:, None], q_link - np.asarray(plant.joint_offset), 0.0)
+            if self.closed_form:  # the true wrist (under the world load) and the true arm's inverse: exact
+                return plant, port, q, ok
             for _ in range(EFFECT_NEWTON_ITERS):
                 f = plant.tip(q) - x
                 J = _fd_jacobian(plant.tip, q)
@@ -418,6 +448,23 @@ class SpatialEffectsEvaluator:
             ok &= (resid < 1e-10) & self.arm.within_limits(plant.link_angles_q(q))
             ok &= plant.shaft_reaches(plant.wrist(q))
         return plant, port, q, ok
+
+    @property
+    def closed_form(self) -> bool:
+        """True without ``gravity_sag`` (the only effect whose link angles need Newton's method): the
+        encoder angles are the true arm's inverse of the true wrist less ``joint_offset`` and ``J`` is
+        exact (:meth:`true_jacobian`)."""
+        return not any(self.plant.gravity_sag)
+
+    def true_jacobian(self, pl: Plant, q: np.ndarray) -> np.ndarray:
+        """``J = d tip / d q_enc`` (n, 3, 3) of the truth ``pl`` (one port and load per row) at encoder
+        angles ``q``: the true flexed shaft's Jacobian at the true wrist times the true arm's where
+        :attr:`closed_form`, central differences of the true forward map otherwise."""
+        if not self.closed_form:
+            return _fd_jacobian(pl.tip, q)
+        ql = pl.link_angles_q(q)
+        w = pl.true_arm.forward(ql)
+        return flexed_jacobian(w, pl.true_port, pl.true_length, pl.shaft_load(w)) @ pl.true_arm.jacobian(ql)
 
     def controller_jacobian_at(self, pl: Plant, q: np.ndarray) -> np.ndarray:
         """The controller's ``Jhat`` (n, c, 3, 3) at encoder angles ``q`` (n, 3) of the truth ``pl`` (one
@@ -447,7 +494,7 @@ class SpatialEffectsEvaluator:
         with np.errstate(invalid="ignore", divide="ignore"):
             qo = q[ok]
             pl = plant.with_(port=port[ok], load=plant.load_vector[ok])
-            J = _fd_jacobian(pl.tip, qo)
+            J = self.true_jacobian(pl, qo)
             R = tracker_rotation_matrix(plant)
             if R is not None:  # the loop closes on the tracked tip R x + b
                 J = R @ J
