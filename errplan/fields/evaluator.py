@@ -132,7 +132,12 @@ class Evaluator:
 
     def plant(self, theta: np.ndarray) -> Plant:
         """The truth of instance(s) ``theta`` with the scenario's effects."""
-        return Plant(self.arm, self.length, self.errors.port(theta), theta[..., 2], **self.effects)
+        out = Plant(self.arm, self.length, self.errors.port(theta), theta[..., 2], **self.effects)
+        arm = self.__dict__.get("_true_arm")
+        if arm is None:
+            arm = self.__dict__["_true_arm"] = out.true_arm
+        out.__dict__["true_arm"] = arm
+        return out
 
     def effect_configuration(self, x: np.ndarray, theta: np.ndarray):
         """The truth of instances ``theta`` putting its true tip at ``x`` (..., 2): ``(plant, q, ok,
@@ -271,6 +276,15 @@ def true_tips(plant: Plant, y: np.ndarray) -> np.ndarray:
     return z if R is None else z @ R
 
 
+def _with(plant: Plant, **changes) -> Plant:
+    """``plant.with_(**changes)`` keeping its true arm once built (a perturbed URDF arm is built from the
+    URDF's joint origins: once per evaluator, not once per batch)."""
+    out = plant.with_(**changes)
+    if "true_arm" in plant.__dict__:
+        out.__dict__["true_arm"] = plant.__dict__["true_arm"]
+    return out
+
+
 def tracker_rotation_matrix(plant: Plant) -> np.ndarray | None:
     """The rotation ``R`` (d, d) of the truth's tracker registration (the tracked tip is ``R x + b``),
     or None without one: the loop's matrix is ``G = I - k R J Jhat^-1`` (docs/physics.md "From measured
@@ -402,20 +416,32 @@ class SpatialEffectsEvaluator:
     def length(self) -> float:
         return self.plant.length
 
-    def _plant(self, x: np.ndarray, theta: np.ndarray) -> tuple[Plant, np.ndarray]:
-        """The truth of instance(s) ``theta`` (n, 5) at tips ``x`` (n, 3): port and load vectors."""
+    def _plant(self, x: np.ndarray, theta: np.ndarray, wrist: bool = False):
+        """The truth of instance(s) ``theta`` (n, 5) at tips ``x`` (n, 3): ``(plant, port)`` with one port and
+        load vector per row; ``wrist``: also the wrist (n, 3) that puts the true shaft's tip at ``x`` under
+        the instance's load alone (the lever's where unloaded; NaN where the shaft cannot reach ``x``)."""
         port = np.asarray(self.errors.base_port) + theta[:, :3]
         tau = theta[:, 3]
         t = np.zeros_like(x)
         bent = tau > 0
+        L = self.plant.true_length
+        self.plant.true_arm  # built once, kept by every copy (_with)
+        w = None
+        if wrist:
+            with np.errstate(invalid="ignore", divide="ignore"):
+                d = x - port
+                w = x - L * d / np.linalg.norm(d, axis=-1, keepdims=True)
         if np.any(bent):
             e = x[bent] - port[bent]
             e1 = e / np.linalg.norm(e, axis=-1, keepdims=True)
             f1, f2 = _perp_basis(e1)
             psi = theta[bent, 4][:, None]
-            _, t[bent] = flexed_wrist_plane(x[bent], port[bent], self.plant.true_length, tau[bent],
-                                            np.cos(psi) * f1 + np.sin(psi) * f2)
-        return self.plant.with_(port=port, load=t), port
+            with np.errstate(invalid="ignore", divide="ignore"):
+                wb, t[bent] = flexed_wrist_plane(x[bent], port[bent], L, tau[bent], np.cos(psi) * f1 + np.sin(psi) * f2)
+            if wrist:
+                w[bent] = wb
+        pl = _with(self.plant, port=port, load=t)
+        return (pl, port, w) if wrist else (pl, port)
 
     def configuration(self, x: np.ndarray, theta: np.ndarray) -> tuple[Plant, np.ndarray, np.ndarray, np.ndarray]:
         """The truth of instances ``theta`` (n, 5) putting its true tip at ``x`` (n, 3): ``(plant, port, q,
@@ -424,12 +450,16 @@ class SpatialEffectsEvaluator:
         shaft through the true port."""
         x = np.asarray(x, float).reshape(-1, 3)
         theta = np.broadcast_to(np.asarray(theta, float), (len(x), 5))
-        plant, port = self._plant(x, theta)
+        plant, port, w_inst = self._plant(x, theta, wrist=True)
         r = np.linalg.norm(x - port, axis=-1)
         ok = (r > 1e-9) & (r < plant.true_length)
         with np.errstate(invalid="ignore", divide="ignore"):
-            w0 = np.where(ok[:, None], plant.true_wrist_for_tip(np.where(ok[:, None], x, port + [0, 0, 0.5 * self.length])),
-                          0.0)
+            if any(self.plant.world_load):  # the instance's load and the world's: Newton on the wrist
+                w0 = plant.true_wrist_for_tip(np.where(ok[:, None], x, port + [0, 0, 0.5 * self.length]))
+            else:  # the instance's load alone: its wrist is exact
+                w0 = w_inst
+            ok &= np.all(np.isfinite(w0), axis=-1)
+            w0 = np.where(ok[:, None], w0, 0.0)
             q_link, ok_ik = plant.true_arm.inverse(w0)
             ok &= ok_ik
             q = np.where(ok[:, None], q_link - np.asarray(plant.joint_offset), 0.0)
@@ -493,7 +523,7 @@ class SpatialEffectsEvaluator:
             return M, None, ok
         with np.errstate(invalid="ignore", divide="ignore"):
             qo = q[ok]
-            pl = plant.with_(port=port[ok], load=plant.load_vector[ok])
+            pl = _with(plant, port=port[ok], load=plant.load_vector[ok])
             J = self.true_jacobian(pl, qo)
             R = tracker_rotation_matrix(plant)
             if R is not None:  # the loop closes on the tracked tip R x + b
@@ -528,7 +558,7 @@ class SpatialEffectsEvaluator:
         if not np.any(ok):
             return out
         i = np.flatnonzero(ok)
-        pl = plant.with_(port=port[i], load=plant.load_vector[i])
+        pl = _with(plant, port=port[i], load=plant.load_vector[i])
         with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
             Jh = self.controller_jacobian_at(pl, q[i])                   # (m, c, 3, 3)
             c = Jh.shape[1]
@@ -536,7 +566,7 @@ class SpatialEffectsEvaluator:
             e = b[i] - y[i]
             dq = k[i][:, None, None] * np.einsum("ncij,nj->nci", np.nan_to_num(Jh_inv), e)
             q2 = (q[i][:, None, :] + dq).reshape(-1, 3)
-            rep = pl.with_(port=np.repeat(pl.port, c, axis=0), load=np.repeat(pl.load_vector, c, axis=0))
+            rep = _with(pl, port=np.repeat(pl.port, c, axis=0), load=np.repeat(pl.load_vector, c, axis=0))
             ok_lim = self.arm.within_limits(rep.link_angles_q(q2))
             ok_shaft = rep.shaft_reaches(rep.wrist(q2))
             y2 = rep.tracked(rep.tip(q2)).reshape(-1, c, 3)
