@@ -381,3 +381,49 @@ def test_every_certified_segment_of_a_plan_replays_monotonic_on_its_truth(arm, t
     for s in certified:
         rep = replay(plant, ctrl, s.start, [s.end], [float(s.gain)], opts)
         assert rep.sim.monotonic, f"segment {s.start} -> {s.end} certified at k = {s.gain:.3f}, not monotonic on the truth"
+
+
+def test_the_exact_path_equals_newton_on_the_full_forward_map_under_loads():
+    """Under the error set's tip loads (3-D: a load vector per instance) the exact path (the loaded shaft's
+    wrist, the true arm's inverse, the analytic J) gives the maps Newton's method on the true forward map
+    with finite-difference Jacobians gives (the general path, kept for gravity sag)."""
+    from errplan.fields.evaluator import Evaluator, SpatialEffectsEvaluator
+
+    class Newton(SpatialEffectsEvaluator):
+        closed_form = False
+
+    sc = load_scenario(PHANTOM).with_(effects={"joint_geometry": {"dy_2": 0.002, "rz_2": 0.008, "dz_3": 0.003},
+                                                "instrument_length": {"dL": 0.004},
+                                                "tracker_registration": {"rz": 0.02, "by": 0.001}})
+    m = arm_model(sc)
+    ev = SpatialEffectsEvaluator.from_model(m)
+    nw = Newton(ev.plant, ev.estimate, ev.errors, ev.jacobian)
+    rng = np.random.default_rng(3)
+    x = np.array([0.0, 0.0, 0.36]) + rng.uniform(-0.04, 0.04, (12, 3))
+    th = np.column_stack([rng.uniform(-0.005, 0.005, (12, 3)), rng.uniform(0.0, 1.0, 12), rng.uniform(0, 6.28, 12)])
+    M1, _, ok1 = ev.parts(x, th)
+    M2, _, ok2 = nw.parts(x, th)
+    assert ok1.sum() >= 10 and np.array_equal(ok1, ok2)
+    np.testing.assert_allclose(M1[ok1], M2[ok2], atol=1e-7)
+
+    class Newton2(Evaluator):
+        closed_form = False
+
+    sp = _planar_scenario_with_load()
+    e1 = Evaluator.from_model(arm_model(sp))
+    e2 = Newton2(e1.arm, e1.length, e1.estimate, e1.jacobian, e1.errors, e1.effects)
+    xp = np.array([0.0, 0.36]) + rng.uniform(-0.05, 0.05, (12, 2))
+    tp = np.column_stack([rng.uniform(-0.005, 0.005, (12, 2)), rng.uniform(-1.0, 1.0, 12)])
+    a = e1.parts_reach(xp, tp)
+    b = e2.parts_reach(xp, tp)
+    assert a[2].sum() >= 10 and np.array_equal(a[2], b[2])
+    np.testing.assert_allclose(a[0][a[2]], b[0][b[2]], atol=1e-7)
+    np.testing.assert_allclose(a[1][a[2]], b[1][b[2]], atol=1e-7)
+
+
+def _planar_scenario_with_load():
+    sc = load_scenario(PLANAR)
+    return sc.with_(uncertainty=replace(sc.uncertainty, port_y=(-0.005, 0.005), port_z=(-0.005, 0.005),
+                                        tip_force_over_ei=(-1.0, 1.0)),
+                    effects={"link_length": {"dl1": 0.003, "dl2": -0.002}, "instrument_length": {"dL": 0.005},
+                             "joint_offset": {"dq1": 0.01, "dq2": -0.005}, "tracker_registration": {"rx": 0.03}})
