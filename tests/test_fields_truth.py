@@ -427,3 +427,37 @@ def _planar_scenario_with_load():
                                         tip_force_over_ei=(-1.0, 1.0)),
                     effects={"link_length": {"dl1": 0.003, "dl2": -0.002}, "instrument_length": {"dL": 0.005},
                              "joint_offset": {"dq1": 0.01, "dq2": -0.005}, "tracker_registration": {"rx": 0.03}})
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_a_tracker_registration_certificate_is_the_rotated_loops(dim, tmp_path):
+    """With a perfect model but for a tracker registered with a rotation R (angle a), J Jhat^-1 = I and the
+    loop's matrix is I - k R: every pair of the ball has ||G|| = max(|1 - k e^{ia}|, |1 - k| in 3-D), and the
+    one-step replay in the tracker's frame contracts by that much in a small ball (the lever's curvature
+    adds to it in a large one, with or without a registration)."""
+    from errplan.fields import Evaluator
+    from errplan.gains import SpatialModel, options_from_scenario
+    from errplan.gains.verify import verify_segment
+
+    a, k = 0.35, 1.2
+    if dim == 2:
+        sc = _planar({"tracker_registration": {"rx": a, "by": 0.002, "bz": -0.001}}, tmp_path)
+        sc = sc.with_(port=replace(sc.port, estimate=sc.port.position))
+        ev = Evaluator.from_model(arm_model(sc))
+        s, b = np.array([0.0, 0.37]), np.array([0.0004, 0.37])
+    else:
+        p = arm_scenario(tmp_path, "ur5", [0.103, 0.196, 0.603], [0.103, 0.196, 0.603], "[controller]\ngain = 0.9\n")
+        axis = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
+        r = a * axis
+        sc = load_scenario(p).with_(effects={"tracker_registration": {"rx": r[0], "ry": r[1], "rz": r[2],
+                                                                     "bx": 0.001, "by": 0.0, "bz": -0.002}})
+        ev = SpatialModel.from_model(arm_model(sc))
+        s, b = np.array([0.02, 0.03, 0.72]), np.array([0.0204, 0.03, 0.72])
+    expect = max(abs(1 - k * np.exp(1j * a)), abs(1 - k) if dim == 3 else 0.0)
+    res = verify_segment(ev, s, b, k, 0.0005, options_from_scenario(sc))
+    assert res["reachable_tip_share"] == 1.0
+    assert abs(res["G_norm"] - expect) < 1e-9
+    assert abs(res["step_ratio"] - expect) < 0.02
+    no = verify_segment(Evaluator.from_model(arm_model(sc.with_(effects={}))) if dim == 2 else
+                        SpatialModel.from_model(arm_model(sc.with_(effects={}))), s, b, k, 0.0005, options_from_scenario(sc))
+    assert abs(no["G_norm"] - abs(1 - k)) < 1e-9
