@@ -133,10 +133,11 @@ class Evaluator:
     def plant(self, theta: np.ndarray) -> Plant:
         """The truth of instance(s) ``theta`` with the scenario's effects."""
         out = Plant(self.arm, self.length, self.errors.port(theta), theta[..., 2], **self.effects)
-        arm = self.__dict__.get("_true_arm")
-        if arm is None:
-            arm = self.__dict__["_true_arm"] = out.true_arm
-        out.__dict__["true_arm"] = arm
+        key = (id(self.arm), out.link_length)  # the true arm, built once per arm and link lengths
+        kept = self.__dict__.get("_true_arm")
+        if kept is None or kept[0] != key:
+            kept = self.__dict__["_true_arm"] = (key, out.true_arm)
+        out.__dict__["true_arm"] = kept[1]
         return out
 
     def effect_configuration(self, x: np.ndarray, theta: np.ndarray):
