@@ -461,3 +461,25 @@ def test_a_tracker_registration_certificate_is_the_rotated_loops(dim, tmp_path):
     no = verify_segment(Evaluator.from_model(arm_model(sc.with_(effects={}))) if dim == 2 else
                         SpatialModel.from_model(arm_model(sc.with_(effects={}))), s, b, k, 0.0005, options_from_scenario(sc))
     assert abs(no["G_norm"] - abs(1 - k)) < 1e-9
+
+
+def test_a_plan_on_a_registered_tracker_replays_monotonic_in_the_trackers_frame(tmp_path):
+    """With a tracker registration the loop closes on the tracked tip R x + b: the certificate bounds that
+    error, and the certified plan's replay on the truth shrinks it at every step (the true tip's distance to
+    the target is not what the loop drives to zero)."""
+    from errplan.gains import options_from_scenario, schedule_gains
+    from errplan.pipeline import replay, truth_plant
+    from errplan.simulation import ControllerModel
+
+    sc = _planar({"tracker_registration": {"rx": 0.03, "by": 0.001, "bz": -0.0005},
+                  "link_length": {"dl1": 0.002, "dl2": 0.0}}, tmp_path)
+    opts = options_from_scenario(sc)
+    path = np.array([[0.0, 0.415], [0.02, 0.37], [0.0, 0.32]])
+    sched = schedule_gains(sc, path, opts)
+    assert sched.certified
+    plant = truth_plant(sc)
+    sim = replay(plant, ControllerModel.from_model(arm_model(sc)), path[0], sched.waypoints, sched.gains, opts).sim
+    e = np.linalg.norm(sim.target - sim.tracked, axis=-1)
+    same = sim.segment[1:] == sim.segment[:-1]
+    assert sim.converged and np.all(e[1:][same] <= e[:-1][same] * (1 + 1e-9) + 1e-12)
+    np.testing.assert_allclose(sim.tracked, plant.tracked(sim.tip), atol=1e-15)  # noise-free: R x + b
