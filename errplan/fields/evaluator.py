@@ -3,6 +3,7 @@ conformal parts of ``M = J Jhat^-1`` (planar), including P2's flexion controller
 ``[effects]``. The reference the compiled kernels (:mod:`.kernels`) are tested against."""
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass, field
 
@@ -278,11 +279,17 @@ def true_tips(plant: Plant, y: np.ndarray) -> np.ndarray:
 
 
 def _with(plant: Plant, **changes) -> Plant:
-    """``plant.with_(**changes)`` keeping its true arm once built (a perturbed URDF arm is built from the
-    URDF's joint origins: once per evaluator, not once per batch)."""
-    out = plant.with_(**changes)
-    if "true_arm" in plant.__dict__:
-        out.__dict__["true_arm"] = plant.__dict__["true_arm"]
+    """``plant.with_(**changes)`` for ``port`` and ``load`` (one per row), keeping its true arm once built (a
+    perturbed URDF arm is built from the URDF's joint origins: once per evaluator, not once per batch). A
+    shallow copy: the fields it changes need none of the checks of a new Plant's construction."""
+    if set(changes) - {"port", "load"}:
+        out = plant.with_(**changes)
+        if "true_arm" in plant.__dict__:
+            out.__dict__["true_arm"] = plant.__dict__["true_arm"]
+        return out
+    out = copy.copy(plant)  # the cached true arm comes along in __dict__
+    for name, value in changes.items():
+        object.__setattr__(out, name, value)
     return out
 
 
