@@ -155,8 +155,41 @@ def spatial_noise_corners(position: float, angle: float, azimuths: int = 4,
     return np.array(rows, float)
 
 
-# The effects that change the true Jacobian at a tip (the others move the measurement only).
-JACOBIAN_EFFECTS = ("port_offset", "joint_offset", "gravity_sag", "world_load")
+# The effects that change the true Jacobian at a tip, or the frame the loop closes in (planar Plant
+# keyword arguments; the others move the measurement only). ``tracker_rotation``: the rotation of a
+# ``tracker_registration`` (the controller closes the loop on ``R x + b``: ``G = I - k R J Jhat^-1``).
+JACOBIAN_EFFECTS = ("port_offset", "joint_offset", "gravity_sag", "world_load", "link_length", "instrument_length",
+                    "tracker_rotation")
+#: the spatial [effects] tables that change the true Jacobian or the loop's frame (``port_offset`` folded
+#: into the error set's base port); ``tracker_offset`` (a constant b) changes neither
+SPATIAL_JACOBIAN_EFFECTS = ("joint_offset", "gravity_sag", "shaft_flexion", "joint_geometry", "instrument_length",
+                            "tracker_registration")
+#: every effect the metrics express: the fields and the gain certificates take them into J, Jhat or R;
+#: an effect outside this list (history- or motion-dependent: backlash, port_friction, a tracker latency,
+#: or any effect added later) is simulated but not certified (:func:`uncovered_effects`)
+EXPRESSIBLE_EFFECTS = ("port_offset", "joint_offset", "gravity_sag", "shaft_flexion", "tracker_offset",
+                       "link_length", "joint_geometry", "instrument_length", "tracker_registration")
+
+
+def _nonzero(params) -> bool:
+    """True when an effect table has some parameter that is not zero (a zero effect is no effect)."""
+    for v in dict(params).values():
+        try:
+            if float(v) != 0.0:
+                return True
+        except (TypeError, ValueError):
+            return True
+    return False
+
+
+def uncovered_effects(sc) -> list[str]:
+    """The sorted names of the scenario truth's ``[effects]`` that the metrics cannot express (every
+    effect but those of :data:`EXPRESSIBLE_EFFECTS`; an effect whose parameters are all zero is none):
+    the fields and gain certificates hold for the truth without them, the simulation has them. A plan
+    on such a scenario says its certificate does not cover them (docs/physics.md "From measured data
+    to the plan")."""
+    return sorted(name for name, p in (getattr(sc, "effects", None) or {}).items()
+                  if name not in EXPRESSIBLE_EFFECTS and _nonzero(p))
 
 #: every effect the metrics express: the fields and the gain certificates take them into J, Jhat or R;
 #: an effect outside this list (history- or motion-dependent: backlash, port_friction, a tracker latency,
@@ -188,8 +221,9 @@ def uncovered_effects(sc) -> list[str]:
 
 def error_set(sc, es: ErrorSet | None = None) -> tuple[ErrorSet, dict]:
     """The scenario's error set (``es``, default from its tables) with a ``port_offset`` effect folded
-    into the true port, and the remaining effects that change the true Jacobian (Plant keyword arguments).
-    An :class:`errplan.models.ArmModel` answers with what it was built with."""
+    into the true port, and the remaining effects that change the true Jacobian or the loop's frame
+    (planar: Plant keyword arguments; spatial: the effect tables). An empty mapping: a truth the
+    compiled kernels cover. An :class:`errplan.models.ArmModel` answers with what it was built with."""
     from dataclasses import replace
 
     from .kinematics.truth import effect_kwargs
@@ -198,11 +232,15 @@ def error_set(sc, es: ErrorSet | None = None) -> tuple[ErrorSet, dict]:
         return sc.true_errors, dict(sc.jacobian_effects)
     es = es or ErrorSet.from_tables(sc.port, sc.uncertainty, sc.dim)
     if sc.dim == 2:
-        kw = {k: v for k, v in effect_kwargs(sc.effects).items() if k in JACOBIAN_EFFECTS and any(x != 0 for x in v)}
+        allkw = effect_kwargs(sc.effects)
+        kw = {k: v for k, v in allkw.items() if k in JACOBIAN_EFFECTS and any(x != 0 for x in v)}
+        if "tracker_rotation" in kw and "tracker_offset" in allkw:  # the loop's frame: R x + b, b with it
+            kw["tracker_offset"] = allkw["tracker_offset"]
         off = kw.pop("port_offset", None)
     else:
         kw = {name: p for name, p in sc.effects.items()
-              if name in ("joint_offset", "gravity_sag", "shaft_flexion") and any(v != 0 for v in p.values())}
+              if name in SPATIAL_JACOBIAN_EFFECTS and any(v != 0 for k, v in p.items()
+                                                          if name != "tracker_registration" or k[0] == "r")}
         po = sc.effects.get("port_offset")
         off = tuple(po[a] for a in ("dx", "dy", "dz")) if po else None
     if off is not None:

@@ -7,7 +7,8 @@ independent task (:func:`errplan.cluster.map_tasks`: in process, local worker pr
 dask cluster, identical arrays either way). A tile runs the compiled kernel
 (:mod:`.kernels`) for the rigid controller without Jacobian-changing effects, in the plane and in
 3-D, and the numpy search (:mod:`.search`) for P2's flexion controller (in 3-D over compiled physics,
-:mod:`.kernels.flexion`) or a truth with ``[effects]`` that move the arm.
+:mod:`.kernels.flexion`) or a truth with ``[effects]`` that change J, Jhat or the loop's frame (the arm's
+geometry, the instrument's length, a tracker registration, joint offsets, gravity sag, a world load).
 """
 from __future__ import annotations
 
@@ -257,7 +258,8 @@ class KernelEvaluator:
         self.errors, effects = error_set(sc)
         if sc.controller.jacobian != "rigid" or effects:
             raise ErrplanError(f"{sc.source}: the compiled evaluator covers the rigid controller without "
-                               f"[effects] that move the arm (has {sc.controller.jacobian!r}, {sorted(effects)})")
+                               f"[effects] that change the true Jacobian, the controller's or the loop's frame "
+                               f"(has {sc.controller.jacobian!r}, {sorted(effects)})")
         self.dim = sc.dim
         self.length = float(sc.instrument.length)
         self.estimate = tuple(sc.port.estimate)

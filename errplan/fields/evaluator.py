@@ -3,6 +3,7 @@ conformal parts of ``M = J Jhat^-1`` (planar), including P2's flexion controller
 ``[effects]``. The reference the compiled kernels (:mod:`.kernels`) are tested against."""
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass, field
 
@@ -14,7 +15,7 @@ from ..kinematics.compiled import _reachable_kernel, _wrist2_kernel
 from ..kinematics.shaft import (estimate_from_ends, flexed_end_angles, flexed_jacobian, flexed_wrist,
                                 flexed_wrist_plane, lever_jacobian, lever_parts, lever_wrist)
 from ..kinematics.truth import Plant
-from ..metrics import conformal_parts, compose_parts, inv2, inverse_parts
+from ..metrics import conformal_parts, compose_parts, inv, inv2, inverse_parts
 from ..errorset import JACOBIAN_EFFECTS, ErrorSet  # noqa: F401  (JACOBIAN_EFFECTS: re-exported by errplan.fields)
 
 
@@ -101,8 +102,7 @@ class Evaluator:
     def parts_reach(self, x: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """:meth:`parts` and the truth's reach of :meth:`true_wrist` (...), the true wrist solved once."""
         if self.effects:
-            mu, nu, ok = self._effect_parts(np.asarray(x, float), np.asarray(theta, float))
-            return mu, nu, ok, self.true_wrist(x, theta)[1]
+            return self._effect_parts(np.asarray(x, float), np.asarray(theta, float))
         w, ok = self.true_wrist(x, theta)
         reach = ok
         wsafe = np.where(ok[..., None], w, np.asarray(self.arm.base))
@@ -121,26 +121,53 @@ class Evaluator:
         ok = ok & ~np.any(bad, axis=-1)
         return mu, nu, ok, reach
 
+    def parts_tracked(self, y: np.ndarray, theta: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`parts_reach` at the tips whose tracked readings are ``y`` (the loop's frame, what a
+        gain certificate's ball is drawn in): the true tips ``R^-1 (y - b)`` of a truth with a tracker
+        registration, ``y`` itself otherwise."""
+        y = np.asarray(y, float)
+        if self.effects and "tracker_rotation" in self.effects:
+            y = true_tips(self.plant(np.broadcast_to(theta, y.shape[:-1] + (3,))), y)
+        return self.parts_reach(y, theta)
+
     def plant(self, theta: np.ndarray) -> Plant:
         """The truth of instance(s) ``theta`` with the scenario's effects."""
-        return Plant(self.arm, self.length, self.errors.port(theta), theta[..., 2], **self.effects)
+        out = Plant(self.arm, self.length, self.errors.port(theta), theta[..., 2], **self.effects)
+        key = (id(self.arm), out.link_length)  # the true arm, built once per arm and link lengths
+        kept = self.__dict__.get("_true_arm")
+        if kept is None or kept[0] != key:
+            kept = self.__dict__["_true_arm"] = (key, out.true_arm)
+        out.__dict__["true_arm"] = kept[1]
+        return out
 
-    def _effect_parts(self, x: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """General path for a truth with [effects] (joint offsets, gravity sag, world tip load, port
-        offset): the arm Jacobian no longer cancels. Encoder angles putting the true tip at ``x``
-        by Newton's method on the full forward map, true ``J = d tip/d q_enc`` by central
-        differences, ``Jhat`` from the controller model at the encoder angles."""
+    def effect_configuration(self, x: np.ndarray, theta: np.ndarray):
+        """The truth of instances ``theta`` putting its true tip at ``x`` (..., 2): ``(plant, q, ok,
+        reach)``, ``q`` the encoder angles by Newton's method on the true forward map (started from the
+        true arm's inverse of the true shaft's wrist; 0 where ``ok`` is False), ``ok`` where it
+        converged inside the limits with the shaft through the true port, ``reach`` the truth's reach
+        (the shaft through the true port and the true arm's inverse of its wrist within the limits)."""
         theta = np.broadcast_to(theta, x.shape[:-1] + (3,))
         plant = self.plant(theta)
         port = plant.true_port
+        L = plant.true_length
         d = x - port
         r = np.sqrt(d[..., 0] ** 2 + d[..., 1] ** 2)
-        ok = (r > 1e-9) & (r < self.length)
-        xs = np.where(ok[..., None], x, port + [0.0, 0.5 * self.length])
-        with np.errstate(invalid="ignore", divide="ignore"):
-            w0 = flexed_wrist(xs, port, self.length, plant.shaft_load(lever_wrist(xs, port, self.length)))
-            q_link, ok_ik = self.arm.inverse(w0)
+        ok = (r > 1e-9) & (r < L)
+        xs = np.where(ok[..., None], x, port + [0.0, 0.5 * L])
+        if self.closed_form:  # the true shaft's wrist, the true arm's inverse: exact, no Newton
+            t = np.where(ok, theta[..., 2], 0.0)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                w = lever_wrist(xs, port, L) if not np.any(t != 0) else flexed_wrist(xs, port, L, t)
+                q_link, ok_ik = plant.true_arm.inverse(np.where(ok[..., None], w, 0.0))
             ok &= ok_ik
+            q = np.where(ok[..., None], q_link - np.asarray(plant.joint_offset), 0.0)
+            return plant, q, ok, ok.copy()
+        with np.errstate(invalid="ignore", divide="ignore"):
+            w0 = flexed_wrist(xs, port, L, plant.shaft_load(lever_wrist(xs, port, L)))
+            q_link, ok_ik = plant.true_arm.inverse(w0)
+            ok &= ok_ik
+            reach = ok.copy()
             q = np.where(ok[..., None], q_link - np.asarray(plant.joint_offset), 0.0)
             for _ in range(EFFECT_NEWTON_ITERS):
                 f = plant.tip(q) - xs
@@ -150,25 +177,135 @@ class Evaluator:
             resid = np.linalg.norm(plant.tip(q) - xs, axis=-1)
             ok &= (resid < 1e-10) & self.arm.within_limits(plant.link_angles_q(q))
             ok &= plant.shaft_reaches(plant.wrist(q))
-            q = np.where(ok[..., None], q, 0.0)
-            J = _fd_jacobian(plant.tip, q)
-            Jr = self.arm.jacobian(q)
-            if self.jacobian == "rigid":
-                Jh = (lever_jacobian(self.arm.forward(q), np.asarray(self.estimate), self.length) @ Jr)[..., None, :, :]
-            else:
-                w, tip, thw, tht = plant.end_poses(q)
-                nc = self.errors.noise_corners()
-                pw = w[..., None, :] + nc[:, 0:2]
-                est = estimate_from_ends(pw, tip[..., None, :] + nc[:, 2:4], thw[..., None] + nc[:, 4],
-                                         tht[..., None] + nc[:, 5], self.length)
-                Jh = flexed_jacobian(pw, est["port"], self.length, est["t"]) @ Jr[..., None, :, :]
-                lever = lever_jacobian(self.arm.forward(q), np.asarray(self.estimate), self.length) @ Jr
-                Jh = np.where(np.all(np.isfinite(Jh), axis=(-2, -1))[..., None, None], Jh, lever[..., None, :, :])
-            Jh_inv, singular = inv2(Jh)
+        return plant, np.where(ok[..., None], q, 0.0), ok, reach
+
+    @property
+    def closed_form(self) -> bool:
+        """True when no effect moves the links against the encoders in a way only Newton's method
+        solves (``gravity_sag``, a world tip load): the encoder angles are the true arm's inverse of the
+        true shaft's wrist, less ``joint_offset``, and ``J`` is exact (:meth:`true_jacobian`)."""
+        return not any(k in self.effects for k in ("gravity_sag", "world_load"))
+
+    def true_jacobian(self, plant: Plant, q: np.ndarray, theta: np.ndarray) -> np.ndarray:
+        """``J = d tip / d q_enc`` (..., 2, 2) of the truth at encoder angles ``q``: exact where
+        :attr:`closed_form` (the true shaft's Jacobian at the true wrist times the true arm's),
+        central differences of the true forward map otherwise."""
+        if not self.closed_form:
+            return _fd_jacobian(plant.tip, q)
+        ql = q + np.asarray(plant.joint_offset)
+        w = plant.true_arm.forward(ql)
+        t = np.broadcast_to(np.asarray(theta, float)[..., 2], w.shape[:-1])
+        Jtw = lever_jacobian(w, plant.true_port, plant.true_length) if not np.any(t != 0) else \
+            flexed_jacobian(w, plant.true_port, plant.true_length, t)
+        return Jtw @ plant.true_arm.jacobian(ql)
+
+    def effect_controller_jacobian(self, plant: Plant, q: np.ndarray) -> np.ndarray:
+        """The controller's ``Jhat`` (..., c, 2, 2) at encoder angles ``q``: its (declared) model at the
+        same encoder angles, over the flexion controller's noise corners (``c`` = 1 for the lever)."""
+        Jr = self.arm.jacobian(q)
+        lever = lever_jacobian(self.arm.forward(q), np.asarray(self.estimate), self.length) @ Jr
+        if self.jacobian == "rigid":
+            return lever[..., None, :, :]
+        w, tip, thw, tht = plant.end_poses(q)
+        nc = self.errors.noise_corners()
+        pw = w[..., None, :] + nc[:, 0:2]
+        est = estimate_from_ends(pw, tip[..., None, :] + nc[:, 2:4], thw[..., None] + nc[:, 4],
+                                 tht[..., None] + nc[:, 5], self.length)
+        Jh = flexed_jacobian(pw, est["port"], self.length, est["t"]) @ Jr[..., None, :, :]
+        return np.where(np.all(np.isfinite(Jh), axis=(-2, -1))[..., None, None], Jh, lever[..., None, :, :])
+
+    def _effect_parts(self, x: np.ndarray, theta: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """General path for a truth with [effects] (joint offsets, gravity sag, world tip load, port
+        offset, the arm's ``link_length``, ``instrument_length``, a tracker registration's rotation):
+        the arm Jacobian no longer cancels. The encoder angles of :meth:`effect_configuration`, true
+        ``J = d tip/d q_enc`` by central differences, ``Jhat`` from the controller's (declared) model
+        at the same encoder angles (:meth:`effect_controller_jacobian`), and ``M = R J Jhat^-1`` with
+        ``R`` the tracker registration's rotation (the loop closes on the tracked tip ``R x + b``).
+        Returns the conformal parts ``(mu, nu)`` (..., c), validity and the truth's reach (...)."""
+        plant, q, ok, reach = self.effect_configuration(x, theta)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            J = self.true_jacobian(plant, q, theta)
+            R = tracker_rotation_matrix(plant)
+            if R is not None:
+                J = R @ J
+            Jh_inv, singular = inv2(self.effect_controller_jacobian(plant, q))
             mu, nu = conformal_parts(J[..., None, :, :] @ Jh_inv)
         bad = singular | ~np.isfinite(mu) | ~np.isfinite(nu)
         ok = ok & ~np.any(bad, axis=-1)
-        return mu, nu, ok
+        return mu, nu, ok, reach
+
+    def effect_step_ratio(self, target, y: np.ndarray, theta: np.ndarray, k) -> np.ndarray:
+        """One controller step on the truth with its [effects], per pair, in the loop's frame: ``y``
+        (n, 2) and ``target`` the tracked tip and the target (the tracker's frame, ``R x + b``); the
+        true tip ``x = R^-1 (y - b)``, the encoder angles putting it there, ``dq = k Jhat^-1 (target -
+        y)`` over the controller's noise corners, the true tip after the step and its tracked reading.
+        Returns ``|y' - target| / |y - target|`` (n,), worst over the corners; ``nan`` where the truth
+        cannot reach ``x``, ``inf`` where the step leaves the limits, pulls the shaft out of the port or
+        the controller's Jacobian is singular."""
+        y = np.asarray(y, float)
+        theta = np.asarray(theta, float)
+        b = np.broadcast_to(np.asarray(target, float), y.shape)
+        k = np.broadcast_to(np.asarray(k, float), y.shape[:-1])
+        plant0 = self.plant(theta)
+        x = true_tips(plant0, y)
+        plant, q, ok, reach = self.effect_configuration(x, theta)
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            Jh_inv, sing = inv2(self.effect_controller_jacobian(plant, q))          # (n, c, 2, 2)
+            e = b - y
+            dq = k[:, None, None] * np.einsum("ncij,nj->nci", np.nan_to_num(Jh_inv), e)
+            q2 = q[:, None, :] + dq
+            c = q2.shape[1]
+            rep = plant.with_(port=np.repeat(plant.port, c, axis=0), load=np.repeat(plant.load, c, axis=0))
+            q2f = q2.reshape(-1, 2)
+            ok_lim = self.arm.within_limits(rep.link_angles_q(q2f))
+            ok_shaft = rep.shaft_reaches(rep.wrist(q2f))
+            y2 = rep.tracked(rep.tip(q2f)).reshape(-1, c, 2)
+            e0 = np.linalg.norm(e, axis=-1)
+            ratio = np.linalg.norm(y2 - b[:, None, :], axis=-1) / np.where(e0 > 0, e0, np.nan)[:, None]
+        good = (ok_lim & ok_shaft).reshape(-1, c) & ~sing & np.isfinite(ratio)
+        ratio = np.where(good, ratio, np.inf).max(axis=-1)
+        return np.where(ok, ratio, np.where(reach, np.inf, np.nan))
+
+
+def true_tips(plant: Plant, y: np.ndarray) -> np.ndarray:
+    """The true tips (..., d) whose tracked readings are ``y``: ``R^-1 (y - b)`` (the inverse of
+    :meth:`Plant.tracked`; ``y - b`` without a rotation, ``y`` itself without a registration)."""
+    y = np.asarray(y, float)
+    b = np.asarray(plant.tracker_offset, float)
+    R = tracker_rotation_matrix(plant)
+    z = y - b if np.any(b) else y
+    return z if R is None else z @ R
+
+
+def _with(plant: Plant, **changes) -> Plant:
+    """``plant.with_(**changes)`` for ``port`` and ``load`` (one per row), keeping its true arm once built (a
+    perturbed URDF arm is built from the URDF's joint origins: once per evaluator, not once per batch). A
+    shallow copy: the fields it changes need none of the checks of a new Plant's construction."""
+    if set(changes) - {"port", "load"}:
+        out = plant.with_(**changes)
+        if "true_arm" in plant.__dict__:
+            out.__dict__["true_arm"] = plant.__dict__["true_arm"]
+        return out
+    out = copy.copy(plant)  # the cached true arm comes along in __dict__
+    for name, value in changes.items():
+        object.__setattr__(out, name, value)
+    return out
+
+
+def tracker_rotation_matrix(plant: Plant) -> np.ndarray | None:
+    """The rotation ``R`` (d, d) of the truth's tracker registration (the tracked tip is ``R x + b``),
+    or None without one: the loop's matrix is ``G = I - k R J Jhat^-1`` (docs/physics.md "From measured
+    data to the plan")."""
+    r = np.asarray(plant.tracker_rotation, float)
+    if not np.any(r):
+        return None
+    if plant.dim == 2:
+        c, s = math.cos(float(r[0])), math.sin(float(r[0]))
+        return np.array([[c, -s], [s, c]])
+    from ..kinematics.geometry import rotation_vector_matrix
+
+    return rotation_vector_matrix(r)
 
 
 EFFECT_NEWTON_ITERS = 8
@@ -245,12 +382,14 @@ def _perp_basis(e1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 @dataclass
 class SpatialEffectsEvaluator:
-    """3-D truth whose ``[effects]`` move the arm (``joint_offset``, ``gravity_sag``,
-    ``shaft_flexion``): ``J Jhat^-1`` no longer reduces to the wrist Jacobians. Per (tip, instance):
-    the encoder angles that put the true tip at ``x`` by Newton's method on the full forward map
-    (started from the inverse kinematics of the wrist without the arm effects), the true
-    ``J = d tip / d q_enc`` by central differences, and the controller's
-    ``Jhat = J_lever(w_model(q_enc), estimate) J_arm(q_enc)``. A load instance ``(tau, psi)`` is the
+    """3-D truth whose ``[effects]`` change the true Jacobian or the loop's frame (``joint_offset``,
+    ``gravity_sag``, ``shaft_flexion``, ``joint_geometry``, ``instrument_length``,
+    ``tracker_registration``): ``J Jhat^-1`` no longer reduces to the wrist Jacobians. Per (tip,
+    instance): the encoder angles that put the true tip at ``x`` by Newton's method on the true
+    forward map (started from the true arm's inverse kinematics of the true shaft's wrist), the true
+    ``J = d tip / d q_enc`` by central differences, the controller's (declared)
+    ``Jhat = J_lever(w_model(q_enc), estimate) J_arm(q_enc)`` at the same encoder angles, and
+    ``M = R J Jhat^-1`` with ``R`` the tracker registration's rotation. A load instance ``(tau, psi)`` is the
     world vector the lever geometry gives it (as in the compiled kernels), added to the truth's
     ``shaft_flexion`` load. The general path: numpy, much slower than the compiled kernels (and
     slower still with ``gravity_sag``, whose generalized gravity comes from pinocchio point by point).
@@ -285,34 +424,55 @@ class SpatialEffectsEvaluator:
     def length(self) -> float:
         return self.plant.length
 
-    def _plant(self, x: np.ndarray, theta: np.ndarray) -> tuple[Plant, np.ndarray]:
-        """The truth of instance(s) ``theta`` (n, 5) at tips ``x`` (n, 3): port and load vectors."""
+    def _plant(self, x: np.ndarray, theta: np.ndarray, wrist: bool = False):
+        """The truth of instance(s) ``theta`` (n, 5) at tips ``x`` (n, 3): ``(plant, port)`` with one port and
+        load vector per row; ``wrist``: also the wrist (n, 3) that puts the true shaft's tip at ``x`` under
+        the instance's load alone (the lever's where unloaded; NaN where the shaft cannot reach ``x``)."""
         port = np.asarray(self.errors.base_port) + theta[:, :3]
         tau = theta[:, 3]
         t = np.zeros_like(x)
         bent = tau > 0
+        L = self.plant.true_length
+        self.plant.true_arm  # built once, kept by every copy (_with)
+        w = None
+        if wrist:
+            with np.errstate(invalid="ignore", divide="ignore"):
+                d = x - port
+                w = x - L * d / np.linalg.norm(d, axis=-1, keepdims=True)
         if np.any(bent):
             e = x[bent] - port[bent]
             e1 = e / np.linalg.norm(e, axis=-1, keepdims=True)
             f1, f2 = _perp_basis(e1)
             psi = theta[bent, 4][:, None]
-            _, t[bent] = flexed_wrist_plane(x[bent], port[bent], self.length, tau[bent], np.cos(psi) * f1 + np.sin(psi) * f2)
-        return self.plant.with_(port=port, load=t), port
+            with np.errstate(invalid="ignore", divide="ignore"):
+                wb, t[bent] = flexed_wrist_plane(x[bent], port[bent], L, tau[bent], np.cos(psi) * f1 + np.sin(psi) * f2)
+            if wrist:
+                w[bent] = wb
+        pl = _with(self.plant, port=port, load=t)
+        return (pl, port, w) if wrist else (pl, port)
 
-    def parts(self, x: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, None, np.ndarray]:
+    def configuration(self, x: np.ndarray, theta: np.ndarray) -> tuple[Plant, np.ndarray, np.ndarray, np.ndarray]:
+        """The truth of instances ``theta`` (n, 5) putting its true tip at ``x`` (n, 3): ``(plant, port, q,
+        ok)``, ``q`` the encoder angles by Newton's method on the true forward map (started from the true
+        arm's inverse of the true shaft's wrist), ``ok`` where it converged inside the limits with the
+        shaft through the true port."""
         x = np.asarray(x, float).reshape(-1, 3)
         theta = np.broadcast_to(np.asarray(theta, float), (len(x), 5))
-        n = len(x)
-        M = np.full((n, 1 if self.noise is None else len(self.noise), 3, 3), np.nan)
-        plant, port = self._plant(x, theta)
-        L = self.length
+        plant, port, w_inst = self._plant(x, theta, wrist=True)
         r = np.linalg.norm(x - port, axis=-1)
-        ok = (r > 1e-9) & (r < L)
+        ok = (r > 1e-9) & (r < plant.true_length)
         with np.errstate(invalid="ignore", divide="ignore"):
-            w0 = np.where(ok[:, None], plant.true_wrist_for_tip(np.where(ok[:, None], x, port + [0, 0, 0.5 * L])), 0.0)
-            q_link, ok_ik = self.arm.inverse(w0)
+            if any(self.plant.world_load):  # the instance's load and the world's: Newton on the wrist
+                w0 = plant.true_wrist_for_tip(np.where(ok[:, None], x, port + [0, 0, 0.5 * self.length]))
+            else:  # the instance's load alone: its wrist is exact
+                w0 = w_inst
+            ok &= np.all(np.isfinite(w0), axis=-1)
+            w0 = np.where(ok[:, None], w0, 0.0)
+            q_link, ok_ik = plant.true_arm.inverse(w0)
             ok &= ok_ik
             q = np.where(ok[:, None], q_link - np.asarray(plant.joint_offset), 0.0)
+            if self.closed_form:  # the true wrist (under the world load) and the true arm's inverse: exact
+                return plant, port, q, ok
             for _ in range(EFFECT_NEWTON_ITERS):
                 f = plant.tip(q) - x
                 J = _fd_jacobian(plant.tip, q)
@@ -325,24 +485,58 @@ class SpatialEffectsEvaluator:
             resid = np.linalg.norm(plant.tip(q) - x, axis=-1)
             ok &= (resid < 1e-10) & self.arm.within_limits(plant.link_angles_q(q))
             ok &= plant.shaft_reaches(plant.wrist(q))
-            if not np.any(ok):
-                return M, None, ok
-            qo = q[ok]
-            J = _fd_jacobian(plant.with_(port=port[ok], load=plant.load_vector[ok]).tip, qo)
-            wm = self.arm.forward(qo)
-            lever = lever_jacobian(wm, np.asarray(self.estimate), L)
-            if self.jacobian == "flexion":  # P2's controller in 3-D fed the true end poses + noise corners
-                from ..kinematics.shaft import flexion_controller_jacobian
+        return plant, port, q, ok
 
-                pl = plant.with_(port=port[ok], load=plant.load_vector[ok])
-                w, tip, dw, dt = pl.end_poses(qo)
-                m = bending_frame(w, pl.true_port, L, pl.shaft_load(w))
-                pw, pt, mw, mt = noisy_end_poses(w, tip, dw, dt, m, self.noise)
-                Jtw = flexion_controller_jacobian(pw, pt, mw, mt, L)
-                Jtw = np.where(np.all(np.isfinite(Jtw), axis=(-2, -1))[..., None, None], Jtw, lever[:, None])
-            else:
-                Jtw = lever[:, None]
-            Jh = Jtw @ self.arm.jacobian(qo)[:, None]  # (n, c, 3, 3)
+    @property
+    def closed_form(self) -> bool:
+        """True without ``gravity_sag`` (the only effect whose link angles need Newton's method): the
+        encoder angles are the true arm's inverse of the true wrist less ``joint_offset`` and ``J`` is
+        exact (:meth:`true_jacobian`)."""
+        return not any(self.plant.gravity_sag)
+
+    def true_jacobian(self, pl: Plant, q: np.ndarray) -> np.ndarray:
+        """``J = d tip / d q_enc`` (n, 3, 3) of the truth ``pl`` (one port and load per row) at encoder
+        angles ``q``: the true flexed shaft's Jacobian at the true wrist times the true arm's where
+        :attr:`closed_form`, central differences of the true forward map otherwise."""
+        if not self.closed_form:
+            return _fd_jacobian(pl.tip, q)
+        ql = pl.link_angles_q(q)
+        w = pl.true_arm.forward(ql)
+        return flexed_jacobian(w, pl.true_port, pl.true_length, pl.shaft_load(w)) @ pl.true_arm.jacobian(ql)
+
+    def controller_jacobian_at(self, pl: Plant, q: np.ndarray) -> np.ndarray:
+        """The controller's ``Jhat`` (n, c, 3, 3) at encoder angles ``q`` (n, 3) of the truth ``pl`` (one
+        port and load per row): the lever through the estimate on the declared arm's wrist, or P2's
+        controller fed the true end poses under the noise corners, times the declared arm's Jacobian."""
+        L = self.length  # the declared instrument (the controller's)
+        lever = lever_jacobian(self.arm.forward(q), np.asarray(self.estimate), L)
+        if self.jacobian == "flexion":  # P2's controller in 3-D fed the true end poses + noise corners
+            from ..kinematics.shaft import flexion_controller_jacobian
+
+            w, tip, dw, dt = pl.end_poses(q)
+            m = bending_frame(w, pl.true_port, pl.true_length, pl.shaft_load(w))
+            pw, pt, mw, mt = noisy_end_poses(w, tip, dw, dt, m, self.noise)
+            Jtw = flexion_controller_jacobian(pw, pt, mw, mt, L)
+            Jtw = np.where(np.all(np.isfinite(Jtw), axis=(-2, -1))[..., None, None], Jtw, lever[:, None])
+        else:
+            Jtw = lever[:, None]
+        return Jtw @ self.arm.jacobian(q)[:, None]  # (n, c, 3, 3)
+
+    def parts(self, x: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, None, np.ndarray]:
+        x = np.asarray(x, float).reshape(-1, 3)
+        n = len(x)
+        M = np.full((n, 1 if self.noise is None else len(self.noise), 3, 3), np.nan)
+        plant, port, q, ok = self.configuration(x, theta)
+        if not np.any(ok):
+            return M, None, ok
+        with np.errstate(invalid="ignore", divide="ignore"):
+            qo = q[ok]
+            pl = _with(plant, port=port[ok], load=plant.load_vector[ok])
+            J = self.true_jacobian(pl, qo)
+            R = tracker_rotation_matrix(plant)
+            if R is not None:  # the loop closes on the tracked tip R x + b
+                J = R @ J
+            Jh = self.controller_jacobian_at(pl, qo)
             det = np.linalg.det(Jh)
             fro = np.sqrt(np.sum(Jh * Jh, axis=(-2, -1)))
             nonsing = np.all(np.abs(det) > 1e-12 * fro**3, axis=-1)
@@ -354,6 +548,41 @@ class SpatialEffectsEvaluator:
         M[idx] = Mo
         M[~ok] = np.nan
         return M, None, ok
+
+    def step_ratio(self, target, y: np.ndarray, theta: np.ndarray, k) -> np.ndarray:
+        """One controller step on the truth with its [effects], per pair, in the loop's frame (``y`` (n,
+        3) the tracked tips, ``target`` (3,) or (n, 3) in the tracker's frame): as
+        :meth:`Evaluator.effect_step_ratio`, the worst over the controller's noise corners. ``nan`` where
+        the truth cannot put its tip at ``R^-1 (y - b)``, ``inf`` where the step leaves the limits, pulls
+        the shaft out of the port or the controller's Jacobian is singular."""
+        y = np.asarray(y, float).reshape(-1, 3)
+        n = len(y)
+        theta = np.broadcast_to(np.asarray(theta, float), (n, 5))
+        b = np.broadcast_to(np.asarray(target, float), y.shape)
+        k = np.broadcast_to(np.asarray(k, float), (n,))
+        out = np.full(n, np.nan)
+        x = true_tips(self.plant, y)
+        plant, port, q, ok = self.configuration(x, theta)
+        if not np.any(ok):
+            return out
+        i = np.flatnonzero(ok)
+        pl = _with(plant, port=port[i], load=plant.load_vector[i])
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            Jh = self.controller_jacobian_at(pl, q[i])                   # (m, c, 3, 3)
+            c = Jh.shape[1]
+            Jh_inv, sing = inv(Jh)
+            e = b[i] - y[i]
+            dq = k[i][:, None, None] * np.einsum("ncij,nj->nci", np.nan_to_num(Jh_inv), e)
+            q2 = (q[i][:, None, :] + dq).reshape(-1, 3)
+            rep = _with(pl, port=np.repeat(pl.port, c, axis=0), load=np.repeat(pl.load_vector, c, axis=0))
+            ok_lim = self.arm.within_limits(rep.link_angles_q(q2))
+            ok_shaft = rep.shaft_reaches(rep.wrist(q2))
+            y2 = rep.tracked(rep.tip(q2)).reshape(-1, c, 3)
+            e0 = np.linalg.norm(e, axis=-1)
+            ratio = np.linalg.norm(y2 - b[i][:, None, :], axis=-1) / np.where(e0 > 0, e0, np.nan)[:, None]
+        good = (ok_lim & ok_shaft).reshape(-1, c) & ~sing & np.isfinite(ratio)
+        out[i] = np.where(good, ratio, np.inf).max(axis=-1)
+        return out
 
 
 def bending_frame(w: np.ndarray, port: np.ndarray, L: float, t: np.ndarray) -> np.ndarray:

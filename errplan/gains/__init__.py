@@ -55,6 +55,14 @@ searches for the verification; the nonlinear one-step replay runs from every ver
 under every corner instance (port corners x {no load, the largest load in 4 directions}) and at
 the refined worst pairs.
 
+The truth's ``[effects]`` (docs/physics.md "From measured data to the plan"): every pair takes the truth's
+``J`` (its arm's geometry, instrument length, port, joint offsets, sag, load) at the encoder angles that put
+the true tip there and the declared controller's ``Jhat`` at the same angles; with a tracker registration
+the loop closes on the tracked tip ``R x + b``, so the ball is drawn in the tracker's frame (its tips mapped
+to the true tips ``R^-1 (y - b)``) and the certificate bounds ``||I - k R J Jhat^-1||``; the one-step replay
+runs the truth (:meth:`errplan.fields.Evaluator.effect_step_ratio`, :class:`.physics.EffectsKernel`). Effects
+the metrics cannot express (:func:`errplan.errorset.uncovered_effects`) are not in the certificate.
+
 P2's flexion controller in 3-D (:class:`errplan.gains.physics.FlexionKernel`): the motion maps
 come from :class:`errplan.fields.SpatialFlexionEvaluator` (compiled) with an axis of noise corners,
 flattened into the sample; the one-step replay takes the worst corner; a ball is singular-free when

@@ -49,7 +49,7 @@ def _pairs(ev: Evaluator, x: np.ndarray, th: np.ndarray):
     n, m = len(x), len(th)
     X = np.repeat(x, m, axis=0)
     TH = np.tile(th, (n, 1))
-    mu, nu, ok, reach = ev.parts_reach(X, TH)
+    mu, nu, ok, reach = ev.parts_tracked(X, TH)  # the ball's tips are tracked tips: the loop's frame
     c = mu.shape[-1]
     return mu.reshape(n, m, c), nu.reshape(n, m, c), reach.reshape(n, m), ok.reshape(n, m)
 
@@ -431,12 +431,10 @@ class SpatialModel:
 
         sc = m = arm_model(m)  # an errplan.models.ArmModel (a scenario is built into one)
         self.jacobian = sc.controller.jacobian
-        try:
+        if m.jacobian_effects:  # the truth's [effects] change J, Jhat or the loop's frame: the general path
+            self.kev = EffectsKernel(sc)
+        else:
             self.kev = KernelEvaluator(sc) if self.jacobian == "rigid" else FlexionKernel(sc)
-        except ErrplanError:
-            raise ErrplanError(f"{sc.source}: [effects] {', '.join(sorted(sc.effects))}: gain certificates of a "
-                               "spatial truth whose effects move the arm (joint_offset, gravity_sag, shaft_flexion) "
-                               "are not supported yet") from None
         self.scenario = sc
         self.errors = self.kev.errors
         self.arm = m.arm
@@ -483,6 +481,8 @@ class SpatialModel:
         ``|w - e| < L`` whenever ``|x - e| > 2 delta + deviation``.
         """
         c = np.asarray(center, float)
+        if isinstance(self.kev, EffectsKernel):
+            return self.kev.singular_free(c, radius, self)
         if self.jacobian == "flexion":
             return self._flexion_singular_free(c, radius)
         return bool(np.linalg.norm(c - self.estimate) - radius > 2.0 * self.delta + self.deviation + 1e-6)
@@ -560,6 +560,8 @@ class SpatialModel:
         out = np.full(len(x), np.nan)
         if not len(x):
             return out
+        if isinstance(self.kev, EffectsKernel):  # the truth's [effects]: the general path, in the loop's frame
+            return self.kev.fev.step_ratio(b, x, theta, k)
         p, w, t, reach = self.wrists(x, theta)
         ir = np.flatnonzero(reach)  # the arm's inverse of the reachable wrists only (row by row: the same q)
         q = np.full((len(x), self.arm.n), np.nan)
@@ -633,6 +635,72 @@ class FlexionKernel:
                                 refine=REFINE_LEVELS if refine is None else refine, rho=rho)
 
 
+class EffectsKernel:
+    """A spatial truth whose ``[effects]`` change the true Jacobian, the controller's or the loop's frame
+    (``joint_geometry``, ``instrument_length``, ``tracker_registration``, ``joint_offset``,
+    ``gravity_sag``, ``shaft_flexion``) behind the interface :class:`SpatialModel` takes from the compiled
+    :class:`errplan.fields.KernelEvaluator`: ``motion_maps`` and ``worst_case`` from
+    :class:`errplan.fields.evaluator.SpatialEffectsEvaluator` (``M = R J Jhat^-1`` with the truth's ``J`` and
+    the declared controller's ``Jhat`` at the same encoder angles). A certificate's tips are tracked tips
+    (the loop's frame, ``R x + b``): they are mapped to the true tips before the physics."""
+
+    def __init__(self, sc):
+        from ..fields.evaluator import SpatialEffectsEvaluator
+
+        self.scenario = sc
+        self.fev = SpatialEffectsEvaluator.from_model(sc)
+        self.errors = self.fev.errors
+
+    def true_tips(self, y: np.ndarray) -> np.ndarray:
+        from ..fields.evaluator import true_tips
+
+        return true_tips(self.fev.plant, y)
+
+    def motion_maps(self, x: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(M, ok)`` for tracked tips ``x`` (..., 3) under instances ``theta`` (..., 5), broadcast together:
+        ``M`` (..., 3, 3) for the rigid controller, (..., c, 3, 3) over the flexion controller's noise
+        corners; NaN where ``ok`` is False."""
+        x = np.asarray(x, float)
+        theta = np.asarray(theta, float)
+        shape = np.broadcast_shapes(x.shape[:-1], theta.shape[:-1])
+        X = self.true_tips(np.broadcast_to(x, shape + (3,)).reshape(-1, 3))
+        TH = np.broadcast_to(theta, shape + theta.shape[-1:]).reshape(-1, theta.shape[-1])
+        M, _, ok = self.fev.parts(X, TH)
+        if self.fev.noise is None:
+            M = M[:, 0]
+        return M.reshape(shape + M.shape[1:]), ok.reshape(shape)
+
+    def worst_case(self, x: np.ndarray, k: float, *, phi: bool = True, rho: bool = False,
+                   refine: int | None = None, samples: int | None = None) -> dict[str, np.ndarray]:
+        from ..fields.compute import numpy_worst_case
+        from ..fields.search import REFINE_LEVELS
+
+        return numpy_worst_case(self.fev, self.true_tips(np.asarray(x, float).reshape(-1, 3)), k, samples=samples,
+                                refine=REFINE_LEVELS if refine is None else refine, rho=rho)
+
+    def singular_free(self, c: np.ndarray, radius: float, model: "SpatialModel") -> bool:
+        """True when the controller's ``Jhat`` cannot be singular in the ball (the lever bound of
+        :meth:`SpatialModel.singular_free` widened by how far the declared wrist lies from the true one at
+        the same encoder angles, sampled at the ball's centre and boundary under the corner instances and
+        doubled, and by a longer true instrument). P2's controller: the sampled margin of its estimate as
+        well. Like the flexion controller's, sampled, not proven."""
+        fev = self.fev
+        th = model.corner_instances()
+        pts = np.vstack([c[None], c + radius * sphere_points(14)])
+        X = self.true_tips(np.repeat(pts, len(th), axis=0))
+        TH = np.tile(th, (len(pts), 1))
+        plant, port, q, ok = fev.configuration(X, TH)
+        if not np.any(ok):
+            return False
+        qo = q[ok]
+        gap = float(np.max(np.linalg.norm(fev.arm.forward(qo) - plant.wrist(qo), axis=-1)))
+        longer = max(0.0, fev.plant.true_length - fev.length)
+        if model.jacobian == "flexion":
+            return False  # no margin for P2's estimate on a truth whose arm differs: not certified
+        ce = float(np.linalg.norm(self.true_tips(c) - model.estimate))
+        return bool(ce - radius > 2.0 * model.delta + model.deviation + 2.0 * gap + longer + 1e-6)
+
+
 def _is_spatial(ev) -> bool:
     return isinstance(ev, SpatialModel)
 
@@ -656,6 +724,8 @@ def step_ratio(ev: Evaluator, target, x: np.ndarray, theta: np.ndarray, k) -> np
     """
     if _is_spatial(ev):
         return ev.step_ratio(target, x, theta, k)
+    if ev.effects:  # the truth's [effects] (geometry, offsets, sag, load, registration): the general path
+        return ev.effect_step_ratio(target, x, theta, k)
     x = np.asarray(x, float)
     theta = np.asarray(theta, float)
     b = np.asarray(target, float)

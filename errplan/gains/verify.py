@@ -23,7 +23,7 @@ def _pair_g(ev, k: np.ndarray, singular: np.ndarray):
         return lambda x, th, i: _g3(ev, x, th, k[i], singular[i])
 
     def g1(x, th, kk):
-        mu, nu, ok, reach = ev.parts_reach(x, th)
+        mu, nu, ok, reach = ev.parts_tracked(x, th)
         return _worst_g(mu, nu, reach, ok, kk)
 
     return lambda x, th, i: _per_segment(lambda xs, ts, s: g1(xs, ts, k[s][:, None]), x, th, i)

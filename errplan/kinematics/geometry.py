@@ -28,6 +28,8 @@ from functools import lru_cache
 import numpy as np
 
 from ..errors import ErrplanError
+from ..jit import njit
+from .urdf.chain import _solve
 
 
 def split_geometry(joint_geometry, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -202,6 +204,18 @@ class GeometryArm:
     def inverse(self, w, near=None):
         w = np.asarray(w, float)
         q, ok = self._arm.inverse(w, near)
+        if self.n == 3 and w.shape[-1:] == (3,):
+            # compiled: the chain's projected Gauss-Newton from the declared arm's solution (its branch)
+            from ..jit import kernel_array
+
+            W = kernel_array(w.reshape(-1, 3))
+            Q0 = kernel_array(np.where(ok[..., None], q, 0.0).reshape(-1, 3))
+            Q = np.empty_like(Q0)
+            okr = np.empty(len(W), np.bool_)
+            _refine_many(self.chain, W, Q0, kernel_array(np.asarray(ok, np.bool_).reshape(-1)), Q, okr)
+            q = Q.reshape(q.shape)
+            ok = okr.reshape(ok.shape) & np.all(np.abs(self.forward(q) - w) < 1e-9, axis=-1) & self._arm.within_limits(q)
+            return np.where(ok[..., None], q, np.nan), ok
         for _ in range(IK_NEWTON_ITERS):
             f = self.forward(q) - w
             if np.all(~ok | np.all(np.abs(f) < 1e-13, axis=-1)):
@@ -212,6 +226,21 @@ class GeometryArm:
             q = q - step
         ok = ok & np.all(np.abs(self.forward(q) - w) < 1e-9, axis=-1) & self._arm.within_limits(q)
         return np.where(ok[..., None], q, np.nan), ok
+
+
+@njit(cache=True)
+def _refine_many(chain, W, Q0, ok0, Q, ok):
+    """The perturbed chain's inverse from the declared arm's solutions ``Q0`` (n, 3) where ``ok0``: the
+    chain's projected Gauss-Newton (:func:`errplan.kinematics.urdf.chain._solve`, within every limit row)
+    from each, into ``Q``, ``ok`` (no other seed: the declared solution's branch or none)."""
+    for k in range(W.shape[0]):
+        ok[k] = False
+        Q[k, 0], Q[k, 1], Q[k, 2] = Q0[k, 0], Q0[k, 1], Q0[k, 2]
+        if ok0[k]:
+            good, a, b, c = _solve(chain, W[k, 0], W[k, 1], W[k, 2], Q0[k, 0], Q0[k, 1], Q0[k, 2], 60)
+            if good:
+                Q[k, 0], Q[k, 1], Q[k, 2] = a, b, c
+                ok[k] = True
 
 
 def wrist_joint(urdf_text: str, joint_names, wrist: str, where: str = "URDF") -> str | None:
