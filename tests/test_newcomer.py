@@ -1,0 +1,175 @@
+"""What a newcomer trips on in the first hour, each checked the way the newcomer met it: advice that must
+work when followed, a unit slip that must be named, a notice that must tell the truth, a pipe closed by
+``head``, a run status that must show beside a clearance, and links and times in the documentation that
+must agree with the repository as committed."""
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+import tomllib
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+import errplan
+from errplan.api import parse_scenario
+from errplan.cli import CLOSED_PIPE, main
+from errplan.errors import InfeasibleError
+
+ROOT = Path(__file__).resolve().parents[1]
+PORT = ROOT / "scenarios" / "beasley2004_port.toml"
+SPATIAL = ROOT / "scenarios" / "phantom15_spatial.toml"
+NODULE = ([0.0, -0.08, 0.35], 0.007)
+
+
+# ----------------------------------------------------------------------------- advice that works
+def nodule_scenario(goal) -> errplan.Scenario:
+    """The PHANToM 1.5 with a spherical nodule in a small task region (a coarse grid: a cheap field)."""
+    doc = tomllib.loads(SPATIAL.read_text(encoding="utf-8"))
+    doc["robot"]["urdf"] = str(ROOT / "scenarios" / "phantom15.urdf")
+    doc["fields"].update(resolution=0.008, region={"x": [-0.08, 0.08], "y": [-0.12, -0.04], "z": [0.30, 0.40]})
+    doc["anatomy"] = {"clearance": 0.003,
+                      "obstacle": [{"name": "nodule", "shape": "sphere", "center": NODULE[0], "radius": NODULE[1]}]}
+    doc["query"] = [{"name": "past-nodule", "start": [-0.07, -0.08, 0.35], "goal": list(goal)}]
+    return parse_scenario(doc, str(ROOT / "scenarios" / "nodule.toml"))
+
+
+def shaft_clearance(port_box, tip, centre, radius) -> float:
+    """Smallest distance (m) from the shaft [port, tip] to the sphere over the port box's corners (closed
+    form; the distance to a sphere is smallest at a corner of the box only approximately, so this is an
+    upper bound of the robust clearance: enough to show a refused tip is too close)."""
+    tip, c = np.asarray(tip, float), np.asarray(centre, float)
+    best = np.inf
+    for port in port_box:
+        u = tip - port
+        t = np.clip(np.dot(c - port, u) / np.dot(u, u), 0.0, 1.0)
+        best = min(best, float(np.linalg.norm(port + t * u - c)) - radius)
+    return best
+
+
+def test_the_suggested_tip_pasted_as_the_goal_plans():
+    """A goal too close to the nodule is refused with a suggestion; that suggestion, exactly as printed,
+    pasted in as the goal, plans (the search, the gains' endpoint check and the simulations)."""
+    bad = [0.0, -0.08, 0.361]  # 4 mm above the nodule's centre: the shaft passes through it
+    sc = nodule_scenario(bad)
+    corners = [np.array(sc.port.estimate) + np.array([dx, dy, dz]) for dx in (-0.005, 0.005)
+               for dy in (-0.005, 0.005) for dz in (-0.005, 0.005)]
+    assert shaft_clearance(corners, bad, *NODULE) < 0.003  # independent: the refusal is right
+    with pytest.raises(InfeasibleError, match="the nearest usable tip is") as e:
+        errplan.plan(sc, query="past-nodule")
+    m = re.search(r"the nearest usable tip is \[([^\]]+)\] m, ([0-9.]+) mm away", str(e.value))
+    tip = [float(v) for v in m.group(1).split(",")]
+    assert float(m.group(2)) > 0 and abs(np.linalg.norm(np.subtract(tip, bad)) * 1000 - float(m.group(2))) < 0.06
+    result = errplan.plan(nodule_scenario(tip), query="past-nodule")  # raises if refused again
+    (q,) = result.queries
+    assert np.allclose(q.planned.path[-1], tip) and q.planned.valid
+
+
+# ----------------------------------------------------------------------------- unit slips
+def _write(tmp_path, text: str) -> Path:
+    p = tmp_path / "s.toml"
+    p.write_text(text, encoding="utf-8")
+    return p
+
+
+@pytest.mark.parametrize("edit,key,hint", [
+    (("length = 0.320", "length = 320"), "[instrument] length = 320", "write 0.32"),
+    (("link_lengths = [0.210, 0.210]", "link_lengths = [210, 210]"), "[robot] link_lengths", "write 0.21"),
+], ids=["instrument-mm", "links-mm"])
+def test_millimetres_for_metres_are_named(tmp_path, capsys, edit, key, hint):
+    text = PORT.read_text(encoding="utf-8")
+    assert edit[0] in text
+    s = _write(tmp_path, text.replace(edit[0], edit[1]))
+    rc = main(["-q", "plan", str(s), "--json", str(tmp_path / "p.json")])
+    err = capsys.readouterr().err
+    assert rc == 2 and key in err and "millimetres" in err and hint in err, err
+    assert err.count("\n") == 1 and sorted(os.listdir(tmp_path)) == ["s.toml"]
+
+
+def test_degrees_for_radians_are_named(tmp_path, capsys):
+    text = SPATIAL.read_text(encoding="utf-8").replace('urdf = "phantom15.urdf"',
+                                                        f'urdf = "{ROOT / "scenarios" / "phantom15.urdf"}"')
+    assert "base_rpy = [0.0, 0.0, 0.0]" in text
+    s = _write(tmp_path, text.replace("base_rpy = [0.0, 0.0, 0.0]", "base_rpy = [-90, 0, 0]"))
+    rc = main(["-q", "fields", str(s), "--out", str(tmp_path / "f.npz")])
+    err = capsys.readouterr().err
+    assert rc == 2 and "[robot] base_rpy" in err and "degrees" in err and "-1.5708" in err, err
+    assert sorted(os.listdir(tmp_path)) == ["s.toml"]
+
+
+def test_legitimate_values_still_load():
+    """The bounds leave real values alone: a base turned by a full turn (written to 4 decimals), joint
+    limits of a full turn each way."""
+    doc = tomllib.loads(SPATIAL.read_text(encoding="utf-8"))
+    doc["robot"]["urdf"] = str(ROOT / "scenarios" / "phantom15.urdf")
+    doc["robot"]["base_rpy"] = [0.0, 0.0, 6.2832]
+    sc = parse_scenario(doc, str(ROOT / "scenarios" / "x.toml"))
+    assert sc.robot.base_rpy[2] == 6.2832
+    doc = tomllib.loads(PORT.read_text(encoding="utf-8"))
+    doc["robot"]["joint_limits"] = [[-6.2832, 6.2832], [-6.2832, 6.2832]]
+    assert parse_scenario(doc, str(PORT)).robot.joint_limits[0] == (-6.2832, 6.2832)
+
+
+# ----------------------------------------------------------------------------- a closed pipe
+def test_a_closed_pipe_ends_quietly(tmp_path):
+    """``errplan fields ... | head -1``: the reader is gone before errplan prints its table; errplan ends
+    without an error line (exit 141, as a shell reports a command ended by SIGPIPE), and the npz it was
+    asked for is written (the work was done)."""
+    env = dict(os.environ, ERRPLAN_COMPILE_NOTICE="0", ERRPLAN_WARMUP="0")
+    p = subprocess.Popen([sys.executable, "-m", "errplan", "-q", "fields", str(PORT), "--out", str(tmp_path / "f.npz"),
+                          "--resolution", "0.02", "--metrics", "G_norm", "--workers", "1"],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, cwd=tmp_path)
+    p.stdout.close()  # head -1 gone before the first line
+    err = p.stderr.read().decode()
+    rc = p.wait(timeout=600)
+    assert rc == CLOSED_PIPE and err == "", (rc, err)
+
+
+def test_a_closed_pipe_in_process(tmp_path, capsys, monkeypatch):
+    """The same for every command, in process: a stdout whose writes fail with EPIPE."""
+    class Closed:
+        def write(self, s):
+            raise BrokenPipeError(32, "Broken pipe")
+
+        def flush(self):
+            raise BrokenPipeError(32, "Broken pipe")
+
+        def fileno(self):
+            raise ValueError("no descriptor")
+
+    monkeypatch.setattr(sys, "stdout", Closed())
+    rc = main(["-q", "fields", str(PORT), "--out", str(tmp_path / "f.npz"), "--resolution", "0.02", "--metrics",
+               "G_norm", "--workers", "1"])
+    monkeypatch.undo()
+    assert rc == CLOSED_PIPE and capsys.readouterr().err == ""
+
+
+# ----------------------------------------------------------------------------- a failure beside its clearance
+def _run(status_direct: str, steps_direct: int):
+    sim = lambda status, steps: SimpleNamespace(status=status, steps=steps, converged=status == "converged",  # noqa: E731
+                                                monotonic=status == "converged")
+    rep = lambda status, steps, c: SimpleNamespace(sim=sim(status, steps), min_clearance=c)  # noqa: E731
+    sched = SimpleNamespace(gains=np.array([0.9]), max_certified_G_norm=0.8, segments=[], certified=True)
+    return SimpleNamespace(
+        name="q", planned={"cost": 0.2, "length": 0.1, "max_G_norm": 0.5}, direct={"cost": 0.2, "length": 0.1},
+        schedule=sched, direct_schedule=sched, direct_gain=0.9,
+        sim_planned=rep("converged", 20, 0.013), sim_direct=rep(status_direct, steps_direct, 0.0361),
+        corner_planned=[rep("converged", 20, 0.012)] * 2,
+        corner_direct=[rep(status_direct, steps_direct, 0.0216), rep("converged", 30, 0.03)])
+
+
+def test_the_clearance_of_a_run_that_stopped_says_so():
+    from errplan.pipeline import summary_table
+
+    text = summary_table([_run("left_workspace", 1)])
+    line = next(x for x in text.splitlines() if "min clearance" in x)
+    direct = line.split("direct", 1)[1]
+    assert "36.1 mm over the 1 step it ran: LEFT THE WORKSPACE" in direct, line
+    assert "1 of 2 corners left the workspace" in direct, line
+    assert "planned 13.0 mm (corners >= 12.0 mm)" in line  # a converged run: as before
+    ok = summary_table([_run("converged", 25)])
+    assert "WORKSPACE" not in ok and "corners left" not in ok
