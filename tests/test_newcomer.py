@@ -173,3 +173,36 @@ def test_the_clearance_of_a_run_that_stopped_says_so():
     assert "planned 13.0 mm (corners >= 12.0 mm)" in line  # a converged run: as before
     ok = summary_table([_run("converged", 25)])
     assert "WORKSPACE" not in ok and "corners left" not in ok
+
+
+# ----------------------------------------------------------------------------- the compile notice
+def test_the_compile_notice_says_what_it_compiles_and_does_not_promise_once(tmp_path):
+    """A fresh cache (a subprocess with its own NUMBA_CACHE_DIR, killed after the first line): the notice
+    names the command and the kernels it starts with, and says that each kernel is compiled by the first
+    command that needs it, not that everything happens once, on the first run (a later command that
+    needs other kernels compiles them, and its notice is then true as well)."""
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "numba-cache"), ERRPLAN_COMPILE_NOTICE="1",
+               ERRPLAN_WARMUP="0")
+    p = subprocess.Popen([sys.executable, "-m", "errplan", "fields", str(PORT), "--out", str(tmp_path / "f.npz"),
+                          "--resolution", "0.02", "--rho-star"], stderr=subprocess.PIPE, stdout=subprocess.DEVNULL,
+                         text=True, env=env, cwd=tmp_path)
+    try:
+        line = p.stderr.readline()
+    finally:
+        p.kill()
+        p.wait()
+    assert line.startswith("errplan fields: compiling numerical kernels"), line
+    assert "starting with the planar arm's kinematics" in line or "starting with the worst-case fields" in line, line
+    assert "first command that needs it" in line and "happens once, on the first run" not in line, line
+    assert "docs/benchmarks.md#first-run" in line  # where the times are measured (the link test checks it)
+    assert re.search(r"^## First run$", (ROOT / "docs" / "benchmarks.md").read_text(encoding="utf-8"), re.M)
+
+
+def test_the_notice_names_the_area_of_the_kernel():
+    from errplan import jit
+    from errplan.fields.kernels import worst_case_tile
+    from errplan.planning import cellwalk
+
+    assert jit.area_of(worst_case_tile.__module__) == "the worst-case fields"
+    assert jit.area_of(cellwalk.__name__) == "the planner's cell walks"
+    assert "(walk3)" in jit.notice(SimpleNamespace(__name__="walk3__native", __module__=cellwalk.__name__))
