@@ -74,8 +74,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="run only this scenario file, planar or spatial (default: the three bundled scenarios: "
                         "beasley2004_bounded.toml, phantom15_spatial.toml, abdomen.toml)")
     s.add_argument("--record", default="errplan-demo.rrd",
-                   help="rerun recording to write; the spatial and abdomen scenarios beside it as <stem>-3d.rrd and "
-                        "<stem>-abdomen.rrd (default: %(default)s)")
+                   help="rerun recording of the planar scenario; the others are written beside it: five files in "
+                        "all, <stem>.rrd, <stem>-3d.rrd (the PHANToM), <stem>-abdomen.rrd, <stem>-triad.rrd and "
+                        "<stem>-triad-plan.rrd (the setup's triad and planned motions); with --scenario only "
+                        "<stem>.rrd (default: %(default)s)")
     s.add_argument("--json", default=None, help="also write the plans as JSON here (default: none)")
 
     s = sub.add_parser("fields", help="worst-case metric fields of a scenario -> npz")
