@@ -323,3 +323,32 @@ def test_the_link_check_catches_a_missing_page_and_anchor(tmp_path):
     (tmp_path / "README.md").write_text("[a](docs/a.md#first-run) [b](docs/b.md) [c](docs/a.md#nope)\n"
                                         "```\n[in code](docs/none.md)\n```\n", encoding="utf-8")
     assert broken_links(tmp_path) == ["README.md: docs/b.md (no such file)", "README.md: docs/a.md#nope (no such anchor)"]
+
+
+# ----------------------------------------------------------------------------- labels that can be read
+def test_close_ports_get_one_label_and_distant_ones_two():
+    from errplan.recording.style import port_labels
+
+    assert port_labels([0.0, 0.16], [0.0, 0.16], 0.4) == (["true port = estimated port"], None)
+    t, e = port_labels([0.0, 0.16], [0.02, 0.17], 0.44)  # P1's Fig. 5 ports, 22 mm apart on a 44 cm field
+    assert e is None and t == ["true port (white), estimated port (yellow) 22.4 mm away"]
+    assert port_labels([0.0, 0.0, 0.16], [0.0, 0.1, 0.16], 0.3) == (["true port"], ["estimated port"])
+
+
+def test_a_recording_labels_close_ports_once(tmp_path):
+    """The planar recording as the demo writes it: P1's ports 22 mm apart carry one label between them."""
+    rr = pytest.importorskip("rerun")
+    from errplan.recording import plane
+
+    logged = {}
+
+    class Rec:
+        def log(self, path, *items, **kw):
+            logged.setdefault(path, []).extend(items)
+
+    sc = errplan.load_scenario(PORT)
+    mf = errplan.compute_fields(sc, 0.02, metrics=["G_norm"])
+    plane._log_plan(Rec(), rr, sc, mf, [], [])
+    t, e = logged["plane/port/true"][0], logged["plane/port/estimate"][0]
+    assert t.labels is not None and "estimated port" in str(t.labels.as_arrow_array())
+    assert e.labels is None
