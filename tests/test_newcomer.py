@@ -352,3 +352,74 @@ def test_a_recording_labels_close_ports_once(tmp_path):
     t, e = logged["plane/port/true"][0], logged["plane/port/estimate"][0]
     assert t.labels is not None and "estimated port" in str(t.labels.as_arrow_array())
     assert e.labels is None
+
+
+# ----------------------------------------------------------------------------- the docs' instructions, run
+def _block_after(md: Path, marker: str) -> str:
+    """The first fenced block after ``marker`` in ``md``."""
+    text = md.read_text(encoding="utf-8")
+    i = text.index(marker)
+    m = re.search(r"^```[^\n]*\n(.*?)^```", text[i:], re.S | re.M)
+    return m.group(1)
+
+
+def _run_shell(commands: list[str], tmp_path: Path) -> subprocess.CompletedProcess:
+    """Run the commands in bash, in a folder of their own that sees the repository's ``scenarios/``, with
+    ``errplan`` the program of this checkout."""
+    (tmp_path / "scenarios").symlink_to(ROOT / "scenarios")
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    shim = bin_dir / "errplan"
+    shim.write_text(f'#!/bin/sh\nexec "{sys.executable}" -m errplan "$@"\n', encoding="utf-8")
+    shim.chmod(0o755)
+    env = dict(os.environ, PATH=f"{bin_dir}{os.pathsep}{os.environ['PATH']}", PYTHONPATH=str(ROOT),
+               ERRPLAN_COMPILE_NOTICE="0", ERRPLAN_WARMUP="0")
+    script = "set -e\n" + "\n".join(commands) + "\n"
+    return subprocess.run(["bash", "-c", script], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=1200)
+
+
+def _dollar_commands(block: str) -> tuple[list[str], list[str]]:
+    """(commands, output lines) of a block of ``$ command`` lines (a trailing backslash continues one)."""
+    cmds, out, cont = [], [], False
+    for line in block.splitlines():
+        if cont:
+            cmds[-1] += "\n" + line
+        elif line.startswith("$ "):
+            cmds.append(line[2:])
+        elif line.strip() and line.strip() != "...":
+            out.append(line)
+        cont = (cont or line.startswith("$ ")) and line.endswith("\\")
+    return cmds, out
+
+
+def test_the_dollar_commands_are_parsed():
+    cmds, out = _dollar_commands("$ a \\\n  b\n$ c\nresult 1\n...\n")
+    assert cmds == ["a \\\n  b", "c"] and out == ["result 1"]
+
+
+@pytest.mark.slow
+def test_the_readme_closing_the_loop_runs_as_written(tmp_path):
+    """README's closing-the-loop example from a clean folder: its commands make the files they use, and
+    print the lines it shows."""
+    cmds, shown = _dollar_commands(_block_after(ROOT / "README.md", "**Closing the loop**"))
+    assert any("> declared.toml" in c for c in cmds) and any("bench_friction.toml" in c for c in cmds)
+    p = _run_shell(cmds, tmp_path)
+    assert p.returncode == 0, p.stderr
+    for line in shown:
+        assert line.split() == [] or " ".join(line.split()) in " ".join(p.stdout.split()), line
+    assert (tmp_path / "corrected.toml").is_file()
+
+
+@pytest.mark.slow
+def test_getting_started_runs_as_written(tmp_path):
+    """Getting started's own scenario: copy a bundled one, then the commands as written (the viewer
+    aside); the file it copies has the [uncertainty] table it tells the reader to edit."""
+    block = _block_after(ROOT / "docs" / "getting-started.md", "## A scenario of your own")
+    lines = [x for x in block.splitlines() if x.strip() and not x.lstrip().startswith("#")]
+    cmds = [x for x in lines if not x.startswith("errplan view")]
+    assert len(cmds) == len(lines) - 1 and cmds[0].startswith("cp scenarios/")
+    for table in re.findall(r"\[([a-z_]+)\]", block.split("\n# edit", 1)[1].splitlines()[0]):
+        assert f"[{table}]" in (ROOT / cmds[0].split()[1]).read_text(encoding="utf-8"), table
+    p = _run_shell(cmds, tmp_path)
+    assert p.returncode == 0, p.stderr
+    assert {"mine.toml", "mine.npz", "mine.json", "mine.rrd"} <= set(os.listdir(tmp_path))
