@@ -287,10 +287,10 @@ def _api_anchor(page: Path, anchor: str) -> bool:
     return any((anchor == n or anchor.startswith(n + ".")) and resolve(anchor) is not None for n in names)
 
 
-def broken_links(root: Path) -> list[str]:
-    """Every relative link (and image) of README.md and docs/**/*.md that does not resolve in the tree under
-    ``root``: a missing file, or an #anchor no heading of the target page makes."""
-    pages = [root / "README.md"] + sorted((root / "docs").rglob("*.md"))
+def broken_links(root: Path, docs: str = "docs") -> list[str]:
+    """Every relative link (and image) of README.md and ``docs``/**/*.md that does not resolve in the tree
+    under ``root``: a missing file, or an #anchor no heading of the target page makes."""
+    pages = [root / "README.md"] + sorted((root / docs).rglob("*.md"))
     bad, anchors = [], {}
     for page in pages:
         text = _FENCE.sub("", page.read_text(encoding="utf-8"))
@@ -317,12 +317,13 @@ def test_every_relative_link_resolves_in_the_repository():
 
 
 def test_the_link_check_catches_a_missing_page_and_anchor(tmp_path):
-    (tmp_path / "docs").mkdir()
-    (tmp_path / "docs" / "a.md").write_text("# Title\n\n## First run\n\n[ok](#first-run) [also](../README.md)\n",
-                                            encoding="utf-8")
-    (tmp_path / "README.md").write_text("[a](docs/a.md#first-run) [b](docs/b.md) [c](docs/a.md#nope)\n"
-                                        "```\n[in code](docs/none.md)\n```\n", encoding="utf-8")
-    assert broken_links(tmp_path) == ["README.md: docs/b.md (no such file)", "README.md: docs/a.md#nope (no such anchor)"]
+    (tmp_path / "pages").mkdir()
+    (tmp_path / "pages" / "a.md").write_text("# Title\n\n## First run\n\n[ok](#first-run) [also](../README.md)\n",
+                                             encoding="utf-8")
+    (tmp_path / "README.md").write_text("[a](pages/a.md#first-run) [b](pages/b.md) [c](pages/a.md#nope)\n"
+                                        "```\n[in code](pages/none.md)\n```\n", encoding="utf-8")
+    assert broken_links(tmp_path, "pages") == ["README.md: pages/b.md (no such file)",
+                                               "README.md: pages/a.md#nope (no such anchor)"]
 
 
 # ----------------------------------------------------------------------------- labels that can be read
