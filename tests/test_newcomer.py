@@ -424,3 +424,32 @@ def test_getting_started_runs_as_written(tmp_path):
     p = _run_shell(cmds, tmp_path)
     assert p.returncode == 0, p.stderr
     assert {"mine.toml", "mine.npz", "mine.json", "mine.rrd"} <= set(os.listdir(tmp_path))
+
+
+# ----------------------------------------------------------------------------- the demo's times
+def test_the_demo_reports_cpu_that_adds_up_and_no_overlapping_wall(monkeypatch):
+    """Two scenarios side by side, their steps overlapping in wall time (each 0-10 s): each block's CPU is
+    its own steps' (main process and workers), the blocks add up to every step's CPU, and a block run
+    side by side shows no wall time of its own."""
+    from errplan.cli import demo as d
+
+    steps = [{"scenario": "a", "step": "fields", "process": "worker", "start": 0, "end": 10, "cpu": 3.0},
+             {"scenario": "b", "step": "fields", "process": "worker", "start": 0, "end": 10, "cpu": 5.0},
+             {"scenario": "a", "step": "plan", "process": "main", "start": 0, "end": 10, "cpu": 1.0},
+             {"scenario": "a", "step": "query 0", "process": "worker", "start": 0, "end": 10, "cpu": 2.0},
+             {"scenario": "a", "step": "query 1", "process": "worker", "start": 0, "end": 10, "cpu": 2.5},
+             {"scenario": "b", "step": "record", "process": "main", "start": 0, "end": 10, "cpu": 0.5}]
+    monkeypatch.setattr(d, "_STEPS", steps)
+    a, b = d.cpu_by_step(["a"]), d.cpu_by_step(["b"])
+    assert a == {"fields": 3.0, "planning": 1.0, "gains + simulation": 4.5, "total": 8.5}
+    assert b == {"fields": 5.0, "recording": 0.5, "total": 5.5}
+    assert a["total"] + b["total"] == sum(e["cpu"] for e in steps)
+    line = d._cpu_line(a)
+    assert line == "time: CPU fields 3.0 s, planning 1.0 s, gains + simulation 4.5 s; 8.5 s in all"
+    times = {"fields": 10.0, "plan": 10.0, "gains_simulation_record": 10.0, "total": 10.0, "side_by_side": True,
+             "cpu": a}
+    res = {"runs": [], "queries": []}
+    text, doc = d._report(SimpleNamespace(name="a", dim=2), Path("a.toml"), None, res, False, times)
+    assert "time: wall" not in text and line in text and doc["timing_s"]["cpu"] == a
+    text, _ = d._report(SimpleNamespace(name="a", dim=2), Path("a.toml"), None, res, False, dict(times, side_by_side=False))
+    assert "time: wall fields 10.0 s" in text and line in text  # one after another: the wall times too

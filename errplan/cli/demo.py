@@ -101,7 +101,7 @@ def cpu_by_step(names) -> dict[str, float]:
 
 def _cpu_line(cpu: dict[str, float]) -> str:
     parts = ", ".join(f"{k} {v:.1f} s" for k, v in cpu.items() if k != "total")
-    return f"CPU: {parts}; {cpu['total']:.1f} s in all"
+    return f"time: CPU {parts}; {cpu['total']:.1f} s in all"
 
 
 def bundled_scenario() -> Path:
@@ -161,7 +161,7 @@ def _report(sc, path: Path, rec: Path | None, res: dict, spatial_demo, times: di
         lines.append(_cpu_line(times["cpu"]) + " (run side by side with the other scenarios: the demo's wall "
                      "time is on its last line)")
     else:
-        lines.append(f"wall: fields {times['fields']:.1f} s, planning {times['plan']:.1f} s, gains + simulation"
+        lines.append(f"time: wall fields {times['fields']:.1f} s, planning {times['plan']:.1f} s, gains + simulation"
                      f"{' + recording' if rec else ''} {times['gains_simulation_record']:.1f} s, total "
                      f"{times['total']:.1f} s")
         lines.append(_cpu_line(times["cpu"]))
@@ -310,7 +310,7 @@ def _triad_report(tb: TriadBlock, results: list, arm_runs: list, times: dict) ->
         lines.append(_cpu_line(times["cpu"]) + " (the placement and the arms run side by side with the other "
                      "scenarios: the demo's wall time is on its last line)")
     else:
-        lines.append(f"wall: triad placement {times['triad']:.1f} s, arms' fields + plans + gains + simulation "
+        lines.append(f"time: wall triad placement {times['triad']:.1f} s, arms' fields + plans + gains + simulation "
                      f"{times['arms']:.1f} s, total {times['total']:.1f} s")
         lines.append(_cpu_line(times["cpu"]))
     if tb.record:
