@@ -205,7 +205,10 @@ def _fail(command: str, message: str) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    try:
+        args = build_parser().parse_args(argv)
+    except BrokenPipeError:  # errplan --help | head -1
+        return _closed_pipe()
     cmd = args.command
     try:
         mod = importlib.import_module(f"errplan.cli.{cmd}")
