@@ -4,8 +4,11 @@ Every compiled kernel of errplan is declared with :func:`njit` (numba's, with ``
 Compiled code is cached on disk beside the sources (numba's ``__pycache__``, or ``$NUMBA_CACHE_DIR``), so
 a machine compiles each kernel once, on the first command that needs it. When numba looks an errplan
 kernel up in that cache and misses, i.e. just before it compiles, errplan prints one line on stderr
-(once per process): what is compiled, that it happens once, about how long it takes. A first run never
-sits silent; a warm run says nothing. ``ERRPLAN_COMPILE_NOTICE=0`` silences it.
+(once per process): what it compiles (the area of the kernel that missed, and its name), that no earlier
+run cached it, and that each kernel is compiled once, by the first command that needs it, so a later
+command that needs other kernels (``fields --rho-star`` after the demo, a tolerance query, a URDF arm of
+its own) compiles those and says so too. A first run never sits silent; a warm run says nothing.
+``ERRPLAN_COMPILE_NOTICE=0`` silences it.
 
 How: numba's ``FunctionCache.load_overload`` is wrapped here; a ``None`` result for a function of errplan
 is a compile about to start. The same wrapper keys each errplan kernel's cache entry on the sources of
@@ -48,8 +51,22 @@ from numba.core.compiler_machinery import FunctionPass, register_pass
 from numba.core.registry import CPUDispatcher
 from numba.core.untyped_passes import IRProcessing
 
-#: what a first run took to compile on the reference machine (2 cores), for the notice
-COMPILE_ESTIMATE = "about 1 to 2 minutes on 2 cores for the planar and spatial kernels together"
+#: where the notice sends a reader for how long compiling takes (measured there, not guessed here)
+COMPILE_TIMES = "docs/benchmarks.md#first-run"
+
+#: what the kernels of a module (the longest matching prefix) are for, as the notice names them
+AREAS = (
+    ("errplan.fields", "the worst-case fields"),
+    ("errplan.anatomy.setup", "the setup's hull distances"),
+    ("errplan.anatomy", "the anatomy's clearances"),
+    ("errplan.gains", "the gains and the simulation"),
+    ("errplan.kinematics.urdf.reachmap", "the URDF arm's reachability map"),
+    ("errplan.kinematics.urdf.broadphase", "the arms' collision checks"),
+    ("errplan.kinematics.urdf", "the URDF arm's kinematics"),
+    ("errplan.kinematics", "the planar arm's kinematics"),
+    ("errplan.linalg", "small linear algebra"),
+    ("errplan.planning", "the planner's cell walks"),
+)
 
 _STATE = {"announced": False, "label": "errplan"}
 
@@ -275,14 +292,36 @@ def set_label(label: str) -> None:
     _STATE["label"] = label
 
 
-def announce(stream=None) -> bool:
-    """Print the compile notice on ``stream`` (stderr) unless it was printed already or is silenced."""
+def area_of(module: str) -> str:
+    """What the kernels of ``module`` are for (:data:`AREAS`), for the notice."""
+    for prefix, what in AREAS:
+        if module == prefix or module.startswith(prefix + "."):
+            return what
+    return "errplan's numerical code"
+
+
+def notice(kernel=None) -> str:
+    """The compile notice: the command, what it compiles first (the kernel that missed the cache) and why
+    now. Each kernel is compiled once per machine, by the first command that needs it, not by the first
+    command: a later command that needs kernels no earlier one did (``fields --rho-star``, a tolerance
+    query, a URDF arm's map) compiles those then, and says so with the same truth."""
+    first = ""
+    if kernel is not None:
+        name = getattr(kernel, "__name__", "?").removesuffix("__native")
+        first = f", starting with {area_of(getattr(kernel, '__module__', ''))} ({name})"
+    return (f"{_STATE['label']}: compiling numerical kernels that no earlier run has cached on this machine{first}; each kernel "
+            f"is compiled once, by the first command that needs it, and loaded from the cache after that "
+            f"(up to a few minutes of CPU; measured: {COMPILE_TIMES})")
+
+
+def announce(stream=None, kernel=None) -> bool:
+    """Print the compile notice (:func:`notice`, naming ``kernel``'s area) on ``stream`` (stderr) unless it
+    was printed already or is silenced."""
     if _STATE["announced"] or os.environ.get("ERRPLAN_COMPILE_NOTICE", "1") == "0":
         return False
     _STATE["announced"] = True
     stream = stream or sys.stderr
-    stream.write(f"{_STATE['label']}: compiling numerical kernels for this machine; this happens once, on the "
-                 f"first run ({COMPILE_ESTIMATE}), later runs load them from the cache\n")
+    stream.write(notice(kernel) + "\n")
     stream.flush()
     return True
 
@@ -319,7 +358,7 @@ def _load_overload_or_announce(self, sig, target_context):
     else:
         res = _load_overload(self, sig, target_context)
     if res is None and ours:
-        announce()
+        announce(kernel=getattr(self, "_py_func", None))
     return res
 
 

@@ -35,7 +35,7 @@ from .errors import ErrplanError, InfeasibleError
 from .errorset import uncovered_effects
 from .models import arm_model
 from .gains import GainOptions, GainSchedule, SpatialModel, options_from_scenario, schedule_gains, single_segment
-from .report import format_table
+from .report import clearance_text, format_table
 from .simulation import ControllerModel, Plant, SimResult, g_norm_along, simulate
 
 Progress = Callable[[float, str], None]
@@ -423,8 +423,8 @@ def summary_table(runs: list[QueryRun], title: str | None = None) -> str:
             continue
         parts = []
         for kind, rep, reps in (("planned", r.sim_planned, r.corner_planned), ("direct", r.sim_direct, r.corner_direct)):
-            cs = [x.min_clearance for x in reps if x.min_clearance is not None]
-            parts.append(f"{kind} {rep.min_clearance * 1000:.1f} mm" + (f" (corners >= {min(cs) * 1000:.1f} mm)" if cs else ""))
+            parts.append(clearance_text(kind, rep.min_clearance, rep.sim.status, rep.sim.steps,
+                                        [(x.min_clearance, x.sim.status) for x in reps]))
         lines.append(f"{r.name} min clearance of the shaft (anatomy): " + ", ".join(parts))
     lines.append("max ||G||: worst case along the path at the scenario gain (fields); certified ||G||: verified "
                  "worst case over every segment's convergence ball at the chosen gain; steps/converged/monotonic: "

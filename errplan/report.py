@@ -45,6 +45,29 @@ def _numeric(s: str) -> bool:
         return False
 
 
+_STATUS_TEXT = {"left_workspace": "left the workspace", "max_steps": "did not converge within the step limit"}
+
+
+def clearance_text(kind: str, clearance: float, status: str, steps: int, corners: Sequence[tuple[float | None, str]] = ()) -> str:
+    """One path's shaft clearance for the summary, with the run's status beside it when the run did not
+    converge: a clearance measured over a run that stopped early (it left the workspace after one step)
+    is no evidence of a safe path. ``corners``: (clearance or None, status) of every corner replay."""
+    text = f"{kind} {clearance * 1000:.1f} mm"
+    if status != "converged":
+        text += f" over the {steps} step{'s' if steps != 1 else ''} it ran: {_STATUS_TEXT.get(status, status).upper()}"
+    cs = [c for c, _ in corners if c is not None]
+    if cs:
+        text += f" (corners >= {min(cs) * 1000:.1f} mm"
+        failed = {}
+        for _, st in corners:
+            if st != "converged":
+                failed[st] = failed.get(st, 0) + 1
+        for st, n in failed.items():
+            text += f"; {n} of {len(corners)} corners {_STATUS_TEXT.get(st, st)}"
+        text += ")"
+    return text
+
+
 NON_FINITE_KEY = "non_finite"
 """The key under which a JSON object says which of its values were not finite numbers (written as null)."""
 

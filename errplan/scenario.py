@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Mapping, Sequence
 
 try:  # Python >= 3.11
     import tomllib
@@ -407,6 +407,34 @@ def _num(ctx: _Ctx, v: Any, key: str, *, positive: bool = False, nonneg: bool = 
     return x
 
 
+#: Lengths and coordinates (m) beyond this are implausible for a surgical robot: a value in millimetres.
+MAX_METRES = 5.0
+#: Angles (rad) beyond this (2 pi and a rounding's margin) are a turn and more: a value in degrees.
+MAX_RADIANS = 2.0 * math.pi + 1e-3
+
+
+def _metres(ctx: _Ctx, values: Sequence[float], key: str, given: Any, bound: float = MAX_METRES) -> None:
+    """Lengths or coordinates of ``key`` (m): one too large for metres (beyond ``bound``) that millimetres
+    would explain is an error that names the key and the likely slip, with the value it meant. (A value
+    that is absurd in millimetres too is left to the checks of what it would cost: the memory check.)"""
+    for x in values:
+        if bound < abs(x) <= 1000.0 * bound:
+            raise ScenarioError(f"{ctx.source}: {key} = {_short(given)}: {x:g} m is implausibly large for a "
+                                f"surgical robot (more than {bound:g} m); errplan takes metres: if {x:g} is in "
+                                f"millimetres, write {x / 1000:g}")
+
+
+def _radians(ctx: _Ctx, values: Sequence[float], key: str, given: Any, metres_too: bool = False) -> None:
+    """Angles of ``key`` (rad): one beyond +-2 pi is an error that names the key and the likely slip
+    (degrees), with the value it meant. ``metres_too``: a prismatic joint's value (m) is also possible."""
+    for x in values:
+        if abs(x) > MAX_RADIANS:
+            alt = " (or, for a prismatic joint, metres)" if metres_too else ""
+            hint = f": if {x:g} is in degrees, write {math.radians(x):.6g}" if abs(x) <= 720.0 else ""
+            raise ScenarioError(f"{ctx.source}: {key} = {_short(given)}: {x:g} is beyond +-2 pi, more than a "
+                                f"full turn; errplan takes radians{alt}{hint}")
+
+
 def _pair(ctx: _Ctx, v: Any, key: str, *, ordered: bool = False) -> tuple[float, float]:
     if not isinstance(v, list) or len(v) != 2:
         raise ctx.fail(key, v, "a list of two numbers")
@@ -492,14 +520,19 @@ def _robot(ctx: _Ctx, t: Mapping[str, Any]) -> Robot:
     _check_keys(ctx, t, TABLE_KEYS["[robot]"], w)
     d = Robot()
     base = _pair(ctx, _get(ctx, t, "base", w, list(d.base)), w + "base")
+    _metres(ctx, base, w + "base", list(base))
     ll = _pair(ctx, _get(ctx, t, "link_lengths", w, list(d.link_lengths)), w + "link_lengths")
     if min(ll) <= 0:
         raise ctx.fail(w + "link_lengths", list(ll), "two lengths > 0")
+    _metres(ctx, ll, w + "link_lengths", list(ll))
     home = _pair(ctx, _get(ctx, t, "home_angles", w, list(d.home_angles)), w + "home_angles")
+    _radians(ctx, home, w + "home_angles", list(home))
     jl = _get(ctx, t, "joint_limits", w, [list(x) for x in d.joint_limits])
     if not isinstance(jl, list) or len(jl) != 2:
         raise ctx.fail(w + "joint_limits", jl, "[[q1_lo, q1_hi], [q2_lo, q2_hi]]")
     jl2 = tuple(_pair(ctx, x, w + f"joint_limits[{i}]", ordered=True) for i, x in enumerate(jl))
+    for i, x in enumerate(jl2):
+        _radians(ctx, x, w + f"joint_limits[{i}]", list(x))
     js = _pair(ctx, _get(ctx, t, "joint_sum_limits", w, list(d.joint_sum_limits)), w + "joint_sum_limits", ordered=True)
     return Robot(base, ll, home, jl2, js)  # type: ignore[arg-type]
 
@@ -508,6 +541,7 @@ def _instrument(ctx: _Ctx, t: Mapping[str, Any]) -> Instrument:
     w = "[instrument] "
     _check_keys(ctx, t, TABLE_KEYS["[instrument]"], w)
     length = _num(ctx, _get(ctx, t, "length", w), w + "length", positive=True)
+    _metres(ctx, [length], w + "length", t["length"])
     ei = t.get("flexural_rigidity")
     return Instrument(length, None if ei is None else _num(ctx, ei, w + "flexural_rigidity", positive=True))
 
@@ -517,6 +551,8 @@ def _port(ctx: _Ctx, t: Mapping[str, Any], d: int = 2) -> Port:
     _check_keys(ctx, t, TABLE_KEYS["[port]"], w)
     pos = _vec(ctx, _get(ctx, t, "position", w), w + "position", d)
     est = _vec(ctx, _get(ctx, t, "estimate", w, list(pos)), w + "estimate", d)
+    _metres(ctx, pos, w + "position", list(pos))
+    _metres(ctx, est, w + "estimate", list(est))
     return Port(pos, est)
 
 
@@ -560,16 +596,22 @@ def _urdf_robot(ctx: _Ctx, t: Mapping[str, Any], base_dir: Path) -> UrdfRobot:
     if not isinstance(rpy, list) or len(rpy) != 3:
         raise ctx.fail(w + "base_rpy", rpy, "a list of 3 angles [roll, pitch, yaw] (rad)")
     rpy = tuple(_num(ctx, x, w + "base_rpy") for x in rpy)
+    _metres(ctx, bp, w + "base_position", list(bp))
+    _radians(ctx, rpy, w + "base_rpy", list(rpy))
     jl = None
     if "joint_limits" in t:
         v = t["joint_limits"]
         if not isinstance(v, list) or len(v) != len(joints):
             raise ctx.fail(w + "joint_limits", v, f"{len(joints)} pairs [lo, hi], one per actuated joint (rad or m)")
         jl = tuple(_pair(ctx, x, w + f"joint_limits[{i}]", ordered=True) for i, x in enumerate(v))
+        for i, x in enumerate(jl):
+            _radians(ctx, x, w + f"joint_limits[{i}]", list(x), metres_too=True)
     fj = t.get("fixed_joints", {})
     if not isinstance(fj, dict):
         raise ctx.fail(w + "fixed_joints", fj, "a table { joint = value }")
     fixed = tuple((str(k), _num(ctx, v, w + f"fixed_joints.{k}")) for k, v in fj.items())
+    for k, v in fixed:
+        _radians(ctx, [v], w + f"fixed_joints.{k}", v, metres_too=True)
     for k, _ in fixed:
         if k in joints:
             raise ctx.fail(w + f"fixed_joints.{k}", dict(fj)[k], "a joint that is not actuated (it is in joints)")
@@ -622,6 +664,9 @@ def _uncertainty(ctx: _Ctx, t: Mapping[str, Any], d: int = 2) -> Uncertainty:
     px = _pair(ctx, t["port_x"], w + "port_x", ordered=True) if "port_x" in t else None
     py = _pair(ctx, t["port_y"], w + "port_y", ordered=True) if "port_y" in t else None
     pz = _pair(ctx, t["port_z"], w + "port_z", ordered=True) if "port_z" in t else None
+    for axis, box in (("port_x", px), ("port_y", py), ("port_z", pz)):
+        if box is not None:
+            _metres(ctx, box, w + axis, list(box))
     tl = _pair(ctx, t["tip_force_over_ei"], w + "tip_force_over_ei", ordered=True) if "tip_force_over_ei" in t else None
     sn = _noise(ctx, t["sensor_noise"], w + "sensor_noise") if "sensor_noise" in t else None
     samples = t.get("samples", 5)
@@ -735,8 +780,10 @@ def _queries(ctx: _Ctx, v: Any, d: int = 2) -> tuple[Query, ...]:
         if name in names:
             raise ctx.fail(w + "name", name, "a name used by no other query")
         names.add(name)
-        out.append(Query(name, _vec(ctx, _get(ctx, q, "start", w), w + "start", d),
-                         _vec(ctx, _get(ctx, q, "goal", w), w + "goal", d)))
+        ends = [_vec(ctx, _get(ctx, q, what, w), w + what, d) for what in ("start", "goal")]
+        for what, p in zip(("start", "goal"), ends):
+            _metres(ctx, p, w + what, list(p))
+        out.append(Query(name, *ends))
     return tuple(out)
 
 

@@ -6,7 +6,8 @@ and exit code 2; nothing is written in that case (outputs are written atomically
 Inputs are checked before work starts (:mod:`errplan.inputs`: file decoding, and every size that
 follows from the input against the memory the machine can hold). As a last line of defence,
 a ``MemoryError``, a ``UnicodeError`` or an ``OSError`` (a file that cannot be read or written)
-that still escapes also becomes one line and exit code 2; any other exception is a bug in errplan:
+that still escapes also becomes one line and exit code 2, except a closed stdout (``errplan plan ...
+| head -1``): that ends quietly with exit code 141, as for any shell command killed by SIGPIPE; any other exception is a bug in errplan:
 one line saying so and exit code 1 (``ERRPLAN_TRACEBACK=1`` shows the traceback). A user never
 sees a traceback.
 """
@@ -20,6 +21,7 @@ import sys
 from .. import __version__
 from ..errors import ErrplanError
 
+CLOSED_PIPE = 141  # exit code when stdout's reader closed the pipe: 128 + SIGPIPE, as a shell reports it
 COMMANDS = ("demo", "fields", "plan", "tolerance", "experiment", "calibrate", "view")
 
 
@@ -72,8 +74,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="run only this scenario file, planar or spatial (default: the three bundled scenarios: "
                         "beasley2004_bounded.toml, phantom15_spatial.toml, abdomen.toml)")
     s.add_argument("--record", default="errplan-demo.rrd",
-                   help="rerun recording to write; the spatial and abdomen scenarios beside it as <stem>-3d.rrd and "
-                        "<stem>-abdomen.rrd (default: %(default)s)")
+                   help="rerun recording of the planar scenario; the others are written beside it: five files in "
+                        "all, <stem>.rrd, <stem>-3d.rrd (the PHANToM), <stem>-abdomen.rrd, <stem>-triad.rrd and "
+                        "<stem>-triad-plan.rrd (the setup's triad and planned motions); with --scenario only "
+                        "<stem>.rrd (default: %(default)s)")
     s.add_argument("--json", default=None, help="also write the plans as JSON here (default: none)")
 
     s = sub.add_parser("fields", help="worst-case metric fields of a scenario -> npz")
@@ -189,6 +193,20 @@ def _one_line(text: str) -> str:
     return " ".join(str(text).split())
 
 
+def _closed_pipe() -> int:
+    """The reader of stdout went away (``errplan plan ... | head -1``): end quietly, as ``cat`` does.
+
+    Whatever is still buffered for stdout goes to the null device, so the interpreter's last flush
+    cannot fail again; the exit code is the shell's for a command ended by SIGPIPE (128 + 13)."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+    except (OSError, ValueError):  # stdout without a file descriptor (a test's capture): nothing to redirect
+        pass
+    return CLOSED_PIPE
+
+
 def _fail(command: str, message: str) -> None:
     if sys.stderr.isatty():  # clear an updating progress line first
         sys.stderr.write("\r" + " " * 60 + "\r")
@@ -196,7 +214,10 @@ def _fail(command: str, message: str) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    try:
+        args = build_parser().parse_args(argv)
+    except BrokenPipeError:  # errplan --help | head -1
+        return _closed_pipe()
     cmd = args.command
     try:
         mod = importlib.import_module(f"errplan.cli.{cmd}")
@@ -204,7 +225,11 @@ def main(argv: list[str] | None = None) -> int:
             from ..jit import set_label
 
             set_label(f"errplan {cmd}")
-        return int(mod.run(args) or 0)
+        rc = int(mod.run(args) or 0)
+        sys.stdout.flush()  # a reader that stopped early (``| head``) shows here, not at exit
+        return rc
+    except BrokenPipeError:
+        return _closed_pipe()
     except ErrplanError as e:
         _fail(cmd, str(e))
         return 2

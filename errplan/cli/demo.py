@@ -53,15 +53,55 @@ def _cpu() -> float:
     return t.user + t.system + t.children_user + t.children_system
 
 
+def _own_cpu() -> float:
+    t = os.times()
+    return t.user + t.system
+
+
+#: side by side, this process's steps count its own CPU only: the workers' tasks are noted on their own,
+#: and a child that ends meanwhile (the first run's warm-up) must not land in whichever step was running
+_OWN_ONLY = {"on": False}
+
+
 @contextlib.contextmanager
 def _step(scenario: str, step: str):
-    """Note a step of this process (its CPU with that of the worker processes it waited for)."""
-    c, w = _cpu(), time.perf_counter()
+    """Note a step of this process (its CPU with that of the worker processes it waited for, or its own
+    only when the scenarios run side by side)."""
+    clock = _own_cpu if _OWN_ONLY["on"] else _cpu
+    c, w = clock(), time.perf_counter()
     try:
         yield
     finally:
         _STEPS.append({"scenario": scenario, "step": step, "process": "main", "start": w,
-                       "end": time.perf_counter(), "cpu": _cpu() - c})
+                       "end": time.perf_counter(), "cpu": clock() - c})
+
+
+#: the report's name of each noted step (:data:`_STEPS`), in the order the report lists them
+_CATEGORY = {"triad": "triad placement", "fields": "fields", "plan": "planning", "queries+record":
+             "gains + simulation + recording", "query": "gains + simulation", "record": "recording"}
+
+
+def cpu_by_step(names) -> dict[str, float]:
+    """CPU seconds of the noted steps (:data:`_STEPS`: this process's and its workers') of the scenarios
+    called ``names``, per step of the report, and ``total``. A step's CPU is its own process's (with the
+    worker processes it waited for): the lines of several scenarios run side by side add up, where their
+    wall times would overlap."""
+    names = set(names)
+    out: dict[str, float] = {}
+    for e in _STEPS:
+        if e["scenario"] in names:
+            k = _CATEGORY.get(e["step"].split(" ")[0], e["step"])
+            out[k] = out.get(k, 0.0) + e["cpu"]
+    order = list(dict.fromkeys(_CATEGORY.values()))
+    res = {k: out[k] for k in order if k in out}
+    res.update({k: v for k, v in out.items() if k not in res})
+    res["total"] = sum(out.values())
+    return res
+
+
+def _cpu_line(cpu: dict[str, float]) -> str:
+    parts = ", ".join(f"{k} {v:.1f} s" for k, v in cpu.items() if k != "total")
+    return f"time: CPU {parts}; {cpu['total']:.1f} s in all"
 
 
 def bundled_scenario() -> Path:
@@ -116,9 +156,15 @@ def _report(sc, path: Path, rec: Path | None, res: dict, spatial_demo, times: di
     from ..pipeline import summary_table
 
     res_note = f" (spatial fields at {SPATIAL_RESOLUTION * 1000:g} mm)" if spatial_demo is True else ""
-    lines = [summary_table(res["runs"], f"errplan demo: {sc.name} ({path.name}){res_note}"),
-             f"time: fields {times['fields']:.1f} s, planning {times['plan']:.1f} s, gains + simulation"
-             f"{' + recording' if rec else ''} {times['gains_simulation_record']:.1f} s, total {times['total']:.1f} s"]
+    lines = [summary_table(res["runs"], f"errplan demo: {sc.name} ({path.name}){res_note}")]
+    if times.get("side_by_side"):  # wall intervals overlap with the other scenarios': CPU only
+        lines.append(_cpu_line(times["cpu"]) + " (run side by side with the other scenarios: the demo's wall "
+                     "time is on its last line)")
+    else:
+        lines.append(f"time: wall fields {times['fields']:.1f} s, planning {times['plan']:.1f} s, gains + simulation"
+                     f"{' + recording' if rec else ''} {times['gains_simulation_record']:.1f} s, total "
+                     f"{times['total']:.1f} s")
+        lines.append(_cpu_line(times["cpu"]))
     if rec:
         lines.append(f"recording: {rec}  (open it with `errplan view {rec}`)")
     return "\n".join(lines), {"scenario": sc.name, "dim": sc.dim, "queries": res["queries"], "timing_s": times}
@@ -149,7 +195,7 @@ def run_scenario(sc, path: Path, rec: Path | None, quiet: bool, *, spatial_demo:
     prog.done()
     t_pipe = time.perf_counter() - t2
     times = {"fields": t_fields, "plan": t_plan, "gains_simulation_record": t_pipe,
-             "total": time.perf_counter() - t0}
+             "total": time.perf_counter() - t0, "cpu": cpu_by_step([sc.name])}
     text, doc = _report(sc, path, rec, res, spatial_demo, times)
     print(text)
     return doc
@@ -260,8 +306,13 @@ def _triad_report(tb: TriadBlock, results: list, arm_runs: list, times: dict) ->
                                "certified", "converged", "corners converged"], rows,
                               f"planned paths of {st.name} (required shaft clearance "
                               f"{st.shaft_clearance * 1000:g} mm)"))
-    lines.append(f"time: triad placement {times['triad']:.1f} s, arms' fields + plans + gains + simulation "
-                 f"{times['arms']:.1f} s, total {times['total']:.1f} s")
+    if times.get("side_by_side"):
+        lines.append(_cpu_line(times["cpu"]) + " (the placement and the arms run side by side with the other "
+                     "scenarios: the demo's wall time is on its last line)")
+    else:
+        lines.append(f"time: wall triad placement {times['triad']:.1f} s, arms' fields + plans + gains + simulation "
+                     f"{times['arms']:.1f} s, total {times['total']:.1f} s")
+        lines.append(_cpu_line(times["cpu"]))
     if tb.record:
         from ..recording.setup import record_setup_plan, record_triad
         from types import SimpleNamespace
@@ -298,7 +349,8 @@ def _run_triad(tb: TriadBlock, quiet: bool) -> dict:
     t1 = time.perf_counter()
     arm_runs = [(n, *_arm_run(job, quiet)) for n, job in tb.arms]
     t2 = time.perf_counter()
-    times = {"triad": t1 - t0, "arms": t2 - t1, "total": t2 - t0}
+    times = {"triad": t1 - t0, "arms": t2 - t1, "total": t2 - t0,
+             "cpu": cpu_by_step([tb.st.name] + [job.sc.name for _, job in tb.arms])}
     with _step(tb.st.name, "record"):
         text, doc = _triad_report(tb, results, arm_runs, times)
     print(text)
@@ -391,6 +443,17 @@ def _run_side_by_side(jobs: list[DemoJob], quiet: bool, slots: int, triad: Triad
     pending: list[tuple] = [(0, rank[i], 0, i) for i in order]  # (kind 0 fields / 1 query, rank, query, job)
     tasks = ForkedTasks(slots)
     printed = 0
+    noted = [0]
+    _OWN_ONLY["on"] = True
+
+    def note_workers() -> None:
+        """The workers' finished tasks into :data:`_STEPS` (their CPU for the blocks' lines)."""
+        for e in tasks.log[noted[0]:]:
+            kind, i, q = e["key"]
+            _STEPS.append({"scenario": jobs[i].sc.name if i >= 0 else triad.st.name,
+                           "step": "triad" if i < 0 else "fields" if kind == 0 else f"query {q}",
+                           "process": "worker", "start": e["start"], "end": e["end"], "cpu": e["cpu"]})
+        noted[0] = len(tasks.log)
 
     def startable(item) -> bool:
         kind, _, _, i = item
@@ -439,8 +502,9 @@ def _run_side_by_side(jobs: list[DemoJob], quiet: bool, slots: int, triad: Triad
                                   record=str(job.record) if job.record else None)
         s["prog"].done()
         end = time.perf_counter()
+        note_workers()
         times = {"fields": s["t_fields"], "plan": s["t_plan"], "gains_simulation_record": end - s["t_plan_end"],
-                 "total": end - s["t0"]}
+                 "total": end - s["t0"], "side_by_side": True, "cpu": cpu_by_step([job.sc.name])}
         s["text"], s["doc"] = _report(job.sc, job.path, job.record, res, job.spatial_demo, times)
 
     def triad_block() -> None:
@@ -448,8 +512,10 @@ def _run_side_by_side(jobs: list[DemoJob], quiet: bool, slots: int, triad: Triad
             return
         t1 = min(state[j]["t0"] for j in arm_idx) if arm_idx else tstate["t_end"]
         end = time.perf_counter()
+        note_workers()
         times = {"triad": tstate["t_end"] - tstate["t0"], "arms": max([state[j]["end"] for j in arm_idx] or [t1]) - t1,
-                 "total": end - min(t1, tstate["t0"])}
+                 "total": end - min(t1, tstate["t0"]), "side_by_side": True,
+                 "cpu": cpu_by_step([triad.st.name] + [jobs[j].sc.name for j in arm_idx])}
         with _step(triad.st.name, "record"):
             tstate["text"], tstate["doc"] = _triad_report(
                 triad, tstate["results"], [(nm, state[j]["plans"], state[j]["runs"])
@@ -501,11 +567,8 @@ def _run_side_by_side(jobs: list[DemoJob], quiet: bool, slots: int, triad: Triad
                     print(tstate["text"], flush=True)
     finally:
         tasks.close()
-        for e in tasks.log:
-            kind, i, q = e["key"]
-            _STEPS.append({"scenario": jobs[i].sc.name if i >= 0 else triad.st.name,
-                           "step": "triad" if i < 0 else "fields" if kind == 0 else f"query {q}",
-                           "process": "worker", "start": e["start"], "end": e["end"], "cpu": e["cpu"]})
+        note_workers()
+        _OWN_ONLY["on"] = False
     return [s["doc"] for s in state[:n_shown]] + ([tstate["doc"]] if triad is not None else [])
 
 
@@ -568,6 +631,8 @@ def run(args) -> int:
     if triad is not None:
         doc["setup"] = docs[-1]
     doc["total_s"] = time.perf_counter() - t0
+    cpu = _cpu()
+    doc["cpu_s"] = cpu
     if args.json:
         write_json(args.json, doc)
     prof = os.environ.get(PROFILE_ENV)
@@ -575,6 +640,8 @@ def run(args) -> int:
         with open(prof, "w", encoding="utf-8") as f:
             json.dump({"workers": workers, "wall": doc["total_s"], "cpu": _cpu(),
                        "steps": [dict(e, start=e["start"] - t0, end=e["end"] - t0) for e in _STEPS]}, f, indent=1)
-    if len(docs) > 1:
-        print(f"\ndemo total: {doc['total_s']:.1f} s")
+    steps = sum(e["cpu"] for e in _STEPS)
+    compiled = " and a first run's compiling ahead" if warmup._STATE["proc"] is not None else ""
+    print(f"\ndemo total: wall {doc['total_s']:.1f} s, CPU {cpu:.1f} s (this process and the processes it ran; "
+          f"the steps above {steps:.1f} s of it, the rest loading the scenarios{compiled})")
     return 0

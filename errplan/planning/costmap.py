@@ -458,6 +458,50 @@ class CostMap:
         k = int(np.argmin(d))
         return q[k], float(d[k])
 
+    #: how many usable cells (nearest first) :meth:`suggest_usable` looks into, and how many points it checks
+    SUGGEST_CELLS = 64
+    SUGGEST_CHECKS = 512
+
+    def suggest_usable(self, p: Sequence[float], decimals: int = 4) -> tuple[np.ndarray, float] | None:
+        """A tip near ``p`` that passes every check :meth:`explain_point` makes (and the arm checks, when
+        attached), written with ``decimals`` decimals as a message prints it, and its distance from ``p``
+        (m); None if none of the points looked at passes.
+
+        Usable by construction: candidates are the nearest point of each of the nearest usable cells and
+        points between it and the cell's centre (a cell's nearest point can lie on its boundary, where
+        the shaft's robust clearance to an obstacle is only just short), rounded as printed, ordered by
+        distance; the first that the very checks refusing ``p`` accept is returned. So a suggestion
+        pasted back as the query's endpoint passes those checks."""
+        if not self.any_usable:
+            return None
+        x = np.asarray([float(v) for v in p])
+        idx = np.nonzero(self.cell_ok)
+        lo = np.stack([self.origin[k] + idx[k] * self.h for k in range(self.dim)], axis=1)
+        near = np.clip(x, lo, lo + self.h)
+        d = np.linalg.norm(near - x, axis=1)
+        order = np.argsort(d, kind="stable")[: self.SUGGEST_CELLS]
+        cand = []
+        for i in order:
+            centre = lo[i] + 0.5 * self.h
+            for t in (0.0, 0.05, 0.25, 0.5, 1.0):
+                cand.append(np.round(near[i] + t * (centre - near[i]), decimals))
+        cand = np.unique(np.asarray(cand), axis=0)
+        dist = np.linalg.norm(cand - x, axis=1)
+        for k in np.argsort(dist, kind="stable")[: self.SUGGEST_CHECKS]:
+            if self._usable_tip(cand[k]):
+                return cand[k], float(dist[k])
+        return None
+
+    def _usable_tip(self, q) -> bool:
+        """Whether tip ``q`` passes :meth:`point_ok` and the arm checks (when attached)."""
+        if not self.point_ok(*map(float, q)):
+            return False
+        if getattr(self, "arm_checks", None) is not None:
+            from .arm_checks import explain_point as explain_arms
+
+            return explain_arms(self, q) is None
+        return True
+
     def _required_text(self) -> str:
         req = self.anatomy.required - self.anatomy_margin
         if self.anatomy_margin <= 0:
@@ -478,9 +522,13 @@ class CostMap:
             return None
         fmt = lambda v: "[" + ", ".join(f"{x:.4f}" for x in v) + "]"  # noqa: E731
         where = f"{what} {fmt(p)} m"
-        near = self.nearest_usable(p)
-        tail = (f"; the nearest usable tip is {fmt(near[0])} m, {near[1] * 1000:.1f} mm away"
-                if near else "; no tip of the field is usable")
+        near = self.suggest_usable(p)
+        if near is not None:
+            tail = f"; the nearest usable tip is {fmt(near[0])} m, {near[1] * 1000:.1f} mm away"
+        elif self.any_usable:
+            tail = "; no usable tip was found near it"
+        else:
+            tail = "; no tip of the field is usable"
         b = self.bounds
         if not all(b[2 * k] <= p[k] <= b[2 * k + 1] for k in range(self.dim)):
             box = ", ".join(f"{n} in [{b[2 * k]:.3f}, {b[2 * k + 1]:.3f}]" for k, n in enumerate(self.axis_names))

@@ -37,7 +37,7 @@ import numpy as np
 from ..kinematics.urdf import rpy_matrix
 from . import sdk
 from .robot import _load_urdf_tree, _log_urdf
-from .style import DIRECT_COLOR, PLANNED_COLOR, PORT_EST_COLOR, PORT_TRUE_COLOR, uv
+from .style import DIRECT_COLOR, PLANNED_COLOR, PORT_EST_COLOR, PORT_TRUE_COLOR, port_labels, uv
 
 CAL_ARROW_GAIN = 10.0
 CAL_MAP_GAIN = 20.0
@@ -93,15 +93,23 @@ def record_calibration(report, path: str | os.PathLike, sc=None, *, app_id: str 
     sdk.write(path, app_id, f"errplan-calibrate-{report.scenario}", bp, lambda rec, rr: log(rec, rr, report, sc))
 
 
+def _extent(points, sc) -> float:
+    """The size (m) of what the view shows: the measured tips and the ports."""
+    p = np.vstack([np.asarray(points, float).reshape(-1, len(sc.port.position)), [sc.port.position],
+                   [sc.port.estimate]])
+    return float(np.max(p.max(axis=0) - p.min(axis=0)))
+
+
 def _log_calibration(rec, rr, report, sc) -> None:
     ui = rr.Radius.ui_points
     noise = float(report.noise.sigma)
     pts = np.asarray(report.points, float)
     if sc is not None:
+        lt, le = port_labels(sc.port.position, sc.port.estimate, _extent(pts, sc), "true port (declared)")
         rec.log("plane/port/true", rr.Points2D(uv([sc.port.position]), colors=PORT_TRUE_COLOR, radii=ui(6.0),
-                                               labels=["true port (declared)"], draw_order=30.0), static=True)
+                                               labels=lt, draw_order=30.0), static=True)
         rec.log("plane/port/estimate", rr.Points2D(uv([sc.port.estimate]), colors=PORT_EST_COLOR, radii=ui(6.0),
-                                                   labels=["estimated port"], draw_order=30.0), static=True)
+                                                   labels=le, draw_order=30.0), static=True)
     rec.log("plane/data/tracked", rr.Points2D(uv(report.tracked), colors=(150, 150, 150), radii=ui(1.0),
                                               draw_order=5.0), static=True)
     for kind, r in (("before", report.residual_before), ("after", report.residual_after)):
@@ -175,10 +183,12 @@ def _log_calibration_spatial(rec, rr, report, sc) -> None:
     if sc is not None:
         if d is not None and d.rows:
             _log_calibration_robot(rec, rr, sc, np.median(d.q, axis=0))
+        lt, le = port_labels(sc.port.position, sc.port.estimate, _extent(report.points, sc),
+                             "true port (declared)")
         rec.log("world/port/true", rr.Points3D([sc.port.position], colors=PORT_TRUE_COLOR, radii=ui(6.0),
-                                               labels=["true port (declared)"]), static=True)
+                                               labels=lt), static=True)
         rec.log("world/port/estimate", rr.Points3D([sc.port.estimate], colors=PORT_EST_COLOR, radii=ui(6.0),
-                                                   labels=["estimated port"]), static=True)
+                                                   labels=le), static=True)
     rec.log("world/data/tracked", rr.Points3D(report.tracked, colors=(150, 150, 150), radii=ui(1.0)), static=True)
     for kind, r in (("before", report.residual_before), ("after", report.residual_after)):
         r = np.asarray(r, float)

@@ -33,7 +33,7 @@ import numpy as np
 
 from . import sdk
 from .shapes import _merge_edges, field_image, workspace_edges
-from .style import DIRECT_COLOR, FIELD_COLORMAPS, FIELD_RANGES, PLANNED_COLOR, PORT_EST_COLOR, PORT_TRUE_COLOR, entity_names, uv
+from .style import DIRECT_COLOR, FIELD_COLORMAPS, FIELD_RANGES, PLANNED_COLOR, PORT_EST_COLOR, PORT_TRUE_COLOR, entity_names, port_labels, uv
 
 
 def _markdown_summary(sc, runs) -> str:
@@ -112,10 +112,11 @@ def _log_plan(rec, rr, sc, mf, runs, fields_logged) -> None:
     strips = [uv(s) for s in _merge_edges(workspace_edges(mf))]
     rec.log("plane/workspace", rr.LineStrips2D(strips, colors=(200, 200, 200), radii=ui(1.0), draw_order=5.0),
             static=True)
+    lt, le = port_labels(sc.port.position, sc.port.estimate, max(float(a[-1] - a[0]) for a in mf.axes))
     rec.log("plane/port/true", rr.Points2D(uv([sc.port.position]), colors=PORT_TRUE_COLOR, radii=ui(6.0),
-                                           labels=["true port"], draw_order=30.0), static=True)
+                                           labels=lt, draw_order=30.0), static=True)
     rec.log("plane/port/estimate", rr.Points2D(uv([sc.port.estimate]), colors=PORT_EST_COLOR, radii=ui(6.0),
-                                               labels=["estimated port"], draw_order=30.0), static=True)
+                                               labels=le, draw_order=30.0), static=True)
     u = sc.uncertainty
     if u.port_y is not None or u.port_z is not None:
         (y0, y1), (z0, z1) = u.port_y or (0.0, 0.0), u.port_z or (0.0, 0.0)

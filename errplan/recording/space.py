@@ -36,7 +36,7 @@ from . import sdk
 from .plane import _log_query_series, _markdown_summary, series_tabs
 from .robot import _load_urdf_tree, _log_urdf, _mesh_uris
 from .shapes import level_surface, slice_mesh
-from .style import DIRECT_COLOR, FIELD_RANGES, PLANNED_COLOR, PORT_EST_COLOR, PORT_TRUE_COLOR, SLICE_ALPHA, SURFACE_COLORS, entity_names
+from .style import DIRECT_COLOR, FIELD_RANGES, PLANNED_COLOR, PORT_EST_COLOR, PORT_TRUE_COLOR, SLICE_ALPHA, SURFACE_COLORS, entity_names, port_labels
 
 
 class SpatialScene:
@@ -152,10 +152,11 @@ def _log_plan_spatial(rec, rr, sc, mf, runs, scene) -> None:
             rec.log(f"world/fields/surface/{key}",
                     rr.Mesh3D(vertex_positions=V, triangle_indices=T, vertex_normals=N,
                               albedo_factor=SURFACE_COLORS[key]), static=True)
+    lt, le = port_labels(sc.port.position, sc.port.estimate, scene.extent)
     rec.log("world/port/true", rr.Points3D([sc.port.position], colors=PORT_TRUE_COLOR, radii=ui(7.0),
-                                           labels=["true port"]), static=True)
+                                           labels=lt), static=True)
     rec.log("world/port/estimate", rr.Points3D([sc.port.estimate], colors=PORT_EST_COLOR, radii=ui(7.0),
-                                               labels=["estimated port"]), static=True)
+                                               labels=le), static=True)
     u = sc.uncertainty
     box = [u.port_x or (0.0, 0.0), u.port_y or (0.0, 0.0), u.port_z or (0.0, 0.0)]
     if any(b != (0.0, 0.0) for b in box):

@@ -15,6 +15,23 @@ PORT_TRUE_COLOR = (255, 255, 255)
 PORT_EST_COLOR = (255, 200, 0)
 
 
+#: ports closer than this share of the scene's size get one label: apart, the two labels overprint
+PORT_LABEL_SHARE = 0.15
+
+
+def port_labels(true, estimate, extent: float, true_text: str = "true port") -> tuple[list | None, list | None]:
+    """The labels of the true (white) and the estimated (yellow) port: each its own where they lie apart;
+    where they are closer than ``PORT_LABEL_SHARE`` of the scene's ``extent`` (m), where the viewer would
+    draw the two labels over each other, one label on the true port naming both and their distance (and
+    none on the estimate)."""
+    d = float(np.linalg.norm(np.subtract(estimate, true)))
+    if d >= PORT_LABEL_SHARE * float(extent):
+        return [true_text], ["estimated port"]
+    if d == 0.0:
+        return [f"{true_text} = estimated port"], None
+    return [f"{true_text} (white), estimated port (yellow) {d * 1000:.1f} mm away"], None
+
+
 def uv(pts) -> np.ndarray:
     """Tip-plane points ``[y, z]`` (..., 2) -> viewer 2-D coordinates ``(z, -y)``."""
     p = np.asarray(pts, float)
