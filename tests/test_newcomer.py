@@ -159,7 +159,7 @@ def _run(status_direct: str, steps_direct: int):
         schedule=sched, direct_schedule=sched, direct_gain=0.9,
         sim_planned=rep("converged", 20, 0.013), sim_direct=rep(status_direct, steps_direct, 0.0361),
         corner_planned=[rep("converged", 20, 0.012)] * 2,
-        corner_direct=[rep(status_direct, steps_direct, 0.0216), rep("converged", 30, 0.03)])
+        corner_direct=[rep(status_direct, steps_direct, 0.0216), rep("converged", 30, 0.03)], uncovered=[], truth_name=None)
 
 
 def test_the_clearance_of_a_run_that_stopped_says_so():
