@@ -119,6 +119,10 @@ class SimResult:
     converged: bool
     status: str            # "converged" | "max_steps" | "left_workspace"
     tolerance: float
+    #: (n, d) what a noise-free, undelayed tracker reads of the true tip (``Plant.tracked``: ``R tip + b``
+    #: with a tracker registration or offset, else the true tip): the tip the loop closes on, whose distance
+    #: to the target the gain certificate bounds (:attr:`monotonic`). None: the true tip.
+    loop: np.ndarray | None = None
 
     @property
     def steps(self) -> int:
@@ -153,9 +157,18 @@ class SimResult:
         return float(p.max()) if len(p) else 0.0
 
     @property
+    def loop_errors(self) -> np.ndarray:
+        """Distance from the loop's tip (:attr:`loop`: the noise-free tracked tip) to the active target (m)."""
+        x = self.tip if self.loop is None else self.loop
+        return np.linalg.norm(self.target - x, axis=-1)
+
+    @property
     def monotonic(self) -> bool:
-        """The distance to the active target never grew (within a numerical slack)."""
-        e = self.errors
+        """The distance to the active target never grew (within a numerical slack), measured where the
+        loop closes: on the noise-free tracked tip (:attr:`loop`), which with a tracker registration is
+        ``R tip + b``, not the true tip; the certificate's ``||G|| < 1`` bounds exactly this distance. Without a
+        registration or offset it is the true tip's distance."""
+        e = self.loop_errors
         same = self.segment[1:] == self.segment[:-1]
         return bool(np.all(e[1:][same] <= e[:-1][same] * (1 + 1e-9) + 1e-12))
 
@@ -264,7 +277,7 @@ def simulate(plant: Plant, controller: ControllerModel, q0: np.ndarray, waypoint
     play = b.size > 0 and bool(np.any(b))
     theta = q_true.copy()  # the links behind the play (docs/physics.md backlash): mid-band at the start
     tip = plant.tip(q_true, u)
-    Q, T, X, TG, SEG, K = [], [], [], [], [], []
+    Q, T, X, TG, SEG, K, L = [], [], [], [], [], [], []
     seg = 0
     status = "max_steps"
     tau = float(np.asarray(getattr(plant, "tracker_latency", (0.0,)) or (0.0,), float)[0])
@@ -289,7 +302,7 @@ def simulate(plant: Plant, controller: ControllerModel, q0: np.ndarray, waypoint
         # switch targets on convergence
         while reading is not None and seg < len(wp) - 1 and np.linalg.norm(wp[seg] - reading) < switch_tol:
             seg += 1
-        Q.append(q.copy()); T.append(tip.copy()); X.append(tracked.copy())
+        Q.append(q.copy()); T.append(tip.copy()); X.append(tracked.copy()); L.append(plant.tracked(tip))
         TG.append(wp[seg].copy()); SEG.append(seg); K.append(gains[seg])
         err = wp[seg] - reading if reading is not None else np.zeros(d)  # nothing tracked yet: no command
         if reading is not None and seg == len(wp) - 1 and np.linalg.norm(err) < tolerance:
@@ -320,7 +333,7 @@ def simulate(plant: Plant, controller: ControllerModel, q0: np.ndarray, waypoint
         tip = plant.tip(theta if play else q_true, u)
     start = np.asarray(path_start if path_start is not None else T[0], float)
     return SimResult(np.array(Q), np.array(T), np.array(X), np.array(TG), np.array(SEG), np.array(K),
-                     np.vstack([start[None], wp]), status == "converged", status, tolerance)
+                     np.vstack([start[None], wp]), status == "converged", status, tolerance, np.array(L))
 
 
 def g_norm_along(result: SimResult, plant: Plant, controller: ControllerModel) -> np.ndarray:

@@ -483,3 +483,9 @@ def test_a_plan_on_a_registered_tracker_replays_monotonic_in_the_trackers_frame(
     same = sim.segment[1:] == sim.segment[:-1]
     assert sim.converged and np.all(e[1:][same] <= e[:-1][same] * (1 + 1e-9) + 1e-12)
     np.testing.assert_allclose(sim.tracked, plant.tracked(sim.tip), atol=1e-15)  # noise-free: R x + b
+    # the run's own flag (the plan JSON's "monotonic") is measured where the loop closes, so it says so
+    np.testing.assert_allclose(sim.loop, sim.tracked, atol=1e-15)
+    assert sim.monotonic
+    # ... while the true tip's distance to the target, which the loop does not drive to zero, does grow
+    et = sim.errors
+    assert not np.all(et[1:][same] <= et[:-1][same] * (1 + 1e-9) + 1e-12)
