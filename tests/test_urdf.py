@@ -37,10 +37,15 @@ PLANAR = Arm(base=(0.21, -0.21), l1=0.21, l2=0.21, home=(0.0, -math.pi / 2), q1_
              q2_limits=(-0.7, 1.0), sum_limits=(-0.3, 2.8))
 
 
+#: ERRPLAN_CACHE_DIR as it was before this file's fresh cache directory (None: unset, the default one)
+_OUTER_CACHE: list = [None]
+
+
 @pytest.fixture(scope="module", autouse=True)
 def cache_dir(tmp_path_factory):
-    """Reachability maps go to a fresh cache directory, never the user's."""
+    """Reachability maps go to a fresh cache directory, never the user's (but see :func:`shared_map`)."""
     old = os.environ.get("ERRPLAN_CACHE_DIR")
+    _OUTER_CACHE[0] = old
     path = tmp_path_factory.mktemp("errplan-cache")
     os.environ["ERRPLAN_CACHE_DIR"] = str(path)
     yield path
@@ -83,14 +88,39 @@ def phantom():
     return load_phantom()
 
 
+def shared_map(arm):
+    """``arm`` with its reachability map read from (or built into) the cache the other test files use,
+    not this file's fresh one: the UR5's and the Panda's maps (30 s and 8 s of CPU to build) are then
+    built once per machine, not once more per run of this file. Only the Omni's and the PHANToM's maps,
+    whose build statistics (``conflicts``) and cache behaviour this file checks, are built fresh here."""
+    fresh = os.environ.get("ERRPLAN_CACHE_DIR")
+    if _OUTER_CACHE[0] is None:
+        os.environ.pop("ERRPLAN_CACHE_DIR", None)
+    else:
+        os.environ["ERRPLAN_CACHE_DIR"] = _OUTER_CACHE[0]
+    try:
+        arm.reach_map()
+    finally:
+        os.environ["ERRPLAN_CACHE_DIR"] = fresh
+    return arm
+
+
+def use_shared_cache(monkeypatch):
+    """For one test: maps from the cache :func:`shared_map` uses."""
+    if _OUTER_CACHE[0] is None:
+        monkeypatch.delenv("ERRPLAN_CACHE_DIR", raising=False)
+    else:
+        monkeypatch.setenv("ERRPLAN_CACHE_DIR", _OUTER_CACHE[0])
+
+
 @pytest.fixture(scope="module")
 def ur5():
-    return load_erd("ur5")
+    return shared_map(load_erd("ur5"))
 
 
 @pytest.fixture(scope="module")
 def panda():
-    return load_erd("panda")
+    return shared_map(load_erd("panda"))
 
 
 def random_q(arm, n, seed, feasible=True):
@@ -761,6 +791,7 @@ def test_package_uri_in_a_scenario(tmp_path, monkeypatch):
     file), or in its package_path; a package nowhere is one error naming the URI and where errplan looked."""
     from errplan.api import load_scenario
     monkeypatch.delenv("ROS_PACKAGE_PATH", raising=False)
+    use_shared_cache(monkeypatch)   # loading checks the port against the UR5's map: the shared one
     sc = load_scenario(REPO / "scenarios" / "ur5_port.toml")
     assert Path(sc.robot.urdf) == erd_path("ur5")
     (tmp_path / "pkgs" / "toy_description" / "urdf").mkdir(parents=True)
