@@ -391,8 +391,10 @@ class SpatialEffectsEvaluator:
     ``Jhat = J_lever(w_model(q_enc), estimate) J_arm(q_enc)`` at the same encoder angles, and
     ``M = R J Jhat^-1`` with ``R`` the tracker registration's rotation. A load instance ``(tau, psi)`` is the
     world vector the lever geometry gives it (as in the compiled kernels), added to the truth's
-    ``shaft_flexion`` load. The general path: numpy, much slower than the compiled kernels (and
-    slower still with ``gravity_sag``, whose generalized gravity comes from pinocchio point by point).
+    ``shaft_flexion`` load. Where the truth's links follow the encoders in closed form under the rigid
+    controller (:attr:`compiled`) one compiled loop computes ``M`` (:mod:`.kernels.effects`, equal to
+    :meth:`numpy_parts`); otherwise numpy, slower (and slower still with ``gravity_sag``, whose
+    generalized gravity comes from pinocchio point by point).
 
     ``parts(x, theta)`` returns ``(M, None, ok)`` with ``M`` (n, 1, 3, 3): the numpy search
     (:mod:`.search`) takes motion maps where the planar evaluator gives conformal parts.
