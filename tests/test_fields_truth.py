@@ -319,6 +319,45 @@ def test_phantom_like_arm_fields_equal_pinocchio_on_the_edited_urdf():
                    limits=[[-1.0, 1.0], [-1.9, 1.2], [-0.7, 1.0]], coupled=([1, 2], (-0.3, 2.8)))
 
 
+def _fields_both_paths(sc, monkeypatch):
+    """The field of ``sc`` through the compiled effects path and through the numpy one."""
+    from errplan.fields.evaluator import SpatialEffectsEvaluator
+
+    f = compute_fields(sc, metrics=("G_norm", "phi_max"), workers=1)
+    with monkeypatch.context() as mp:
+        mp.setattr(SpatialEffectsEvaluator, "compiled", property(lambda self: False))
+        g = compute_fields(sc, metrics=("G_norm", "phi_max"), workers=1)
+    return f, g
+
+
+@pytest.mark.parametrize("arm", ["ur5", "phantom"])
+def test_the_compiled_effects_path_equals_the_numpy_path(arm, ur5, monkeypatch):
+    """Over the full error set (port box and tip loads), a truth with joint geometry, a longer instrument,
+    joint offsets and a tracker registration: the compiled effects path's field is the numpy path's (the
+    one checked against pinocchio above): the same valid tips, ||G|| and |phi_max| to 1e-9."""
+    from errplan.fields.evaluator import SpatialEffectsEvaluator
+    from errplan.scenario import Fields
+
+    if arm == "ur5":
+        base = load_scenario(ur5.source)
+        geom = UR5_GEOM
+        box = replace(base.uncertainty, port_x=(-0.004, 0.004), port_y=(-0.004, 0.004), port_z=(-0.004, 0.004),
+                      tip_force_over_ei=(0.0, 1.0), samples=3)
+        sc = base.with_(uncertainty=box, fields=Fields(0.1, {"x": (-0.25, 0.35), "y": (-0.25, 0.35), "z": (0.45, 0.9)}))
+    else:
+        geom = {"dy_2": 0.002, "rz_2": 0.008, "dx_3": 0.002, "dz_3": 0.003, "rx_3": 0.010}
+        sc = load_scenario(PHANTOM).with_(fields=Fields(0.03, {"x": (-0.12, 0.12), "y": (-0.12, 0.12), "z": (0.28, 0.46)}))
+    tables = _spatial_effect_tables(geom, 0.004, (0.01, -0.02, 0.015), (0.001, -0.002, 0.0005))
+    tables["joint_offset"] = {"dq1": 0.004, "dq2": -0.003, "dq3": 0.002}
+    sc = sc.with_(effects=tables)
+    assert SpatialEffectsEvaluator.from_model(arm_model(sc)).compiled
+    f, g = _fields_both_paths(sc, monkeypatch)
+    assert np.array_equal(f.valid, g.valid) and f.valid.sum() >= 20
+    v = f.valid
+    assert np.max(np.abs(f.G_norm[v] - g.G_norm[v])) <= 1e-9
+    assert np.max(np.abs(f.phi_max[v] - g.phi_max[v])) <= 1e-9
+
+
 # ----------------------------------------------------------------------------- the certificates
 def test_uncovered_effects_names_what_the_metrics_cannot_express(tmp_path):
     sc = _planar({"link_length": {"dl1": 0.001}, "backlash": {"b1": 0.001, "b2": 0.0},

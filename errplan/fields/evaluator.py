@@ -391,8 +391,10 @@ class SpatialEffectsEvaluator:
     ``Jhat = J_lever(w_model(q_enc), estimate) J_arm(q_enc)`` at the same encoder angles, and
     ``M = R J Jhat^-1`` with ``R`` the tracker registration's rotation. A load instance ``(tau, psi)`` is the
     world vector the lever geometry gives it (as in the compiled kernels), added to the truth's
-    ``shaft_flexion`` load. The general path: numpy, much slower than the compiled kernels (and
-    slower still with ``gravity_sag``, whose generalized gravity comes from pinocchio point by point).
+    ``shaft_flexion`` load. Where the truth's links follow the encoders in closed form under the rigid
+    controller (:attr:`compiled`) one compiled loop computes ``M`` (:mod:`.kernels.effects`, equal to
+    :meth:`numpy_parts`); otherwise numpy, slower (and slower still with ``gravity_sag``, whose
+    generalized gravity comes from pinocchio point by point).
 
     ``parts(x, theta)`` returns ``(M, None, ok)`` with ``M`` (n, 1, 3, 3): the numpy search
     (:mod:`.search`) takes motion maps where the planar evaluator gives conformal parts.
@@ -522,7 +524,49 @@ class SpatialEffectsEvaluator:
             Jtw = lever[:, None]
         return Jtw @ self.arm.jacobian(q)[:, None]  # (n, c, 3, 3)
 
+    @property
+    def compiled(self) -> bool:
+        """True where :meth:`parts` runs compiled (:func:`errplan.fields.kernels.effects._effects_maps3`):
+        :attr:`closed_form`, the rigid controller, no world load, a 3-joint arm."""
+        return (self.closed_form and self.jacobian == "rigid" and not any(self.plant.world_load)
+                and int(self.arm.n) == 3 and hasattr(self.arm, "kernel"))
+
+    def _kernel_args(self) -> tuple:
+        """The compiled path's fixed arguments, built once."""
+        kept = self.__dict__.get("_kargs")
+        if kept is None:
+            from ..jit import kernel_array
+
+            pl = self.plant
+            decl, rmap = self.arm.kernel()
+            true_arm = pl.true_arm
+            refine = true_arm is not self.arm
+            R = tracker_rotation_matrix(pl)
+            kept = self.__dict__["_kargs"] = (
+                kernel_array(np.asarray(self.errors.base_port, float) + np.asarray(pl.port_offset, float)),
+                kernel_array(np.asarray(self.estimate, float)), float(self.length), float(pl.true_length),
+                decl, rmap, true_arm.chain if refine else decl, bool(refine),
+                kernel_array(np.asarray(pl.joint_offset, float)), kernel_array(np.eye(3) if R is None else R))
+        return kept
+
     def parts(self, x: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, None, np.ndarray]:
+        x = np.asarray(x, float).reshape(-1, 3)
+        n = len(x)
+        if self.compiled:
+            from ..jit import kernel_array
+            from .kernels.effects import _effects_maps3
+
+            bp, est, L, Lt, decl, rmap, tch, refine, off, R = self._kernel_args()
+            X = kernel_array(x)
+            TH = kernel_array(np.broadcast_to(np.asarray(theta, float), (n, 5)))
+            M = np.empty((n, 3, 3))
+            ok = np.empty(n, np.bool_)
+            _effects_maps3(X, TH, bp, est, L, Lt, decl, rmap, tch, refine, off, R, M, ok)
+            return M[:, None], None, ok
+        return self.numpy_parts(x, theta)
+
+    def numpy_parts(self, x: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, None, np.ndarray]:
+        """:meth:`parts` in numpy (every effect; the compiled path's reference)."""
         x = np.asarray(x, float).reshape(-1, 3)
         n = len(x)
         M = np.full((n, 1 if self.noise is None else len(self.noise), 3, 3), np.nan)

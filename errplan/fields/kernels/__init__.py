@@ -31,6 +31,8 @@ The package, imports pointing down: :mod:`.reach` (the planar arm's exact reacha
 certificates of a tip's wrists), :mod:`.instance` (the physics of one error instance: levers and
 flexed shafts), :mod:`.metrics` (``||I - k M||``, ``|phi_max|`` of a map), :mod:`.search` (pattern search,
 golden section) and :mod:`.loops` (the entry loops Python calls). Every name is importable from here.
+:mod:`.flexion` and :mod:`.effects` (the exact effects path's ``M = R J Jhat^-1``) serve the numpy search
+(:mod:`errplan.fields.search`) and are imported where used.
 """
 from __future__ import annotations
 
