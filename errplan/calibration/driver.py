@@ -11,7 +11,8 @@ from ..errors import DataError, ErrplanError
 from ..experiment import MeasuredData
 from .blas import single_threaded_blas
 from .fit import Candidate, _folds, fit_candidate
-from .noise import noise_floor, structure_test
+from .noise import model_steps, motion_features, noise_floor, structure_test
+from .outliers import find_outliers, listing, without_rows
 from .report import CalibrationReport, Errors
 from .residual import (
     approach_mask,
@@ -19,10 +20,8 @@ from .residual import (
     check_against_model,
     declared_plant,
     motion_model,
-    pose_residual,
     replay,
     rms,
-    trajectory_errors,
 )
 from .selection import select
 
@@ -72,14 +71,27 @@ def _calibrate(sc, data: MeasuredData, *, validate, seed, folds, progress, effec
         left_out += [f"validation {s}" for s in left_v]
     ctrl = bench_controller(sc)
     xmodel = motion_model(sc)  # friction's u: the motion each command produces under the declared model
-    u = data.commanded_directions(xmodel)
-    r0 = pose_residual(data, base, u)
-    if not np.all(np.isfinite(r0)):
-        i = int(np.flatnonzero(~np.all(np.isfinite(r0), axis=1))[0])
+    # outliers (lone rows far off: errplan.calibration.outliers) and dropouts are left out of every fit,
+    # the noise floor and every RMS; the whole file stays for the controller replay
+    full = data
+    u_full = data.commanded_directions(xmodel)
+    tracked = _tracked(data)
+    x_full = predict_tracked(base, data.q, u_full)
+    bad = ~np.all(np.isfinite(x_full), axis=1)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
         raise DataError(f"{data.source}: row {i + 1}: the declared model has no tip at encoder angles {data.q[i].tolist()}")
-    x0 = predict_tracked(base, data.q, u)
+    with np.errstate(invalid="ignore"):
+        r_full = data.tip - predict_tracked(base, data.q, u_full, data.run)
+    v_full = _motion(data, xmodel)
+    outlier = find_outliers(r_full, x_full, u_full, data.run, tracked)
+    keep = tracked & ~outlier
+    outliers = listing(data, outlier, r_full)
+    data, u, v = without_rows(data, ~keep), u_full[keep], v_full[keep]
+    r0 = r_full[keep]
+    x0 = x_full[keep]
     nf = noise_floor(r0, x0, u)
-    st0 = structure_test(r0, u, nf, data.run, seed)
+    st0 = structure_test(r0, u, nf, data.run, seed, motion=v)
     prog(0.05, "noise floor")
     ident, ident_text = _identifiability(sc, data, cat)
     k = min(folds, data.runs)
@@ -131,43 +143,54 @@ def _calibrate(sc, data: MeasuredData, *, validate, seed, folds, progress, effec
     model = chosen.model
     after = model.plant(base)
     r1 = data.tip - predict_tracked(after, data.q, u, data.run)
-    st1 = structure_test(r1, u, nf, data.run, seed)
-    explained = not st1.structured
+    st1 = structure_test(r1, u, nf, data.run, seed, motion=v)
+
+    # before / after errors
+    tol = arrival_tolerance(nf.sigma)
+
+    def errors(d: MeasuredData, r_before: np.ndarray, r_after: np.ndarray, rows: np.ndarray) -> Errors:
+        tb, tb_all = _trajectory_errors(d, base, ctrl, tol, xmodel, rows)
+        ta, ta_all = _trajectory_errors(d, after, ctrl, tol, xmodel, rows)
+        mask, unsettled = approach_mask(d, tol)
+        return Errors(rms(r_before), rms(r_after), tb, ta, tb_all, ta_all, d.rows, d.runs, d.source, tol,
+                      int((mask & rows).sum()), int(unsettled.sum()))
+
+    fit_err = errors(full, r0, r1, keep)
+    val_err = None
+    val_measured = None
+    if validate is not None:
+        uv = validate.commanded_directions(xmodel)
+        tv = _tracked(validate)
+        with np.errstate(invalid="ignore"):
+            rv0_all = validate.tip - predict_tracked(base, validate.q, uv, validate.run)
+            xv_after = predict_tracked(after, validate.q, uv, validate.run)
+            rv1_all = validate.tip - xv_after
+        # outliers of the validation file: listed and left out of its RMS, still predicted
+        out_v = find_outliers(rv1_all, xv_after, uv, validate.run, tv)
+        kv = tv & ~out_v
+        rv0, rv1 = rv0_all[kv], rv1_all[kv]
+        val_err = errors(validate, rv0, rv1, kv)
+        val_measured = {"outliers": listing(validate, out_v, rv1_all), "dropouts": int((~tv).sum())}
+    verdict = _verdict(r1, nf.sigma, st1, model, val_err, bool(model.names))
+    explained = not verdict["failed"]
     empirical = emp_predict = None
     if not explained:  # the last resort: a sparse correction over a documented basis (never "explained")
         from .empirical import fit_empirical
 
         empirical, emp_predict = fit_empirical(predict_tracked(after, data.q, u, data.run), data.q, r1, data.run,
-                                               folds=max(2, folds), seed=seed)
+                                               folds=max(2, folds), seed=seed, motion=v)
         # the scenario format has no key for it (a correction of what the tracker reads, centred and
         # scaled on these rows, not a property of the robot): --predictions carries it, the export not
         empirical["in_exported_scenario"] = False
         empirical["export_note"] = ("not in the exported scenario: the scenario format has no key for an empirical "
                                     "correction of the tracked tip; --predictions includes it")
-
-    # before / after errors
-    tol = arrival_tolerance(nf.sigma)
-
-    def errors(d: MeasuredData, r_before: np.ndarray, r_after: np.ndarray) -> Errors:
-        tb, tb_all = trajectory_errors(d, base, ctrl, tol, xmodel)
-        ta, ta_all = trajectory_errors(d, after, ctrl, tol, xmodel)
-        mask, unsettled = approach_mask(d, tol)
-        return Errors(rms(r_before), rms(r_after), tb, ta, tb_all, ta_all, d.rows, d.runs, d.source, tol,
-                      int(mask.sum()), int(unsettled.sum()))
-
-    fit_err = errors(data, r0, r1)
-    val_err = None
-    if validate is not None:
-        uv = validate.commanded_directions(xmodel)
-        rv0, rv1 = pose_residual(validate, base, uv), pose_residual(validate, after, uv)
-        val_err = errors(validate, rv0, rv1)
-        if empirical is not None:
-            xv = predict_tracked(after, validate.q, uv, validate.run)
-            empirical["validation_rms_declared"] = rms(rv0)
-            empirical["validation_rms_selected"] = rms(rv1)
-            empirical["validation_rms_with_term"] = rms(rv1 - emp_predict(xv, validate.q))
-    pred0, _ = replay(data, base, ctrl, xmodel)
-    pred1, _ = replay(data, after, ctrl, xmodel)
+    if empirical is not None and validate is not None:
+        empirical["validation_rms_declared"] = rms(rv0)
+        empirical["validation_rms_selected"] = rms(rv1)
+        empirical["validation_rms_with_term"] = rms(rv1 - emp_predict(xv_after[kv], validate.q[kv],
+                                                                      _motion(validate, xmodel)[kv]))
+    pred0, _ = replay(full, base, ctrl, xmodel)
+    pred1, _ = replay(full, after, ctrl, xmodel)
     fixed = {f"{e.name}.{p_}": e.why_fixed or "identically zero sensitivity on this robot"
              for e in cat + geo for p_, fx in zip(e.params, e.fixed) if fx}
     for lab in model.held_labels:
@@ -180,8 +203,73 @@ def _calibrate(sc, data: MeasuredData, *, validate, seed, folds, progress, effec
         noise=nf, structure=st1, structure_before=st0, candidates=cand_list, fit_errors=fit_err,
         validation_errors=val_err, declared_effects={k2: dict(v) for k2, v in sc.effects.items()}, seed=seed, folds=k,
         points=x0, residual_before=r0, residual_after=r1, tracked=data.tip,
-        replay_before=pred0, replay_after=pred1, data=data, fixed=fixed, skipped=skipped, left_out=left_out,
-        identifiability=ident_text, bench=ident, empirical=empirical, empirical_predict=emp_predict)
+        replay_before=pred0, replay_after=pred1, data=full, fixed=fixed, skipped=skipped, left_out=left_out,
+        identifiability=ident_text, bench=ident, empirical=empirical, empirical_predict=emp_predict,
+        verdict=verdict, outliers=outliers, validation_outliers=val_measured, kept_rows=keep)
+
+
+#: the verdict's thresholds (docs/physics.md "`explained` means explained"): the residual after the
+#: selected model, and the validation file's pose error after, at most this many noise floors
+VERDICT_RATIO = 1.25
+CONDITIONS = {
+    "a": "the residual after the selected model is above {ratio:g} x the noise floor",
+    "b": "the structure test finds structure left in the residual",
+    "c": "a selected parameter is implausible",
+    "d": "the validation file's pose error after is not below its error before, or above {ratio:g} x the noise floor",
+}
+
+
+def _verdict(r1: np.ndarray, sigma: float, st, model, val_err, selected: bool) -> dict:
+    """The verdict of docs/physics.md ("`explained` means explained"): the JSON ``verdict`` object,
+    ``failed`` the conditions (a)-(d) that failed (empty: explained)."""
+    from ..effects import implausible
+
+    ratio = rms(r1) / max(sigma, 1e-300)
+    flags = implausible(model) if model.effects else []
+    names = sorted({f"{f['effect']}.{f['param']}" for f in flags})
+    vratio = None
+    failed = []
+    if ratio > VERDICT_RATIO:
+        failed.append("a")
+    if st.structured:
+        failed.append("b")
+    if names:
+        failed.append("c")
+    if val_err is not None:
+        vratio = val_err.pose_after / max(sigma, 1e-300)
+        # nothing selected: the declared model is the model after, its error the same as before
+        worse = val_err.pose_after >= val_err.pose_before if selected else val_err.pose_after > val_err.pose_before
+        if worse or vratio > VERDICT_RATIO:
+            failed.append("d")
+    return {"residual_ratio": float(ratio), "structure_p": float(st.p_value), "implausible": names,
+            "validation_ratio": None if vratio is None else float(vratio), "failed": failed,
+            "threshold": VERDICT_RATIO}
+
+
+def _tracked(data: MeasuredData) -> np.ndarray:
+    """Rows (n,) with a tracked tip: ``data.tracked`` when the data say, else every tip coordinate finite."""
+    t = getattr(data, "tracked", None)
+    fin = np.all(np.isfinite(data.tip), axis=1)
+    return fin if t is None else (np.asarray(t, bool) & fin)
+
+
+def _motion(data: MeasuredData, xmodel) -> np.ndarray:
+    """The rows' motion (n, d): the declared model tip's step from the row before over the step's
+    duration (:func:`.noise.motion_features`; ``data.time`` when the data have one, else steps)."""
+    with np.errstate(invalid="ignore"):
+        steps = model_steps(xmodel.model_tip(data.q), data.run)
+    steps = np.where(np.isfinite(steps), steps, 0.0)
+    return motion_features(steps, data.run, getattr(data, "time", None))
+
+
+def _trajectory_errors(d: MeasuredData, plant, ctrl, tol: float, xmodel, rows: np.ndarray) -> tuple[float, float]:
+    """:func:`.residual.trajectory_errors` over the rows ``rows`` only (dropouts and outliers left out)."""
+    pred, _ = replay(d, plant, ctrl, xmodel)
+    r = d.tip - pred
+    mask, _ = approach_mask(d, tol)
+    mask = mask & rows
+    every = (d.step >= 1) & rows
+    return (rms(r[mask]) if np.any(mask) else float("nan")), (rms(r[every]) if np.any(every) else float("nan"))
 
 
 def _identifiability(sc, data: MeasuredData, cat) -> tuple[dict, str]:
