@@ -11,9 +11,10 @@ first rows), never outliers.
 "The best fit so far" is the noise floor's flexible model (:func:`errplan.calibration.noise.noise_floor`:
 local polynomials of the model tip times ``[1, u]`` on k-means clusters of rows), fitted to the
 declared model's residual: it follows every catalogue effect and the usual unmodelled ones, so what it
-leaves is the noise and the outliers. Least squares is pulled toward an outlier, so the fit is redone
-without the rows found so far (up to :data:`ITERATIONS` times, until the set stops changing), each row
-then judged by the residual from a fit it did not take part in. The caller excludes the outliers from
+leaves is the noise and the outliers. Least squares is pulled toward an outlier (and its neighbours
+away from it), so the fit is redone without every row beyond 6 robust sigmas found so far (up to
+:data:`ITERATIONS` times, until the set stops changing), each such row then judged, alone or not, by
+the residual of a fit it did not take part in. The caller excludes the outliers from
 every fit, the noise floor and every RMS, and names each one.
 """
 from __future__ import annotations
@@ -80,14 +81,18 @@ def find_outliers(r: np.ndarray, x: np.ndarray, u: np.ndarray, run: np.ndarray, 
     if extra is not None:
         ut = np.concatenate([ut, extra[idx]], axis=1)
     basis = noise_floor(rt, xt, ut).basis
-    cur = np.zeros(len(idx), bool)
+    # every row beyond OUTLIER_SIGMAS is left out of the next fit (lone or not): least squares pulls the
+    # fit toward an outlier, and so its neighbours (a run dwelling at its target sits at one place) away
+    # from it; the rows are judged alone or not on the residual of a fit without them
+    far = np.zeros(len(idx), bool)
     for _ in range(ITERATIONS):
-        res = rt - basis.predict_held_out(rt, xt, ut, ~cur)
-        new = lone_rows(res, run[idx], np.ones(len(idx), bool), robust_sigma(res[~cur]))
-        if np.array_equal(new, cur):
+        res = rt - basis.predict_held_out(rt, xt, ut, ~far)
+        sig = robust_sigma(res[~far])
+        new = np.max(np.abs(res - np.median(res[~far], axis=0)) / sig, axis=1) > OUTLIER_SIGMAS
+        if np.array_equal(new, far):
             break
-        cur = new
-    out[idx] = cur
+        far = new
+    out[idx] = lone_rows(res, run[idx], np.ones(len(idx), bool), sig)
     return out
 
 
