@@ -84,9 +84,9 @@ def _calibrate(sc, data: MeasuredData, *, validate, seed, folds, progress, effec
     with np.errstate(invalid="ignore"):
         r_full = data.tip - predict_tracked(base, data.q, u_full, data.run)
     v_full = _motion(data, xmodel)
-    outlier = find_outliers(r_full, x_full, u_full, data.run, tracked)
+    outlier, r_smooth = find_outliers(r_full, x_full, u_full, data.run, tracked, return_residual=True)
     keep = tracked & ~outlier
-    outliers = listing(data, outlier, r_full)
+    outliers = listing(data, outlier, r_smooth)
     data, u, v = without_rows(data, ~keep), u_full[keep], v_full[keep]
     r0 = r_full[keep]
     x0 = x_full[keep]
@@ -166,11 +166,11 @@ def _calibrate(sc, data: MeasuredData, *, validate, seed, folds, progress, effec
             xv_after = predict_tracked(after, validate.q, uv, validate.run)
             rv1_all = validate.tip - xv_after
         # outliers of the validation file: listed and left out of its RMS, still predicted
-        out_v = find_outliers(rv1_all, xv_after, uv, validate.run, tv)
+        out_v, rv_smooth = find_outliers(rv1_all, xv_after, uv, validate.run, tv, return_residual=True)
         kv = tv & ~out_v
         rv0, rv1 = rv0_all[kv], rv1_all[kv]
         val_err = errors(validate, rv0, rv1, kv)
-        val_measured = {"outliers": listing(validate, out_v, rv1_all), "dropouts": int((~tv).sum())}
+        val_measured = {"outliers": listing(validate, out_v, rv_smooth), "dropouts": int((~tv).sum())}
     verdict = _verdict(r1, nf.sigma, st1, model, val_err, bool(model.names))
     explained = not verdict["failed"]
     empirical = emp_predict = None

@@ -7,7 +7,8 @@ about the data's centroid, scaled by the data's extent (half the range per coord
 the caller gives the rows' motion (the declared model tip's step over its duration,
 :func:`errplan.calibration.noise.motion_features`), its coordinates scaled by their RMS (``vx'``, ...).
 A term on the motion is history-dependent by construction (a row's motion is its run's history), and
-the report says so.
+the report says so. The basis with the motion is fitted beside the one without and kept only when its
+held-out RMS is 5 % lower (:data:`MOTION_GAIN`): in closed loop the motion correlates with the pose.
 
 Fitted with scikit-learn (the only module that imports it): the columns normalised to unit RMS, the
 support of the term from the multi-task lasso path (:func:`sklearn.linear_model.lasso_path` with all
@@ -38,6 +39,7 @@ DEGREES = (1, 2, 3)
 ALPHA_GRID = np.r_[np.logspace(0.0, -2.0, 13), 0.0]
 HISTORY_GAIN = 0.9   # held-out RMS after / before above this: the pose basis does not predict the runs
 PARSIMONY = 1.01     # candidates within 1 % of the best held-out RMS: the fewest terms
+MOTION_GAIN = 0.95   # terms on the motion kept only when they cut the held-out RMS by 5 % beyond the pose's
 
 
 def basis(x: np.ndarray, q: np.ndarray, centre: np.ndarray, extent: np.ndarray, degree: int,
@@ -121,7 +123,16 @@ def fit_empirical(x: np.ndarray, q: np.ndarray, r: np.ndarray, run: np.ndarray, 
     # one thread for every BLAS and OpenMP pool (scipy's and scikit-learn's too, not only numpy's):
     # these are hundreds of small problems (errplan.calibration.blas)
     with threadpool_limits(limits=1):
-        return _fit_empirical(x, q, r, run, folds, seed, motion)
+        pose = _fit_empirical(x, q, r, run, folds, seed)
+        if motion is None:
+            return pose
+        # the motion's terms only when they predict the held-out runs clearly better than the pose's alone:
+        # in closed loop the motion correlates with where the tip is, and a warp of the tracker's space
+        # would otherwise borrow a term on the motion and read as history-dependent
+        moving = _fit_empirical(x, q, r, run, folds, seed, motion)
+        if moving[0]["motion_terms"] and moving[0]["held_out_rms_after"] < MOTION_GAIN * pose[0]["held_out_rms_after"]:
+            return moving
+        return pose
 
 
 def _fit_empirical(x, q, r, run, folds, seed, motion=None):

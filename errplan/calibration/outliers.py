@@ -65,18 +65,19 @@ def lone_rows(res: np.ndarray, run: np.ndarray, tracked: np.ndarray, sigma: np.n
 
 
 def find_outliers(r: np.ndarray, x: np.ndarray, u: np.ndarray, run: np.ndarray, tracked: np.ndarray,
-                  extra: np.ndarray | None = None) -> np.ndarray:
+                  extra: np.ndarray | None = None, return_residual: bool = False):
     """The outliers (n,) bool of a pose residual ``r`` (n, d) (the declared model's; NaN allowed on
     untracked rows) at model tips ``x`` (n, d), friction's directions ``u`` (n, d), runs ``run`` (n,),
     ``tracked`` (n,) bool (False on dropouts). ``extra`` (n, k): further smooth regressors the fit so
-    far may use (the row's motion), appended to ``u``."""
+    far may use (the row's motion), appended to ``u``. With ``return_residual`` also the residual (n, d)
+    after the fit without the far rows (NaN on untracked rows): an outlier's size is its norm."""
     from .noise import noise_floor
 
     tracked = np.asarray(tracked, bool) & np.all(np.isfinite(r), axis=1)
     idx = np.flatnonzero(tracked)
     out = np.zeros(len(r), bool)
     if len(idx) < 10:
-        return out
+        return (out, np.where(np.isfinite(r), r, np.nan)) if return_residual else out
     rt, xt, ut = r[idx], x[idx], u[idx]
     if extra is not None:
         ut = np.concatenate([ut, extra[idx]], axis=1)
@@ -93,6 +94,10 @@ def find_outliers(r: np.ndarray, x: np.ndarray, u: np.ndarray, run: np.ndarray, 
             break
         far = new
     out[idx] = lone_rows(res, run[idx], np.ones(len(idx), bool), sig)
+    if return_residual:
+        full = np.full_like(np.asarray(r, float), np.nan)
+        full[idx] = res
+        return out, full
     return out
 
 
