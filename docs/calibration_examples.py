@@ -216,7 +216,8 @@ def render(ex: Example) -> str:
     return "\n".join(parts)
 
 
-BLOCK = re.compile(r"(<!-- output: (?P<name>[\w-]+) -->\n```\n)(?P<body>.*?)(\n```\n<!-- /output -->)", re.S)
+BLOCK = re.compile(r"(<!-- output: (?P<name>[\w-]+) -->\n```\n)(?P<body>(?:(?!<!-- /?output).)*?)(\n```\n<!-- /output -->)",
+                   re.S)
 
 
 def blocks(page: str) -> dict[str, str]:
@@ -261,9 +262,11 @@ def main(argv=None) -> int:
     missing = [n for n in names if n not in have]
     if missing:
         print("no block for: " + ", ".join(missing) + " (add <!-- output: NAME --> ... <!-- /output --> to the page)")
-    outputs = {n: render(BY_NAME[n]) for n in names if n in have}
-    PAGE.write_text(update(page, outputs))
-    print("updated: " + ", ".join(outputs))
+    for n in names:
+        if n in have:  # each block written as soon as it is made (the page read again: one block at a time)
+            out = render(BY_NAME[n])
+            PAGE.write_text(update(PAGE.read_text(), {n: out}))
+            print(f"updated: {n}", flush=True)
     return 0
 
 
