@@ -12,6 +12,7 @@ from .fit import Candidate, _finite_or_none, _num
 from .noise import STRUCTURE_P, STRUCTURE_RATIO, NoiseFloor, Structure
 
 TEXT_CANDIDATES = 10        # candidates listed on stdout (all of them in the JSON)
+TEXT_WIDTH = 110            # the report's sentences wrapped to this many columns (tables as wide as they are)
 
 
 # ----------------------------------------------------------------------------- report
@@ -202,7 +203,7 @@ class CalibrationReport:
         for why in self.left_out:
             lines.append(why)
         if self.identifiability:
-            lines.append(self.identifiability)
+            lines += _wrapped(self.identifiability)
         lines.append("")
         rows = []
         order = sorted(self.candidates, key=lambda c: c.bic)
@@ -222,7 +223,8 @@ class CalibrationReport:
         lines.append(_table(["candidate", "p", "pose rms mm", "held-out mm", "dBIC", "cond", "ok", "note"], rows,
                             f"candidates (sorted by BIC; * selected; {len(order)} tried"
                             + (f", {more} more in the JSON)" if more else ")")))
-        lines += [f"  [{i + 1}] {n}" for i, n in enumerate(notes)]
+        for i, n in enumerate(notes):
+            lines += _wrapped(f"  [{i + 1}] {n}", "      ")
         lines.append("")
         if self.selected:
             prow = []
@@ -312,8 +314,9 @@ class CalibrationReport:
         detail = "; ".join(f"{names.get(k, k)}: p = {m['p_value']:.2g}, {m['structured_rms'] * mm:.4f} mm"
                            for k, m in models.items())
         out.append(f"  (b) {mark('b'):6} structure test over held-out runs: p = {s.p_value:.2g}, structured part "
-                   f"{s.structured_rms * mm:.4f} mm (structured when p < {STRUCTURE_P:g} and >= {STRUCTURE_RATIO:g} x "
-                   f"noise floor)" + (f"\n             {detail}" if detail else ""))
+                   f"{s.structured_rms * mm:.4f} mm")
+        out += _wrapped(f"             (structured when p < {STRUCTURE_P:g} and >= {STRUCTURE_RATIO:g} x noise floor"
+                        + (f"; {detail})" if detail else ")"), "              ")
         imp = v.get("implausible", [])
         out.append(f"  (c) {mark('c'):6} " + ("implausible: " + ", ".join(imp) if imp else "no selected parameter implausible"))
         if self.validation_errors is not None and v.get("validation_ratio") is not None:
@@ -340,12 +343,19 @@ def _table(headers, rows, title) -> str:
     return "\n".join(line.rstrip() for line in format_table(headers, rows, title).splitlines())
 
 
+def _wrapped(text: str, indent: str = "  ", width: int = TEXT_WIDTH) -> list[str]:
+    """``text`` wrapped at spaces to ``width`` columns, continuation lines indented by ``indent``."""
+    import textwrap
+
+    return textwrap.wrap(text, width, subsequent_indent=indent, break_long_words=False, break_on_hyphens=False)
+
+
 def _outlier_lines(outliers: list, source: str, what: str) -> list[str]:
     if not outliers:
         return []
     listed = ", ".join(f"run {o['run']} step {o['step']} ({o['size'] * 1000:.2f} mm)" for o in outliers[:12])
     more = f", and {len(outliers) - 12} more in the JSON" if len(outliers) > 12 else ""
-    return [f"outliers in {source}: {len(outliers)} lone row(s) beyond 6 robust sigmas, {what}: {listed}{more}"]
+    return _wrapped(f"outliers in {source}: {len(outliers)} lone row(s) beyond 6 robust sigmas, {what}: {listed}{more}")
 
 
 def display_unit(unit: str) -> tuple[float, str]:
