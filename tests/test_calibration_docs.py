@@ -4,6 +4,7 @@ blocks run here; the calibrations of the larger benches are marked slow."""
 from __future__ import annotations
 
 import importlib.util
+import sys
 from pathlib import Path
 
 import pytest
@@ -14,6 +15,7 @@ ROOT = Path(__file__).resolve().parents[1]
 def _examples():
     spec = importlib.util.spec_from_file_location("calibration_examples", ROOT / "docs" / "calibration_examples.py")
     mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod  # its dataclasses look their module up
     spec.loader.exec_module(mod)
     return mod
 
