@@ -132,6 +132,17 @@ def _warp_setup(tmp: Path) -> None:
     with_warp(tmp / "clean_val.csv", tmp / "warped_val.csv")
 
 
+def _spatial_setup(tmp: Path) -> None:
+    import shutil
+
+    src = ROOT / "scenarios" / "phantom15_spatial.toml"
+    shutil.copy(ROOT / "scenarios" / "phantom15.urdf", tmp / "phantom15.urdf")
+    scenario_with(src, tmp / "declared.toml", name="phantom15-declared", estimate=(0.008, 0.004, 0.168), gain=0.3)
+    scenario_with(tmp / "declared.toml", tmp / "bench_truth.toml", name="phantom15-bench",
+                  effects={"joint_offset": {"dq1": 0.003, "dq2": -0.002, "dq3": 0.002},
+                           "gravity_sag": {"c1": 0.0, "c2": 0.05, "c3": 0.08}})
+
+
 EXAMPLES = [
     Example("gravity", _gravity_setup, [
         "errplan experiment bench_truth.toml --out bench.csv --seed 1",
@@ -158,6 +169,11 @@ EXAMPLES = [
         "errplan -q experiment truth.toml --out v.csv --seed 2 --starts 3",
         "errplan -q calibrate scenarios/beasley2004_port.toml d.csv --validate v.csv --json c.json "
         "--export-scenario fixed.toml --predictions p.csv",
+    ]),
+    Example("spatial", _spatial_setup, [
+        "errplan -q experiment bench_truth.toml --out bench.csv --seed 1",
+        "errplan -q experiment bench_truth.toml --out val.csv --seed 2",
+        "errplan -q calibrate declared.toml bench.csv --validate val.csv --json cal.json --export-scenario corrected.toml",
     ]),
     Example("recorded", _recorded_setup, [
         "errplan -q calibrate scenarios/beasley2004_port.toml recorded.csv --json rec.json",
