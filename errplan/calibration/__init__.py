@@ -35,10 +35,16 @@ Pipeline (:func:`calibrate`):
    whole runs, seeded; each fold refitted from the full fit) are below those of every candidate
    with one effect fewer. Clean data select nothing; an effect that does not pay for its
    parameters on both counts is not added.
-5. **Explained?** The selected model's residual is tested for structure with the same flexible
-   model: an F test of the smooth part and its size ``s`` (its RMS after removing what the fit of
-   pure noise would absorb). ``explained`` is false when the structure is significant
-   (p < 1e-3) and ``s`` is at least the noise floor, i.e. the residual RMS is well above it.
+5. **Explained?** (:func:`.driver._verdict`, docs/physics.md "`explained` means explained"): only
+   when (a) the selected model's residual is at most 1.25 noise floors, (b) the structure test
+   (:func:`structure_test`: local polynomials and a global cubic of the tip with the row's motion,
+   each fitted without some whole runs and scored on them) finds no significant structure, (c) no
+   selected parameter is implausible and (d) a validation file's pose error after is below its
+   error before and at most 1.25 noise floors. Otherwise the report names the failed conditions and
+   the empirical last resort (:mod:`.empirical`) runs.
+
+Outliers (:mod:`.outliers`: lone rows beyond 6 robust sigmas of the flexible fit's residual) and
+dropouts are left out of every fit, the noise floor and every RMS, and listed.
 
 All RMS values (pose, trajectory, noise floor) are **per coordinate**: the square root of the
 mean over rows and over y, z of the squared residual. The noise floor therefore estimates the
