@@ -133,6 +133,67 @@ FLEX_CONFIGS = ((60, 2), (90, 2), (120, 2), (90, 3), (120, 3), (180, 3), (240, 3
 FLEX_CONFIGS_3D = ((120, 2), (180, 2), (240, 2), (240, 3), (360, 3), (480, 3))
 
 
+#: the delays (in steps of the data's median step duration) of the noise floor's motion features: every
+#: tracker_latency the catalogue allows (0 <= tau <= 5 steps) is a combination of them
+LATENCY_LAGS = 5
+
+
+def latency_features(x: np.ndarray, run: np.ndarray, time: np.ndarray | None = None,
+                     lags: int = LATENCY_LAGS) -> np.ndarray:
+    """The noise floor's motion features (n, d * lags): for k = 1 .. ``lags``, the model tip ``x`` (n, d)
+    at the row's time - k median steps minus at the row's time, linear in time between the rows of a
+    run (:func:`errplan.effects.delayed`, ``tracker_latency``'s own interpolation). A tracked tip that
+    is late by tau reads ``x(t - tau) - x(t)`` off the model's: for tau on this grid one column per
+    coordinate, between two grid points (nearly) a combination of the two. Each row's features are its
+    run's past only, so they never follow the row's own noise (the closed loop reacts to a row's noise
+    from the next row on). ``time`` None: the step index within the run."""
+    from ..effects import delayed
+
+    x = np.asarray(x, float)
+    run = np.asarray(run)
+    if len(x) == 0:
+        return np.zeros((0, x.shape[1] * lags))
+    dt = 1.0
+    if time is not None:
+        t = np.asarray(time, float)
+        d = np.diff(t)[run[1:] == run[:-1]]
+        d = d[d > 0]
+        dt = float(np.median(d)) if len(d) else 1.0
+    return np.concatenate([delayed(x, time, run, k * dt) - x for k in range(1, lags + 1)], axis=1)
+
+
+def _project_out(F: np.ndarray, A: np.ndarray, rcond: float = 1e-10) -> tuple[np.ndarray, int]:
+    """``A`` minus its least-squares projection on the columns of ``F``, and the rank of ``F``."""
+    U, sv, _ = np.linalg.svd(F, full_matrices=False)
+    keep = sv > rcond * (sv[0] if len(sv) else 0.0)
+    Uk = U[:, keep]
+    return A - Uk @ (Uk.T @ A), int(keep.sum())
+
+
+def _fit_with_motion(basis: LocalBasis, r: np.ndarray, x: np.ndarray, u: np.ndarray,
+                     m: np.ndarray) -> tuple[np.ndarray, float, int, np.ndarray]:
+    """The local polynomials of ``basis`` plus global columns ``m`` (n, k) fitted jointly to ``r``
+    (Frisch-Waugh-Lovell: each cluster's basis projected out of ``r`` and ``m``, the global
+    coefficients from what is left, the local ones from ``r - m coef``). Returns the fitted values
+    (n, d), the RSS, the rank per coordinate and the global coefficients (k, d)."""
+    rr = np.zeros_like(r)
+    mm = np.zeros_like(m)
+    rank = 0
+    for k in range(int(basis.labels.max()) + 1):
+        idx, F = basis._cluster(k, x, u)
+        if len(idx) == 0:
+            continue
+        both, rk = _project_out(F, np.concatenate([r[idx], m[idx]], axis=1))
+        rr[idx], mm[idx] = both[:, :r.shape[1]], both[:, r.shape[1]:]
+        rank += rk
+    scale = np.sqrt(np.mean(mm * mm, axis=0))
+    scale = np.where(scale > 0, scale, 1.0)
+    coef, rk_m = _lstsq(mm / scale, rr)
+    coef = coef / scale[:, None]
+    res = rr - mm @ coef
+    return r - res, float(np.sum(res * res)), rank + rk_m, coef
+
+
 @dataclass
 class NoiseFloor:
     """Noise floor of a pose residual: ``sigma`` (m, per coordinate), the flexible model used
@@ -145,15 +206,19 @@ class NoiseFloor:
     smooth_rms: float
     basis: LocalBasis
     x: np.ndarray = field(repr=False, default=None)
+    #: the global coefficients (k, d) of the motion features when given (:func:`latency_features`)
+    motion_coef: np.ndarray | None = field(repr=False, default=None)
 
     def to_json(self) -> dict:
         return {"sigma": self.sigma, "clusters": self.clusters, "degree": self.degree,
                 "parameters_per_coordinate": self.features, "smooth_rms": self.smooth_rms,
+                "motion_features": 0 if self.motion_coef is None else int(self.motion_coef.shape[0]),
                 "estimator": "dof-corrected RMS, sqrt(RSS / d(n - m)), left by local polynomials in the tip position "
-                             "x [1, u] on k-means clusters of rows (cluster size and degree by AIC)"}
+                             "x [1, u] on k-means clusters of rows (cluster size and degree by AIC) and, fitted with "
+                             "them, the motion: the model tip 1..5 steps earlier minus now"}
 
 
-def noise_floor(r: np.ndarray, x: np.ndarray, u: np.ndarray, configs=None) -> NoiseFloor:
+def noise_floor(r: np.ndarray, x: np.ndarray, u: np.ndarray, configs=None, motion: np.ndarray | None = None) -> NoiseFloor:
     """Estimate the measurement noise (per coordinate, m) from a pose residual ``r`` (n, d).
 
     ``x`` (n, d) are the model tip positions (where the rows are), ``u`` (n, d) friction's
@@ -163,25 +228,37 @@ def noise_floor(r: np.ndarray, x: np.ndarray, u: np.ndarray, configs=None) -> No
     noise: ``sigma = sqrt(RSS / (d (n - m)))``, m the parameters per coordinate. The cluster size
     and degree come from ``configs`` (default :data:`FLEX_CONFIGS`, :data:`FLEX_CONFIGS_3D`) by AIC
     (``N ln(RSS/N) + 2 (d m)``, ``N = d n``).
+
+    ``motion`` (n, k): global columns fitted with the local polynomials (:func:`latency_features`):
+    a late tracker's residual follows the motion, not the pose, and no local polynomial of the pose
+    follows it; without them the latency would be taken for noise (docs/physics.md "The structure
+    test sees the motion"). They count in m.
     """
     n, dim = r.shape
+    if motion is not None and (motion.ndim != 2 or motion.shape[1] == 0 or not np.all(np.isfinite(motion))):
+        motion = None
     N = dim * n
     configs = (FLEX_CONFIGS if dim == 2 else FLEX_CONFIGS_3D) if configs is None else configs
     best = None
     for per, deg in configs:
         labels = kmeans_labels(x, max(1, n // per))
         basis = LocalBasis(labels, deg)
-        fit, rss, rank = basis.fit(r, x, u)
+        coef = None
+        if motion is None:
+            fit, rss, rank = basis.fit(r, x, u)
+        else:
+            fit, rss, rank, coef = _fit_with_motion(basis, r, x, u, motion)
         if n - rank < max(2, n // 4):
             continue
         aic = N * math.log(max(rss, 1e-300) / N) + 2 * dim * rank
         if best is None or aic < best[0]:
-            best = (aic, basis, fit, rss, rank, deg)
+            best = (aic, basis, fit, rss, rank, deg, coef)
     if best is None:
         s = rms(r - r.mean(axis=0))
         return NoiseFloor(s, 1, 0, 1, 0.0, LocalBasis(np.zeros(n, int), 0), x)
-    _, basis, fit, rss, rank, deg = best
-    return NoiseFloor(math.sqrt(rss / (dim * (n - rank))), int(basis.labels.max()) + 1, deg, rank, rms(fit), basis, x)
+    _, basis, fit, rss, rank, deg, coef = best
+    return NoiseFloor(math.sqrt(rss / (dim * (n - rank))), int(basis.labels.max()) + 1, deg, rank, rms(fit), basis, x,
+                      coef)
 
 
 def motion_features(step: np.ndarray, run: np.ndarray, time: np.ndarray | None = None) -> np.ndarray:

@@ -65,11 +65,14 @@ def lone_rows(res: np.ndarray, run: np.ndarray, tracked: np.ndarray, sigma: np.n
 
 
 def find_outliers(r: np.ndarray, x: np.ndarray, u: np.ndarray, run: np.ndarray, tracked: np.ndarray,
-                  extra: np.ndarray | None = None, return_residual: bool = False):
+                  extra: np.ndarray | None = None, return_residual: bool = False, motion: np.ndarray | None = None):
     """The outliers (n,) bool of a pose residual ``r`` (n, d) (the declared model's; NaN allowed on
     untracked rows) at model tips ``x`` (n, d), friction's directions ``u`` (n, d), runs ``run`` (n,),
     ``tracked`` (n,) bool (False on dropouts). ``extra`` (n, k): further smooth regressors the fit so
-    far may use (the row's motion), appended to ``u``. With ``return_residual`` also the residual (n, d)
+    far may use, appended to ``u``. ``motion`` (n, k): the noise floor's global motion features
+    (:func:`errplan.calibration.noise.latency_features`), fitted with the local polynomials once and
+    their part removed first (a late tracker's residual follows the motion: left in, it would inflate
+    the robust sigma and show at a run's fast rows). With ``return_residual`` also the residual (n, d)
     after the fit without the far rows (NaN on untracked rows): an outlier's size is its norm."""
     from .noise import noise_floor
 
@@ -81,7 +84,11 @@ def find_outliers(r: np.ndarray, x: np.ndarray, u: np.ndarray, run: np.ndarray, 
     rt, xt, ut = r[idx], x[idx], u[idx]
     if extra is not None:
         ut = np.concatenate([ut, extra[idx]], axis=1)
-    basis = noise_floor(rt, xt, ut).basis
+    mt = None if motion is None else np.asarray(motion, float)[idx]
+    nf = noise_floor(rt, xt, ut, motion=mt)
+    basis = nf.basis
+    if nf.motion_coef is not None:
+        rt = rt - mt @ nf.motion_coef
     # every row beyond OUTLIER_SIGMAS is left out of the next fit (lone or not): least squares pulls the
     # fit toward an outlier, and so its neighbours (a run dwelling at its target sits at one place) away
     # from it; the rows are judged alone or not on the residual of a fit without them
