@@ -26,6 +26,10 @@ Pipeline (:func:`calibrate`):
    ``sqrt(RSS / (2n - 2m))``. Every effect of the catalogue and the usual unmodelled ones (link
    lengths, scale errors) are smooth in the configuration, so what the local polynomials cannot
    follow is the measurement noise (tracker, plus encoder noise seen through the Jacobian).
+   Fitted jointly with the polynomials, the row's motion (:func:`.noise.latency_features`: the model
+   tip 1..5 median steps earlier minus now): a late tracker's residual follows the motion, not the
+   pose. After the selection the same estimate on the selected model's residual; the noise floor
+   is the smaller of the two (each is the noise plus what the flexible model cannot follow).
 3. **Candidates** (:mod:`errplan.effects`): every effect alone, every pair, and the best pair
    plus each other effect; each fitted by nonlinear least squares on the pose residual, with
    ``s^2 (J^T J)^-1`` uncertainties and an identifiability check (unidentifiable combinations are
