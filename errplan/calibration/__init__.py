@@ -26,6 +26,10 @@ Pipeline (:func:`calibrate`):
    ``sqrt(RSS / (2n - 2m))``. Every effect of the catalogue and the usual unmodelled ones (link
    lengths, scale errors) are smooth in the configuration, so what the local polynomials cannot
    follow is the measurement noise (tracker, plus encoder noise seen through the Jacobian).
+   Fitted jointly with the polynomials, the row's motion (:func:`.noise.latency_features`: the model
+   tip 1..5 median steps earlier minus now): a late tracker's residual follows the motion, not the
+   pose. After the selection the same estimate on the selected model's residual; the noise floor
+   is the smaller of the two (each is the noise plus what the flexible model cannot follow).
 3. **Candidates** (:mod:`errplan.effects`): every effect alone, every pair, and the best pair
    plus each other effect; each fitted by nonlinear least squares on the pose residual, with
    ``s^2 (J^T J)^-1`` uncertainties and an identifiability check (unidentifiable combinations are
@@ -35,10 +39,16 @@ Pipeline (:func:`calibrate`):
    whole runs, seeded; each fold refitted from the full fit) are below those of every candidate
    with one effect fewer. Clean data select nothing; an effect that does not pay for its
    parameters on both counts is not added.
-5. **Explained?** The selected model's residual is tested for structure with the same flexible
-   model: an F test of the smooth part and its size ``s`` (its RMS after removing what the fit of
-   pure noise would absorb). ``explained`` is false when the structure is significant
-   (p < 1e-3) and ``s`` is at least the noise floor, i.e. the residual RMS is well above it.
+5. **Explained?** (:func:`.driver._verdict`, docs/physics.md "`explained` means explained"): only
+   when (a) the selected model's residual is at most 1.25 noise floors, (b) the structure test
+   (:func:`structure_test`: local polynomials and a global cubic of the tip with the row's motion,
+   each fitted without some whole runs and scored on them) finds no significant structure, (c) no
+   selected parameter is implausible and (d) a validation file's pose error after is below its
+   error before and at most 1.25 noise floors. Otherwise the report names the failed conditions and
+   the empirical last resort (:mod:`.empirical`) runs.
+
+Outliers (:mod:`.outliers`: lone rows beyond 6 robust sigmas of the flexible fit's residual) and
+dropouts are left out of every fit, the noise floor and every RMS, and listed.
 
 All RMS values (pose, trajectory, noise floor) are **per coordinate**: the square root of the
 mean over rows and over y, z of the squared residual. The noise floor therefore estimates the

@@ -11,7 +11,8 @@ from ..errors import DataError, ErrplanError
 from ..experiment import MeasuredData
 from .blas import single_threaded_blas
 from .fit import Candidate, _folds, fit_candidate
-from .noise import noise_floor, structure_test
+from .noise import latency_features, model_steps, motion_features, noise_floor, structure_test
+from .outliers import find_outliers, listing
 from .report import CalibrationReport, Errors
 from .residual import (
     approach_mask,
@@ -22,7 +23,6 @@ from .residual import (
     pose_residual,
     replay,
     rms,
-    trajectory_errors,
 )
 from .selection import select
 
@@ -86,8 +86,20 @@ def _calibrate(sc, data: MeasuredData, *, validate, seed, folds, progress, effec
         i = int(np.flatnonzero(tr & ~np.all(np.isfinite(r0), axis=1))[0])
         raise DataError(f"{data.source}: row {i + 1}: the declared model has no tip at encoder angles {data.q[i].tolist()}")
     x0 = predict_tracked(base, data.q, u, data.run, data.time)
-    nf = noise_floor(r0[tr], x0[tr], u[tr])
-    st0 = structure_test(r0[tr], u[tr], nf, data.run[tr], seed)
+    v = _motion(data, xmodel)  # the rows' motion: the structure test's
+    lag = _lagged(data, xmodel)  # the noise floor's: the model tip 1..5 steps earlier (a late tracker reads it)
+    # outliers (lone rows far off: errplan.calibration.outliers) lose their tips as dropouts do: left out of
+    # every fit, the noise floor and every RMS, kept for the runs' history; the controller replay runs on
+    # the data as read (`full`: the controller read what the bench read, outliers included)
+    full = data
+    outlier, r_smooth = find_outliers(r0, x0, u, data.run, tr, return_residual=True, motion=lag)
+    measured["outliers"] = listing(data, outlier, r_smooth)
+    if outlier.any():
+        data = data.without_tips(outlier)
+        tr = data.tracked
+        r0 = np.where(tr[:, None], r0, np.nan)
+    nf = noise_floor(r0[tr], x0[tr], u[tr], motion=lag[tr])
+    st0 = structure_test(r0[tr], u[tr], nf, data.run[tr], seed, motion=v[tr])
     prog(0.05, "noise floor")
     ident, ident_text = _identifiability(sc, data, cat)
     k = min(folds, data.runs)
@@ -151,47 +163,62 @@ def _calibrate(sc, data: MeasuredData, *, validate, seed, folds, progress, effec
             c.note = "not identifiable"
     model = chosen.model
     after = model.plant(base)
-    r1 = data.tip - predict_tracked(after, data.q, u, data.run, data.time)
-    st1 = structure_test(r1[tr], u[tr], nf, data.run[tr], seed)
-    explained = not st1.structured
+    x1 = predict_tracked(after, data.q, u, data.run, data.time)
+    r1 = data.tip - x1
+    # the noise the selected model leaves (the same flexible model on its residual): a run's arrival is judged
+    # with it (the same rows calibrated on its bench, the `--export-bench` file, then judge them alike: "before"
+    # there is "after" here). Either estimate is the noise plus what the flexible model cannot follow of its
+    # residual, so the noise floor is the smaller: a history effect the catalogue fits (a latency on fast,
+    # oscillating runs) may leave more than the motion features follow in the declared model's residual.
+    nf1 = noise_floor(r1[tr], x1[tr], u[tr], motion=lag[tr])
+    tol = arrival_tolerance(nf1.sigma)
+    if nf1.sigma < nf.sigma:
+        nf = nf1
+        st0.ratio = st0.rms / nf.sigma
+    st1 = structure_test(r1[tr], u[tr], nf, data.run[tr], seed, motion=v[tr])
+
+    def errors(d: MeasuredData, rows: MeasuredData, r_before: np.ndarray, r_after: np.ndarray) -> Errors:
+        """``d`` the data as read (the replay), ``rows`` the same rows with the outliers' tips removed."""
+        tb, tb_all = _trajectory_errors(d, rows, base, ctrl, tol, xmodel)
+        ta, ta_all = _trajectory_errors(d, rows, after, ctrl, tol, xmodel)
+        mask, unsettled = approach_mask(rows, tol)
+        return Errors(rms(r_before[rows.tracked]), rms(r_after[rows.tracked]), tb, ta, tb_all, ta_all, d.rows, d.runs,
+                      d.source, tol, int(mask.sum()), int(unsettled.sum()))
+
+    fit_err = errors(full, data, r0, r1)
+    val_err = None
+    if validate is not None:
+        uv = validate.commanded_directions(xmodel)
+        rv0 = pose_residual(validate, base, uv)
+        xv_after = predict_tracked(after, validate.q, uv, validate.run, validate.time)
+        rv1 = validate.tip - xv_after
+        # outliers of the validation file: listed and left out of its RMS, still predicted
+        out_v, rv_smooth = find_outliers(rv1, xv_after, uv, validate.run, validate.tracked, return_residual=True,
+                                         motion=_lagged(validate, xmodel))
+        measured["validation"]["outliers"] = listing(validate, out_v, rv_smooth)
+        val_rows = validate.without_tips(out_v) if out_v.any() else validate
+        val_err = errors(validate, val_rows, rv0, rv1)
+    verdict = _verdict(r1[tr], nf.sigma, st1, model, val_err, bool(model.names))
+    explained = not verdict["failed"]
     empirical = emp_predict = None
     if not explained:  # the last resort: a sparse correction over a documented basis (never "explained")
         from .empirical import fit_empirical
 
-        empirical, emp_predict = fit_empirical(predict_tracked(after, data.q, u, data.run, data.time)[tr], data.q[tr],
-                                               r1[tr], data.run[tr], folds=max(2, folds), seed=seed)
+        empirical, emp_predict = fit_empirical(x1[tr], data.q[tr], r1[tr], data.run[tr], folds=max(2, folds), seed=seed,
+                                               motion=v[tr])
         # the scenario format has no key for it (a correction of what the tracker reads, centred and
         # scaled on these rows, not a property of the robot): --predictions carries it, the export not
         empirical["in_exported_scenario"] = False
         empirical["export_note"] = ("not in the exported scenario: the scenario format has no key for an empirical "
                                     "correction of the tracked tip; --predictions includes it")
-
-    # before / after errors; a run's arrival is judged with the noise left by the selected model (the same rows
-    # calibrated on its bench, the `--export-bench` file, then judge them alike: "before" there is "after" here)
-    x1 = predict_tracked(after, data.q, u, data.run, data.time)
-    tol = arrival_tolerance(noise_floor(r1[tr], x1[tr], u[tr]).sigma)
-
-    def errors(d: MeasuredData, r_before: np.ndarray, r_after: np.ndarray) -> Errors:
-        tb, tb_all = trajectory_errors(d, base, ctrl, tol, xmodel)
-        ta, ta_all = trajectory_errors(d, after, ctrl, tol, xmodel)
-        mask, unsettled = approach_mask(d, tol)
-        return Errors(rms(r_before[d.tracked]), rms(r_after[d.tracked]), tb, ta, tb_all, ta_all, d.rows, d.runs, d.source, tol,
-                      int(mask.sum()), int(unsettled.sum()))
-
-    fit_err = errors(data, r0, r1)
-    val_err = None
-    if validate is not None:
-        uv = validate.commanded_directions(xmodel)
-        rv0, rv1 = pose_residual(validate, base, uv), pose_residual(validate, after, uv)
-        val_err = errors(validate, rv0, rv1)
-        if empirical is not None:
-            xv = predict_tracked(after, validate.q, uv, validate.run, validate.time)
-            tv = validate.tracked
-            empirical["validation_rms_declared"] = rms(rv0[tv])
-            empirical["validation_rms_selected"] = rms(rv1[tv])
-            empirical["validation_rms_with_term"] = rms((rv1 - emp_predict(xv, validate.q))[tv])
-    pred0, _ = replay(data, base, ctrl, xmodel)
-    pred1, _ = replay(data, after, ctrl, xmodel)
+    if empirical is not None and validate is not None:
+        tv = val_rows.tracked
+        empirical["validation_rms_declared"] = rms(rv0[tv])
+        empirical["validation_rms_selected"] = rms(rv1[tv])
+        empirical["validation_rms_with_term"] = rms(rv1[tv] - emp_predict(xv_after[tv], validate.q[tv],
+                                                                          _motion(validate, xmodel)[tv]))
+    pred0, _ = replay(full, base, ctrl, xmodel)
+    pred1, _ = replay(full, after, ctrl, xmodel)
     fixed = {f"{e.name}.{p_}": e.why_fixed or "identically zero sensitivity on this robot"
              for e in cat + geo for p_, fx in zip(e.params, e.fixed) if fx}
     for lab in model.held_labels:
@@ -204,9 +231,9 @@ def _calibrate(sc, data: MeasuredData, *, validate, seed, folds, progress, effec
         noise=nf, structure=st1, structure_before=st0, candidates=cand_list, fit_errors=fit_err,
         validation_errors=val_err, declared_effects={k2: dict(v) for k2, v in latency_in_data_units(sc.effects, sc, data).items()}, seed=seed, folds=k,
         points=x0[tr], residual_before=r0[tr], residual_after=r1[tr], tracked=data.tip[tr],  # tracked rows
-        replay_before=pred0, replay_after=pred1, data=data, fixed=fixed, skipped=skipped, left_out=left_out,
+        replay_before=pred0, replay_after=pred1, data=full, fixed=fixed, skipped=skipped, left_out=left_out,
         identifiability=ident_text, bench=ident, empirical=empirical, empirical_predict=emp_predict,
-        measured=measured)
+        measured=measured, verdict=verdict)
 
 
 def _without_thin_runs(data: MeasuredData) -> tuple[MeasuredData, list[str]]:
@@ -222,6 +249,73 @@ def _without_thin_runs(data: MeasuredData) -> tuple[MeasuredData, list[str]]:
     notes = [f"run {data.run_ids[r]!r} left out: {int(n_tr[r])} tracked row(s) of {int(data.lengths[r])} (a run needs "
              f"2 tracked rows to add anything to the fit)" for r in thin]
     return data.subset(np.setdiff1d(np.arange(data.runs), thin)), notes
+
+
+#: the verdict's thresholds (docs/physics.md "`explained` means explained"): the residual after the
+#: selected model, and the validation file's pose error after, at most this many noise floors
+VERDICT_RATIO = 1.25
+CONDITIONS = {
+    "a": "the residual after the selected model is above {ratio:g} x the noise floor",
+    "b": "the structure test finds structure left in the residual",
+    "c": "a selected parameter is implausible",
+    "d": "the validation file's pose error after is not below its error before, or above {ratio:g} x the noise floor",
+}
+
+
+def _verdict(r1: np.ndarray, sigma: float, st, model, val_err, selected: bool) -> dict:
+    """The verdict of docs/physics.md ("`explained` means explained"): the JSON ``verdict`` object,
+    ``failed`` the conditions (a)-(d) that failed (empty: explained)."""
+    from ..effects import implausible
+
+    ratio = rms(r1) / max(sigma, 1e-300)
+    flags = implausible(model) if model.effects else []
+    names = sorted({f"{f['effect']}.{f['param']}" for f in flags})
+    vratio = None
+    failed = []
+    if ratio > VERDICT_RATIO:
+        failed.append("a")
+    if st.structured:
+        failed.append("b")
+    if names:
+        failed.append("c")
+    if val_err is not None:
+        vratio = val_err.pose_after / max(sigma, 1e-300)
+        # nothing selected: the declared model is the model after, its error the same as before
+        worse = val_err.pose_after >= val_err.pose_before if selected else val_err.pose_after > val_err.pose_before
+        if worse or vratio > VERDICT_RATIO:
+            failed.append("d")
+    return {"residual_ratio": float(ratio), "structure_p": float(st.p_value), "implausible": names,
+            "validation_ratio": None if vratio is None else float(vratio), "failed": failed,
+            "threshold": VERDICT_RATIO}
+
+
+def _motion(data: MeasuredData, xmodel) -> np.ndarray:
+    """The rows' motion (n, d): the declared model tip's step from the row before over the step's
+    duration (:func:`.noise.motion_features`; ``data.time`` when the data have one, else steps)."""
+    with np.errstate(invalid="ignore"):
+        steps = model_steps(xmodel.model_tip(data.q), data.run)
+    steps = np.where(np.isfinite(steps), steps, 0.0)
+    return motion_features(steps, data.run, getattr(data, "time", None))
+
+
+def _lagged(data: MeasuredData, xmodel) -> np.ndarray:
+    """The noise floor's motion features (n, 5 d) of the rows (:func:`.noise.latency_features` of the
+    declared model tip; a row without a model tip contributes zeros)."""
+    with np.errstate(invalid="ignore"):
+        xm = xmodel.model_tip(data.q)
+    xm = np.where(np.isfinite(xm), xm, 0.0)
+    f = latency_features(xm, data.run, data.time)
+    return np.where(np.isfinite(f), f, 0.0)
+
+
+def _trajectory_errors(d: MeasuredData, rows: MeasuredData, plant, ctrl, tol: float, xmodel) -> tuple[float, float]:
+    """:func:`.residual.trajectory_errors` with the controller replayed on the data as read (``d``) and
+    compared on ``rows`` (the same rows, the outliers' tips removed: left out as dropouts are)."""
+    pred, _ = replay(d, plant, ctrl, xmodel)
+    r = rows.tip - pred
+    mask, _ = approach_mask(rows, tol)
+    every = (rows.step >= 1) & rows.tracked
+    return (rms(r[mask]) if np.any(mask) else float("nan")), (rms(r[every]) if np.any(every) else float("nan"))
 
 
 def _identifiability(sc, data: MeasuredData, cat) -> tuple[dict, str]:
@@ -240,6 +334,8 @@ def _identifiability(sc, data: MeasuredData, cat) -> tuple[dict, str]:
     js = {"condition_number": info.condition() if np.isfinite(info.condition()) else None,
           "largest_correlation": {"value": c, "between": [la, lb]}, "pair_correlations":
           {f"{a}+{b}": v for (a, b), v in pairs.items()}, "confused_pairs": conf, "threshold": CONFUSED}
+    if not pairs:  # a single effect (a geometric group with one physical effect, say): no pair to tell apart
+        return js, f"identifiability of the catalogue on these rows: condition number {info.condition():.3g}"
     if not conf:
         return js, (f"identifiability of the catalogue on these rows: every pair of effects separable (largest cross "
                     f"correlation {max(pairs.values()):.3f} < {CONFUSED:g}), condition number {info.condition():.3g}")

@@ -3,7 +3,12 @@ tracked tip when the best catalogue model still leaves a structured residual.
 
 ``Δ(x, q) = Σ_k θ_k φ_k(x, q)`` over a documented basis: monomials of the model tip's coordinates
 about the data's centroid, scaled by the data's extent (half the range per coordinate), total degree
-1..D (D ≤ 3; the constant is included); sin and cos of each encoder angle, orders 1 and 2.
+1..D (D ≤ 3; the constant is included); sin and cos of each encoder angle, orders 1 and 2; and, when
+the caller gives the rows' motion (the declared model tip's step over its duration,
+:func:`errplan.calibration.noise.motion_features`), its coordinates scaled by their RMS (``vx'``, ...).
+A term on the motion is history-dependent by construction (a row's motion is its run's history), and
+the report says so. The basis with the motion is fitted beside the one without and kept only when its
+held-out RMS is 5 % lower (:data:`MOTION_GAIN`): in closed loop the motion correlates with the pose.
 
 Fitted with scikit-learn (the only module that imports it): the columns normalised to unit RMS, the
 support of the term from the multi-task lasso path (:func:`sklearn.linear_model.lasso_path` with all
@@ -34,10 +39,13 @@ DEGREES = (1, 2, 3)
 ALPHA_GRID = np.r_[np.logspace(0.0, -2.0, 13), 0.0]
 HISTORY_GAIN = 0.9   # held-out RMS after / before above this: the pose basis does not predict the runs
 PARSIMONY = 1.01     # candidates within 1 % of the best held-out RMS: the fewest terms
+MOTION_GAIN = 0.95   # terms on the motion kept only when they cut the held-out RMS by 5 % beyond the pose's
 
 
-def basis(x: np.ndarray, q: np.ndarray, centre: np.ndarray, extent: np.ndarray, degree: int):
-    """Features (n, m) and their names for model tips ``x`` (n, d) and encoder angles ``q`` (n, N)."""
+def basis(x: np.ndarray, q: np.ndarray, centre: np.ndarray, extent: np.ndarray, degree: int,
+          v: np.ndarray | None = None, vscale: np.ndarray | None = None):
+    """Features (n, m) and their names for model tips ``x`` (n, d), encoder angles ``q`` (n, N) and,
+    optionally, the rows' motion ``v`` (n, d) over its scale ``vscale`` (d,)."""
     z = (np.asarray(x, float) - centre) / extent
     d = z.shape[1]
     axes = ("x", "y", "z")[3 - d:]
@@ -50,7 +58,17 @@ def basis(x: np.ndarray, q: np.ndarray, centre: np.ndarray, extent: np.ndarray, 
         for k in (1, 2):
             cols += [np.sin(k * q[:, j]), np.cos(k * q[:, j])]
             names += [f"sin({k}q{j + 1})" if k > 1 else f"sin(q{j + 1})", f"cos({k}q{j + 1})" if k > 1 else f"cos(q{j + 1})"]
+    if v is not None:
+        w = np.asarray(v, float) / vscale
+        for i in range(d):
+            cols.append(w[:, i])
+            names.append(f"v{axes[i]}'")
     return np.stack(cols, axis=1), names
+
+
+def is_motion_term(name: str) -> bool:
+    """A term of :func:`basis` on the row's motion (history-dependent by construction)."""
+    return name.startswith("v") and name.endswith("'") and "*" not in name
 
 
 def _normalised(F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -95,22 +113,34 @@ def refit(Fn: np.ndarray, r: np.ndarray, support: np.ndarray) -> np.ndarray:
     return coef
 
 
-def fit_empirical(x: np.ndarray, q: np.ndarray, r: np.ndarray, run: np.ndarray, *, folds: int = 5, seed: int = 0):
-    """The empirical term for residual ``r`` (n, d) at model tips ``x`` and encoder angles ``q``,
-    degree and penalty by grouped K-fold over whole runs. Returns the calibrate JSON's
-    ``empirical`` object and a predictor ``f(x, q) -> (n, d)``."""
+def fit_empirical(x: np.ndarray, q: np.ndarray, r: np.ndarray, run: np.ndarray, *, folds: int = 5, seed: int = 0,
+                  motion: np.ndarray | None = None):
+    """The empirical term for residual ``r`` (n, d) at model tips ``x`` and encoder angles ``q`` (and
+    the rows' ``motion`` (n, d) when given), degree and penalty by grouped K-fold over whole runs.
+    Returns the calibrate JSON's ``empirical`` object and a predictor ``f(x, q, motion=None) -> (n, d)``."""
     from threadpoolctl import threadpool_limits
 
     # one thread for every BLAS and OpenMP pool (scipy's and scikit-learn's too, not only numpy's):
     # these are hundreds of small problems (errplan.calibration.blas)
     with threadpool_limits(limits=1):
-        return _fit_empirical(x, q, r, run, folds, seed)
+        pose = _fit_empirical(x, q, r, run, folds, seed)
+        if motion is None:
+            return pose
+        # the motion's terms only when they predict the held-out runs clearly better than the pose's alone:
+        # in closed loop the motion correlates with where the tip is, and a warp of the tracker's space
+        # would otherwise borrow a term on the motion and read as history-dependent
+        moving = _fit_empirical(x, q, r, run, folds, seed, motion)
+        if moving[0]["motion_terms"] and moving[0]["held_out_rms_after"] < MOTION_GAIN * pose[0]["held_out_rms_after"]:
+            return moving
+        return pose
 
 
-def _fit_empirical(x, q, r, run, folds, seed):
+def _fit_empirical(x, q, r, run, folds, seed, motion=None):
     from sklearn.model_selection import GroupKFold
 
     x, q, r = (np.asarray(a, float) for a in (x, q, r))
+    v = None if motion is None else np.asarray(motion, float)
+    vscale = None if v is None else np.where((s_ := np.sqrt(np.mean(v * v, axis=0))) > 0, s_, 1.0)
     run = np.unique(np.asarray(run), return_inverse=True)[1]
     runs = int(run.max()) + 1
     k = max(2, min(folds, runs))
@@ -120,7 +150,7 @@ def _fit_empirical(x, q, r, run, folds, seed):
     before = math.sqrt(float(np.mean(r * r)))
     tried = []   # (held-out RMS, terms, degree, alpha index)
     for deg in DEGREES:
-        Fn, _ = _normalised(basis(x, q, centre, extent, deg)[0])
+        Fn, _ = _normalised(basis(x, q, centre, extent, deg, v, vscale)[0])
         alphas = max(alpha_max(Fn, r), 1e-300) * ALPHA_GRID
         sse = np.zeros(len(alphas))
         for tr, te in splits:
@@ -131,7 +161,7 @@ def _fit_empirical(x, q, r, run, folds, seed):
         tried += [(math.sqrt(sse[a] / r.size), int(full[a].sum()), deg, a) for a in range(len(alphas))]
     best = min(c[0] for c in tried)
     ho, terms, deg, a = min((c for c in tried if c[0] <= PARSIMONY * best), key=lambda c: (c[1], c[0]))
-    F, names = basis(x, q, centre, extent, deg)
+    F, names = basis(x, q, centre, extent, deg, v, vscale)
     Fn, norm = _normalised(F)
     alpha = max(alpha_max(Fn, r), 1e-300) * ALPHA_GRID[a]
     coef = refit(Fn, r, supports(Fn, r, np.array([alpha]))[0]) / norm[:, None]
@@ -139,14 +169,21 @@ def _fit_empirical(x, q, r, run, folds, seed):
     out = {"terms": [{"name": names[i], "coefficient": [float(v) for v in coef[i]]} for i in active],
            "degree": deg, "alpha": float(alpha), "alpha_relative": float(ALPHA_GRID[a]), "folds": k,
            "held_out_rms_before": before, "held_out_rms_after": ho,
-           "history_dependent": bool(ho > HISTORY_GAIN * before),
+           "history_dependent": bool(ho > HISTORY_GAIN * before or any(is_motion_term(names[i]) for i in active)),
+           "motion_terms": [names[i] for i in active if is_motion_term(names[i])],
            "method": "scikit-learn: support by the multi-task lasso path on unit-RMS columns, least squares on "
                      "the support; degree and penalty by GroupKFold over whole runs",
            "basis": "monomials of (model tip - centroid) / half-range up to the degree; sin, cos of each encoder "
                     "angle, orders 1 and 2", "centroid": [float(v) for v in centre],
            "extent": [float(v) for v in extent]}
 
-    def predict(x2: np.ndarray, q2: np.ndarray) -> np.ndarray:
-        return basis(np.asarray(x2, float), np.asarray(q2, float), centre, extent, deg)[0] @ coef
+    def predict(x2: np.ndarray, q2: np.ndarray, motion2: np.ndarray | None = None) -> np.ndarray:
+        x2 = np.asarray(x2, float)
+        if v is not None and motion2 is None:
+            if out["motion_terms"]:
+                raise ValueError("this empirical term has terms on the motion: give the rows' motion")
+            motion2 = np.zeros_like(x2)   # no active term on the motion: its columns do not matter
+        v2 = None if v is None else np.asarray(motion2, float)
+        return basis(x2, np.asarray(q2, float), centre, extent, deg, v2, vscale)[0] @ coef
 
     return out, predict

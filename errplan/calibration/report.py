@@ -12,6 +12,7 @@ from .fit import Candidate, _finite_or_none, _num
 from .noise import STRUCTURE_P, STRUCTURE_RATIO, NoiseFloor, Structure
 
 TEXT_CANDIDATES = 10        # candidates listed on stdout (all of them in the JSON)
+TEXT_WIDTH = 110            # the report's sentences wrapped to this many columns (tables as wide as they are)
 
 
 # ----------------------------------------------------------------------------- report
@@ -84,13 +85,22 @@ class CalibrationReport:
     task: list | None = None
     exported: list = field(default_factory=list)
     #: the calibrate JSON's ``measured`` (docs/interfaces.md): the data as the bench recorded them
-    #: (rows, runs, dropouts, runs without data, time unit, outliers; ``validation`` the same)
+    #: (rows, runs, dropouts, runs without data, time unit, outliers [{"run", "step", "size"}];
+    #: ``validation`` the same)
     measured: dict = field(default_factory=dict)
+    #: the verdict (calibrate JSON ``verdict``: residual_ratio, structure_p, implausible, validation_ratio,
+    #: failed); None only for reports built by hand
+    verdict: dict | None = None
 
     @property
     def errors(self) -> Errors:
         """The errors the JSON reports: on the validation file when one was given."""
         return self.validation_errors or self.fit_errors
+
+    @property
+    def outliers(self) -> list[dict]:
+        """The fit file's outliers, ``measured.outliers`` ([{"run", "step", "size"}])."""
+        return list(self.measured.get("outliers", []))
 
     @property
     def fitted(self) -> dict[str, dict[str, float]]:
@@ -145,6 +155,7 @@ class CalibrationReport:
             "measured": self.measured,
             "selected": list(self.selected),
             "explained": bool(self.explained),
+            "verdict": {k: v for k, v in (self.verdict or {}).items() if k != "threshold"},
             "parameters": self.parameters,
             "fitted": self.fitted,
             "uncertainty": self.uncertainty,
@@ -158,9 +169,10 @@ class CalibrationReport:
             "validation": self.validation_errors.to_json() if self.validation_errors else None,
             "noise": self.noise.to_json(),
             "residual_structure": {"before": self.structure_before.to_json(), "after": self.structure.to_json(),
-                                   "rule": f"not explained when the smooth part of the residual, predicted on held-out whole runs, "
-                                           f"is significant (one-sided t test over runs, p < {STRUCTURE_P:g}) and its "
-                                           f"RMS >= {STRUCTURE_RATIO:g} x noise floor"},
+                                   "rule": f"structured when the smooth part of the residual, predicted on held-out whole runs "
+                                           f"by local polynomials or by a global cubic of the tip with the row's motion, is "
+                                           f"significant (one-sided Wilcoxon signed-rank test over runs, the smaller p "
+                                           f"doubled, p < {STRUCTURE_P:g}) and its RMS >= {STRUCTURE_RATIO:g} x noise floor"},
             "declared_effects": self.declared_effects,
             "effects": self.effects_table(),
             "exported": [str(p) for p in self.exported],
@@ -181,8 +193,6 @@ class CalibrationReport:
         }
 
     def text(self) -> str:
-        from ..report import format_table
-
         mm = 1000.0
         lines = [f"calibration of {self.scenario} on {self.data_source} ({self.fit_errors.rows} rows, "
                  f"{self.fit_errors.runs} runs)"]
@@ -198,22 +208,29 @@ class CalibrationReport:
         for why in self.left_out:
             lines.append(why)
         if self.identifiability:
-            lines.append(self.identifiability)
+            lines += _wrapped(self.identifiability)
         lines.append("")
         rows = []
         order = sorted(self.candidates, key=lambda c: c.bic)
         bic_none = next(c.bic for c in self.candidates if not c.effects)
         shown = order[:TEXT_CANDIDATES]
         shown += [c for c in order[TEXT_CANDIDATES:] if not c.effects or not c.selectable]
+        notes: list[str] = []
         for c in shown:
+            note = _readable_note(c.note)
+            if note and note not in notes:
+                notes.append(note)
             rows.append([("* " if c.selected else "  ") + c.label, c.model.n_free, c.rms * mm,
                          c.heldout_rms * mm if c.heldout_rms is not None else float("nan"), c.bic - bic_none,
-                         c.model.condition_, "yes" if c.selectable else "no", c.note])
+                         c.model.condition_, "yes" if c.selectable else "no",
+                         f"[{notes.index(note) + 1}]" if note else ""])
         more = len(order) - len(shown)
-        lines.append(format_table(["candidate", "p", "pose rms mm", "held-out mm", "dBIC", "cond", "ok", "note"], rows,
-                                  f"candidates (sorted by BIC; * selected; ok: identifiable, condition number <= "
-                                  f"{MAX_CONDITION:g} and correlations <= {MAX_CORRELATION:g}; {len(order)} tried"
-                                  + (f", {more} more in the JSON)" if more else ")")))
+        lines.append(_table(["candidate", "p", "pose rms mm", "held-out mm", "dBIC", "cond", "ok", "note"], rows,
+                            f"candidates (sorted by BIC; * selected; ok: identifiable, condition number <= "
+                            f"{MAX_CONDITION:g} and correlations <= {MAX_CORRELATION:g}; {len(order)} tried"
+                            + (f", {more} more in the JSON)" if more else ")")))
+        for i, n in enumerate(notes):
+            lines += _wrapped(f"  [{i + 1}] {n}", "      ")
         lines.append("")
         if self.selected:
             prow = []
@@ -239,7 +256,7 @@ class CalibrationReport:
                     dec = self.declared_effects.get(e)
                     note = f"declared {dec.get(p, 0.0) * f:+.4f} + fitted {self.fitted[e][p] * f:+.4f}" if dec else ""
                     prow.append([e, p, f"{v * f:+.4f} ± {sig}", unit, note])
-            lines.append(format_table(["effect", "param", "value ± 1 sigma", "unit", ""], prow, "selected effects"))
+            lines.append(_table(["effect", "param", "value ± 1 sigma", "unit", ""], prow, "selected effects"))
             for flag in implausible(self.model):
                 lines.append("implausible: " + flag["why"])
             chosen = next((c for c in self.candidates if c.selected), None)
@@ -251,7 +268,7 @@ class CalibrationReport:
         e = self.errors
         on = "validation data" if self.validation_errors else "the data"
         lines.append("")
-        lines.append(format_table(["error (RMS per coordinate)", "before mm", "after mm"], [
+        lines.append(_table(["error (RMS per coordinate)", "before mm", "after mm"], [
             ["pose (tracked vs model tip)", e.pose_before * mm, e.pose_after * mm],
             ["trajectory, approach (controller replayed)", e.trajectory_before * mm, e.trajectory_after * mm],
             ["trajectory, every step", e.trajectory_all_before * mm, e.trajectory_all_after * mm],
@@ -259,11 +276,14 @@ class CalibrationReport:
         if e.unsettled_runs:
             lines.append(f"({e.unsettled_runs} of {e.runs} runs diverged or cycled without arriving and are left out of "
                          f"the approach RMS)")
-        s = self.structure
-        verdict = "yes" if self.explained else "NO"
-        lines.append(f"explained: {verdict} — residual after {s.rms * mm:.4f} mm = {s.ratio:.2f} x noise floor; "
-                     f"structured part {s.structured_rms * mm:.4f} mm (held-out-runs test p = {s.p_value:.2g}; in-sample F test "
-                     f"p = {s.f_p_value:.2g}, not used: closed-loop rows are not independent)")
+        val_out = (self.measured.get("validation") or {}).get("outliers", [])
+        if self.outliers or val_out:
+            lines.append("")
+            lines += _outlier_lines(self.outliers, self.fit_errors.source, "left out of every fit and RMS")
+            if self.validation_errors is not None:
+                lines += _outlier_lines(val_out, self.validation_errors.source, "left out of its RMS, still predicted")
+        lines.append("")
+        lines += self.verdict_lines()
         if self.empirical is not None:
             em = self.empirical
             lines.append(f"empirical term (not a physical effect): {len(em['terms'])} term(s) of degree <= {em['degree']}, "
@@ -272,14 +292,76 @@ class CalibrationReport:
                             f"{em['validation_rms_with_term'] * mm:.4f} mm" if "validation_rms_with_term" in em else ""))
             if em.get("export_note"):
                 lines.append(f"  {em['export_note']}")
-            if em["history_dependent"]:
+            if em.get("motion_terms"):
+                lines.append(f"  terms on the row's motion ({', '.join(em['motion_terms'])}): history-dependent, the "
+                             f"residual follows the motion (a latency, friction or hysteresis outside the catalogue?)")
+            elif em["history_dependent"]:
                 lines.append("  the term does not predict held-out runs: the residual depends on the motion's history or "
                              "on time, not on the pose")
         if not self.explained:
-            lines.append("  a structured residual remains well above the noise floor: an effect outside the catalogue "
-                         "(see the residual map in --record);\n  the selected combination is only the catalogue's best "
-                         "approximation, its parameters absorb the unmodelled effect")
+            lines.append("  the selected combination is only the catalogue's best approximation: an effect outside the "
+                         "catalogue,\n  its parameters absorbing what it lacks (see the residual map in --record)")
         return "\n".join(lines)
+
+    def verdict_lines(self) -> list[str]:
+        """The verdict, each condition of docs/physics.md ("`explained` means explained") with its number."""
+        mm = 1000.0
+        s = self.structure
+        v = self.verdict or {}
+        failed = set(v.get("failed", []))
+        thr = v.get("threshold", 1.25)
+        mark = lambda c: "FAILED" if c in failed else "ok"  # noqa: E731
+        out = [f"explained: {'yes' if self.explained else 'NO'}"
+               + (f" — failed: {', '.join(sorted(failed))}" if failed else "")]
+        out.append(f"  (a) {mark('a'):6} residual after {s.rms * mm:.4f} mm = {s.ratio:.2f} x noise floor "
+                   f"(at most {thr:g})")
+        models = s.models or {}
+        names = {"local": "local polynomials", "global": "cubic of the tip with the motion"}
+        detail = "; ".join(f"{names.get(k, k)}: p = {m['p_value']:.2g}, {m['structured_rms'] * mm:.4f} mm"
+                           for k, m in models.items())
+        out.append(f"  (b) {mark('b'):6} structure test over held-out runs: p = {s.p_value:.2g}, structured part "
+                   f"{s.structured_rms * mm:.4f} mm")
+        out += _wrapped(f"             (structured when p < {STRUCTURE_P:g} and >= {STRUCTURE_RATIO:g} x noise floor"
+                        + (f"; {detail})" if detail else ")"), "              ")
+        imp = v.get("implausible", [])
+        out.append(f"  (c) {mark('c'):6} " + ("implausible: " + ", ".join(imp) if imp else "no selected parameter implausible"))
+        if self.validation_errors is not None and v.get("validation_ratio") is not None:
+            ve = self.validation_errors
+            out.append(f"  (d) {mark('d'):6} validation pose error {ve.pose_before * mm:.4f} -> {ve.pose_after * mm:.4f} mm"
+                       f" = {v['validation_ratio']:.2f} x noise floor (below before, at most {thr:g})")
+        else:
+            out.append("  (d) -      no validation file")
+        return out
+
+
+def _readable_note(note: str) -> str:
+    """A candidate's note for the text table: the clauses that say something (a correlation or a
+    condition number that is not a number says nothing beyond "no data depend on ...")."""
+    parts = [p for p in note.split("; ") if "nan" not in p.split() and not p.endswith("+nan")
+             and "condition number inf" not in p]
+    return "; ".join(parts)
+
+
+def _table(headers, rows, title) -> str:
+    """:func:`errplan.report.format_table` without the padding at the ends of the lines."""
+    from ..report import format_table
+
+    return "\n".join(line.rstrip() for line in format_table(headers, rows, title).splitlines())
+
+
+def _wrapped(text: str, indent: str = "  ", width: int = TEXT_WIDTH) -> list[str]:
+    """``text`` wrapped at spaces to ``width`` columns, continuation lines indented by ``indent``."""
+    import textwrap
+
+    return textwrap.wrap(text, width, subsequent_indent=indent, break_long_words=False, break_on_hyphens=False)
+
+
+def _outlier_lines(outliers: list, source: str, what: str) -> list[str]:
+    if not outliers:
+        return []
+    listed = ", ".join(f"run {o['run']} step {o['step']} ({o['size'] * 1000:.2f} mm)" for o in outliers[:12])
+    more = f", and {len(outliers) - 12} more in the JSON" if len(outliers) > 12 else ""
+    return _wrapped(f"outliers in {source}: {len(outliers)} lone row(s) beyond 6 robust sigmas, {what}: {listed}{more}")
 
 
 def measured_lines(measured: dict) -> list[str]:
