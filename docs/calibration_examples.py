@@ -173,7 +173,8 @@ EXAMPLES = [
     Example("spatial", _spatial_setup, [
         "errplan -q experiment bench_truth.toml --out bench.csv --seed 1",
         "errplan -q experiment bench_truth.toml --out val.csv --seed 2",
-        "errplan -q calibrate declared.toml bench.csv --validate val.csv --json cal.json --export-scenario corrected.toml",
+        "errplan -q calibrate declared.toml bench.csv --validate val.csv --json cal.json --export-scenario corrected.toml "
+        "--no-task",
     ]),
     Example("recorded", _recorded_setup, [
         "errplan -q calibrate scenarios/beasley2004_port.toml recorded.csv --json rec.json",
