@@ -191,33 +191,6 @@ def uncovered_effects(sc) -> list[str]:
     return sorted(name for name, p in (getattr(sc, "effects", None) or {}).items()
                   if name not in EXPRESSIBLE_EFFECTS and _nonzero(p))
 
-#: every effect the metrics express: the fields and the gain certificates take them into J, Jhat or R;
-#: an effect outside this list (history- or motion-dependent: backlash, port_friction, a tracker latency,
-#: or any effect added later) is simulated but not certified (:func:`uncovered_effects`)
-EXPRESSIBLE_EFFECTS = ("port_offset", "joint_offset", "gravity_sag", "shaft_flexion", "tracker_offset",
-                       "link_length", "joint_geometry", "instrument_length", "tracker_registration")
-
-
-def _nonzero(params) -> bool:
-    """True when an effect table has some parameter that is not zero (a zero effect is no effect)."""
-    for v in dict(params).values():
-        try:
-            if float(v) != 0.0:
-                return True
-        except (TypeError, ValueError):
-            return True
-    return False
-
-
-def uncovered_effects(sc) -> list[str]:
-    """The sorted names of the scenario truth's ``[effects]`` that the metrics cannot express (every
-    effect but those of :data:`EXPRESSIBLE_EFFECTS`; an effect whose parameters are all zero is none):
-    the fields and gain certificates hold for the truth without them, the simulation has them. A plan
-    on such a scenario says its certificate does not cover them (docs/physics.md "From measured data
-    to the plan")."""
-    return sorted(name for name, p in (getattr(sc, "effects", None) or {}).items()
-                  if name not in EXPRESSIBLE_EFFECTS and _nonzero(p))
-
 
 def error_set(sc, es: ErrorSet | None = None) -> tuple[ErrorSet, dict]:
     """The scenario's error set (``es``, default from its tables) with a ``port_offset`` effect folded
