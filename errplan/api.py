@@ -231,10 +231,11 @@ def check_anatomy(sc: Scenario) -> None:
 
 
 def _part(progress: Progress | None, lo: float, hi: float) -> Progress | None:
-    """``progress`` for one part of a job: its fractions 0..1 mapped to ``lo..hi``."""
-    if progress is None:
-        return None
-    return lambda f, msg="": progress(lo + (hi - lo) * f, msg)
+    """``progress`` for one part of a job: its fractions 0..1 mapped to ``lo..hi``
+    (:func:`errplan.pipeline.part_progress`)."""
+    from .pipeline import part_progress
+
+    return part_progress(progress, lo, hi)
 
 
 def _scenario(scenario):

@@ -39,6 +39,13 @@ from .report import clearance_text, format_table
 from .simulation import ControllerModel, Plant, SimResult, g_norm_along, simulate
 
 Progress = Callable[[float, str], None]
+
+
+def part_progress(progress: Progress | None, lo: float, hi: float) -> Progress | None:
+    """``progress`` for one part of a job: its fractions 0..1 mapped to ``lo..hi``."""
+    if progress is None:
+        return None
+    return lambda f, msg="": progress(lo + (hi - lo) * f, msg)
 MAX_STEPS = 20000
 
 

@@ -33,7 +33,7 @@ def plan_on_truth(sc, truth_sc=None, *, query: str | None = None, planner: str |
     ``plan_fn(sc, progress)``: the plan itself (``errplan plan`` passes its step-by-step
     :func:`errplan.cli.plan.plan_arm` without the pipeline; the result is the same); default
     :func:`errplan.planning.plan_scenario` with the scenario's budget."""
-    from ..api import _part
+    from ..pipeline import part_progress as _part
     from ..models import arm_model
     from ..pipeline import check_truth_pair, run_pipeline
     from ..planning import plan_scenario
@@ -105,7 +105,7 @@ def calibration_task(sc, report, *, workers: int = 1, progress=None) -> list[dic
     """The calibrate JSON's ``task``: ``[{"query", "before": T, "after": T}]``, each query of ``sc`` planned
     on the declared model (before) and on the corrected one (after), both simulated on the fitted truth
     (:func:`plan_on_truth`, corner replays left out: they do not enter T). [] without queries."""
-    from ..api import _part
+    from ..pipeline import part_progress as _part
 
     if not getattr(sc, "queries", None):
         return []
